@@ -1,0 +1,1 @@
+"""The science, offline: robots, dynamics, feedback laws, HMPC, datasets, emulator, export."""

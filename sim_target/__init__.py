@@ -1,0 +1,1 @@
+"""The HIL plant: a pybullet arm behind emulated CiA 402 drives."""
