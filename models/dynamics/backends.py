@@ -1,0 +1,173 @@
+"""Two interchangeable dynamics backends behind one interface.
+
+``RneDynamics`` runs this project's own RNEIDA/RNEFDA (rne.py); ``PinocchioDynamics`` runs
+pinocchio's rnea/crba/aba on the same robot description. Every method accepts a single state
+(shape (N,)) or a batch (shape (B, N)) and returns the matching shape.
+
+    dyn = make_dynamics(load_robot("ur5_paper"), backend="rne")
+    tau = dyn.inverse_dynamics(q, qd, qdd)
+    qdd = dyn.forward_dynamics(q, qd, tau)
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from models.dynamics.rne import ChainArrays, mass_matrix_and_bias, rneida
+from models.errors import ModelInputError
+from models.robots import RobotModel
+
+
+class Dynamics(Protocol):
+    """Rigid-body dynamics M(q) qdd + C(q, qd) qd + G(q) = tau + J^T wrench."""
+
+    robot: RobotModel
+    n_joints: int
+
+    def inverse_dynamics(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, ee_wrench: np.ndarray | None = None) -> np.ndarray: ...
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray: ...
+    def nonlinear_effects(self, q: np.ndarray, qd: np.ndarray, ee_wrench: np.ndarray | None = None) -> np.ndarray: ...
+    def gravity(self, q: np.ndarray) -> np.ndarray: ...
+    def forward_dynamics(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, ee_wrench: np.ndarray | None = None) -> np.ndarray: ...
+
+
+def _batched(*arrays: np.ndarray | None) -> tuple[bool, list[np.ndarray | None]]:
+    single = np.ndim(arrays[0]) == 1
+    out = [None if a is None else np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in arrays]
+    return single, out
+
+
+def _unbatch(single: bool, value: np.ndarray) -> np.ndarray:
+    return value[0] if single else value
+
+
+class RneDynamics:
+    """The paper's recursive Newton-Euler algorithms (this project's own code), in numpy."""
+
+    def __init__(self, robot: RobotModel) -> None:
+        self.robot = robot
+        self.n_joints = robot.n_joints
+        self.chain = ChainArrays.from_robot(robot)
+
+    def inverse_dynamics(self, q, qd, qdd, ee_wrench=None):  # type: ignore[no-untyped-def]
+        single, (q, qd, qdd, w) = _batched(q, qd, qdd, ee_wrench)
+        return _unbatch(single, rneida(np, self.chain, q, qd, qdd, self.chain.gravity, w))
+
+    def mass_matrix(self, q):  # type: ignore[no-untyped-def]
+        single, (q,) = _batched(q)
+        mass_matrix, _ = mass_matrix_and_bias(np, self.chain, q, np.zeros_like(q))
+        return _unbatch(single, mass_matrix)
+
+    def nonlinear_effects(self, q, qd, ee_wrench=None):  # type: ignore[no-untyped-def]
+        single, (q, qd, w) = _batched(q, qd, ee_wrench)
+        zero = np.zeros_like(q)
+        return _unbatch(single, rneida(np, self.chain, q, qd, zero, self.chain.gravity, w))
+
+    def gravity(self, q):  # type: ignore[no-untyped-def]
+        single, (q,) = _batched(q)
+        zero = np.zeros_like(q)
+        return _unbatch(single, rneida(np, self.chain, q, zero, zero, self.chain.gravity))
+
+    def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
+        """RNEFDA (Alg. 1): h and M from N + 1 RNEIDA calls (one batched pass), then a solve."""
+        single, (q, qd, tau, w) = _batched(q, qd, tau, ee_wrench)
+        mass_matrix, bias = mass_matrix_and_bias(np, self.chain, q, qd, w)
+        return _unbatch(single, np.linalg.solve(mass_matrix, (tau - bias)[..., None])[..., 0])
+
+    def mass_matrix_and_bias(self, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        single, (q, qd) = _batched(q, qd)
+        mass_matrix, bias = mass_matrix_and_bias(np, self.chain, q, qd)
+        return _unbatch(single, mass_matrix), _unbatch(single, bias)
+
+
+def build_pinocchio_model(robot: RobotModel):  # type: ignore[no-untyped-def]
+    """A pinocchio model of exactly this description (so payload/scaling variants carry over)."""
+    import pinocchio as pin
+
+    model = pin.Model()
+    model.name = robot.name
+    parent = 0
+    for i in range(robot.n_joints):
+        placement = pin.SE3(robot.joint_rotation[i], robot.joint_translation[i])
+        joint = pin.JointModelRevoluteUnaligned(*robot.joint_axis[i])
+        parent = model.addJoint(parent, joint, placement, robot.joint_names[i])
+        inertia = pin.Inertia(float(robot.mass_kg[i]), robot.com_m[i], robot.inertia_kg_m2[i])
+        model.appendBodyToJoint(parent, inertia, pin.SE3.Identity())
+    model.gravity = pin.Motion(np.asarray(robot.gravity_m_s2, float), np.zeros(3))
+    ee = pin.SE3(robot.ee_rotation, robot.ee_translation)
+    model.addFrame(pin.Frame("ee", parent, 0, ee, pin.FrameType.OP_FRAME))
+    return model
+
+
+class PinocchioDynamics:
+    """pinocchio's rnea / crba / aba behind the same interface (C++; loops over a batch)."""
+
+    def __init__(self, robot: RobotModel) -> None:
+        try:
+            import pinocchio as pin
+        except ImportError as exc:  # pragma: no cover - depends on the install
+            raise ModelInputError("backend 'pinocchio': the pin package is not installed (pip install pin)") from exc
+        self._pin = pin
+        self.robot = robot
+        self.n_joints = robot.n_joints
+        self.model = build_pinocchio_model(robot)
+        self.data = self.model.createData()
+        self._ee_joint = self.model.njoints - 1
+        self._ee_placement = pin.SE3(robot.ee_rotation, robot.ee_translation)
+
+    def _fext(self, wrench: np.ndarray | None):  # type: ignore[no-untyped-def]
+        if wrench is None:
+            return None
+        pin = self._pin
+        forces = pin.StdVec_Force()
+        for _ in range(self.model.njoints):
+            forces.append(pin.Force.Zero())
+        # wrench in the ee frame -> the same wrench expressed in the last joint's frame
+        forces[self._ee_joint] = self._ee_placement.act(pin.Force(wrench[:3], wrench[3:]))
+        return forces
+
+    def _each(self, fn, *arrays):  # type: ignore[no-untyped-def]
+        single, batch = _batched(*arrays)
+        rows = [fn(*(None if a is None else a[b] for a in batch)) for b in range(batch[0].shape[0])]
+        return _unbatch(single, np.array(rows))
+
+    def inverse_dynamics(self, q, qd, qdd, ee_wrench=None):  # type: ignore[no-untyped-def]
+        def one(q, qd, qdd, w):  # type: ignore[no-untyped-def]
+            if w is None:
+                return self._pin.rnea(self.model, self.data, q, qd, qdd).copy()
+            return self._pin.rnea(self.model, self.data, q, qd, qdd, self._fext(w)).copy()
+
+        return self._each(one, q, qd, qdd, ee_wrench)
+
+    def mass_matrix(self, q):  # type: ignore[no-untyped-def]
+        def one(q):  # type: ignore[no-untyped-def]
+            m = self._pin.crba(self.model, self.data, q)
+            return np.triu(m) + np.triu(m, 1).T
+
+        return self._each(one, q)
+
+    def nonlinear_effects(self, q, qd, ee_wrench=None):  # type: ignore[no-untyped-def]
+        return self.inverse_dynamics(q, qd, np.zeros_like(np.asarray(q, float)), ee_wrench)
+
+    def gravity(self, q):  # type: ignore[no-untyped-def]
+        return self._each(lambda q: self._pin.computeGeneralizedGravity(self.model, self.data, q).copy(), q)
+
+    def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
+        def one(q, qd, tau, w):  # type: ignore[no-untyped-def]
+            if w is None:
+                return self._pin.aba(self.model, self.data, q, qd, tau).copy()
+            return self._pin.aba(self.model, self.data, q, qd, tau, self._fext(w)).copy()
+
+        return self._each(one, q, qd, tau, ee_wrench)
+
+
+BACKENDS = {"rne": RneDynamics, "pinocchio": PinocchioDynamics}
+
+
+def make_dynamics(robot: RobotModel, backend: str = "rne") -> Dynamics:
+    """The dynamics of ``robot`` from the named backend: ``rne`` (own code) or ``pinocchio``."""
+    if backend not in BACKENDS:
+        raise ModelInputError(f"dynamics backend: unknown '{backend}' (known: {', '.join(BACKENDS)})")
+    return BACKENDS[backend](robot)

@@ -1,0 +1,187 @@
+"""The paper's recursive Newton-Euler algorithms, written here (Sec. II, Alg. 1 and 2).
+
+RNEIDA (Alg. 2): forward recursion of angular velocity/acceleration and linear acceleration of
+each joint frame and link COM, in body coordinates (Eqs. 3-6); backward recursion of constraint
+forces and moments (Eqs. 7-10); joint torque as the moment's projection on the joint axis (Eq. 12).
+Gravity enters as a fictitious base acceleration -g. An external wrench on the end effector
+initializes the backward recursion (Eqs. 8, 11).
+
+RNEFDA (Alg. 1): h(q, q_dot) from one RNEIDA call with q_ddot = 0, the mass matrix column by column
+from N calls with unit accelerations (no velocity, no gravity), then q_ddot = M^-1 (tau - h).
+All N + 1 calls run as one batched RNEIDA pass.
+
+Every function is vectorized over a leading batch axis and written against an array namespace
+``xp`` (numpy, or torch for tracing a law to ONNX), using only operations both provide.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from models.robots import RobotModel
+
+
+@dataclass(frozen=True, eq=False)
+class ChainArrays:
+    """The robot's constant parameters as arrays of one namespace (numpy or torch)."""
+
+    joint_rotation: Any  # (N, 3, 3)
+    joint_translation: Any  # (N, 3)
+    joint_axis: Any  # (N, 3)
+    axis_cross: Any  # (N, 3, 3) skew(axis)
+    axis_outer: Any  # (N, 3, 3) axis axis^T
+    axis_perp: Any  # (N, 3, 3) I - axis axis^T
+    mass: Any  # (N,)
+    com: Any  # (N, 3)
+    inertia: Any  # (N, 3, 3)
+    ee_rotation: Any  # (3, 3)
+    ee_translation: Any  # (3,)
+    gravity: Any  # (3,)
+    n_joints: int
+
+    @classmethod
+    def from_robot(cls, robot: RobotModel, to_array: Any = np.asarray) -> ChainArrays:
+        axis = robot.joint_axis
+        skew = np.zeros((robot.n_joints, 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+        skew -= skew.transpose(0, 2, 1)
+        outer = np.einsum("ni,nj->nij", axis, axis)
+        values = [
+            robot.joint_rotation, robot.joint_translation, axis, skew, outer, np.eye(3) - outer, robot.mass_kg,
+            robot.com_m, robot.inertia_kg_m2, robot.ee_rotation, robot.ee_translation, robot.gravity_m_s2,
+        ]  # fmt: skip
+        return cls(*[to_array(np.asarray(v, dtype=np.float64)) for v in values], n_joints=robot.n_joints)
+
+
+def _cross(xp: Any, a: Any, b: Any) -> Any:
+    """Batched cross product over the last axis (numpy and torch alike)."""
+    return xp.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        -1,
+    )
+
+
+def _matvec(xp: Any, m: Any, v: Any) -> Any:
+    return xp.einsum("...ij,...j->...i", m, v)
+
+
+def _matTvec(xp: Any, m: Any, v: Any) -> Any:
+    return xp.einsum("...ji,...j->...i", m, v)
+
+
+def joint_rotations(xp: Any, chain: ChainArrays, q: Any) -> list[Any]:
+    """R_{i-1,i}(q_i): orientation of frame i in frame i-1 (Rodrigues about the joint axis)."""
+    rotations = []
+    for i in range(chain.n_joints):
+        s, c = xp.sin(q[..., i])[..., None, None], xp.cos(q[..., i])[..., None, None]
+        about_axis = c * chain.axis_perp[i] + chain.axis_outer[i] + s * chain.axis_cross[i]
+        rotations.append(xp.einsum("ij,...jk->...ik", chain.joint_rotation[i], about_axis))
+    return rotations
+
+
+def rneida(
+    xp: Any,
+    chain: ChainArrays,
+    q: Any,
+    qd: Any,
+    qdd: Any,
+    gravity: Any,
+    ee_wrench: Any | None = None,
+) -> Any:
+    """Alg. 2: joint torques (B, N) for states (B, N).
+
+    ``gravity`` is (B, 3) or (3,) in the base frame; ``ee_wrench`` (B, 6) = [force, moment] that the
+    environment applies to the end effector, in the end-effector frame (pinocchio's convention:
+    tau = ID(q, qd, qdd) - J^T wrench).
+    """
+    n = chain.n_joints
+    rotations = joint_rotations(xp, chain, q)
+    omega = xp.zeros_like(q[..., :3])
+    omega_dot = xp.zeros_like(omega)
+    accel = -gravity + omega  # base frame origin accelerates at -g (fictitious); broadcast to (B, 3)
+    forces, moments = [], []
+    for i in range(n):
+        rot = rotations[i]
+        # Eq. 5: acceleration of frame i's origin, from frame i-1's motion, then into frame i.
+        p = chain.joint_translation[i]
+        accel = _matTvec(xp, rot, accel + _cross(xp, omega_dot, p) + _cross(xp, omega, _cross(xp, omega, p)))
+        # Eqs. 3-4: angular velocity and acceleration in frame i.
+        omega_parent = _matTvec(xp, rot, omega)
+        axis_rate = chain.joint_axis[i] * qd[..., i : i + 1]
+        omega = omega_parent + axis_rate
+        omega_dot = (
+            _matTvec(xp, rot, omega_dot)
+            + chain.joint_axis[i] * qdd[..., i : i + 1]
+            + _cross(xp, omega_parent, axis_rate)
+        )
+        # Eq. 6: COM acceleration; Newton and Euler equations of link i.
+        c = chain.com[i]
+        accel_com = accel + _cross(xp, omega_dot, c) + _cross(xp, omega, _cross(xp, omega, c))
+        forces.append(chain.mass[i] * accel_com)
+        inertia = chain.inertia[i]
+        moments.append(_matvec(xp, inertia, omega_dot) + _cross(xp, omega, _matvec(xp, inertia, omega)))
+
+    # Backward recursion (Eqs. 7-10), starting from the end effector's reaction (Eqs. 8, 11).
+    if ee_wrench is None:
+        f_next = xp.zeros_like(accel)
+        n_next = xp.zeros_like(accel)
+        p_next = chain.ee_translation
+    else:
+        f_next = -_matvec(xp, chain.ee_rotation, ee_wrench[..., :3])
+        n_next = -_matvec(xp, chain.ee_rotation, ee_wrench[..., 3:])
+        p_next = chain.ee_translation
+    rot_next = None
+    torques = [None] * n
+    for i in range(n - 1, -1, -1):
+        f_child = f_next if rot_next is None else _matvec(xp, rot_next, f_next)
+        n_child = n_next if rot_next is None else _matvec(xp, rot_next, n_next)
+        f_i = f_child + forces[i]
+        n_i = moments[i] + n_child + _cross(xp, chain.com[i], forces[i]) + _cross(xp, p_next, f_child)
+        torques[i] = xp.einsum("...j,j->...", n_i, chain.joint_axis[i])  # Eq. 12
+        f_next, n_next, p_next, rot_next = f_i, n_i, chain.joint_translation[i], rotations[i]
+    return xp.stack(torques, -1)
+
+
+def rnefda(
+    xp: Any,
+    chain: ChainArrays,
+    q: Any,
+    qd: Any,
+    tau: Any,
+    ee_wrench: Any | None = None,
+    gravity: Any | None = None,
+) -> Any:
+    """Alg. 1: joint accelerations (B, N) from torques, via h and M built by RNEIDA calls."""
+    mass_matrix, bias = mass_matrix_and_bias(xp, chain, q, qd, ee_wrench, gravity)
+    return xp.linalg.solve(mass_matrix, (tau - bias)[..., None])[..., 0]
+
+
+def mass_matrix_and_bias(
+    xp: Any, chain: ChainArrays, q: Any, qd: Any, ee_wrench: Any | None = None, gravity: Any | None = None
+) -> tuple[Any, Any]:
+    """M(q) (B, N, N) and h(q, qd) = C qd + G - J^T wrench (B, N), in one batched RNEIDA pass."""
+    n = chain.n_joints
+    batch = q.shape[0]
+    g = chain.gravity if gravity is None else gravity
+    eye = xp.eye(n, dtype=q.dtype)
+    # Row 0 of each group: h with (qd, qdd=0, g, wrench); rows 1..N: unit accelerations, no qd, no g.
+    q_all = xp.reshape(xp.stack([q] * (n + 1), 1), (batch * (n + 1), n))
+    qd_all = xp.reshape(xp.concatenate([qd[:, None, :], xp.zeros_like(q)[:, None, :] + 0.0 * eye], 1), (-1, n))
+    qdd_all = xp.reshape(xp.concatenate([xp.zeros_like(q)[:, None, :], xp.zeros_like(q)[:, None, :] + eye], 1), (-1, n))
+    g_rows = xp.concatenate([xp.ones_like(q[:, :1]), xp.zeros_like(q)], 1)  # (B, N+1)
+    g_all = xp.reshape(g_rows[..., None] * g, (-1, 3))
+    wrench_all = None
+    if ee_wrench is not None:
+        w_rows = xp.concatenate([ee_wrench[:, None, :], xp.zeros_like(ee_wrench)[:, None, :] * g_rows[:, 1:, None]], 1)
+        wrench_all = xp.reshape(w_rows, (-1, 6))
+    tau = xp.reshape(rneida(xp, chain, q_all, qd_all, qdd_all, g_all, wrench_all), (batch, n + 1, n))
+    bias = tau[:, 0, :]
+    mass_matrix = xp.swapaxes(tau[:, 1:, :], -1, -2)  # column j = torque for unit acceleration j
+    return mass_matrix, bias
