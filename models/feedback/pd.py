@@ -1,0 +1,29 @@
+"""PD law (Sec. IV-B): tau = Kp e + Kd e_dot, Kp = P = diag(25, 150, 65, 25, 2, 1)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from models.feedback.base import FeedbackLaw
+
+PAPER_KP = np.array([25.0, 150.0, 65.0, 25.0, 2.0, 1.0])
+PAPER_KD = np.array([1.0, 5.0, 2.0, 0.6, 0.1, 0.05])
+
+
+class PDLaw(FeedbackLaw):
+    name = "pd"
+
+    def __init__(self, n_joints: int, dt_s: float, torque_limit_nm: np.ndarray,
+                 kp: np.ndarray = PAPER_KP, kd: np.ndarray = PAPER_KD) -> None:  # fmt: skip
+        super().__init__(n_joints, dt_s, torque_limit_nm)
+        self.kp, self.kd = np.asarray(kp, float), np.asarray(kd, float)
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return {"kp": self.kp.tolist(), "kd": self.kd.tolist()}
+
+    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        kp, kd = (self.kp, self.kd) if xp is np else (xp.as_tensor(self.kp), xp.as_tensor(self.kd))
+        return self.saturate(xp, kp * (q_d - q) + kd * (qd_d - qd)), state
