@@ -1,0 +1,403 @@
+"""The HIL plant: a fixed-base pybullet arm stepped one control period at a time.
+
+The emulated drives (``sim_target/drives.py``) call :meth:`PybulletPlant.step` once per SYNC with the
+motor torques they were commanded and which joints are braked (drive not in Operation Enabled).
+
+pybullet defaults that would make this arm differ from the project's own dynamics, all undone here
+(see :func:`load_arm`):
+
+- every joint starts with a velocity motor (a hidden brake): disabled with force 0;
+- links get linear/angular damping 0.04: zeroed, and joint damping zeroed;
+- inertia is recomputed from collision shapes unless ``URDF_USE_INERTIA_FROM_FILE`` is given;
+- a link with no ``<inertial>`` element (e.g. ``ur5_paper``'s ``flange``) gets mass 1 kg and inertia
+  diag(1, 1, 1): reset to zero, else the arm carries a phantom kilogram at its flange.
+
+Integration is pybullet's semi-implicit Euler. Each control period is ``substeps`` internal steps of
+``period_s / substeps`` with the torque held (zero-order hold); pybullet keeps applied torques over
+its internal substeps. Its global error is first order in the step, so parity with an RK4 reference
+to 1e-3 rad needs substeps (see tests/integration/test_plant_parity.py).
+
+Faults that belong to the plant: encoder noise (seeded), a payload on the flange, an external joint
+torque impulse (the paper's disturbance).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import xml.etree.ElementTree as ET
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+import pybullet
+
+GRAVITY_M_S2 = 9.81
+_MOVABLE_JOINT_TYPES = (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)
+_BRAKE_POSITION_GAIN = 0.5  # fraction of the position error the brake motor removes per substep
+
+
+class JointState(NamedTuple):
+    position_rad: np.ndarray  # (N,) measured (encoder noise included when enabled)
+    velocity_rad_s: np.ndarray  # (N,) measured
+    torque_nm: np.ndarray  # (N,) motor torque actually applied over the last period
+    time_s: float  # simulated time
+
+
+@runtime_checkable
+class Plant(Protocol):
+    n_joints: int
+    period_s: float
+
+    def step(self, torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState: ...
+
+    def state(self) -> JointState: ...
+
+    def reset(self, position_rad: np.ndarray | None = None) -> JointState: ...
+
+
+class PlantError(ValueError):
+    """Bad plant parameters or inputs (wrong shape, unknown joint). Printed as one line."""
+
+    exit_code = 2
+
+
+@dataclass(frozen=True)
+class TorqueImpulse:
+    """An external joint torque applied over [start_s, start_s + duration_s).
+
+    The plant holds torque constant over a control period, so a pulse shorter than the period (or
+    not aligned with it) is applied as its average over each period it overlaps: the impulse
+    (N·m·s), which is what moves the arm, is preserved exactly.
+    """
+
+    torque_nm: tuple[float, ...]  # one per controlled joint
+    start_s: float
+    duration_s: float
+
+    def mean_torque_nm(self, t0_s: float, period_s: float) -> np.ndarray:
+        overlap_s = min(t0_s + period_s, self.start_s + self.duration_s) - max(t0_s, self.start_s)
+        fraction = max(overlap_s, 0.0) / period_s
+        return np.asarray(self.torque_nm, dtype=float) * fraction
+
+
+# The paper's disturbance (Sec. IV): [1, 1, 5, 5, 10, 10] N·m at t = 2 s. Duration not given by
+# the paper; 1 ms (one control period at 1 kHz) is our choice, i.e. an impulse of 1e-3 × τ N·m·s.
+PAPER_DISTURBANCE = TorqueImpulse(torque_nm=(1.0, 1.0, 5.0, 5.0, 10.0, 10.0), start_s=2.0, duration_s=1e-3)
+
+
+@contextlib.contextmanager
+def _quiet_native_output() -> Iterator[None]:
+    """Silence pybullet's C-level warnings (printed to fd 1/2, not through Python)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (*saved, devnull):
+            os.close(fd)
+
+
+def _links_without_inertial(urdf: Path) -> set[str]:
+    root = ET.parse(urdf).getroot()
+    return {link.get("name", "") for link in root.iter("link") if link.find("inertial") is None}
+
+
+def load_arm(client_id: int, urdf: Path | str) -> int:
+    """Load a fixed-base arm into ``client_id`` with its dynamics exactly as the URDF states.
+
+    Returns the pybullet body id. Velocity motors are disabled, damping zeroed, inertia taken from
+    the file, and links the URDF gives no inertial are made massless (pybullet would give them 1 kg).
+    Must run before any ``calculateInverseDynamics`` call: pybullet caches that model on first use.
+    """
+    urdf = Path(urdf)
+    if not urdf.is_file():
+        raise PlantError(f"{urdf}: URDF not found")
+    with _quiet_native_output():
+        body = pybullet.loadURDF(
+            str(urdf),
+            useFixedBase=True,
+            flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
+            physicsClientId=client_id,
+        )
+    massless = _links_without_inertial(urdf)
+    n_joints = pybullet.getNumJoints(body, physicsClientId=client_id)
+    for link in range(-1, n_joints):
+        pybullet.changeDynamics(
+            body, link, linearDamping=0.0, angularDamping=0.0, jointDamping=0.0, physicsClientId=client_id
+        )
+    for link in range(n_joints):
+        info = pybullet.getJointInfo(body, link, physicsClientId=client_id)
+        if info[12].decode() in massless:
+            pybullet.changeDynamics(
+                body, link, mass=0.0, localInertiaDiagonal=[0.0, 0.0, 0.0], physicsClientId=client_id
+            )
+        if info[2] in _MOVABLE_JOINT_TYPES:
+            pybullet.setJointMotorControl2(
+                body, link, pybullet.VELOCITY_CONTROL, targetVelocity=0.0, force=0.0, physicsClientId=client_id
+            )
+    return body
+
+
+def default_urdf_path(robot: str = "ur5_paper") -> Path:
+    """The URDF of a named robot, through ``models.robots`` when it is importable."""
+    try:
+        from models.robots import urdf_path
+    except ImportError:  # the robot package is light, but tolerate its absence: the file is here
+        if robot != "ur5_paper":
+            raise PlantError(f"robot {robot!r}: models.robots is not importable") from None
+        return Path(__file__).resolve().parents[1] / "models" / "robots" / "data" / "ur5_paper.urdf"
+    return Path(urdf_path(robot))
+
+
+class PybulletPlant:
+    """A fixed-base pybullet arm under joint torque control, one control period per :meth:`step`.
+
+    Args:
+        urdf: the arm's URDF.
+        period_s: control period (the zero-order-hold interval).
+        substeps: pybullet steps per period (the physics step is ``period_s / substeps``).
+        joint_names: the controlled joints in drive order; default every revolute joint. Other
+            movable joints (e.g. a gripper's fingers) are held at their initial position.
+        brake_holding_torque_nm: brake capacity per joint; default twice the URDF effort limit.
+        encoder_noise_rad, velocity_noise_rad_s: standard deviations of measurement noise.
+        seed: seeds the measurement noise, so a noisy run is reproducible.
+    """
+
+    def __init__(
+        self,
+        urdf: Path | str | None = None,
+        *,
+        period_s: float = 1e-3,
+        substeps: int = 16,
+        joint_names: Sequence[str] | None = None,
+        initial_position_rad: Sequence[float] | None = None,
+        brake_holding_torque_nm: Sequence[float] | None = None,
+        encoder_noise_rad: float = 0.0,
+        velocity_noise_rad_s: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        if not period_s > 0.0:
+            raise PlantError(f"period_s must be positive, got {period_s}")
+        if substeps < 1:
+            raise PlantError(f"substeps must be at least 1, got {substeps}")
+        self.urdf = Path(urdf) if urdf is not None else default_urdf_path()
+        self.period_s = float(period_s)
+        self.substeps = int(substeps)
+        self._client = pybullet.connect(pybullet.DIRECT)
+        try:
+            self._body = load_arm(self._client, self.urdf)
+            self._init_joints(joint_names)
+        except Exception:
+            pybullet.disconnect(self._client)
+            raise
+        pybullet.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=self._client)
+        pybullet.setPhysicsEngineParameter(
+            fixedTimeStep=self.period_s, numSubSteps=self.substeps, physicsClientId=self._client
+        )
+        if brake_holding_torque_nm is None:
+            self.brake_holding_torque_nm = 2.0 * self.torque_limit_nm
+        else:
+            self.brake_holding_torque_nm = self._vector(brake_holding_torque_nm, "brake_holding_torque_nm")
+        self._initial_position_rad = (
+            np.zeros(self.n_joints) if initial_position_rad is None
+            else self._vector(initial_position_rad, "initial_position_rad")
+        )
+        self._encoder_noise_rad = float(encoder_noise_rad)
+        self._velocity_noise_rad_s = float(velocity_noise_rad_s)
+        self._seed = int(seed)
+        self._impulses: list[TorqueImpulse] = []
+        self._payload_kg = 0.0
+        self.reset()
+
+    # --- set-up -------------------------------------------------------------------------------
+
+    def _init_joints(self, joint_names: Sequence[str] | None) -> None:
+        movable: dict[str, int] = {}
+        revolute: list[str] = []
+        lower, upper, effort = {}, {}, {}
+        for index in range(pybullet.getNumJoints(self._body, physicsClientId=self._client)):
+            info = pybullet.getJointInfo(self._body, index, physicsClientId=self._client)
+            if info[2] not in _MOVABLE_JOINT_TYPES:
+                continue
+            name = info[1].decode()
+            movable[name] = index
+            lower[name], upper[name], effort[name] = info[8], info[9], info[10]
+            if info[2] == pybullet.JOINT_REVOLUTE:
+                revolute.append(name)
+        names = list(joint_names) if joint_names is not None else revolute
+        unknown = [name for name in names if name not in movable]
+        if unknown:
+            raise PlantError(f"{self.urdf}: joint(s) {unknown} not movable joints of this URDF")
+        self.joint_names: tuple[str, ...] = tuple(names)
+        self.n_joints = len(names)
+        self._joint_indices = [movable[name] for name in names]
+        self._held_indices = [index for name, index in movable.items() if name not in names]
+        self.position_limit_rad = np.array([[lower[n], upper[n]] for n in names])
+        self.torque_limit_nm = np.array([effort[n] for n in names], dtype=float)
+        # The payload rides on the last link of the chain (the massless flange for ur5_paper).
+        self._payload_link = pybullet.getNumJoints(self._body, physicsClientId=self._client) - 1
+        dyn = pybullet.getDynamicsInfo(self._body, self._payload_link, physicsClientId=self._client)
+        self._payload_link_mass_kg = float(dyn[0])
+        self._payload_link_inertia = np.array(dyn[2], dtype=float)
+
+    def _vector(self, values: Sequence[float] | np.ndarray, name: str) -> np.ndarray:
+        array = np.asarray(values, dtype=float)
+        if array.shape != (self.n_joints,):
+            raise PlantError(f"{name}: expected {self.n_joints} values, got shape {array.shape}")
+        if not np.all(np.isfinite(array)):
+            raise PlantError(f"{name}: non-finite value in {array.tolist()}")
+        return array
+
+    # --- the Plant protocol ---------------------------------------------------------------------
+
+    def reset(self, position_rad: np.ndarray | Sequence[float] | None = None) -> JointState:
+        """Put the arm at rest at ``position_rad`` (default: the initial position), time 0."""
+        q0 = self._initial_position_rad if position_rad is None else self._vector(position_rad, "position_rad")
+        for index, q in zip(self._joint_indices, q0):
+            pybullet.resetJointState(self._body, index, float(q), 0.0, physicsClientId=self._client)
+        for index in self._held_indices:
+            pybullet.resetJointState(self._body, index, 0.0, 0.0, physicsClientId=self._client)
+        self._time_s = 0.0
+        self._steps = 0
+        self._applied_nm = np.zeros(self.n_joints)
+        self._braked = np.zeros(self.n_joints, dtype=bool)
+        self._brake_position_rad = np.array(q0, dtype=float)
+        self._rng = np.random.default_rng(self._seed)
+        self._measured = self._measure()
+        return self._measured
+
+    def state(self) -> JointState:
+        """The last measurement (the same noise sample until the next step)."""
+        return self._measured
+
+    def step(self, torque_nm: np.ndarray | Sequence[float], brake_engaged: np.ndarray | Sequence[bool]) -> JointState:
+        """Advance one control period with ``torque_nm`` held; braked joints are held still.
+
+        The motor torque is clipped to the URDF effort limit and is zero on a braked joint (its
+        drive is not enabled). External impulses are added on top; the brake resists them up to
+        its holding torque.
+        """
+        command = self._vector(torque_nm, "torque_nm")
+        braked = np.asarray(brake_engaged, dtype=bool)
+        if braked.shape != (self.n_joints,):
+            raise PlantError(f"brake_engaged: expected {self.n_joints} values, got shape {braked.shape}")
+        motor_nm = np.where(braked, 0.0, np.clip(command, -self.torque_limit_nm, self.torque_limit_nm))
+        external_nm = np.zeros(self.n_joints)
+        for impulse in self._impulses:
+            external_nm += impulse.mean_torque_nm(self._time_s, self.period_s)
+        # A brake locks the joint where it engaged, up to its holding torque. A stiff position
+        # motor rather than a velocity lock: the latter creeps by ~1e-4 rad/s under gravity.
+        true_q = self.true_state().position_rad
+        newly_braked = braked & ~self._braked
+        self._brake_position_rad[newly_braked] = true_q[newly_braked]
+        self._braked = braked
+        held = self._held_indices
+        pybullet.setJointMotorControlArray(
+            self._body,
+            self._joint_indices + held,
+            pybullet.POSITION_CONTROL,
+            targetPositions=self._brake_position_rad.tolist() + [0.0] * len(held),
+            targetVelocities=[0.0] * (self.n_joints + len(held)),
+            forces=np.where(braked, self.brake_holding_torque_nm, 0.0).tolist() + [1e3] * len(held),
+            positionGains=[_BRAKE_POSITION_GAIN] * (self.n_joints + len(held)),
+            velocityGains=[1.0] * (self.n_joints + len(held)),
+            physicsClientId=self._client,
+        )
+        pybullet.setJointMotorControlArray(
+            self._body,
+            self._joint_indices,
+            pybullet.TORQUE_CONTROL,
+            forces=(motor_nm + external_nm).tolist(),
+            physicsClientId=self._client,
+        )
+        pybullet.stepSimulation(physicsClientId=self._client)
+        self._steps += 1
+        # Counted in periods so long runs do not accumulate floating-point drift.
+        self._time_s = self._steps * self.period_s
+        self._applied_nm = motor_nm
+        self._measured = self._measure()
+        return self._measured
+
+    # --- plant faults -------------------------------------------------------------------------
+
+    def set_encoder_noise(self, position_rad: float, velocity_rad_s: float = 0.0) -> None:
+        """Gaussian measurement noise, standard deviations; 0 turns it off."""
+        if position_rad < 0.0 or velocity_rad_s < 0.0:
+            raise PlantError("encoder noise standard deviations must be non-negative")
+        self._encoder_noise_rad = float(position_rad)
+        self._velocity_noise_rad_s = float(velocity_rad_s)
+
+    def set_payload(self, mass_kg: float, inertia_kg_m2: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+        """Put a payload of ``mass_kg`` (diagonal inertia about its centre) on the flange.
+
+        Its centre of mass is the last link's inertial origin (the flange frame for ur5_paper):
+        pybullet cannot move a link's centre of mass at run time. 0 removes the payload.
+        """
+        inertia = np.asarray(inertia_kg_m2, dtype=float)
+        if mass_kg < 0.0 or inertia.shape != (3,) or np.any(inertia < 0.0):
+            raise PlantError(f"payload: need mass_kg >= 0 and 3 non-negative inertias, got {mass_kg}, {inertia}")
+        pybullet.changeDynamics(
+            self._body,
+            self._payload_link,
+            mass=self._payload_link_mass_kg + float(mass_kg),
+            localInertiaDiagonal=(self._payload_link_inertia + inertia).tolist(),
+            physicsClientId=self._client,
+        )
+        self._payload_kg = float(mass_kg)
+
+    @property
+    def payload_kg(self) -> float:
+        return self._payload_kg
+
+    def add_impulse(self, impulse: TorqueImpulse) -> None:
+        """Schedule an external joint torque (in simulated time)."""
+        self._vector(impulse.torque_nm, "impulse.torque_nm")
+        if impulse.duration_s <= 0.0:
+            raise PlantError(f"impulse.duration_s must be positive, got {impulse.duration_s}")
+        self._impulses.append(impulse)
+
+    def clear_impulses(self) -> None:
+        self._impulses.clear()
+
+    # --- read-outs ----------------------------------------------------------------------------
+
+    @property
+    def time_s(self) -> float:
+        return self._time_s
+
+    def true_state(self) -> JointState:
+        """The noiseless state (for tests and logging; the drives report :meth:`state`)."""
+        states = pybullet.getJointStates(self._body, self._joint_indices, physicsClientId=self._client)
+        q = np.array([s[0] for s in states], dtype=float)
+        qd = np.array([s[1] for s in states], dtype=float)
+        return JointState(q, qd, self._applied_nm.copy(), self._time_s)
+
+    def _measure(self) -> JointState:
+        true = self.true_state()
+        q, qd = true.position_rad, true.velocity_rad_s
+        if self._encoder_noise_rad > 0.0:
+            q = q + self._rng.normal(0.0, self._encoder_noise_rad, self.n_joints)
+        if self._velocity_noise_rad_s > 0.0:
+            qd = qd + self._rng.normal(0.0, self._velocity_noise_rad_s, self.n_joints)
+        return JointState(q, qd, true.torque_nm, true.time_s)
+
+    def close(self) -> None:
+        if self._client is not None and pybullet.isConnected(physicsClientId=self._client):
+            pybullet.disconnect(self._client)
+        self._client = None  # type: ignore[assignment]
+
+    def __enter__(self) -> PybulletPlant:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
