@@ -15,7 +15,8 @@ pybullet defaults that would make this arm differ from the project's own dynamic
 Integration is pybullet's semi-implicit Euler. Each control period is ``substeps`` internal steps of
 ``period_s / substeps`` with the torque held (zero-order hold); pybullet keeps applied torques over
 its internal substeps. Its global error is first order in the step, so parity with an RK4 reference
-to 1e-3 rad needs substeps (see tests/integration/test_plant_parity.py).
+to 1e-3 rad needs substeps: the error is about h × (velocity change), 1.3e-2 rad with one 1 ms
+step against 4e-4 with 32 on tests/integration/test_plant_parity.py's trajectory.
 
 Faults that belong to the plant: encoder noise (seeded), a payload on the flange, an external joint
 torque impulse (the paper's disturbance).
@@ -37,6 +38,9 @@ import pybullet
 
 GRAVITY_M_S2 = 9.81
 _MOVABLE_JOINT_TYPES = (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)
+# 32 steps of 31 µs per 1 ms period: semi-implicit Euler's first-order error then stays under
+# 1e-3 rad over 2 s for joint moves of a few tenths of a radian (benchmarks/bench_plant_parity.py).
+DEFAULT_SUBSTEPS = 32
 _BRAKE_POSITION_GAIN = 0.5  # fraction of the position error the brake motor removes per substep
 
 
@@ -178,7 +182,7 @@ class PybulletPlant:
         urdf: Path | str | None = None,
         *,
         period_s: float = 1e-3,
-        substeps: int = 16,
+        substeps: int = DEFAULT_SUBSTEPS,
         joint_names: Sequence[str] | None = None,
         initial_position_rad: Sequence[float] | None = None,
         brake_holding_torque_nm: Sequence[float] | None = None,
