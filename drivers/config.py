@@ -1,0 +1,185 @@
+"""Frozen configuration of the drive bus, validated once at load.
+
+A YAML (or dict) like::
+
+    transport: {interface: remote, bridge_port: 54701, bitrate: 1000000,
+                fd: true, data_bitrate: 5000000}
+    period_s: 0.001
+    joints:
+      - {name: shoulder_pan, node_id: 1, max_torque_nm: 150.0}
+      - ...
+
+Bad input raises :class:`drivers.errors.DriveConfigError` with one line naming the file and field.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import math
+from pathlib import Path
+from typing import Any, Literal
+from urllib.parse import urlparse
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.busload import DEFAULT_LIMIT, BusLoad, check_bus_load
+from drivers.cia402.scaling import INT16_MAX, JointScaling, check_torque_range
+from drivers.errors import DriveConfigError
+
+Interface = Literal["virtual", "socketcan", "remote", "slcan"]
+LOOPBACK_NAMES = frozenset({"localhost", "ip6-localhost"})
+
+
+def is_loopback_host(host: str) -> bool:
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class TransportConfig(_Frozen):
+    """Which python-can bus to open."""
+
+    interface: Interface = "virtual"
+    # virtual: any name shared in-process; socketcan: vcan0/can0; slcan: serial port;
+    # remote: a ws:// URL (left empty, it is built from bridge_host/bridge_port).
+    channel: str = "hil"
+    bitrate: int = Field(1_000_000, gt=0)  # nominal (arbitration) bit rate, bit/s
+    fd: bool = False  # CAN FD frames (one 12-byte TPDO per drive)
+    data_bitrate: int | None = Field(None, gt=0)  # CAN FD data-phase bit rate, bit/s
+    bridge_host: str = "127.0.0.1"  # python-can-remote server; loopback only
+    bridge_port: int = Field(54701, gt=0, lt=65536)
+
+    @model_validator(mode="after")
+    def _check(self) -> TransportConfig:
+        if self.fd and self.data_bitrate is None:
+            raise ValueError("data_bitrate is required when fd is on")
+        if self.fd and self.data_bitrate is not None and self.data_bitrate < self.bitrate:
+            raise ValueError("data_bitrate must not be below bitrate")
+        if self.interface == "remote":
+            host = urlparse(self.remote_url).hostname or ""
+            if not is_loopback_host(host):
+                raise ValueError(f"remote bridge host {host!r} is not loopback (127.0.0.1/::1)")
+        return self
+
+    @property
+    def remote_url(self) -> str:
+        if self.channel.startswith(("ws://", "wss://")):
+            return self.channel
+        host = self.bridge_host
+        if ":" in host and not host.startswith("["):
+            host = f"[{host}]"
+        return f"ws://{host}:{self.bridge_port}/"
+
+    @property
+    def fd_data_bitrate(self) -> int | None:
+        """Data bit rate when CAN FD is on, else None (what the bus-load budget takes)."""
+        return self.data_bitrate if self.fd else None
+
+
+class JointDriveConfig(_Frozen):
+    """One joint's drive."""
+
+    name: str
+    node_id: int = Field(ge=1, le=127)  # CANopen node id
+    max_torque_nm: float = Field(gt=0)  # written to 0x6072; set-points are clipped to it
+    # 0x6076, mN·m; 1 ‰ of it is the torque resolution. Default: the max torque at ~30000 ‰.
+    rated_torque_mnm: int | None = Field(None, gt=0)
+    # Encoder counts per joint revolution; None adopts the drive's 0x608F, else it must match.
+    encoder_counts_per_rev: int | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> JointDriveConfig:
+        if not math.isfinite(self.max_torque_nm):
+            raise ValueError("max_torque_nm must be finite")
+        check_torque_range(self.max_torque_nm, self.effective_rated_torque_mnm)
+        return self
+
+    @property
+    def effective_rated_torque_mnm(self) -> int:
+        if self.rated_torque_mnm is not None:
+            return self.rated_torque_mnm
+        return max(1, math.ceil(self.max_torque_nm * 1e6 / 30000))
+
+    @property
+    def max_torque_permille(self) -> int:
+        return min(INT16_MAX, math.floor(self.max_torque_nm * 1e6 / self.effective_rated_torque_mnm))
+
+    def scaling(self, counts_per_rad: float) -> JointScaling:
+        return JointScaling(counts_per_rad, self.effective_rated_torque_mnm)
+
+
+class DriveBusConfig(_Frozen):
+    transport: TransportConfig = TransportConfig()
+    joints: tuple[JointDriveConfig, ...] = Field(min_length=1)
+    period_s: float = Field(gt=0)  # control period: one SYNC per period
+    heartbeat_producer_ms: int = Field(50, ge=1, le=65535)  # written to every drive's 0x1017
+    heartbeat_timeout_s: float = Field(0.2, gt=0)  # no heartbeat for this long: HeartbeatLostError
+    feedback_timeout_s: float = Field(0.005, gt=0)  # wait for TPDOs after SYNC, per cycle
+    max_missed_cycles: int = Field(1, ge=0)  # consecutive cycles a drive may miss before raising
+    sdo_timeout_s: float = Field(0.3, gt=0)
+    state_change_timeout_s: float = Field(1.0, gt=0)  # NMT / CiA 402 transitions at start-up
+    quick_stop_option: int = Field(2, ge=0, le=8)  # written to 0x605A
+    bus_load_limit: float = Field(DEFAULT_LIMIT, gt=0, le=1)
+    eds_path: Path | None = None  # None: the EDS shipped in drivers/cia402/data
+
+    @model_validator(mode="after")
+    def _check(self) -> DriveBusConfig:
+        ids = [j.node_id for j in self.joints]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"duplicate node_id in joints: {ids}")
+        if self.heartbeat_timeout_s * 1000 <= self.heartbeat_producer_ms:
+            raise ValueError("heartbeat_timeout_s must exceed the heartbeat producer time")
+        return self
+
+    @property
+    def node_ids(self) -> tuple[int, ...]:
+        return tuple(j.node_id for j in self.joints)
+
+    def bus_load(self, source: str = "config") -> BusLoad:
+        """The configured bus load; :class:`BusLoadError` if above ``bus_load_limit``."""
+        return check_bus_load(
+            len(self.joints),
+            1.0 / self.period_s,
+            self.transport.bitrate,
+            self.transport.fd_data_bitrate,
+            self.heartbeat_producer_ms / 1000.0,
+            self.bus_load_limit,
+            source,
+        )
+
+
+def _format_validation_error(source: str, exc: ValidationError) -> str:
+    errors = exc.errors()
+    first = errors[0]
+    loc = ".".join(str(part) for part in first["loc"]) or "(top level)"
+    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{source}: {loc}: {first['msg']}{more}"
+
+
+def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
+    """Validate a mapping (e.g. one section of a larger config) and check the bus-load budget."""
+    try:
+        config = DriveBusConfig.model_validate(data)
+    except ValidationError as exc:
+        raise DriveConfigError(_format_validation_error(source, exc)) from None
+    config.bus_load(source)
+    return config
+
+
+def load_drive_bus_config(path: Path | str) -> DriveBusConfig:
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise DriveConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise DriveConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    return parse_drive_bus_config(data, str(path))
