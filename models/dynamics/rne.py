@@ -69,11 +69,11 @@ def _cross(xp: Any, a: Any, b: Any) -> Any:
 
 
 def _matvec(xp: Any, m: Any, v: Any) -> Any:
-    return xp.einsum("...ij,...j->...i", m, v)
+    return (m @ v[..., None])[..., 0]
 
 
 def _matTvec(xp: Any, m: Any, v: Any) -> Any:
-    return xp.einsum("...ji,...j->...i", m, v)
+    return (v[..., None, :] @ m)[..., 0, :]
 
 
 def joint_rotations(xp: Any, chain: ChainArrays, q: Any) -> list[Any]:
@@ -82,7 +82,7 @@ def joint_rotations(xp: Any, chain: ChainArrays, q: Any) -> list[Any]:
     for i in range(chain.n_joints):
         s, c = xp.sin(q[..., i])[..., None, None], xp.cos(q[..., i])[..., None, None]
         about_axis = c * chain.axis_perp[i] + chain.axis_outer[i] + s * chain.axis_cross[i]
-        rotations.append(xp.einsum("ij,...jk->...ik", chain.joint_rotation[i], about_axis))
+        rotations.append(chain.joint_rotation[i] @ about_axis)
     return rotations
 
 
@@ -144,7 +144,7 @@ def rneida(
         n_child = n_next if rot_next is None else _matvec(xp, rot_next, n_next)
         f_i = f_child + forces[i]
         n_i = moments[i] + n_child + _cross(xp, chain.com[i], forces[i]) + _cross(xp, p_next, f_child)
-        torques[i] = xp.einsum("...j,j->...", n_i, chain.joint_axis[i])  # Eq. 12
+        torques[i] = n_i @ chain.joint_axis[i]  # Eq. 12
         f_next, n_next, p_next, rot_next = f_i, n_i, chain.joint_translation[i], rotations[i]
     return xp.stack(torques, -1)
 

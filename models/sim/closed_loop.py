@@ -1,0 +1,184 @@
+"""The closed-loop simulator: fixed control period, zero-order hold, RK4 plant with substeps.
+
+Many runs advance together (one vectorized plant). Per period k: measure (q, qd) at t_k, compute
+the reference, ask the controller for torques, saturate them to the robot's torque limits, hold
+them over [t_k, t_k+1) while the plant integrates with RK4 substeps; the disturbance pulse is
+integrated exactly (the period containing it is split at the pulse edges). Plant-model mismatch
+(payload, scaled masses/inertias, viscous and Coulomb friction) changes the plant only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models.conditions import Condition, Disturbance, Mismatch
+from models.dynamics import make_dynamics
+from models.errors import ModelInputError
+from models.robots import RobotModel
+from models.sim.controllers import Controller
+
+COULOMB_SMOOTHING_RAD_S = 0.01  # tanh(qd / v) stands in for sign(qd), keeping RK4 well-behaved
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    dt_s: float = 1e-3  # control period (PAPER_NOTES: 1 kHz)
+    substeps: int = 2  # RK4 steps per control period
+    plant_backend: str = "pinocchio"  # "pinocchio" (C++ ABA, fast) or "rne" (the paper's RNEFDA)
+
+    def __post_init__(self) -> None:
+        if not (self.dt_s > 0 and math.isfinite(self.dt_s)):
+            raise ModelInputError(f"simulation dt_s: must be a positive number, got {self.dt_s}")
+        if self.substeps < 1:
+            raise ModelInputError(f"simulation substeps: must be >= 1, got {self.substeps}")
+
+
+@dataclass
+class Trajectory:
+    """A batch of runs. Arrays are (B, T, N) sampled at t_s (T,), every control period."""
+
+    t_s: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    q_ref: np.ndarray
+    qd_ref: np.ndarray
+    tau: np.ndarray  # applied (saturated) torque held over each period
+    tau_fb: np.ndarray | None  # the feedback law's torque, when the controller exposes it
+    condition_names: list[str]
+    disturbance: Disturbance | None
+    position_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (B,) max |q| / limit
+    velocity_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (B,) max |qd| / limit
+    finite: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (B,)
+
+    @property
+    def within_limits(self) -> np.ndarray:
+        return self.finite & (self.position_ratio <= 1.0) & (self.velocity_ratio <= 1.0)
+
+    def run(self, b: int) -> dict[str, np.ndarray]:
+        """One run's arrays, for saving as .npz."""
+        out = {"t": self.t_s, "q": self.q[b], "qd": self.qd[b], "q_ref": self.q_ref[b],
+               "qd_ref": self.qd_ref[b], "tau": self.tau[b]}  # fmt: skip
+        if self.tau_fb is not None:
+            out["tau_fb"] = self.tau_fb[b]
+        return out
+
+
+class Plant:
+    """The simulated arm: the (possibly mismatched) robot, friction, RK4 with substeps."""
+
+    def __init__(self, robot: RobotModel, mismatch: Mismatch, config: SimConfig) -> None:
+        self.robot = robot
+        self.dynamics = make_dynamics(mismatch.apply(robot), config.plant_backend)
+        n = robot.n_joints
+        self.viscous = np.broadcast_to(np.asarray(mismatch.viscous_friction_nm_s, float), (n,))
+        self.coulomb = np.broadcast_to(np.asarray(mismatch.coulomb_friction_nm, float), (n,))
+        self.config = config
+
+    def acceleration(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        friction = self.viscous * qd + self.coulomb * np.tanh(qd / COULOMB_SMOOTHING_RAD_S)
+        return self.dynamics.forward_dynamics(q, qd, tau - friction)
+
+    def integrate(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """RK4 over ``duration_s`` with torque held, in steps no longer than dt / substeps."""
+        steps = max(1, math.ceil(duration_s / (self.config.dt_s / self.config.substeps) - 1e-9))
+        h = duration_s / steps
+        for _ in range(steps):
+            k1v, k1a = qd, self.acceleration(q, qd, tau)
+            k2v = qd + 0.5 * h * k1a
+            k2a = self.acceleration(q + 0.5 * h * k1v, k2v, tau)
+            k3v = qd + 0.5 * h * k2a
+            k3a = self.acceleration(q + 0.5 * h * k2v, k3v, tau)
+            k4v = qd + h * k3a
+            k4a = self.acceleration(q + h * k3v, k4v, tau)
+            q = q + h / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
+            qd = qd + h / 6.0 * (k1a + 2 * k2a + 2 * k3a + k4a)
+        return q, qd
+
+
+def _group_key(condition: Condition) -> tuple:
+    return (condition.duration_s, condition.disturbance, condition.mismatch)
+
+
+def simulate(
+    robot: RobotModel,
+    controller: Controller,
+    conditions: list[Condition],
+    config: SimConfig = SimConfig(),
+    progress: object | None = None,
+) -> Trajectory:
+    """Run ``controller`` on every condition at once (they must share duration, disturbance, mismatch).
+
+    ``robot`` is the nominal robot; each condition's mismatch turns it into the plant.
+    ``progress``: an optional callable(advance_in_periods) for a progress bar.
+    """
+    if not conditions:
+        raise ModelInputError("simulate: no conditions given")
+    if len({_group_key(c) for c in conditions}) != 1:
+        raise ModelInputError("simulate: conditions in one batch must share duration, disturbance and mismatch")
+    first = conditions[0]
+    plant = Plant(robot, first.mismatch, config)
+    n, batch, dt = robot.n_joints, len(conditions), config.dt_s
+    steps = int(round(first.duration_s / dt))
+    t = np.arange(steps) * dt
+
+    refs = [c.reference(t) for c in conditions]
+    q_ref = np.stack([r[0] for r in refs])
+    qd_ref = np.stack([r[1] for r in refs])
+    qdd_ref = np.stack([r[2] for r in refs])
+    q = np.stack([c.initial_position() for c in conditions])
+    qd = np.zeros_like(q)
+    if first.initial_state == "reference":
+        qd = qd_ref[:, 0].copy()
+
+    log_q, log_qd, log_tau = (np.empty((batch, steps, n)) for _ in range(3))
+    log_fb = np.full((batch, steps, n), np.nan)
+    finite = np.ones(batch, bool)
+    limit = robot.torque_limit_nm
+    dist = first.disturbance
+    dist_torque = None if dist is None else np.broadcast_to(np.asarray(dist.torque_nm, float), (n,))
+
+    controller.reset(q.copy())
+    with np.errstate(all="ignore"):
+        for k in range(steps):
+            log_q[:, k], log_qd[:, k] = q, qd
+            tau = np.asarray(controller(t[k], q, qd, q_ref[:, k], qd_ref[:, k], qdd_ref[:, k]), float)
+            tau = np.clip(np.nan_to_num(tau, nan=0.0), -limit, limit)
+            log_tau[:, k] = tau
+            fb = getattr(controller, "last_tau_fb", None)
+            if fb is not None:
+                log_fb[:, k] = fb
+            q, qd = _advance(plant, q, qd, tau, t[k], dt, dist, dist_torque)
+            bad = ~(np.isfinite(q).all(1) & np.isfinite(qd).all(1))
+            if bad.any():  # a diverged run is frozen where it failed and reported, never propagated
+                finite &= ~bad
+                q[bad], qd[bad] = log_q[bad, k], 0.0
+            if progress is not None:
+                progress(1)
+
+    traj = Trajectory(
+        t_s=t, q=log_q, qd=log_qd, q_ref=q_ref, qd_ref=qd_ref, tau=log_tau,
+        tau_fb=None if np.isnan(log_fb).all() else log_fb,
+        condition_names=[c.name for c in conditions], disturbance=dist,
+    )  # fmt: skip
+    traj.position_ratio = np.max(np.abs(log_q) / robot.position_limit_rad, axis=(1, 2))
+    traj.velocity_ratio = np.max(np.abs(log_qd) / robot.velocity_limit_rad_s, axis=(1, 2))
+    traj.finite = finite
+    return traj
+
+
+def _advance(plant: Plant, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, t0: float, dt: float,
+             dist: Disturbance | None, dist_torque: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """One control period; split at the disturbance pulse's edges so it is integrated exactly."""
+    t1 = t0 + dt
+    if dist is None or dist.duration_s <= 0 or dist.time_s >= t1 or dist.time_s + dist.duration_s <= t0:
+        return plant.integrate(q, qd, tau, dt)
+    edges = sorted({t0, t1, min(max(dist.time_s, t0), t1), min(max(dist.time_s + dist.duration_s, t0), t1)})
+    for a, b in zip(edges[:-1], edges[1:], strict=False):
+        if b - a <= 0:
+            continue
+        inside = dist.time_s <= a and b <= dist.time_s + dist.duration_s + 1e-15
+        q, qd = plant.integrate(q, qd, tau + dist_torque if inside else tau, b - a)
+    return q, qd
