@@ -1,0 +1,90 @@
+"""The paper's six feedback laws behind one interface (base.FeedbackLaw) and a registry.
+
+    from models.feedback import LAW_NAMES, make_law
+    law = make_law("adrc", load_robot("ur5_paper"), dt_s=1e-3)
+    state = law.initial_state(q0[None])
+    tau, state = law.step(np, state, q, qd, q_d, qd_d, qdd_d)   # (B, N) arrays
+
+Gains default to the paper's values (Sec. IV-B), which are 6-vectors; for a robot with another joint
+count pass them as keyword arguments, else make_law raises ModelInputError. docs/feedback_laws.md
+gives each law's equations and readings.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from models.errors import ModelInputError
+from models.feedback._common import joint_vector
+from models.feedback.base import FeedbackLaw
+from models.robots import RobotModel
+
+LAW_NAMES = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
+
+
+def _pd(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None) -> FeedbackLaw:
+    from models.feedback.pd import PAPER_KD, PAPER_KP, PDLaw
+
+    n = robot.n_joints
+    return PDLaw(n, dt_s, robot.torque_limit_nm, joint_vector("pd", "kp", kp, n, PAPER_KP), joint_vector("pd", "kd", kd, n, PAPER_KD))
+
+
+def _pid(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None, ki: Any = None) -> FeedbackLaw:
+    from models.feedback.pd import PAPER_KD, PAPER_KP
+    from models.feedback.pid import PAPER_KI, PIDLaw
+
+    n = robot.n_joints
+    gains = [joint_vector("pid", f, v, n, p) for f, v, p in (("kp", kp, PAPER_KP), ("kd", kd, PAPER_KD), ("ki", ki, PAPER_KI))]
+    return PIDLaw(n, dt_s, robot.torque_limit_nm, *gains)
+
+
+def _adrc(robot: RobotModel, dt_s: float, b0: Any = None, omega_o: float | None = None, omega_c: float | None = None,
+          b0_reading: str = "inertia") -> FeedbackLaw:  # fmt: skip
+    from models.feedback.adrc import PAPER_B0, PAPER_OMEGA_C, PAPER_OMEGA_O, ADRCLaw
+
+    return ADRCLaw(robot.n_joints, dt_s, robot.torque_limit_nm, joint_vector("adrc", "b0", b0, robot.n_joints, PAPER_B0),
+                   PAPER_OMEGA_O if omega_o is None else omega_o, PAPER_OMEGA_C if omega_c is None else omega_c, b0_reading)  # fmt: skip
+
+
+def _hinf(robot: RobotModel, dt_s: float, alpha: Any = None, gravity_compensation: bool = True) -> FeedbackLaw:
+    from models.feedback.hinf import PAPER_ALPHA, HinfLaw
+
+    # alpha is uniform in the paper, so it fits any joint count.
+    return HinfLaw(robot, dt_s, PAPER_ALPHA if alpha is None else alpha, gravity_compensation)
+
+
+def _smc(robot: RobotModel, dt_s: float, lam: Any = None, k: Any = None, epsilon: float | None = None,
+         switching_units: str = "acceleration") -> FeedbackLaw:  # fmt: skip
+    from models.feedback.smc import PAPER_EPSILON, PAPER_K, PAPER_LAMBDA, SMCLaw
+
+    n = robot.n_joints
+    return SMCLaw(robot, dt_s, joint_vector("smc", "lam", lam, n, PAPER_LAMBDA), joint_vector("smc", "k", k, n, PAPER_K),
+                  PAPER_EPSILON if epsilon is None else epsilon, switching_units)  # fmt: skip
+
+
+def _mrac(robot: RobotModel, dt_s: float, alpha: Any = None, gamma: Any = None, lam: Any = None) -> FeedbackLaw:
+    from models.feedback.mrac import PAPER_ALPHA, PAPER_GAMMA, PAPER_LAMBDA, MRACLaw
+
+    n = robot.n_joints
+    gains = [joint_vector("mrac", f, v, n, p) for f, v, p in (("alpha", alpha, PAPER_ALPHA), ("gamma", gamma, PAPER_GAMMA), ("lam", lam, PAPER_LAMBDA))]
+    return MRACLaw(robot, dt_s, *gains)
+
+
+_FACTORIES: dict[str, Callable[..., FeedbackLaw]] = {
+    "pd": _pd, "pid": _pid, "adrc": _adrc, "hinf": _hinf, "smc": _smc, "mrac": _mrac,
+}  # fmt: skip
+
+
+def make_law(name: str, robot: RobotModel, dt_s: float = 1e-3, **gains: Any) -> FeedbackLaw:
+    """The named law for ``robot`` at control period ``dt_s``, with the paper's gains unless given."""
+    if name not in _FACTORIES:
+        raise ModelInputError(f"feedback law: unknown '{name}' (known: {', '.join(LAW_NAMES)})")
+    if not (dt_s > 0 and dt_s < 1.0):
+        raise ModelInputError(f"feedback law '{name}': dt_s must be in (0, 1) s, got {dt_s}")
+    try:
+        return _FACTORIES[name](robot, dt_s, **gains)
+    except TypeError as exc:
+        raise ModelInputError(f"feedback law '{name}': bad parameter ({exc})") from exc
+
+
+__all__ = ["LAW_NAMES", "FeedbackLaw", "make_law"]

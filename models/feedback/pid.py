@@ -1,0 +1,49 @@
+"""PID law (Sec. IV-B): the PD gains plus an integral of the position error.
+
+    xi[k+1] = clip(xi[k] + dt e[k], -xi_max, xi_max)        (backward-rectangle integral, includes e[k])
+    tau[k]  = sat(Kp e[k] + Kd e_dot[k] + Ki xi[k+1])
+
+Kp = diag(25, 150, 65, 25, 2, 1), Kd = diag(1, 5, 2, 0.6, 0.1, 0.05), Ki = diag(0.3, 0.4, 0.3, 0.1, 0.03, 0.03).
+The integral is clamped so that |Ki xi| never exceeds the torque limit: the paper gives no anti-windup,
+and an unbounded integrator would keep growing while the torque saturates.
+State: xi (B, N), the error integral in rad*s.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from models.feedback._common import const
+from models.feedback.base import FeedbackLaw
+from models.feedback.pd import PAPER_KD, PAPER_KP
+
+PAPER_KI = np.array([0.3, 0.4, 0.3, 0.1, 0.03, 0.03])
+
+
+class PIDLaw(FeedbackLaw):
+    name = "pid"
+
+    def __init__(self, n_joints: int, dt_s: float, torque_limit_nm: np.ndarray,
+                 kp: np.ndarray = PAPER_KP, kd: np.ndarray = PAPER_KD, ki: np.ndarray = PAPER_KI) -> None:  # fmt: skip
+        super().__init__(n_joints, dt_s, torque_limit_nm)
+        self.kp, self.kd, self.ki = (np.asarray(g, float) for g in (kp, kd, ki))
+        # Anti-windup bound on the integral (rad*s); a large finite number where Ki = 0 keeps ONNX finite.
+        self.integral_limit_rad_s = np.where(self.ki > 0, self.torque_limit_nm / np.maximum(self.ki, 1e-12), 1e6)
+
+    @property
+    def state_size(self) -> int:
+        return self.n_joints
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return {"kp": self.kp.tolist(), "kd": self.kd.tolist(), "ki": self.ki.tolist(),
+                "integral_limit_rad_s": self.integral_limit_rad_s.tolist(), "integration": "backward rectangle"}  # fmt: skip
+
+    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        kp, kd, ki, limit = (const(xp, a) for a in (self.kp, self.kd, self.ki, self.integral_limit_rad_s))
+        e = q_d - q
+        integral = xp.minimum(xp.maximum(state + self.dt_s * e, -limit), limit)
+        tau = kp * e + kd * (qd_d - qd) + ki * integral
+        return self.saturate(xp, tau), integral
