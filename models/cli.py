@@ -1,0 +1,82 @@
+"""``hil`` commands of the science side: experiment, stability, urdf."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from models.errors import ModelInputError
+
+
+def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
+    items = tuple(x.strip().lower() for x in text.split(",") if x.strip())
+    if not items:
+        raise ModelInputError(f"--{what}: empty")
+    for item in items:
+        if item not in known:
+            raise ModelInputError(f"--{what}: unknown '{item}' (known: {', '.join(known)})")
+    return items
+
+
+def experiment(
+    laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
+    modes: Annotated[str, typer.Option(help="Comma-separated modes: fb, hmpc, lmpc.")] = "fb",
+    conditions: Annotated[Optional[Path], typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
+    robot: Annotated[str, typer.Option(help="Robot name or URDF path.")] = "ur5_paper",
+    out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/experiment"),
+    mismatch: Annotated[str, typer.Option(help="'none', or 'paper': +0.5 kg payload, inertias ±20 %.")] = "none",
+    dt: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
+    substeps: Annotated[int, typer.Option(help="RK4 plant steps per control period.")] = 2,
+    plant_backend: Annotated[str, typer.Option(help="Plant dynamics: pinocchio or rne (own RNEFDA).")] = "pinocchio",
+    timing_cycles: Annotated[int, typer.Option(help="Single-robot cycles timed per law and mode.")] = 1000,
+    no_trajectories: Annotated[bool, typer.Option("--no-trajectories", help="Skip the .npz files.")] = False,
+    no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the PNG plots.")] = False,
+) -> None:
+    """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from models.conditions import load_conditions
+    from models.experiment import PAPER_MISMATCH, ExperimentConfig, run_experiment
+    from models.feedback import LAW_NAMES
+    from models.robots import load_robot
+    from models.sim import MODES, SimConfig
+
+    law_list = _split(laws, LAW_NAMES, "laws")
+    mode_list = _split(modes, MODES, "modes")
+    if mismatch not in ("none", "paper"):
+        raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
+    arm = load_robot(robot)
+    condition_list = load_conditions(conditions, robot=arm)
+    if mismatch == "paper":
+        condition_list = [replace(c, mismatch=PAPER_MISMATCH) for c in condition_list]
+    config = ExperimentConfig(
+        laws=law_list, modes=mode_list, sim=SimConfig(dt_s=dt, substeps=substeps, plant_backend=plant_backend),
+        timing_cycles=timing_cycles, save_trajectories=not no_trajectories, plots=not no_plots,
+    )  # fmt: skip
+    console = Console(stderr=True)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=console) as bar:
+
+        def progress(label: str, total: int):  # type: ignore[no-untyped-def]
+            task = bar.add_task(label, total=total)
+            return lambda n: bar.advance(task, n)
+
+        results = run_experiment(arm, condition_list, config, out, progress=progress)
+    from models.experiment import format_table
+
+    print(format_table(results))
+    console.print(f"wrote {out}/results.json, table.md, trajectories/, plots/")
+
+
+def register(app: typer.Typer) -> None:
+    """Add the science commands to the ``hil`` root (an entry point in pyproject.toml)."""
+    app.command("experiment")(experiment)
+    try:
+        from models.stability_cli import stability
+    except ImportError:  # not written yet on this branch
+        return
+    app.command("stability")(stability)

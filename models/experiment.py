@@ -1,0 +1,196 @@
+"""The paper's simulation experiment: laws x modes x conditions -> Table I, trajectories, plots.
+
+Outputs in ``out_dir``:
+  results.json   raw metrics per run, composite scores, eta, controller time per cycle, limits
+  table.md       the layout of the paper's Table I
+  trajectories/  one .npz per run (t, q, qd, q_ref, qd_ref, tau[, tau_fb])
+  plots/         per-joint tracking error per law and condition (like the paper's Fig. 5)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from collections import defaultdict
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from models.conditions import Condition, Mismatch
+from models.feedback import LAW_NAMES, make_law
+from models.robots import RobotModel
+from models.scoring import METRICS, composite_scores, improvement, run_metrics
+from models.sim import ControllerStack, SimConfig, Trajectory, make_controller, simulate
+
+#: Plant-model mismatch of issue 3: +0.5 kg on the flange, link inertias alternately +/-20 %.
+PAPER_MISMATCH = Mismatch(payload_kg=0.5, inertia_scale=(1.2, 0.8, 1.2, 0.8, 1.2, 0.8))
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    laws: tuple[str, ...] = LAW_NAMES
+    modes: tuple[str, ...] = ("fb",)
+    sim: SimConfig = SimConfig()
+    timing_cycles: int = 1000  # single-robot cycles timed per (law, mode) for the t columns
+    save_trajectories: bool = True
+    plots: bool = True
+
+
+def _machine() -> dict[str, Any]:
+    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__}  # fmt: skip
+
+
+def _groups(conditions: list[Condition]) -> list[list[int]]:
+    """Indices of conditions that can share one vectorized plant (same duration, disturbance, mismatch)."""
+    groups: dict[tuple, list[int]] = defaultdict(list)
+    for i, c in enumerate(conditions):
+        groups[(c.duration_s, c.disturbance, c.mismatch)].append(i)
+    return list(groups.values())
+
+
+def time_controller(mode: str, law_name: str, robot: RobotModel, condition: Condition, sim: SimConfig,
+                    cycles: int, options: dict[str, Any]) -> dict[str, float]:  # fmt: skip
+    """Per-cycle wall time (ms) of one controller on a single robot, closed loop, over ``cycles`` periods."""
+    controller = make_controller(mode, make_law(law_name, robot, sim.dt_s), robot, **options)
+    short = replace(condition, duration_s=min(condition.duration_s, cycles * sim.dt_s))
+    simulate(robot, controller, [short], sim)
+    samples = np.asarray(controller.cycle_times_s[10:] or controller.cycle_times_s) * 1e3
+    return {"median_ms": float(np.median(samples)), "p99_ms": float(np.percentile(samples, 99)),
+            "cycles": int(samples.size)}  # fmt: skip
+
+
+def run_experiment(
+    robot: RobotModel,
+    conditions: list[Condition],
+    config: ExperimentConfig,
+    out_dir: Path,
+    controller_options: dict[str, dict[str, Any]] | None = None,
+    progress: Callable[[str, int], Callable[[int], None]] | None = None,
+) -> dict[str, Any]:
+    """Run every (law, mode) on every condition; write the outputs; return the results dict.
+
+    ``progress(label, total_periods)`` returns a callable advancing a progress bar.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    options = controller_options or {}
+    runs: list[dict[str, Any]] = []
+    trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]] = {}
+    timing: dict[str, dict[str, dict[str, float]]] = defaultdict(dict)
+    steps = {c.name: int(round(c.duration_s / config.sim.dt_s)) for c in conditions}
+
+    for mode in config.modes:
+        for group in _groups(conditions):
+            group_conditions = [conditions[i] for i in group]
+            # Every law runs side by side in one vectorized plant; HMPC-type modes likewise.
+            controllers = [make_controller(mode, make_law(law, robot, config.sim.dt_s), robot, **options.get(mode, {}))
+                           for law in config.laws]  # fmt: skip
+            stack = ControllerStack(controllers, [len(group_conditions)] * len(controllers))
+            batch = [c for _ in config.laws for c in group_conditions]
+            total = steps[group_conditions[0].name]
+            advance = progress(f"{mode}: {len(config.laws)} laws x {len(group)} conditions", total) if progress else None
+            traj = simulate(robot, stack, batch, config.sim, progress=advance)
+            for b, (law, condition) in enumerate((law, c) for law in config.laws for c in group_conditions):
+                runs.append(_run_record(law, mode, condition, traj, b))
+                trajectories[(law, mode, condition.name)] = traj.run(b)
+        for law in config.laws:
+            timing[law][mode] = time_controller(mode, law, robot, conditions[0], config.sim, config.timing_cycles,
+                                                options.get(mode, {}))  # fmt: skip
+
+    results = _summarize(runs, timing, config, robot, conditions)
+    (out_dir / "results.json").write_text(json.dumps(results, indent=2))
+    (out_dir / "table.md").write_text(format_table(results))
+    if config.save_trajectories:
+        traj_dir = out_dir / "trajectories"
+        traj_dir.mkdir(exist_ok=True)
+        for (law, mode, cond), arrays in trajectories.items():
+            np.savez_compressed(traj_dir / f"{law}_{mode}_{cond}.npz", **arrays)
+    if config.plots:
+        from models.plots import plot_tracking_errors
+
+        plot_tracking_errors(trajectories, config.laws, config.modes, [c.name for c in conditions], out_dir / "plots")
+    return results
+
+
+def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: int) -> dict[str, Any]:
+    dist_time = None if traj.disturbance is None else traj.disturbance.time_s
+    return {
+        "law": law, "mode": mode, "condition": condition.name,
+        "metrics": run_metrics(traj.t_s, traj.q[b], traj.q_ref[b], dist_time),
+        "finite": bool(traj.finite[b]), "within_limits": bool(traj.within_limits[b]),
+        "position_limit_ratio": float(traj.position_ratio[b]), "velocity_limit_ratio": float(traj.velocity_ratio[b]),
+        "max_abs_torque_nm": np.abs(traj.tau[b]).max(axis=0).tolist(),
+    }  # fmt: skip
+
+
+def _summarize(runs: list[dict[str, Any]], timing: dict, config: ExperimentConfig, robot: RobotModel,
+               conditions: list[Condition]) -> dict[str, Any]:  # fmt: skip
+    metrics = {(f"{r['law']}/{r['mode']}", r["condition"]): r["metrics"] for r in runs}
+    scores = composite_scores(metrics)
+    table: dict[str, dict[str, Any]] = {}
+    for law in config.laws:
+        row: dict[str, Any] = {}
+        for mode in config.modes:
+            row[mode] = {"score": scores[f"{law}/{mode}"], "time_per_cycle": timing[law][mode]}
+            if mode != "fb" and "fb" in config.modes:
+                row[mode]["eta"] = improvement(scores[f"{law}/{mode}"], scores[f"{law}/fb"])
+        table[law] = row
+    return {
+        "robot": robot.name,
+        "config": {"laws": list(config.laws), "modes": list(config.modes), "sim": asdict(config.sim)},
+        "conditions": [{"name": c.name, "amplitude_rad": list(c.amplitude_rad), "frequency_hz": list(c.frequency_hz),
+                        "duration_s": c.duration_s, "initial_state": c.initial_state,
+                        "disturbance": None if c.disturbance is None else asdict(c.disturbance),
+                        "mismatch": asdict(c.mismatch)} for c in conditions],  # fmt: skip
+        "metric_names": list(METRICS),
+        "table": table,
+        "all_runs_finite_and_within_limits": all(r["finite"] and r["within_limits"] for r in runs),
+        "runs": runs,
+        "machine": _machine(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+_MODE_TITLE = {"fb": "FB", "hmpc": "HMPC", "lmpc": "LMPC"}
+_ETA_TITLE = {"hmpc": "η_H (%)", "lmpc": "η_L (%)"}
+_T_TITLE = {"fb": "t_FB (ms)", "hmpc": "t_H (ms)", "lmpc": "t_L (ms)"}
+_LAW_TITLE = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
+
+
+def format_table(results: dict[str, Any]) -> str:
+    """Markdown in the layout of the paper's Table I (composite scores, eta, time per cycle)."""
+    modes = results["config"]["modes"]
+    head = ["Controller"]
+    for mode in modes:
+        head.append(_MODE_TITLE.get(mode, mode))
+        if mode in _ETA_TITLE and "fb" in modes:
+            head.append(_ETA_TITLE[mode])
+    head += [_T_TITLE.get(m, m) for m in modes]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    etas: dict[str, list[float]] = defaultdict(list)
+    for law, row in results["table"].items():
+        cells = [_LAW_TITLE.get(law, law)]
+        for mode in modes:
+            cells.append(f"{row[mode]['score']:.3f}")
+            if "eta" in row[mode]:
+                cells.append(f"{100 * row[mode]['eta']:.1f}")
+                etas[mode].append(row[mode]["eta"])
+        cells += [f"{row[m]['time_per_cycle']['median_ms']:.4f}" for m in modes]
+        lines.append("| " + " | ".join(cells) + " |")
+    notes = [f"Average {_ETA_TITLE[m]}: {100 * float(np.mean(v)):.1f}" for m, v in etas.items()]
+    limits = "yes" if results["all_runs_finite_and_within_limits"] else "NO (see results.json runs)"
+    footer = [
+        "",
+        f"Robot {results['robot']}; conditions: {', '.join(c['name'] for c in results['conditions'])}; "
+        f"control period {results['config']['sim']['dt_s'] * 1e3:g} ms.",
+        "Scores: composite of the six metrics, each normalized per condition by its largest value among the "
+        "configurations in this table (docs/scoring.md). Times: median wall time per control cycle, one robot.",
+        f"Every run finite and inside the joint limits: {limits}.",
+        *notes,
+        "",
+    ]
+    return "\n".join(lines + footer)
