@@ -1,0 +1,74 @@
+"""``hil target``: serve the emulated arm, inject faults into a running one.
+
+    hil target serve --config deploy/target.virtual.yaml
+    hil target inject --socket /tmp/hil-target.sock '{"kind": "payload", "mass_kg": 2.0}'
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+target_app = typer.Typer(name="target", help="The pybullet arm behind emulated CiA 402 drives.", no_args_is_help=True)
+
+
+@target_app.command()
+def serve(
+    config: Annotated[Path, typer.Option("--config", help="target config, YAML or TOML")],
+    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+) -> None:
+    """Run the target until SIGINT/SIGTERM; the drives then go to a safe state and the bus closes."""
+    from sim_target.config import load_target_config
+    from sim_target.server import build_server
+
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(message)s")
+    target_config = load_target_config(config)
+    server, close = build_server(target_config)
+
+    def _stop(signum: int, _frame: object) -> None:
+        server.stop()
+
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    bridge = f", bridge ws://{target_config.bridge.host}:{target_config.bridge.port}/" if target_config.bridge else ""
+    print(f"target serving {server.plant.n_joints} drives on {target_config.bus.interface}:"
+          f"{target_config.bus.channel}{bridge}, clock {target_config.clock}, "
+          f"period {target_config.period_s * 1e3:g} ms", file=sys.stderr, flush=True)
+    try:
+        server.run()
+    finally:
+        close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print(f"target stopped after {server.stats.steps} steps", file=sys.stderr)
+
+
+@target_app.command()
+def inject(
+    command: Annotated[str, typer.Argument(help='one JSON fault, e.g. \'{"kind": "payload", "mass_kg": 2}\', or {"kind": "status"}')],
+    socket_path: Annotated[Path, typer.Option("--socket", help="the target's control_socket")],
+) -> None:
+    """Send a fault (or a status request) to a running target."""
+    from sim_target.config import TargetConfigError
+    from sim_target.server import send_control
+
+    try:
+        data = json.loads(command)
+    except json.JSONDecodeError as exc:
+        raise TargetConfigError(f"inject: not JSON ({exc.msg})") from None
+    try:
+        reply = send_control(socket_path, data)
+    except OSError as exc:
+        raise TargetConfigError(f"{socket_path}: cannot reach the target ({exc.strerror or exc})") from None
+    print(json.dumps(reply))
+    if not reply.get("ok"):
+        raise typer.Exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(target_app, name="target")

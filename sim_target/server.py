@@ -1,0 +1,363 @@
+"""The target process: the pybullet plant behind the emulated CiA 402 drives.
+
+Two clocks:
+
+- ``lockstep``: every SYNC the drives receive advances physics by exactly one control period, with
+  the torques latched at that SYNC, then the drives send their TPDOs with the new state. A HIL run
+  is then deterministic and comparable with the pure simulation.
+- ``realtime``: physics advances one period per tick of a monotonic clock with absolute deadlines
+  (``next += period``); a late tick is counted and the missed periods skipped, never run in a
+  burst. A SYNC then answers with the latest state.
+
+Faults: the plant's own (encoder noise, payload, torque impulse) are applied here; frame faults and
+drive faults go to the drive layer's hooks. They come from the config file (scheduled at ``at_s``
+simulated seconds) or, at run time, from a Unix control socket (``control_socket`` in the config):
+one JSON object per line, the same schema as a config fault, e.g.::
+
+    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/tmp/hil-target.sock
+    hil target inject --socket /tmp/hil-target.sock '{"kind": "impulse", "duration_s": 0.001}'
+    hil target inject --socket /tmp/hil-target.sock '{"kind": "status"}'
+
+Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import socket
+import socketserver
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import can
+import numpy as np
+
+from sim_target.config import (
+    DriveFault,
+    EncoderNoiseFault,
+    Fault,
+    FrameFault,
+    ImpulseFault,
+    PayloadFault,
+    TargetConfig,
+    TargetConfigError,
+    parse_fault,
+)
+from sim_target.plant import JointState, PybulletPlant, TorqueImpulse, default_urdf_path
+
+log = logging.getLogger(__name__)
+
+
+class DriveBank(Protocol):
+    """What the server needs from the emulated drives (sim_target/drives.py)."""
+
+    def set_sync_handler(self, handler: Callable[[], None]) -> None:
+        """Call ``handler`` on every SYNC, after latching the RPDO set-points, before the TPDOs."""
+
+    def commanded_torque_nm(self) -> np.ndarray:
+        """(N,) torque each drive is commanded to deliver now (0 when not Operation Enabled)."""
+
+    def operation_enabled(self) -> np.ndarray:
+        """(N,) bool: drive in Operation Enabled (any other joint is braked)."""
+
+    def publish_feedback(self, state: JointState) -> None:
+        """Send the TPDOs for ``state`` (the drives apply their own scaling)."""
+
+    def apply_fault(self, fault: FrameFault | DriveFault) -> None: ...
+
+    def safe_stop(self) -> None:
+        """Every drive to a safe state (brakes on, torque off)."""
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class ServerStats:
+    steps: int = 0
+    syncs: int = 0
+    late_ticks: int = 0  # realtime: ticks that started after their deadline
+    skipped_periods: int = 0  # realtime: periods dropped to catch up, never run in a burst
+    faults_applied: int = 0
+
+
+class TargetServer:
+    """Owns the plant, the drives and their bus; runs one of the two clocks until stopped."""
+
+    def __init__(self, config: TargetConfig, plant: PybulletPlant, drives: DriveBank) -> None:
+        self.config = config
+        self.plant = plant
+        self.drives = drives
+        self.stats = ServerStats()
+        self._lock = threading.Lock()  # pybullet and the drive state are touched from two threads
+        self._stop = threading.Event()
+        self._pending: queue.SimpleQueue[Fault] = queue.SimpleQueue()
+        self._scheduled: list[Fault] = []
+        for fault in config.faults:
+            if isinstance(fault, ImpulseFault):  # the plant schedules impulses to the sub-period
+                self._apply(fault, at_s=fault.at_s)
+            else:
+                self._scheduled.append(fault)
+        self._scheduled.sort(key=lambda fault: fault.at_s)
+        self._control: _ControlServer | None = None
+        drives.set_sync_handler(self._on_sync)
+
+    # --- clocks ---------------------------------------------------------------------------------
+
+    def _on_sync(self) -> None:
+        with self._lock:
+            self.stats.syncs += 1
+            if self.config.clock == "lockstep":
+                state = self._step_locked()
+            else:
+                state = self.plant.state()
+            self.drives.publish_feedback(state)
+
+    def _step_locked(self) -> JointState:
+        self._apply_due_faults()
+        enabled = np.asarray(self.drives.operation_enabled(), dtype=bool)
+        torque_nm = np.where(enabled, self.drives.commanded_torque_nm(), 0.0)
+        state = self.plant.step(torque_nm, ~enabled)
+        self.stats.steps += 1
+        return state
+
+    def run(self) -> None:
+        """Serve until :meth:`stop` (or a signal handler calling it); then drives to a safe state."""
+        try:
+            if self.config.clock == "realtime":
+                self._run_realtime()
+            else:
+                while not self._stop.wait(0.05):  # the SYNC handler does the work
+                    with self._lock:
+                        self._apply_pending()
+        finally:
+            self.shutdown()
+
+    def _run_realtime(self) -> None:
+        period_s = self.config.period_s
+        next_s = time.monotonic() + period_s
+        while not self._stop.is_set():
+            delay_s = next_s - time.monotonic()
+            if delay_s > 0:
+                self._stop.wait(delay_s)
+                if self._stop.is_set():
+                    break
+            with self._lock:
+                self._step_locked()
+            next_s += period_s
+            now_s = time.monotonic()
+            if now_s > next_s:  # overran: skip the periods already past rather than burst
+                missed = int((now_s - next_s) // period_s) + 1
+                self.stats.late_ticks += 1
+                self.stats.skipped_periods += missed
+                next_s += missed * period_s
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def shutdown(self) -> None:
+        if self._control is not None:
+            self._control.close()
+            self._control = None
+        with self._lock:
+            try:
+                self.drives.safe_stop()
+            finally:
+                self.drives.close()
+                self.plant.close()
+
+    # --- faults ---------------------------------------------------------------------------------
+
+    def inject(self, fault: Fault) -> None:
+        """Apply ``fault`` before the next step (thread-safe; from the control socket)."""
+        self._pending.put(fault)
+
+    def _apply_due_faults(self) -> None:
+        self._apply_pending()
+        while self._scheduled and self._scheduled[0].at_s <= self.plant.time_s + 1e-12:
+            self._apply(self._scheduled.pop(0), at_s=self.plant.time_s)
+
+    def _apply_pending(self) -> None:
+        while True:
+            try:
+                fault = self._pending.get_nowait()
+            except queue.Empty:
+                return
+            self._apply(fault, at_s=self.plant.time_s)
+
+    def _apply(self, fault: Fault, at_s: float) -> None:
+        if isinstance(fault, EncoderNoiseFault):
+            self.plant.set_encoder_noise(fault.position_rad, fault.velocity_rad_s)
+        elif isinstance(fault, PayloadFault):
+            self.plant.set_payload(fault.mass_kg, fault.inertia_kg_m2)
+        elif isinstance(fault, ImpulseFault):
+            self.plant.add_impulse(TorqueImpulse(fault.torque_nm, at_s, fault.duration_s))
+        else:
+            self.drives.apply_fault(fault)
+        self.stats.faults_applied += 1
+        log.info("fault applied at t=%.4f s: %s", at_s, fault)
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            state = self.plant.state()
+            return {
+                "time_s": state.time_s,
+                "position_rad": state.position_rad.round(6).tolist(),
+                "operation_enabled": np.asarray(self.drives.operation_enabled()).tolist(),
+                "payload_kg": self.plant.payload_kg,
+                **self.stats.__dict__,
+            }
+
+    # --- control socket -------------------------------------------------------------------------
+
+    def serve_control(self, path: Path) -> None:
+        self._control = _ControlServer(path, self)
+
+
+class _ControlServer:
+    """Line-oriented JSON over a Unix socket: local only, no network address involved."""
+
+    def __init__(self, path: Path, target: TargetServer) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            self.path.unlink()  # a stale socket from a killed run
+
+        class Handler(socketserver.StreamRequestHandler):
+            def handle(self) -> None:
+                for raw in self.rfile:
+                    reply = _control_reply(target, raw.decode(errors="replace"))
+                    self.wfile.write((json.dumps(reply) + "\n").encode())
+
+        self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
+        self._server.daemon_threads = True
+        self._thread = threading.Thread(target=self._server.serve_forever, name="target-control", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+        self.path.unlink(missing_ok=True)
+
+
+def _control_reply(target: TargetServer, line: str) -> dict[str, Any]:
+    try:
+        data = json.loads(line)
+        if isinstance(data, dict) and data.get("kind") == "status":
+            return {"ok": True, **target.status()}
+        target.inject(parse_fault(data, "control"))
+        return {"ok": True}
+    except json.JSONDecodeError as exc:
+        return {"ok": False, "error": f"control: not JSON ({exc.msg})"}
+    except TargetConfigError as exc:
+        return {"ok": False, "error": str(exc)}
+
+
+def send_control(path: Path | str, command: dict[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
+    """Send one command to a running target's control socket and return its reply."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(str(path))
+        sock.sendall((json.dumps(command) + "\n").encode())
+        reply = b""
+        while not reply.endswith(b"\n"):
+            chunk = sock.recv(65536)
+            if not chunk:
+                break
+            reply += chunk
+    return json.loads(reply)
+
+
+# --- assembly -------------------------------------------------------------------------------------
+
+
+def make_plant(config: TargetConfig) -> PybulletPlant:
+    urdf = config.urdf if config.urdf is not None else default_urdf_path(config.robot or "ur5_paper")
+    plant_cfg = config.plant
+    try:
+        return PybulletPlant(
+            urdf,
+            period_s=config.period_s,
+            substeps=plant_cfg.substeps,
+            joint_names=plant_cfg.joint_names,
+            initial_position_rad=plant_cfg.initial_position_rad,
+            brake_holding_torque_nm=plant_cfg.brake_holding_torque_nm,
+            encoder_noise_rad=plant_cfg.encoder_noise_rad,
+            velocity_noise_rad_s=plant_cfg.velocity_noise_rad_s,
+            seed=plant_cfg.seed,
+        )
+    except ValueError as exc:  # PlantError and the robot loader's ModelInputError
+        raise TargetConfigError(f"plant: {exc}") from None
+
+
+def open_bus(config: TargetConfig) -> can.BusABC:
+    bus_cfg = config.bus
+    if bus_cfg.interface == "remote":
+        return can.Bus(interface="remote", channel=bus_cfg.remote_url)
+    kwargs: dict[str, Any] = {"interface": bus_cfg.interface, "channel": bus_cfg.channel}
+    if bus_cfg.interface != "virtual":
+        kwargs["bitrate"] = bus_cfg.bitrate
+    if bus_cfg.fd:
+        kwargs.update(fd=True, data_bitrate=bus_cfg.data_bitrate)
+    return can.Bus(**kwargs)
+
+
+class Bridge:
+    """python-can-remote's server on loopback, sharing the target's in-process virtual bus."""
+
+    def __init__(self, host: str, port: int, channel: str) -> None:
+        from can_remote.server import RemoteServer
+
+        # Each remote client gets its own virtual-bus endpoint on our channel, in this process.
+        self._server = RemoteServer(host, port, interface="virtual", channel=channel)
+        self.port = self._server.server_port
+        self._thread = threading.Thread(target=self._server.serve_forever, name="can-bridge", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+
+def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBank:
+    """The emulated drives of sim_target/drives.py, configured from ``config.drives``."""
+    from sim_target import drives as drive_module
+
+    node_ids = config.drives.node_ids or tuple(range(1, n_joints + 1))
+    if len(node_ids) != n_joints:
+        raise TargetConfigError(f"drives.node_ids: {len(node_ids)} ids for {n_joints} joints")
+    return drive_module.make_drive_bank(bus, node_ids, config)  # type: ignore[attr-defined,no-any-return]
+
+
+def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]]:
+    """Plant, bus (and bridge), drives and control socket; returns the server and a closer."""
+    plant = make_plant(config)
+    bridge = None
+    try:
+        if config.bridge is not None:
+            bridge = Bridge(config.bridge.host, config.bridge.port, config.bus.channel)
+        bus = open_bus(config)
+        try:
+            drives = make_drives(config, bus, plant.n_joints)
+        except Exception:
+            bus.shutdown()
+            raise
+        server = TargetServer(config, plant, drives)
+    except Exception:
+        plant.close()
+        if bridge is not None:
+            bridge.close()
+        raise
+    if config.control_socket is not None:
+        server.serve_control(config.control_socket)
+
+    def close() -> None:
+        bus.shutdown()
+        if bridge is not None:
+            bridge.close()
+
+    return server, close
