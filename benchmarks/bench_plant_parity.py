@@ -26,7 +26,7 @@ from test_plant_parity import (  # noqa: E402
     PERIOD_S,
     Q0_RAD,
     plant_trajectory,
-    rk4_trajectory,
+    models_trajectory,
     torque_law,
 )
 
@@ -36,13 +36,14 @@ def main() -> None:
     parser.add_argument("--excursion-rad", type=float, nargs="+", default=[0.005, 0.01])
     parser.add_argument("--substeps", type=int, nargs="+", default=[1, 4, 8, 16, 32, 64])
     args = parser.parse_args()
-    dynamics = make_dynamics(load_robot("ur5_paper"), backend="pinocchio")
+    robot = load_robot("ur5_paper")
+    dynamics = make_dynamics(robot, backend="pinocchio")
     n_periods = round(DURATION_S / PERIOD_S)
     rows = []
     for excursion in args.excursion_rad:
         amplitude_nm = np.diag(dynamics.mass_matrix(Q0_RAD)) * (2 * np.pi * FREQUENCY_HZ) ** 2 * excursion
         law = torque_law(dynamics, amplitude_nm)
-        reference = rk4_trajectory(dynamics, law, n_periods)
+        reference = models_trajectory(robot, "pinocchio", law, n_periods)
         for substeps in args.substeps:
             start = time.perf_counter()
             plant = plant_trajectory(law, n_periods, substeps)

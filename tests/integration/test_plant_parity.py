@@ -2,9 +2,9 @@
 torque law, agree on joint trajectories to 1e-3 rad over 2 s.
 
 The torque is gravity compensation plus small sinusoids, evaluated on each simulator's own state at
-the start of every 1 ms period and held over it (the HIL zero-order hold). The reference integrates
-models.dynamics' forward dynamics (the paper's RNEFDA) with RK4 at the control period (its own error
-is ~1e-11 rad here). pybullet integrates with semi-implicit Euler, first order: the plant's default
+the start of every 1 ms period and held over it (the HIL zero-order hold). The reference is the models
+simulator's plant (models.sim.closed_loop: forward dynamics, own RNEFDA or pinocchio, with RK4; its
+own integration error is ~1e-11 rad here). pybullet integrates with semi-implicit Euler, first order: the plant's default
 32 substeps are what bring it under 1e-3 (benchmarks/bench_plant_parity.py has the whole table).
 """
 
@@ -13,8 +13,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.conditions import Mismatch
 from models.dynamics import make_dynamics
 from models.robots import load_robot
+from models.sim.closed_loop import Plant as SimPlant
+from models.sim.closed_loop import SimConfig
 from sim_target.plant import PybulletPlant
 
 PERIOD_S = 1e-3
@@ -33,22 +36,13 @@ def torque_law(dynamics, amplitude_nm: np.ndarray):  # type: ignore[no-untyped-d
     return torque_nm
 
 
-def rk4_trajectory(dynamics, torque_nm, n_periods: int) -> np.ndarray:  # type: ignore[no-untyped-def]
+def models_trajectory(robot, backend: str, torque_nm, n_periods: int) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """The models simulator's plant (RK4, torque held over each period), nominal robot."""
+    sim = SimPlant(robot, Mismatch(), SimConfig(dt_s=PERIOD_S, plant_backend=backend))
     q, qd = Q0_RAD.copy(), np.zeros_like(Q0_RAD)
     out = [q]
-    h = PERIOD_S
     for k in range(n_periods):
-        tau = torque_nm(k, q)
-
-        def f(q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            return qd, dynamics.forward_dynamics(q, qd, tau)
-
-        k1 = f(q, qd)
-        k2 = f(q + h / 2 * k1[0], qd + h / 2 * k1[1])
-        k3 = f(q + h / 2 * k2[0], qd + h / 2 * k2[1])
-        k4 = f(q + h * k3[0], qd + h * k3[1])
-        q = q + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        qd = qd + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        q, qd = sim.integrate(q, qd, torque_nm(k, q), PERIOD_S)
         out.append(q)
     return np.array(out)
 
@@ -65,11 +59,12 @@ def plant_trajectory(torque_nm, n_periods: int, substeps: int | None = None) -> 
 
 @pytest.mark.parametrize("backend", ["rne", "pinocchio"])
 def test_plant_matches_the_project_dynamics_over_two_seconds(backend: str) -> None:
-    dynamics = make_dynamics(load_robot("ur5_paper"), backend=backend)
+    robot = load_robot("ur5_paper")
+    dynamics = make_dynamics(robot, backend=backend)
     amplitude_nm = np.diag(dynamics.mass_matrix(Q0_RAD)) * (2 * np.pi * FREQUENCY_HZ) ** 2 * EXCURSION_RAD
     law = torque_law(dynamics, amplitude_nm)
     n_periods = round(DURATION_S / PERIOD_S)
-    reference = rk4_trajectory(dynamics, law, n_periods)
+    reference = models_trajectory(robot, backend, law, n_periods)
     plant = plant_trajectory(law, n_periods)
     assert np.ptp(reference, axis=0).min() > 0.03  # every joint really moves
     error_rad = np.abs(plant - reference).max()
