@@ -54,7 +54,7 @@ def _hinf(robot: RobotModel, dt_s: float, alpha: Any = None, gravity_compensatio
 
 
 def _smc(robot: RobotModel, dt_s: float, lam: Any = None, k: Any = None, epsilon: float | None = None,
-         switching_units: str = "acceleration") -> FeedbackLaw:  # fmt: skip
+         switching_units: str = "torque") -> FeedbackLaw:  # fmt: skip
     from models.feedback.smc import PAPER_EPSILON, PAPER_K, PAPER_LAMBDA, SMCLaw
 
     n = robot.n_joints

@@ -6,12 +6,14 @@
 M^(q)(qdd_d + lambda e_dot) + h^(q, qd) is the equivalent control, evaluated as ONE RNEIDA call of the
 nominal model: ID^(q, qd, qdd_d + lambda e_dot). With an exact model it gives M s_dot = -K_sw sat(s/eps).
 
-The paper's switching gains k = [0.05, 0.10, 0.10, 0.15, 0.20, 0.005] are read, by default, as
-accelerations passed through the nominal inertia (``switching_units="acceleration"``:
-K_sw(q) sat = M^(q) (k * sat), one more term in the same RNEIDA call's acceleration), so that
-s_dot = -k sat(s/eps) per joint. The literal torque reading (``switching_units="torque"``:
-K_sw = diag(k) N*m) makes the boundary layer a gain M^-1 k / eps whose largest eigenvalue times
-dt = 1 ms is about 9 > 2 on this arm: at 1 kHz the layer chatters as a relay of amplitude k.
+The paper's switching gains k = [0.05, 0.10, 0.10, 0.15, 0.20, 0.005] are read literally as torques
+(``switching_units="torque"``, default: K_sw = diag(k) N*m), as the paper's "k ensures s_i s_i_dot < 0 ...
+counter coupling effects" suggests. In the boundary layer this is a gain M^-1 k / eps whose largest
+eigenvalue times dt = 1 ms is about 9 > 2 on this arm, so at 1 kHz the layer acts as a relay of
+amplitude k (bounded chattering, at most 0.2 N*m). The other reading (``"acceleration"``:
+K_sw sat = M^(q) (k * sat), one more term in the same RNEIDA call, s_dot = -k sat(s/eps)) is smooth
+but recovers from the paper's impulse at only k rad/s^2 (0.005 on joint 6) and drifts by hundreds of
+degrees on the paper's conditions (docs/feedback_laws.md).
 Values: lambda = [5, 3, 3, 5, 2, 0.05] 1/s, eps = 0.02 (rad/s). No state.
 """
 
@@ -35,7 +37,7 @@ class SMCLaw(FeedbackLaw):
     name = "smc"
 
     def __init__(self, robot: RobotModel, dt_s: float, lam: np.ndarray = PAPER_LAMBDA, k: np.ndarray = PAPER_K,
-                 epsilon: float = PAPER_EPSILON, switching_units: str = "acceleration") -> None:  # fmt: skip
+                 epsilon: float = PAPER_EPSILON, switching_units: str = "torque") -> None:  # fmt: skip
         super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
         if switching_units not in ("acceleration", "torque"):
             raise ModelInputError(f"law 'smc': switching_units must be 'acceleration' or 'torque', got '{switching_units}'")
