@@ -103,9 +103,9 @@ def rneida(
     """
     n = chain.n_joints
     rotations = joint_rotations(xp, chain, q)
-    omega = xp.zeros_like(q[..., :3])
-    omega_dot = xp.zeros_like(omega)
-    accel = -gravity + omega  # base frame origin accelerates at -g (fictitious); broadcast to (B, 3)
+    omega = q[..., :1] * 0.0 + 0.0 * chain.gravity  # (B, 3) zeros in q's namespace and dtype
+    omega_dot = omega
+    accel = omega - gravity  # the base frame origin accelerates at -g (fictitious), (B, 3)
     forces, moments = [], []
     for i in range(n):
         rot = rotations[i]
