@@ -1,0 +1,375 @@
+"""HMPC (Sec. III-A, Eq. 17): an MPC layer seeded by any feedback law, solved for a batch of states.
+
+Per state, one call of ``HMPCSolver.solve``:
+
+1. The law's step gives tau_fb (and its next state).
+2. Candidates: tau_c = clip(w * tau_fb), w in candidate_scales, held over the preview, plus (when
+   warm-starting) last cycle's optimal sequence shifted by one period. Each candidate is rolled out
+   through the nominal model and costed; the cheapest is the initial guess.
+3. Gauss-Newton on the whole torque sequence U = (tau_1..tau_TN): linearize the rollout (exact
+   dynamics derivatives), build the condensed least-squares model H, g of the cost, solve the
+   box-constrained QP over the torque bounds (models.hmpc.boxqp), backtrack on the true cost.
+   Stop when the QP's predicted decrease is below cost_rtol * J + cost_atol (converged) or the
+   iteration budget is spent.
+4. Apply tau_1. Rows with non-finite inputs, a non-converged solve (policy ``fallback``) or a
+   non-finite result fall back to tau_fb (or the caller's hold torque if tau_fb is not finite);
+   every fallback is reported in ``status``. The torque returned is always finite and within bounds.
+
+The reference preview at k+j comes from the reference's value, rate and acceleration at k
+(second-order Taylor, exact for the quadratic part; the error over 5 ms is O((5 ms)^3 q_d''')).
+Cost: see HMPCConfig. State bounds are soft (a stiff quadratic penalty) so that a state already
+outside them (e.g. just after the impulse) still gives a feasible problem; torque bounds are hard.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.errors import ModelInputError
+from models.feedback.base import FeedbackLaw
+from models.hmpc.boxqp import solve_box_qp
+from models.hmpc.config import HMPCConfig, per_joint
+from models.hmpc.prediction import make_predictor
+from models.robots import RobotModel
+
+CONVERGED, NONFINITE_INPUT, NOT_CONVERGED, NONFINITE_SOLUTION = 0, 1, 2, 3
+STATUS_NAMES = {CONVERGED: "converged", NONFINITE_INPUT: "nonfinite_input", NOT_CONVERGED: "not_converged",
+                NONFINITE_SOLUTION: "nonfinite_solution"}  # fmt: skip
+ARMIJO = 1e-4
+FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
+
+
+@dataclass
+class HMPCResult:
+    """One batch solve. Arrays are per state (leading axis B)."""
+
+    tau_nm: np.ndarray  # (B, N) torque to apply: the optimum's first step, or the fallback
+    tau_fb_nm: np.ndarray  # (B, N) the law's torque
+    law_state: np.ndarray  # (B, S) the law's next state, with the applied torque recorded
+    sequence_nm: np.ndarray  # (B, T, N) optimized torque sequence (NaN rows where there was none)
+    status: np.ndarray  # (B,) int, see STATUS_NAMES
+    fell_back: np.ndarray  # (B,) bool: tau_nm is the fallback torque
+    cost: np.ndarray  # (B,) cost of the returned sequence (NaN when none)
+    candidate_cost: np.ndarray  # (B,) cost of the best of the paper's candidates w * tau_fb
+    iterations: np.ndarray  # (B,) Gauss-Newton iterations used
+
+
+@dataclass
+class _Rows:
+    """The fixed data of K problems: start state, reference preview, the law's state at k+1."""
+
+    q0: np.ndarray  # (K, N)
+    qd0: np.ndarray
+    ref_q: np.ndarray  # (K, T, N)
+    ref_qd: np.ndarray
+    qdd_d: np.ndarray  # (K, N), held over the preview
+    law_state: np.ndarray  # (K, S)
+
+    def take(self, index: np.ndarray) -> _Rows:
+        return _Rows(*(a[index] for a in (self.q0, self.qd0, self.ref_q, self.ref_qd, self.qdd_d, self.law_state)))
+
+    def repeat(self, count: int) -> _Rows:
+        return _Rows(*(np.repeat(a, count, axis=0) for a in (self.q0, self.qd0, self.ref_q, self.ref_qd, self.qdd_d,
+                                                              self.law_state)))  # fmt: skip
+
+
+@dataclass
+class _Rollout:
+    q: np.ndarray  # (K, T, N) predicted states at k+1..k+T
+    qd: np.ndarray
+    features: np.ndarray  # (K, T, nE) E(k+j)
+    law_states: np.ndarray | None  # (K, T, S) the law's state at k+j (law-specific features only)
+    cost: np.ndarray  # (K,)
+
+    def take(self, index: np.ndarray) -> _Rollout:
+        states = None if self.law_states is None else self.law_states[index]
+        return _Rollout(self.q[index], self.qd[index], self.features[index], states, self.cost[index])
+
+    def put(self, index: np.ndarray, other: _Rollout) -> None:
+        self.q[index], self.qd[index], self.features[index], self.cost[index] = other.q, other.qd, other.features, other.cost
+        if self.law_states is not None and other.law_states is not None:
+            self.law_states[index] = other.law_states
+
+
+class HMPCSolver:
+    """The HMPC optimizer for one law on one nominal robot; ``solve`` takes a batch of states."""
+
+    def __init__(self, law: FeedbackLaw, robot: RobotModel, config: HMPCConfig | None = None) -> None:
+        config = HMPCConfig() if config is None else config
+        n = robot.n_joints
+        if law.n_joints != n:
+            raise ModelInputError(f"hmpc: law '{law.name}' has {law.n_joints} joints, robot '{robot.name}' has {n}")
+        self.law, self.robot, self.config = law, robot, config
+        self.n_joints, self.horizon = n, config.horizon_steps
+        self.dt_s = float(config.dt_s if config.dt_s is not None else law.dt_s)
+        if not (np.isfinite(self.dt_s) and self.dt_s > 0):
+            raise ModelInputError(f"hmpc: prediction step dt_s must be > 0, got {self.dt_s}")
+        self.predictor = make_predictor(robot, config.backend)
+        self.torque_limit_nm = self._limit("torque_limit_nm", config.torque_limit_nm, robot.torque_limit_nm)
+        self.position_limit_rad = self._limit("position_limit_rad", config.position_limit_rad, robot.position_limit_rad)
+        self.velocity_limit_rad_s = self._limit("velocity_limit_rad_s", config.velocity_limit_rad_s,
+                                                robot.velocity_limit_rad_s)  # fmt: skip
+        self.state_limit = np.concatenate([self.position_limit_rad, self.velocity_limit_rad_s])
+        self.scales = np.asarray(config.candidate_scales, float)
+        self.temporal = config.temporal_weights
+        self.torque_weight = per_joint("torque_weight", config.torque_weight, n)
+        # A law that overrides error_features gets its own E (and its state propagated along the
+        # preview); the base E = [e, e_dot] does not depend on the law's state, which saves the work.
+        self.law_features = type(law).error_features is not FeedbackLaw.error_features
+        n_features = 2 * n
+        if self.law_features:
+            probe = law.error_features(np, law.initial_state(np.zeros((1, n))), *(np.zeros((1, n)),) * 4)
+            n_features = int(np.asarray(probe).shape[-1])
+            if n_features < 2 * n:
+                raise ModelInputError(f"hmpc: law '{law.name}' error features have {n_features} entries, expected >= {2 * n}")
+        self.feature_weight = np.concatenate([
+            per_joint("position_error_weight", config.position_error_weight, n),
+            per_joint("velocity_error_weight", config.velocity_error_weight, n),
+            np.full(n_features - 2 * n, config.extra_feature_weight),
+        ])  # fmt: skip
+        self.n_features = n_features
+        # Constant pieces of the condensed model.
+        self._stage_torque_weight = (self.temporal[:, None] * self.torque_weight).reshape(-1)  # (T N,)
+        self._preview_s = self.dt_s * np.arange(1, self.horizon + 1)
+
+    def _limit(self, name: str, override: tuple[float, ...] | None, robot_value: np.ndarray) -> np.ndarray:
+        value = per_joint(name, override if override is not None else robot_value, self.n_joints)
+        if np.any(np.isnan(value)) or np.any(value <= 0):
+            raise ModelInputError(f"hmpc {name}: infeasible bounds, every limit must be > 0 (|x| <= limit), got {value.tolist()}")
+        return value
+
+    # ------------------------------------------------------------------------------------------
+    def reference_preview(self, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q_d, qd_d) at k+1..k+T (B, T, N) from value, rate and acceleration at k."""
+        s = self._preview_s[None, :, None]
+        return (q_d[:, None] + s * qd_d[:, None] + 0.5 * s * s * qdd_d[:, None], qd_d[:, None] + s * qdd_d[:, None])
+
+    def solve(
+        self,
+        q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray,
+        law_state: np.ndarray | None = None,
+        warm_start_nm: np.ndarray | None = None,
+        hold_torque_nm: np.ndarray | None = None,
+    ) -> HMPCResult:  # fmt: skip
+        """HMPC torques for B independent states (all arrays (B, N); law_state (B, S)).
+
+        ``warm_start_nm`` (B, T, N): last cycle's ``sequence_nm``, shifted here by one period.
+        ``hold_torque_nm`` (B, N): what to apply where neither the MPC nor the law gives a finite
+        torque (default zero).
+        """
+        q, qd, q_d, qd_d, qdd_d = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (q, qd, q_d, qd_d, qdd_d))
+        batch, n, horizon = q.shape[0], self.n_joints, self.horizon
+        if q.shape[1] != n:
+            raise ModelInputError(f"hmpc: states have {q.shape[1]} joints, the robot has {n}")
+        if law_state is None:
+            law_state = self.law.initial_state(q)
+        law_state = np.atleast_2d(np.asarray(law_state, dtype=np.float64))
+        with np.errstate(all="ignore"):
+            tau_fb, next_state = self.law.step(np, law_state, q, qd, q_d, qd_d, qdd_d)
+            tau_fb, next_state = np.asarray(tau_fb, float), np.asarray(next_state, float).reshape(batch, -1)
+            ref_q, ref_qd = self.reference_preview(q_d, qd_d, qdd_d)
+            finite = (np.isfinite(q).all(1) & np.isfinite(qd).all(1) & np.isfinite(ref_q).all((1, 2))
+                      & np.isfinite(ref_qd).all((1, 2)) & np.isfinite(qdd_d).all(1) & np.isfinite(tau_fb).all(1)
+                      & np.isfinite(next_state).all(1))  # fmt: skip
+
+            status = np.full(batch, NONFINITE_INPUT)
+            sequence = np.full((batch, horizon, n), np.nan)
+            cost, candidate_cost = np.full(batch, np.nan), np.full(batch, np.nan)
+            iterations = np.zeros(batch, int)
+            valid = np.flatnonzero(finite)
+            if valid.size:
+                rows = _Rows(q[valid], qd[valid], ref_q[valid], ref_qd[valid], qdd_d[valid], next_state[valid])
+                warm = None
+                if self.config.warm_start and warm_start_nm is not None:
+                    warm = np.asarray(warm_start_nm, float)[valid]
+                    warm = np.concatenate([warm[:, 1:], warm[:, -1:]], 1)
+                    warm = np.where(np.isfinite(warm), warm, tau_fb[valid, None, :])
+                u, c, cc, st, it = self._optimize(rows, tau_fb[valid], warm)
+                sequence[valid], cost[valid], candidate_cost[valid], status[valid], iterations[valid] = u, c, cc, st, it
+
+            first = sequence[:, 0]
+            bad_solution = finite & ~np.isfinite(first).all(1)
+            status[bad_solution] = NONFINITE_SOLUTION
+            use_mpc = (status == CONVERGED) | ((status == NOT_CONVERGED) & (self.config.on_budget_exhausted == "best_iterate"))
+            hold = np.zeros((batch, n)) if hold_torque_nm is None else np.broadcast_to(np.asarray(hold_torque_nm, float), (batch, n))
+            fallback = np.where(np.isfinite(tau_fb), tau_fb, np.nan_to_num(hold, nan=0.0, posinf=0.0, neginf=0.0))
+            tau = np.where(use_mpc[:, None], first, fallback)
+            tau = np.clip(np.nan_to_num(tau, nan=0.0, posinf=0.0, neginf=0.0), -self.torque_limit_nm, self.torque_limit_nm)
+            # A law state that went non-finite (NaN measurement) is not carried into the next cycle.
+            keep = np.isfinite(next_state).all(1) if next_state.size else np.ones(batch, bool)
+            next_state = np.where(keep[:, None], next_state, law_state) if next_state.size else next_state
+            next_state = self.law.with_applied_torque(next_state, tau)
+        return HMPCResult(tau, tau_fb, next_state, sequence, status, ~use_mpc, cost, candidate_cost, iterations)
+
+    # ------------------------------------------------------------------------------------------
+    def _optimize(self, rows: _Rows, tau_fb: np.ndarray, warm: np.ndarray | None):  # type: ignore[no-untyped-def]
+        config, limit = self.config, self.torque_limit_nm
+        k, n, horizon = tau_fb.shape[0], self.n_joints, self.horizon
+        candidates = np.clip(self.scales[None, :, None] * tau_fb[:, None, :], -limit, limit)  # (K, C, N)
+        candidates = np.broadcast_to(candidates[:, :, None, :], (k, len(self.scales), horizon, n))
+        if warm is not None:
+            candidates = np.concatenate([candidates, np.clip(warm, -limit, limit)[:, None]], 1)
+        n_candidates = candidates.shape[1]
+        flat = np.ascontiguousarray(candidates.reshape(k * n_candidates, horizon, n))
+        rolled = self._rollout(rows.repeat(n_candidates), flat)
+        costs = np.where(np.isfinite(rolled.cost), rolled.cost, np.inf).reshape(k, n_candidates)
+        candidate_cost = costs[:, : len(self.scales)].min(1)
+        best = np.argmin(costs, 1) + np.arange(k) * n_candidates
+        u = flat[best].copy()
+        state = rolled.take(best)
+        status = np.full(k, NOT_CONVERGED)
+        iterations = np.zeros(k, int)
+        active = np.flatnonzero(np.isfinite(state.cost))
+        status[~np.isfinite(state.cost)] = NONFINITE_SOLUTION
+
+        for _ in range(config.max_iterations):
+            if active.size == 0:
+                break
+            sub_rows, sub_u, sub_state = rows.take(active), u[active], state.take(active)
+            hessian, gradient = self._gauss_newton_model(sub_rows, sub_u, sub_state)
+            flat_u = sub_u.reshape(active.size, -1)
+            bound = np.tile(limit, horizon)
+            step, _ = solve_box_qp(hessian, gradient, -bound - flat_u, bound - flat_u, config.max_qp_iterations,
+                                   config.qp_tolerance)  # fmt: skip
+            model_change = np.einsum("ki,ki->k", gradient, step) + 0.5 * np.einsum("ki,ki->k", step, (hessian @ step[..., None])[..., 0])
+            predicted = -2.0 * model_change  # the QP models J / 2
+            iterations[active] += 1
+            done = ~(predicted > config.cost_atol + config.cost_rtol * sub_state.cost)
+            status[active[done]] = CONVERGED
+            pending = np.flatnonzero(~done)
+            step = step.reshape(active.size, horizon, n)
+            alpha = 1.0
+            moved = np.zeros(active.size, bool)
+            finished = np.zeros(active.size, bool)
+            for _ in range(config.max_line_search_steps + 1):
+                if pending.size == 0:
+                    break
+                trial_u = sub_u[pending] + alpha * step[pending]
+                trial = self._rollout(sub_rows.take(pending), trial_u)
+                ok = trial.cost <= sub_state.cost[pending] - ARMIJO * alpha * predicted[pending]
+                accepted = pending[ok]
+                if alpha == 1.0:
+                    # A full step whose true decrease matches the model's: the model was exact to
+                    # within the tolerance there, so what it leaves to gain is below it too.
+                    actual = sub_state.cost[accepted] - trial.cost[ok]
+                    agree = np.abs(actual - predicted[accepted]) <= config.cost_atol + config.cost_rtol * trial.cost[ok]
+                    status[active[accepted[agree]]] = CONVERGED
+                    finished[accepted[agree]] = True
+                u[active[accepted]] = trial_u[ok]
+                state.put(active[accepted], trial.take(np.flatnonzero(ok)))
+                moved[accepted] = True
+                pending, alpha = pending[~ok], 0.5 * alpha
+            # Rows whose step could not reduce the cost stop here (status stays NOT_CONVERGED).
+            active = active[moved & ~finished]
+        return u, state.cost, candidate_cost, status, iterations
+
+    def _rollout(self, rows: _Rows, u: np.ndarray) -> _Rollout:
+        """Predicted states, error features and cost of torque sequences u (K, T, N)."""
+        dt, predictor = self.dt_s, self.predictor
+        k, horizon, n = u.shape
+        q_path, qd_path = np.empty((k, horizon, n)), np.empty((k, horizon, n))
+        q, qd = rows.q0, rows.qd0
+        for j in range(horizon):
+            qd = qd + dt * predictor.acceleration(q, qd, u[:, j])
+            q = q + dt * qd
+            q_path[:, j], qd_path[:, j] = q, qd
+        law_states = None
+        if self.law_features:
+            features, law_states = self._law_features(rows, u, q_path, qd_path)
+        else:
+            features = np.concatenate([rows.ref_q - q_path, rows.ref_qd - qd_path], -1)
+        stage = np.einsum("ktf,f->kt", features * features, self.feature_weight)
+        stage = stage + np.einsum("ktn,n->kt", u * u, self.torque_weight)
+        cost = stage @ self.temporal
+        if self.config.use_state_bounds:
+            x = np.concatenate([q_path, qd_path], -1)
+            violation = x - np.clip(x, -self.state_limit, self.state_limit)
+            cost = cost + self.config.state_bound_weight * np.einsum("ktx,ktx->k", violation, violation)
+        return _Rollout(q_path, qd_path, features, law_states, cost)
+
+    def _law_features(self, rows: _Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray):  # type: ignore[no-untyped-def]
+        """The law's own E along the preview, its state stepped with the predicted measurements."""
+        law, horizon = self.law, self.horizon
+        state = law.with_applied_torque(rows.law_state, u[:, 0])
+        features, states = [], []
+        for j in range(horizon):
+            states.append(state)
+            args = (q_path[:, j], qd_path[:, j], rows.ref_q[:, j], rows.ref_qd[:, j])
+            features.append(np.asarray(law.error_features(np, state, *args), float))
+            if j + 1 < horizon:
+                state = law.with_applied_torque(np.asarray(law.step(np, state, *args, rows.qdd_d)[1], float), u[:, j + 1])
+        return np.stack(features, 1), np.stack(states, 1)
+
+    def _feature_jacobian(self, rows: _Rows, state: _Rollout) -> np.ndarray:
+        """dE/dx (K, T, nE, 2N) of a law's own features at fixed law state, by central differences."""
+        k, horizon, n = state.q.shape
+        x = np.concatenate([state.q, state.qd], -1).reshape(k * horizon, 2 * n)
+        law_state = state.law_states.reshape(k * horizon, -1)  # type: ignore[union-attr]
+        ref_q, ref_qd = rows.ref_q.reshape(-1, n), rows.ref_qd.reshape(-1, n)
+        h = FEATURE_FD_STEP * np.maximum(1.0, np.abs(x))
+        delta = np.eye(2 * n)[None] * h[:, None, :]  # (KT, 2N perturbations, 2N)
+        xs = np.concatenate([x[:, None] + delta, x[:, None] - delta], 1).reshape(-1, 2 * n)
+        rep = 4 * n
+        values = np.asarray(self.law.error_features(np, np.repeat(law_state, rep, 0), xs[:, :n], xs[:, n:],
+                                                    np.repeat(ref_q, rep, 0), np.repeat(ref_qd, rep, 0)), float)  # fmt: skip
+        values = values.reshape(k * horizon, 2, 2 * n, -1)
+        jac = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
+        return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
+
+    def _gauss_newton_model(self, rows: _Rows, u: np.ndarray, state: _Rollout) -> tuple[np.ndarray, np.ndarray]:
+        """Condensed model J(U + d) / 2 ~ J(U) / 2 + g'd + d'Hd / 2 (H (K, TN, TN), g (K, TN))."""
+        dt, n, horizon = self.dt_s, self.n_joints, self.horizon
+        k = u.shape[0]
+        q_prev = np.concatenate([rows.q0[:, None], state.q[:, :-1]], 1).reshape(-1, n)
+        qd_prev = np.concatenate([rows.qd0[:, None], state.qd[:, :-1]], 1).reshape(-1, n)
+        _, d_q, d_qd, d_tau = self.predictor.acceleration_derivatives(q_prev, qd_prev, u.reshape(-1, n))
+        d_q, d_qd, d_tau = (a.reshape(k, horizon, n, n) for a in (d_q, d_qd, d_tau))
+        eye = np.eye(n)
+        # x+ = Phi x + Gamma u (linearized semi-implicit Euler), x = (q, qd)
+        phi = np.empty((k, horizon, 2 * n, 2 * n))
+        velocity_block = eye + dt * d_qd
+        phi[:, :, :n, :n] = eye + dt * dt * d_q
+        phi[:, :, :n, n:] = dt * velocity_block
+        phi[:, :, n:, :n] = dt * d_q
+        phi[:, :, n:, n:] = velocity_block
+        gamma = np.concatenate([dt * dt * d_tau, dt * d_tau], 2)  # (K, T, 2N, N)
+        sens = np.zeros((k, horizon, 2 * n, horizon * n))  # d x_{k+j} / d U
+        sens[:, 0, :, :n] = gamma[:, 0]
+        for j in range(1, horizon):
+            sens[:, j, :, : j * n] = phi[:, j] @ sens[:, j - 1, :, : j * n]
+            sens[:, j, :, j * n : (j + 1) * n] = gamma[:, j]
+
+        weights = self.temporal[None, :, None] * self.feature_weight  # (1, T, nE)
+        if self.law_features:
+            jac = self._feature_jacobian(rows, state)  # (K, T, nE, 2N)
+            weighted = weights[..., None] * jac
+            block = np.einsum("ktfa,ktfb->ktab", jac, weighted)  # J' W1 J per stage
+            residual = np.einsum("ktfa,ktf->kta", weighted, state.features)
+        else:  # E = ref - x: dE/dx = -I
+            block = None
+            diag = np.broadcast_to(weights, (k, horizon, 2 * n)).copy()
+            residual = -weights * state.features
+        if self.config.use_state_bounds:
+            x = np.concatenate([state.q, state.qd], -1)
+            violation = x - np.clip(x, -self.state_limit, self.state_limit)
+            rho = self.config.state_bound_weight
+            residual = residual + rho * violation
+            if block is None:
+                diag = diag + rho * (violation != 0)
+            else:
+                block = block + rho * np.einsum("kta,ab->ktab", (violation != 0).astype(float), np.eye(2 * n))
+        flat_sens = sens.reshape(k, horizon * 2 * n, horizon * n)
+        if block is None:
+            weighted_sens = flat_sens * diag.reshape(k, -1, 1)
+        else:
+            weighted_sens = (block @ sens).reshape(k, horizon * 2 * n, horizon * n)
+        hessian = np.swapaxes(flat_sens, 1, 2) @ weighted_sens
+        gradient = np.einsum("kxi,kx->ki", flat_sens, residual.reshape(k, -1))
+        flat_u = u.reshape(k, -1)
+        hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self._stage_torque_weight
+        gradient = gradient + self._stage_torque_weight * flat_u
+        diagonal = hessian[:, np.arange(horizon * n), np.arange(horizon * n)]
+        hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self.config.damping * diagonal.mean(1, keepdims=True) + 1e-300
+        return hessian, gradient
