@@ -1,0 +1,39 @@
+"""A stand-alone target process for the cross-process drive-bus test and benchmark: emulated drives
+and the fake plant on an in-process virtual bus, served to other processes by the python-can-remote
+bridge on loopback. Prints {"port": N} once ready; exits when its stdin closes."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import can
+
+from drivers.transport import start_bridge_server
+from fake_plant import FakePlant, lockstep
+from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--channel", default="hil-target")
+    parser.add_argument("--drives", type=int, default=6)
+    parser.add_argument("--period-s", type=float, default=0.001)
+    args = parser.parse_args()
+    bridge = start_bridge_server("127.0.0.1", 0, args.channel)
+    bus = can.Bus(interface="virtual", channel=args.channel, ignore_config=True)
+    drives = EmulatedDrives(bus, EmulatedDrivesConfig(node_ids=tuple(range(1, args.drives + 1))))
+    plant = FakePlant(args.drives, args.period_s)
+    lockstep(drives, plant)
+    drives.start()
+    print(json.dumps({"port": bridge.port}), flush=True)
+    sys.stdin.read()  # until the parent closes our stdin (or dies)
+    drives.close()
+    bus.shutdown()
+    bridge.close()
+    print(json.dumps({"plant_steps": plant.steps, "syncs": drives.counters.syncs}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""The driver over the other transports: python-can-remote between two processes on loopback, and
+SocketCAN vcan0 when this kernel has it (skipped with the reason otherwise)."""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from drive_rig import drive_bus_config
+from drivers.cia402.state_machine import State
+from drivers.config import parse_drive_bus_config
+from drivers.drive_bus import DriveBus
+from drivers.transport import socketcan_unavailable
+from fake_plant import FakePlant, lockstep
+from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+
+HERE = Path(__file__).parent
+ROOT = HERE.parent.parent
+
+
+def _expected_position(torque_nm: np.ndarray, period_s: float, cycles: int, inertia: float = 0.5) -> np.ndarray:
+    return period_s**2 * torque_nm / inertia * cycles * (cycles + 1) / 2
+
+
+def _run_cycles(driver: DriveBus, period_s: float, cycles: int = 100) -> None:
+    torque = np.array([1.0, -1.0, 2.0, -2.0, 0.5, 0.0])
+    driver.enable()
+    for _ in range(cycles):
+        feedback = driver.exchange(torque)
+    assert feedback.fresh.all()
+    resolution = 1 / driver.counts_per_rad[0]
+    np.testing.assert_allclose(feedback.position_rad, _expected_position(torque, period_s, cycles),
+                               atol=resolution)
+    assert driver.quick_stop() == (State.QUICK_STOP_ACTIVE,) * 6
+    counters = driver.counters
+    assert counters.dropped == counters.late == counters.malformed == 0
+
+
+def _read_json_line(proc: subprocess.Popen[str], timeout_s: float) -> dict:
+    selector = selectors.DefaultSelector()
+    selector.register(proc.stdout, selectors.EVENT_READ)  # type: ignore[arg-type]
+    if not selector.select(timeout_s):
+        raise TimeoutError(f"target process printed nothing in {timeout_s} s")
+    line = proc.stdout.readline()  # type: ignore[union-attr]
+    if not line:
+        raise RuntimeError(f"target process exited: {proc.stderr.read()}")  # type: ignore[union-attr]
+    return json.loads(line)
+
+
+@pytest.fixture
+def target_process() -> Iterator[tuple[int, subprocess.Popen[str]]]:
+    try:
+        import can_remote  # noqa: F401
+    except ImportError as exc:
+        pytest.skip(f"python-can-remote is not installed: {exc}")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen(
+        [sys.executable, str(HERE / "drive_target_process.py"), "--period-s", "0.004",
+         "--channel", f"t-{uuid.uuid4().hex[:8]}"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )
+    try:
+        port = _read_json_line(proc, 30.0)["port"]
+        yield port, proc
+    finally:
+        if proc.poll() is None:
+            proc.stdin.close()  # type: ignore[union-attr]
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+@pytest.mark.parametrize("fd", [False, True], ids=["classical", "fd"])
+def test_two_processes_over_the_loopback_bridge(target_process: tuple[int, subprocess.Popen[str]],
+                                                fd: bool) -> None:
+    port, proc = target_process
+    transport = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port, "channel": ""}
+    config = drive_bus_config("unused", fd=fd, transport=transport, period_s=0.004)
+    driver = DriveBus(config)
+    try:
+        driver.connect()
+        _run_cycles(driver, 0.004)
+    finally:
+        driver.close()
+    proc.stdin.close()  # type: ignore[union-attr]
+    summary = _read_json_line(proc, 10.0)
+    assert summary["syncs"] == driver.counters.cycles  # every SYNC crossed the process boundary
+    assert proc.wait(timeout=10) == 0
+
+
+def test_vcan0_when_the_kernel_has_it() -> None:
+    reason = socketcan_unavailable("vcan0")
+    if reason is not None:
+        pytest.skip(f"vcan0 unavailable: {reason}")
+    side = can.Bus(interface="socketcan", channel="vcan0", fd=True, ignore_config=True)
+    drives = EmulatedDrives(side, EmulatedDrivesConfig(node_ids=tuple(range(1, 7))))
+    plant = FakePlant(6, 0.004)
+    lockstep(drives, plant)
+    drives.start()
+    config = parse_drive_bus_config({
+        "transport": {"interface": "socketcan", "channel": "vcan0"},
+        "period_s": 0.004, "feedback_timeout_s": 0.5,
+        "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(6)],
+    })
+    driver = DriveBus(config)
+    try:
+        driver.connect()
+        _run_cycles(driver, 0.004)
+    finally:
+        driver.close()
+        drives.close()
+        side.shutdown()
