@@ -31,7 +31,7 @@ def stability(
     from models.conditions import load_conditions
     from models.feedback import make_law
     from models.robots import load_robot
-    from models.stability import evaluate_theorem1
+    from models.stability import evaluate_theorem1, roll_states
 
     if stride < 1:
         raise ModelInputError(f"--stride: must be >= 1, got {stride}")
@@ -43,8 +43,6 @@ def stability(
     feedback = make_law(law, arm, dt_s=dt)
     t = np.arange(int(round(chosen.duration_s / dt))) * dt
     q_d, qd_d, qdd_d = chosen.reference(t)
-    from models.stability import roll_states
-
     states = roll_states(feedback, q_d, qd_d, q_d, qd_d, qdd_d)[::stride]
     pick = slice(None, None, stride)
     report = evaluate_theorem1(feedback, arm, q_d[pick], qd_d[pick], q_d[pick], qd_d[pick], qdd_d[pick], states,
