@@ -12,6 +12,8 @@ from typing import Final
 import canopen
 from canopen.objectdictionary import ODVariable, ObjectDictionary, datatypes
 
+from drivers.errors import DriveConfigError
+
 EDS_PATH: Final = Path(__file__).parent / "data" / "hil_cst_drive.eds"
 
 # Object indices used by the driver and the emulated drive.
@@ -111,10 +113,8 @@ REQUIRED_OBJECTS: Final[dict[tuple[int, int], int]] = {
 }
 
 
-class EdsError(ValueError):
+class EdsError(DriveConfigError):
     """An EDS that cannot describe a drive of this layer; one line naming the file and object."""
-
-    exit_code = 2
 
 
 def _lookup(od: ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
