@@ -1,0 +1,163 @@
+"""Export a policy bundle: the law's step (explicit state) and the emulator fused in one ONNX graph.
+
+    x (B, 5N+S) = [q, qd, q_d, qd_d, qdd_d, law_state]           float64
+    tau_fb, law_state' = law.step(torch, law_state, q, qd, q_d, qd_d, qdd_d)
+    tau = sat(emulator(q, q_d - q, qd, qd_d - qd, tau_fb))        normalization inside the graph
+    law_state'[applied_torque_slice] = tau                        (ADRC's observer input)
+    y (B, 2N+S) = [tau, tau_fb, law_state']
+
+The manifest (hil_runtime.bundle documents the schema) carries everything the runtime checks, and
+the provenance of the training. ``verify_bundle`` checks onnxruntime against torch (<= 1e-5 N m).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from hil_runtime.bundle import INPUT_LAYOUT, MANIFEST, OUTPUT_LAYOUT, SCHEMA, PolicyBundle, sha256_file
+from models.errors import ModelInputError
+from models.feedback.base import FeedbackLaw
+from models.lmpc.emulator import Emulator
+from models.robots import RobotModel
+
+GRAPH_FILE = "policy.onnx"
+OPSET = 17
+PARITY_TOLERANCE_NM = 1e-5
+
+
+class FusedPolicy(nn.Module):
+    """Law step + emulator + saturation + applied-torque bookkeeping, one packed row in and out."""
+
+    def __init__(self, law: FeedbackLaw, emulator: Emulator) -> None:
+        super().__init__()
+        self.law = law
+        self.emulator = emulator.double().eval()
+        self.n, self.s = law.n_joints, law.state_size
+        self.register_buffer("limit", torch.as_tensor(law.torque_limit_nm, dtype=torch.float64))
+        self.applied = law.applied_torque_slice
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = self.n
+        q, qd, q_d, qd_d, qdd_d = (x[:, i * n : (i + 1) * n] for i in range(5))
+        state = x[:, 5 * n : 5 * n + self.s]
+        tau_fb, next_state = self.law.step(torch, state, q, qd, q_d, qd_d, qdd_d)
+        s = torch.cat([q, q_d - q, qd, qd_d - qd, tau_fb], 1)
+        tau = torch.minimum(torch.maximum(self.emulator(s), -self.limit), self.limit)
+        if self.applied is not None:
+            a, b = self.applied.start, self.applied.stop
+            next_state = torch.cat([next_state[:, :a], tau, next_state[:, b:]], 1)
+        parts = [tau, tau_fb] + ([next_state] if self.s else [])
+        return torch.cat(parts, 1)
+
+
+def initial_state_map(law: FeedbackLaw) -> tuple[np.ndarray, np.ndarray]:
+    """(constant (S,), position_gain (S, N)) with initial_state(q0) = constant + gain q0, checked affine."""
+    n = law.n_joints
+    constant = law.initial_state(np.zeros((1, n)))[0]
+    gain = np.stack([law.initial_state(np.eye(n)[j : j + 1])[0] - constant for j in range(n)], 1).reshape(law.state_size, n)
+    probe = np.random.default_rng(0).normal(size=(3, n))
+    if not np.allclose(law.initial_state(probe), constant + probe @ gain.T, atol=1e-9):
+        raise ModelInputError(f"bundle export: law '{law.name}' initial state is not affine in q0")
+    return constant, gain
+
+
+def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: Emulator,
+                  training: dict[str, Any], validation: dict[str, Any],
+                  trust_region: tuple[np.ndarray, np.ndarray] | None = None,
+                  parity_inputs: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
+    """Write the bundle directory (atomically: a temporary sibling renamed at the end); return the manifest."""
+    n, s = law.n_joints, law.state_size
+    out_dir = Path(out_dir)
+    tmp = out_dir.with_name(f".{out_dir.name}.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        model = FusedPolicy(law, emulator).eval()
+        example = torch.zeros(2, 5 * n + s, dtype=torch.float64)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(model, (example,), str(tmp / GRAPH_FILE), input_names=["x"], output_names=["y"],
+                              dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}}, opset_version=OPSET, dynamo=False)  # fmt: skip
+        constant, gain = initial_state_map(law)
+        manifest = {
+            "schema": SCHEMA,
+            "robot": {"name": robot.name, "urdf_file": robot.urdf_path.name, "urdf_sha256": sha256_file(robot.urdf_path),
+                      "n_joints": n, "joint_names": list(robot.joint_names)},
+            "control_period_s": law.dt_s,
+            "limits": {"position_rad": robot.position_limit_rad.tolist(), "velocity_rad_s": robot.velocity_limit_rad_s.tolist(),
+                       "torque_nm": law.torque_limit_nm.tolist()},
+            "law": {"name": law.name, "params": _jsonable(law.params), "state_size": s,
+                    "applied_torque_slice": None if law.applied_torque_slice is None
+                    else [law.applied_torque_slice.start, law.applied_torque_slice.stop],
+                    "initial_state": {"constant": constant.tolist(), "position_gain": gain.tolist()}},
+            "graph": {"file": GRAPH_FILE, "opset": OPSET, "dtype": "float64",
+                      "input": {"name": "x", "layout": [{"name": k, "size": n if k != "law_state" else s} for k in INPUT_LAYOUT]},
+                      "output": {"name": "y", "layout": [{"name": k, "size": n if k != "next_law_state" else s} for k in OUTPUT_LAYOUT]},
+                      "fused": "law step + emulator (normalization inside) + saturation + applied-torque state update"},
+            "emulator": {"features": "s = (q, e, qd, e_dot, tau_fb), e = q_d - q (Eq. 22)", "target": "HMPC torque tau* (N m)",
+                         "hidden": list(emulator_hidden(emulator)), "activation": "relu", "output": "linear"},
+            "trust_region": None if trust_region is None else {"feature_low": trust_region[0].tolist(),
+                                                              "feature_high": trust_region[1].tolist()},
+            "training": _jsonable(training),
+            "validation": _jsonable(validation),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        }  # fmt: skip
+        manifest["files"] = {GRAPH_FILE: sha256_file(tmp / GRAPH_FILE)}
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        manifest["validation"]["onnx_vs_torch_max_abs_nm"] = verify_bundle(tmp, model, parity_inputs)
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp, out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return manifest
+
+
+def emulator_hidden(emulator: Emulator) -> tuple[int, ...]:
+    return tuple(layer.out_features for layer in emulator.net if isinstance(layer, nn.Linear))[:-1]
+
+
+def verify_bundle(bundle_dir: Path, model: FusedPolicy, inputs: np.ndarray | None = None) -> float:
+    """Max |onnxruntime - torch| over ``inputs`` (default: seeded random rows); raises above 1e-5."""
+    bundle = PolicyBundle.load(bundle_dir)
+    width = bundle.input_width
+    if inputs is None:
+        rng = np.random.default_rng(0)
+        inputs = rng.normal(size=(64, width)) * 0.5
+    with torch.no_grad():
+        expected = model(torch.as_tensor(inputs, dtype=torch.float64)).numpy()
+    n = bundle.n_joints
+    tau, tau_fb, state = bundle.step_batch(*(inputs[:, i * n : (i + 1) * n] for i in range(5)), inputs[:, 5 * n :])
+    got = np.concatenate([tau, tau_fb, state], 1)
+    single = np.concatenate(bundle.step(*(inputs[0, i * n : (i + 1) * n] for i in range(5)), inputs[0, 5 * n :]))
+    error = float(max(np.abs(got - expected).max(), np.abs(single - expected[0]).max()))
+    if not error <= PARITY_TOLERANCE_NM:
+        raise ModelInputError(f"bundle {bundle_dir}: onnxruntime differs from torch by {error:.3g} (> {PARITY_TOLERANCE_NM})")
+    return error
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value

@@ -1,0 +1,72 @@
+"""LMPC as a closed-loop controller: the shipped policy bundle run through the runtime's loader.
+
+Experiments score exactly what the runtime runs: the same files, the same ``hil_runtime.bundle``
+code, the same onnxruntime session settings. One arm (B = 1) takes the runtime's preallocated
+single-row path, whose wall time (Python around it included) is the t_L column.
+
+    controller = make_lmpc_controller(law, robot)                      # models/bundles/<robot>/<law>
+    controller = make_lmpc_controller(law, robot, bundle_dir="path/to/bundles")
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_runtime.bundle import BundleError, PolicyBundle
+from models.errors import ModelInputError
+from models.feedback.base import FeedbackLaw
+from models.robots import RobotModel
+
+SHIPPED_BUNDLES = Path(__file__).resolve().parents[1] / "bundles"
+
+
+def bundle_path(robot_name: str, law_name: str, bundle_dir: str | Path | None = None) -> Path:
+    """<bundle_dir>/<robot>/<law>, or <bundle_dir>/<law> when that holds a manifest directly."""
+    root = Path(bundle_dir) if bundle_dir is not None else SHIPPED_BUNDLES
+    if (root / law_name / "manifest.json").is_file():
+        return root / law_name
+    return root / robot_name / law_name
+
+
+class LMPCController:
+    """The bundle's fused law + emulator for a batch of B independent arms."""
+
+    def __init__(self, bundle: PolicyBundle, law_name: str) -> None:
+        self.bundle = bundle
+        self.name = f"{law_name}/lmpc"
+        self.cycle_times_s: list[float] = []
+        self.last_tau_fb: np.ndarray | None = None
+        self.state = np.zeros((1, bundle.state_size))
+
+    def reset(self, q0: np.ndarray) -> None:
+        self.state = np.atleast_2d(self.bundle.initial_state(np.atleast_2d(np.asarray(q0, float))))
+        self.cycle_times_s = []
+
+    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        start = time.perf_counter()
+        if q.shape[0] == 1:
+            tau, tau_fb, state = self.bundle.step(q[0], qd[0], q_d[0], qd_d[0], qdd_d[0], self.state[0])
+            self.state[0] = state
+            tau, tau_fb = tau[None].copy(), tau_fb[None].copy()
+        else:
+            tau, tau_fb, self.state = self.bundle.step_batch(q, qd, q_d, qd_d, qdd_d, self.state)
+        self.cycle_times_s.append(time.perf_counter() - start)
+        self.last_tau_fb = tau_fb
+        return tau
+
+
+def make_lmpc_controller(law: FeedbackLaw, robot: RobotModel, bundle_dir: str | Path | None = None,
+                         **options: Any) -> LMPCController:  # fmt: skip
+    """The LMPC controller for ``law`` on ``robot`` from its bundle (default: the shipped ones)."""
+    if options:
+        raise ModelInputError(f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir)")
+    path = bundle_path(robot.name, law.name, bundle_dir)
+    bundle = PolicyBundle.load(path, expected_joints=robot.n_joints, expected_period_s=law.dt_s,
+                               expected_joint_names=list(robot.joint_names))  # fmt: skip
+    if bundle.law_name != law.name:
+        raise BundleError(f"bundle {path / 'manifest.json'}: law '{bundle.law_name}', asked for '{law.name}'")
+    return LMPCController(bundle, law.name)

@@ -1,0 +1,371 @@
+"""The LMPC pipeline: D_input -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles.
+
+Stages (each reads the previous stage's file, so any can be rerun alone):
+
+    dataset   <work>/raw.h5        D_input (models.lmpc.dataset)
+    label     <work>/labels.h5     per law: optimal, uniform and test indices into raw.h5, HMPC labels
+    train     <work>/training.json optimal vs uniform, 3 seeds each; <work>/sampling_curves.png
+    export    <bundles>/<robot>/<law>/{policy.onnx, manifest.json}
+
+Splits: the conditions are split into a sampling pool (the first ``pool_conditions``) and held-out
+conditions from which a fixed uniform test set is drawn; the samplers only see the pool. The budget
+(100,000, the paper's) is shared equally by the six laws; each law gets its own emulator.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.errors import ModelInputError
+from models.feedback import make_law
+from models.lmpc.dataset import RawDatasetSpec, RawLaw, generate_raw_dataset, git_commit, load_raw_dataset
+from models.lmpc.emulator import TrainConfig, train_emulator
+from models.lmpc.executor import Executor, SerialExecutor
+from models.lmpc.labels import LABEL_HMPC_OPTIONS, Labeler, hmpc_labeler
+from models.lmpc.sampling import (PAPER_REGIONS, estimate_lipschitz_delta, optimal_sample, optimal_weights,
+                                  region_index, time_proportions, uniform_sample)  # fmt: skip
+from models.robots import load_robot
+
+LABELS_SCHEMA = "hil-lmpc-labels/1"
+Progress = Callable[[str, int], Callable[[int], None]]
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    dataset: RawDatasetSpec = RawDatasetSpec()
+    budget: int = 100_000  # labeled samples over all laws (paper: 100,000 of 600,000)
+    pool_conditions: int = 90  # conditions the samplers draw from; the rest give the test set
+    test_per_law: int = 2000
+    lipschitz_delta: str | tuple[float, ...] = (0.0, 0.0, 0.0)  # or "estimate"
+    epsilon: float = 1e-9
+    power: float = 1.0
+    seeds: tuple[int, ...] = (0, 1, 2)
+    train: TrainConfig = TrainConfig()
+    label_chunk: int = 2048  # states per progress update
+    workers: int | None = None  # processes; None = one per CPU
+
+    @property
+    def laws(self) -> tuple[str, ...]:
+        return self.dataset.laws
+
+
+def _progress(progress: Progress | None, label: str, total: int) -> Callable[[int], None]:
+    return progress(label, total) if progress is not None else (lambda n: None)
+
+
+# --- stage 1 ----------------------------------------------------------------------------------
+def stage_dataset(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None,
+                  force: bool = False) -> Path:  # fmt: skip
+    path = work / "raw.h5"
+    if path.exists() and not force:
+        load_raw_dataset(path)  # a corrupt file is an error here, never silently regenerated over
+        return path
+    return generate_raw_dataset(config.dataset, path, executor, _progress(progress, "dataset: simulate chunks", config.dataset.chunks))
+
+
+# --- stage 2 ----------------------------------------------------------------------------------
+def choose_samples(raw: RawLaw, config: PipelineConfig, budget: int, seed: int) -> dict[str, Any]:
+    """Optimal, uniform and test indices for one law, with the Theorem 2 quantities used."""
+    rng = np.random.default_rng(seed)
+    pool = np.flatnonzero(raw.run < config.pool_conditions)
+    held = np.flatnonzero(raw.run >= config.pool_conditions)
+    if held.size < config.test_per_law:
+        raise ModelInputError(f"pipeline: {held.size} held-out samples, test_per_law {config.test_per_law}")
+    t_pool = raw.t_s[pool]
+    proportions = time_proportions(t_pool)
+    tolerances = np.array([r.tolerance for r in PAPER_REGIONS])
+    estimated = estimate_lipschitz_delta(t_pool, raw.run[pool], raw.features()[pool], raw.tau_fb[pool])
+    ldelta = estimated if config.lipschitz_delta == "estimate" else np.asarray(config.lipschitz_delta, float)
+    weights = optimal_weights(tolerances, proportions, ldelta, config.epsilon, config.power)
+    return {
+        "optimal": pool[optimal_sample(t_pool, budget, weights, rng)],
+        "uniform": pool[uniform_sample(pool.size, budget, rng)],
+        "test": np.sort(rng.choice(held, size=config.test_per_law, replace=False)),
+        "theorem2": {"proportions": proportions.tolist(), "tolerances": tolerances.tolist(),
+                     "lipschitz_delta_used": np.asarray(ldelta).tolist(), "lipschitz_delta_estimated": estimated.tolist(),
+                     "weights": weights.tolist(), "epsilon": config.epsilon, "power": config.power},
+    }  # fmt: skip
+
+
+def stage_label(config: PipelineConfig, work: Path, labeler: Labeler | None = None, progress: Progress | None = None,
+                hmpc_executor: Any = None) -> Path:  # fmt: skip
+    """Sample every law and label the union of its optimal, uniform and test states."""
+    import h5py
+
+    raw_path = work / "raw.h5"
+    raw = load_raw_dataset(raw_path)
+    robot = load_robot(config.dataset.robot)
+    labeler = labeler or hmpc_labeler
+    per_law = config.budget // len(config.laws)
+    chosen = {law: choose_samples(raw.laws[law], config, per_law, seed=1000 + i) for i, law in enumerate(config.laws)}
+    unions = {law: np.unique(np.concatenate([c["optimal"], c["uniform"], c["test"]])) for law, c in chosen.items()}
+    advance = _progress(progress, "label: HMPC on sampled states", sum(u.size for u in unions.values()))
+    out = work / "labels.h5"
+    tmp = out.with_name(out.name + f".tmp{os.getpid()}")
+    started = time.perf_counter()
+    wall: dict[str, float] = {}
+    try:
+        with h5py.File(tmp, "w") as h5:
+            for law_name in config.laws:
+                law = make_law(law_name, robot, config.dataset.dt_s)
+                rows, index = raw.laws[law_name], unions[law_name]
+                taus, statuses = [], []
+                law_start = time.perf_counter()
+                for lo in range(0, index.size, config.label_chunk):
+                    part = rows.take(index[lo : lo + config.label_chunk])
+                    tau, status = labeler(law, robot, part, hmpc_executor)
+                    taus.append(np.asarray(tau, float))
+                    statuses.append(np.asarray(status, np.int32))
+                    advance(len(part))
+                wall[law_name] = time.perf_counter() - law_start
+                group = h5.create_group(law_name)
+                group.create_dataset("index", data=index)
+                group.create_dataset("tau_star", data=np.concatenate(taus))
+                group.create_dataset("status", data=np.concatenate(statuses))
+                for key in ("optimal", "uniform", "test"):
+                    group.create_dataset(key, data=chosen[law_name][key])
+                group.attrs["theorem2"] = json.dumps(chosen[law_name]["theorem2"])
+            h5.attrs["manifest"] = json.dumps({
+                "schema": LABELS_SCHEMA, "raw": str(raw_path), "raw_manifest_created": raw.manifest.get("created"),
+                "git_commit": git_commit(), "labeler": getattr(labeler, "__name__", repr(labeler)),
+                "hmpc_options": LABEL_HMPC_OPTIONS if labeler is hmpc_labeler else None,
+                "budget": config.budget, "per_law": per_law, "wall_s": round(time.perf_counter() - started, 1),
+                "wall_s_per_law": wall, "config": _config_json(config)})  # fmt: skip
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out
+
+
+@dataclass
+class LawLabels:
+    index: np.ndarray
+    tau_star: np.ndarray
+    status: np.ndarray
+    sets: dict[str, np.ndarray] = field(default_factory=dict)
+    theorem2: dict[str, Any] = field(default_factory=dict)
+
+    def targets(self, raw_index: np.ndarray) -> np.ndarray:
+        return self.tau_star[np.searchsorted(self.index, raw_index)]
+
+
+def load_labels(path: Path) -> tuple[dict[str, Any], dict[str, LawLabels]]:
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelInputError(f"labels {path}: no such file (run the label stage first)")
+    try:
+        with h5py.File(path, "r") as h5:
+            manifest = json.loads(h5.attrs["manifest"])
+            if manifest.get("schema") != LABELS_SCHEMA:
+                raise ModelInputError(f"labels {path}: unknown schema {manifest.get('schema')!r}")
+            out = {}
+            for law in h5:
+                g = h5[law]
+                out[law] = LawLabels(g["index"][...], g["tau_star"][...], g["status"][...],
+                                     {k: g[k][...] for k in ("optimal", "uniform", "test")}, json.loads(g.attrs["theorem2"]))  # fmt: skip
+    except ModelInputError:
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        raise ModelInputError(f"labels {path}: unreadable or truncated HDF5 ({str(exc).splitlines()[0]})") from None
+    return manifest, out
+
+
+# --- stage 3 ----------------------------------------------------------------------------------
+def _train_task(task: tuple) -> dict[str, Any]:
+    """Worker: one (law, strategy, seed) training; returns the weights and the curves."""
+    law, strategy, seed, x, y, x_test, y_test, region_test, norm, train_config = task
+    from models.lmpc.emulator import evaluate_mse
+
+    result = train_emulator(x, y, replace(train_config, seed=seed), normalization=norm)
+    test = {"all": evaluate_mse(result.emulator, x_test, y_test)}
+    for i, region in enumerate(PAPER_REGIONS):
+        mask = region_test == i
+        test[region.name] = evaluate_mse(result.emulator, x_test[mask], y_test[mask])
+    return {"law": law, "strategy": strategy, "seed": seed, "summary": result.summary(), "train_mse": result.train_mse,
+            "val_mse": result.val_mse, "test_mse": test,
+            "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()}}  # fmt: skip
+
+
+def stage_train(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None) -> dict[str, Any]:
+    raw = load_raw_dataset(work / "raw.h5", config.laws)
+    _, labels = load_labels(work / "labels.h5")
+    tasks = []
+    for law in config.laws:
+        rows, lab = raw.laws[law], labels[law]
+        x_all = rows.features()
+        norm_idx = lab.sets["uniform"]  # one normalization per law, shared by every run compared
+        norm = (x_all[norm_idx], lab.targets(norm_idx))
+        x_test, y_test = x_all[lab.sets["test"]], lab.targets(lab.sets["test"])
+        region_test = region_index(rows.t_s[lab.sets["test"]])
+        for strategy in ("optimal", "uniform"):
+            idx = lab.sets[strategy]
+            for seed in config.seeds:
+                tasks.append((law, strategy, seed, x_all[idx], lab.targets(idx), x_test, y_test, region_test, norm, config.train))
+    advance = _progress(progress, "train: emulators (law x sampling x seed)", len(tasks))
+    runs = []
+    for result in executor.map(_train_task, tasks):
+        runs.append(result)
+        advance(1)
+    return {"runs": runs, "labels_theorem2": {law: labels[law].theorem2 for law in config.laws},
+            "label_status": {law: np.bincount(labels[law].status, minlength=4).tolist() for law in config.laws}}  # fmt: skip
+
+
+def summarize_training(trained: dict[str, Any], laws: tuple[str, ...]) -> dict[str, Any]:
+    """Mean over seeds of the final (best-epoch) validation MSE and the test MSE, per law and strategy."""
+    table: dict[str, Any] = {}
+    for law in laws:
+        row = {}
+        for strategy in ("optimal", "uniform"):
+            runs = [r for r in trained["runs"] if r["law"] == law and r["strategy"] == strategy]
+            row[strategy] = {
+                "val_mse_mean": float(np.mean([r["summary"]["best_val_mse_normalized"] for r in runs])),
+                "test_mse_mean": float(np.mean([r["test_mse"]["all"] for r in runs])),
+                "test_mse_by_region": {k: float(np.mean([r["test_mse"][k] for r in runs])) for k in runs[0]["test_mse"] if k != "all"},
+                "val_rmse_nm_mean": np.mean([r["summary"]["val_rmse_nm"] for r in runs], 0).tolist(),
+                "seeds": [r["seed"] for r in runs],
+            }  # fmt: skip
+        for key in ("val_mse_mean", "test_mse_mean"):
+            row[f"{key}_optimal_over_uniform"] = row["optimal"][key] / row["uniform"][key]
+        table[law] = row
+    overall = {key: float(np.mean([table[law][f"{key}_optimal_over_uniform"] for law in laws])) for key in ("val_mse_mean", "test_mse_mean")}
+    return {"per_law": table, "mean_ratio_optimal_over_uniform": overall}
+
+
+def plot_sampling_curves(trained: dict[str, Any], laws: tuple[str, ...], path: Path) -> None:
+    """Validation MSE per epoch, optimal vs uniform (mean and range over seeds), one panel per law."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = 3
+    fig, axes = plt.subplots((len(laws) + cols - 1) // cols, cols, figsize=(12, 6.5), squeeze=False)
+    for ax, law in zip(axes.flat, laws, strict=False):
+        for strategy, color in (("optimal", "tab:red"), ("uniform", "tab:blue")):
+            curves = [r["val_mse"] for r in trained["runs"] if r["law"] == law and r["strategy"] == strategy]
+            length = max(len(c) for c in curves)
+            padded = np.array([c + [c[-1]] * (length - len(c)) for c in curves])
+            epochs = np.arange(1, length + 1)
+            ax.semilogy(epochs, padded.mean(0), color=color, label=f"{strategy} (mean of {len(curves)})")
+            ax.fill_between(epochs, padded.min(0), padded.max(0), color=color, alpha=0.2)
+        ax.set_title(law.upper())
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("validation MSE (normalized)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("Emulator training: Theorem 2 (optimal) vs uniform sampling, same budget")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# --- stage 4 ----------------------------------------------------------------------------------
+def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bundles: Path,
+                 strategy: str = "optimal", seed: int | None = None) -> dict[str, Any]:  # fmt: skip
+    import torch
+
+    from models.lmpc.bundle_export import export_bundle
+    from models.lmpc.emulator import Emulator
+
+    robot = load_robot(config.dataset.robot)
+    raw = load_raw_dataset(work / "raw.h5", config.laws)
+    labels_manifest, labels = load_labels(work / "labels.h5")
+    seed = config.seeds[0] if seed is None else seed
+    out = {}
+    for law_name in config.laws:
+        run = next(r for r in trained["runs"] if r["law"] == law_name and r["strategy"] == strategy and r["seed"] == seed)
+        law = make_law(law_name, robot, config.dataset.dt_s)
+        emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
+        emulator.load_state_dict({k: torch.as_tensor(v) for k, v in run["state_dict"].items()})
+        rows, lab = raw.laws[law_name], labels[law_name]
+        x_train = rows.features()[lab.sets[strategy]]
+        parity = rows.take(lab.sets["test"][:256])
+        parity_x = np.concatenate([parity.q, parity.qd, parity.q_d, parity.qd_d, parity.qdd_d, parity.law_state], 1)
+        training = {"dataset": {"file": "raw.h5", "spec": raw.manifest["spec"], "git_commit": raw.manifest["git_commit"],
+                                "created": raw.manifest["created"]},
+                    "labels": {"labeler": labels_manifest["labeler"], "hmpc_options": labels_manifest["hmpc_options"],
+                               "status_counts": np.bincount(lab.status, minlength=4).tolist()},
+                    "sampling": {"strategy": strategy, "samples": int(lab.sets[strategy].size), "theorem2": lab.theorem2},
+                    "emulator": run["summary"], "seed": seed, "git_commit": git_commit()}  # fmt: skip
+        validation = {"val_mse_normalized": run["summary"]["best_val_mse_normalized"], "val_rmse_nm": run["summary"]["val_rmse_nm"],
+                      "test_mse_normalized": run["test_mse"], "test_set": "uniform over held-out conditions"}  # fmt: skip
+        manifest = export_bundle(bundles / robot.name / law_name, law, robot, emulator, training, validation,
+                                 trust_region=(x_train.min(0), x_train.max(0)), parity_inputs=parity_x)  # fmt: skip
+        out[law_name] = {"path": str(bundles / robot.name / law_name), "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"]}
+    return out
+
+
+def _config_json(config: PipelineConfig) -> dict[str, Any]:
+    return json.loads(json.dumps(asdict(config), default=str))
+
+
+def run_pipeline(config: PipelineConfig, work: Path, bundles: Path, stages: tuple[str, ...] = ("dataset", "label", "train", "export"),
+                 executor: Executor | None = None, labeler: Labeler | None = None, progress: Progress | None = None,
+                 force_dataset: bool = False) -> dict[str, Any]:  # fmt: skip
+    """Run the stages; write <work>/pipeline.json (timings, Theorem 2 weights, training figures)."""
+    from models.lmpc.executor import make_executor
+
+    work.mkdir(parents=True, exist_ok=True)
+    executor = executor or make_executor(config.workers)
+    summary_path = work / "pipeline.json"
+    summary: dict[str, Any] = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    summary.setdefault("wall_s", {})
+    if "dataset" in stages:
+        started = time.perf_counter()
+        stage_dataset(config, work, executor, progress, force=force_dataset)
+        summary["wall_s"]["dataset"] = round(time.perf_counter() - started, 1)
+    if "label" in stages:
+        started = time.perf_counter()
+        hmpc_executor = None
+        if labeler is None and not isinstance(executor, SerialExecutor):
+            from models.hmpc import ProcessPoolBatchExecutor
+
+            hmpc_executor = ProcessPoolBatchExecutor(config.workers)
+        try:
+            stage_label(config, work, labeler, progress, hmpc_executor)
+        finally:
+            if hmpc_executor is not None:
+                hmpc_executor.close()
+        summary["wall_s"]["label"] = round(time.perf_counter() - started, 1)
+    trained = None
+    if "train" in stages:
+        started = time.perf_counter()
+        trained = stage_train(config, work, executor, progress)
+        summary["wall_s"]["train"] = round(time.perf_counter() - started, 1)
+        summary["training"] = summarize_training(trained, config.laws)
+        summary["theorem2"] = trained["labels_theorem2"]
+        summary["label_status"] = trained["label_status"]
+        plot_sampling_curves(trained, config.laws, work / "sampling_curves.png")
+        curves = [{k: r[k] for k in ("law", "strategy", "seed", "summary", "train_mse", "val_mse", "test_mse")} for r in trained["runs"]]
+        (work / "training.json").write_text(json.dumps(curves))
+        import pickle
+
+        with open(work / "trained.pkl", "wb") as handle:
+            pickle.dump(trained, handle)
+    if "export" in stages:
+        started = time.perf_counter()
+        if trained is None:
+            import pickle
+
+            if not (work / "trained.pkl").is_file():
+                raise ModelInputError(f"pipeline: {work / 'trained.pkl'} missing (run the train stage first)")
+            with open(work / "trained.pkl", "rb") as handle:
+                trained = pickle.load(handle)
+        summary["bundles"] = stage_export(config, work, trained, bundles)
+        summary["wall_s"]["export"] = round(time.perf_counter() - started, 1)
+    summary["wall_s"]["total"] = round(sum(v for k, v in summary["wall_s"].items() if k != "total"), 1)
+    summary["config"] = _config_json(config)
+    summary["git_commit"] = git_commit()
+    summary_path.write_text(json.dumps(summary, indent=2))
+    return summary
