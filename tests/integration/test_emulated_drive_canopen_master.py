@@ -23,6 +23,7 @@ def master() -> Iterator[tuple[canopen.Network, EmulatedDrives]]:
     side = can.Bus(interface="virtual", channel=channel, ignore_config=True)
     drives = EmulatedDrives(side, EmulatedDrivesConfig(node_ids=(3, 4), encoder_counts_per_rev=4096))
     network = canopen.Network()
+    network.NOTIFIER_CYCLE = 0.05  # the notifier polls this often: a fast teardown
     network.connect(interface="virtual", channel=channel)
     drives.start()
     yield network, drives
@@ -69,3 +70,22 @@ def test_nmt_and_heartbeat(master: tuple[canopen.Network, EmulatedDrives]) -> No
     # A communication reset restores 0x1017 from the EDS (0: no heartbeat) but keeps 0x6076.
     assert node.sdo["Producer heartbeat time"].raw == 0
     assert drives.nmt_states()[1] is NmtState.PRE_OPERATIONAL
+
+
+def test_only_the_shared_pdo_layouts_can_be_mapped(master: tuple[canopen.Network, EmulatedDrives]) -> None:
+    network, _ = master
+    node = network.add_node(3, str(EDS_PATH))
+    with pytest.raises(canopen.SdoAbortedError) as info:
+        node.sdo[0x1A00][0].raw = 0  # TPDO1 still valid: its mapping is locked
+    assert info.value.code == 0x08000022
+    node.sdo[0x1800][1].raw = 0x80000183  # invalidate TPDO1 (CiA 301 order)
+    node.sdo[0x1A00][0].raw = 0
+    with pytest.raises(canopen.SdoAbortedError) as info:
+        node.sdo[0x1A00][1].raw = 0x606C0020  # velocity first: not a layout the driver decodes
+    assert info.value.code == 0x06040041
+    for sub, entry in enumerate((0x60410010, 0x60770010, 0x60640020, 0x606C0020), start=1):
+        node.sdo[0x1A00][sub].raw = entry
+    node.sdo[0x1A00][0].raw = 4  # the CAN FD layout: one 12-byte TPDO
+    node.sdo[0x1800][1].raw = 0x183
+    node.tpdo.read()
+    assert node.tpdo[1].length == 96
