@@ -38,6 +38,7 @@ CONVERGED, NONFINITE_INPUT, NOT_CONVERGED, NONFINITE_SOLUTION = 0, 1, 2, 3
 STATUS_NAMES = {CONVERGED: "converged", NONFINITE_INPUT: "nonfinite_input", NOT_CONVERGED: "not_converged",
                 NONFINITE_SOLUTION: "nonfinite_solution"}  # fmt: skip
 ARMIJO = 1e-4
+PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
 FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
 
 
@@ -228,15 +229,10 @@ class HMPCSolver:
             if active.size == 0:
                 break
             sub_rows, sub_u, sub_state = rows.take(active), u[active], state.take(active)
-            hessian, gradient = self._gauss_newton_model(sub_rows, sub_u, sub_state)
-            flat_u = sub_u.reshape(active.size, -1)
-            bound = np.tile(limit, horizon)
-            step, _ = solve_box_qp(hessian, gradient, -bound - flat_u, bound - flat_u, config.max_qp_iterations,
-                                   config.qp_tolerance)  # fmt: skip
-            model_change = np.einsum("ki,ki->k", gradient, step) + 0.5 * np.einsum("ki,ki->k", step, (hessian @ step[..., None])[..., 0])
-            predicted = -2.0 * model_change  # the QP models J / 2
+            step, predicted, exact = self._model_step(sub_rows, sub_u, sub_state)
             iterations[active] += 1
-            done = ~(predicted > config.cost_atol + config.cost_rtol * sub_state.cost)
+            # Convergence tests need the model's exact minimizer (QP solved, penalty set settled).
+            done = exact & ~(predicted > config.cost_atol + config.cost_rtol * sub_state.cost)
             status[active[done]] = CONVERGED
             pending = np.flatnonzero(~done)
             step = step.reshape(active.size, horizon, n)
@@ -254,7 +250,8 @@ class HMPCSolver:
                     # A full step whose true decrease matches the model's: the model was exact to
                     # within the tolerance there, so what it leaves to gain is below it too.
                     actual = sub_state.cost[accepted] - trial.cost[ok]
-                    agree = np.abs(actual - predicted[accepted]) <= config.cost_atol + config.cost_rtol * trial.cost[ok]
+                    agree = exact[accepted] & (
+                        np.abs(actual - predicted[accepted]) <= config.cost_atol + config.cost_rtol * trial.cost[ok])
                     status[active[accepted[agree]]] = CONVERGED
                     finished[accepted[agree]] = True
                 u[active[accepted]] = trial_u[ok]
@@ -318,8 +315,59 @@ class HMPCSolver:
         jac = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
         return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
 
-    def _gauss_newton_model(self, rows: _Rows, u: np.ndarray, state: _Rollout) -> tuple[np.ndarray, np.ndarray]:
-        """Condensed model J(U + d) / 2 ~ J(U) / 2 + g'd + d'Hd / 2 (H (K, TN, TN), g (K, TN))."""
+    def _model_step(self, rows: _Rows, u: np.ndarray, state: _Rollout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The Gauss-Newton step (K, T, N) inside the torque box, the decrease of J it predicts, and
+        whether the step is the model's exact minimizer (K,) bool.
+
+        The state-bound penalty is piecewise quadratic in the linearized states x + S d: which
+        bounds it acts on is iterated (semismooth Newton: solve, re-evaluate the violated set at
+        the predicted states, re-solve) so a step cannot jump far past a bound the model ignored.
+        """
+        config, horizon, n = self.config, self.horizon, self.n_joints
+        k = u.shape[0]
+        hessian0, gradient0, sens = self._gauss_newton_model(rows, u, state)
+        flat_u = u.reshape(k, -1)
+        bound = np.tile(self.torque_limit_nm, horizon)
+        lower, upper = -bound - flat_u, bound - flat_u
+        x = np.concatenate([state.q, state.qd], -1).reshape(k, -1)
+        limit = np.tile(self.state_limit, horizon)
+        rho = config.state_bound_weight if config.use_state_bounds else 0.0
+
+        def penalty(y: np.ndarray) -> np.ndarray:
+            violation = y - np.clip(y, -limit, limit)
+            return 0.5 * rho * np.einsum("kx,kx->k", violation, violation)
+
+        step = np.zeros_like(flat_u)
+        qp_converged = np.zeros(k, bool)
+        settled = np.zeros(k, bool) if rho > 0 else np.ones(k, bool)
+        side = np.sign(x) * (np.abs(x) > limit)  # the bounds violated now: the first guess of A
+        todo = np.arange(k)
+        for _ in range(PENALTY_ROUNDS if rho > 0 else 1):
+            hessian, gradient = hessian0[todo], gradient0[todo]
+            if rho > 0:  # penalty 1/2 rho |x_A + S_A d - b_A|^2 on the violated set A
+                sens_on = sens[todo] * (side[todo] != 0)[..., None]
+                hessian = hessian + rho * np.swapaxes(sens_on, 1, 2) @ sens_on
+                gradient = gradient + rho * np.einsum("kxi,kx->ki", sens_on, x[todo] - side[todo] * limit)
+            step[todo], qp_converged[todo] = solve_box_qp(hessian, gradient, lower[todo], upper[todo],
+                                                          config.max_qp_iterations, config.qp_tolerance)  # fmt: skip
+            if rho == 0:
+                break
+            y = x[todo] + np.einsum("kxi,ki->kx", sens[todo], step[todo])
+            new_side = np.sign(y) * (np.abs(y) > limit)
+            same = np.all(new_side == side[todo], 1)
+            settled[todo[same]] = True
+            side[todo] = new_side
+            todo = todo[~same]
+            if todo.size == 0:
+                break
+        quadratic = np.einsum("ki,ki->k", gradient0, step) + 0.5 * np.einsum("ki,ki->k", step, (hessian0 @ step[..., None])[..., 0])
+        y = x + np.einsum("kxi,ki->kx", sens, step)
+        model_change = quadratic + penalty(y) - penalty(x)
+        return step.reshape(k, horizon, n), -2.0 * model_change, settled & qp_converged  # the model is of J / 2
+
+    def _gauss_newton_model(self, rows: _Rows, u: np.ndarray, state: _Rollout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Condensed model of J / 2 without the bound penalty: H (K, TN, TN), g (K, TN), and the
+        state sensitivities S = dx/dU (K, T 2N, TN)."""
         dt, n, horizon = self.dt_s, self.n_joints, self.horizon
         k = u.shape[0]
         q_prev = np.concatenate([rows.q0[:, None], state.q[:, :-1]], 1).reshape(-1, n)
@@ -351,15 +399,6 @@ class HMPCSolver:
             block = None
             diag = np.broadcast_to(weights, (k, horizon, 2 * n)).copy()
             residual = -weights * state.features
-        if self.config.use_state_bounds:
-            x = np.concatenate([state.q, state.qd], -1)
-            violation = x - np.clip(x, -self.state_limit, self.state_limit)
-            rho = self.config.state_bound_weight
-            residual = residual + rho * violation
-            if block is None:
-                diag = diag + rho * (violation != 0)
-            else:
-                block = block + rho * np.einsum("kta,ab->ktab", (violation != 0).astype(float), np.eye(2 * n))
         flat_sens = sens.reshape(k, horizon * 2 * n, horizon * n)
         if block is None:
             weighted_sens = flat_sens * diag.reshape(k, -1, 1)
@@ -372,4 +411,4 @@ class HMPCSolver:
         gradient = gradient + self._stage_torque_weight * flat_u
         diagonal = hessian[:, np.arange(horizon * n), np.arange(horizon * n)]
         hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self.config.damping * diagonal.mean(1, keepdims=True) + 1e-300
-        return hessian, gradient
+        return hessian, gradient, flat_sens
