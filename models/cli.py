@@ -28,12 +28,14 @@ def experiment(
     robot: Annotated[str, typer.Option(help="Robot name or URDF path.")] = "ur5_paper",
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/experiment"),
     mismatch: Annotated[str, typer.Option(help="'none', or 'paper': +0.5 kg payload, inertias ±20 %.")] = "none",
+    gains: Annotated[str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper' (docs/feedback_laws.md).")] = "stabilized",
     dt: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
     substeps: Annotated[int, typer.Option(help="RK4 plant steps per control period.")] = 2,
     plant_backend: Annotated[str, typer.Option(help="Plant dynamics: pinocchio or rne (own RNEFDA).")] = "pinocchio",
     timing_cycles: Annotated[int, typer.Option(help="Single-robot cycles timed per law and mode.")] = 1000,
     no_trajectories: Annotated[bool, typer.Option("--no-trajectories", help="Skip the .npz files.")] = False,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the PNG plots.")] = False,
+    lmpc_bundles: Annotated[Optional[Path], typer.Option(help="LMPC bundle root (default: the shipped ones).")] = None,
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from rich.console import Console
@@ -41,7 +43,7 @@ def experiment(
 
     from models.conditions import load_conditions
     from models.experiment import PAPER_MISMATCH, ExperimentConfig, run_experiment
-    from models.feedback import LAW_NAMES
+    from models.feedback import GAIN_SETS, LAW_NAMES
     from models.robots import load_robot
     from models.sim import MODES, SimConfig
 
@@ -49,12 +51,14 @@ def experiment(
     mode_list = _split(modes, MODES, "modes")
     if mismatch not in ("none", "paper"):
         raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
+    if gains not in GAIN_SETS:
+        raise ModelInputError(f"--gains: unknown '{gains}' (known: {', '.join(GAIN_SETS)})")
     arm = load_robot(robot)
     condition_list = load_conditions(conditions, robot=arm)
     if mismatch == "paper":
         condition_list = [replace(c, mismatch=PAPER_MISMATCH) for c in condition_list]
     config = ExperimentConfig(
-        laws=law_list, modes=mode_list, sim=SimConfig(dt_s=dt, substeps=substeps, plant_backend=plant_backend),
+        laws=law_list, modes=mode_list, gain_set=gains, sim=SimConfig(dt_s=dt, substeps=substeps, plant_backend=plant_backend),
         timing_cycles=timing_cycles, save_trajectories=not no_trajectories, plots=not no_plots,
     )  # fmt: skip
     console = Console(stderr=True)
@@ -65,7 +69,8 @@ def experiment(
             task = bar.add_task(label, total=total)
             return lambda n: bar.advance(task, n)
 
-        results = run_experiment(arm, condition_list, config, out, progress=progress)
+        options = {"lmpc": {"bundle_dir": lmpc_bundles}} if lmpc_bundles is not None else None
+        results = run_experiment(arm, condition_list, config, out, controller_options=options, progress=progress)
     from models.experiment import format_table
 
     print(format_table(results))
@@ -75,6 +80,9 @@ def experiment(
 def register(app: typer.Typer) -> None:
     """Add the science commands to the ``hil`` root (an entry point in pyproject.toml)."""
     app.command("experiment")(experiment)
+    from models.lmpc.cli import register as register_lmpc
+
+    register_lmpc(app)
     try:
         from models.stability_cli import stability
     except ImportError:  # not written yet on this branch

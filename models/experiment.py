@@ -21,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 from models.conditions import Condition, Mismatch
-from models.feedback import LAW_NAMES, make_law
+from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
 from models.robots import RobotModel
 from models.scoring import METRICS, composite_scores, improvement, run_metrics
 from models.sim import ControllerStack, SimConfig, Trajectory, make_controller, simulate
@@ -34,6 +34,7 @@ PAPER_MISMATCH = Mismatch(payload_kg=0.5, inertia_scale=(1.2, 0.8, 1.2, 0.8, 1.2
 class ExperimentConfig:
     laws: tuple[str, ...] = LAW_NAMES
     modes: tuple[str, ...] = ("fb",)
+    gain_set: str = DEFAULT_GAIN_SET  # "stabilized" or "paper" (models.feedback.GAIN_SETS)
     sim: SimConfig = SimConfig()
     timing_cycles: int = 1000  # single-robot cycles timed per (law, mode) for the t columns
     save_trajectories: bool = True
@@ -54,9 +55,9 @@ def _groups(conditions: list[Condition]) -> list[list[int]]:
 
 
 def time_controller(mode: str, law_name: str, robot: RobotModel, condition: Condition, sim: SimConfig,
-                    cycles: int, options: dict[str, Any]) -> dict[str, float]:  # fmt: skip
+                    cycles: int, options: dict[str, Any], gain_set: str = DEFAULT_GAIN_SET) -> dict[str, float]:  # fmt: skip
     """Per-cycle wall time (ms) of one controller on a single robot, closed loop, over ``cycles`` periods."""
-    controller = make_controller(mode, make_law(law_name, robot, sim.dt_s), robot, **options)
+    controller = make_controller(mode, make_law(law_name, robot, sim.dt_s, gain_set), robot, **options)
     short = replace(condition, duration_s=min(condition.duration_s, cycles * sim.dt_s))
     simulate(robot, controller, [short], sim)
     samples = np.asarray(controller.cycle_times_s[10:] or controller.cycle_times_s) * 1e3
@@ -87,8 +88,8 @@ def run_experiment(
         for group in _groups(conditions):
             group_conditions = [conditions[i] for i in group]
             # Every law runs side by side in one vectorized plant; HMPC-type modes likewise.
-            controllers = [make_controller(mode, make_law(law, robot, config.sim.dt_s), robot, **options.get(mode, {}))
-                           for law in config.laws]  # fmt: skip
+            controllers = [make_controller(mode, make_law(law, robot, config.sim.dt_s, config.gain_set), robot,
+                                           **options.get(mode, {})) for law in config.laws]  # fmt: skip
             stack = ControllerStack(controllers, [len(group_conditions)] * len(controllers))
             batch = [c for _ in config.laws for c in group_conditions]
             total = steps[group_conditions[0].name]
@@ -99,7 +100,7 @@ def run_experiment(
                 trajectories[(law, mode, condition.name)] = traj.run(b)
         for law in config.laws:
             timing[law][mode] = time_controller(mode, law, robot, conditions[0], config.sim, config.timing_cycles,
-                                                options.get(mode, {}))  # fmt: skip
+                                                options.get(mode, {}), config.gain_set)  # fmt: skip
 
     results = _summarize(runs, timing, config, robot, conditions)
     (out_dir / "results.json").write_text(json.dumps(results, indent=2))
@@ -141,7 +142,9 @@ def _summarize(runs: list[dict[str, Any]], timing: dict, config: ExperimentConfi
         table[law] = row
     return {
         "robot": robot.name,
-        "config": {"laws": list(config.laws), "modes": list(config.modes), "sim": asdict(config.sim)},
+        "config": {"laws": list(config.laws), "modes": list(config.modes), "gain_set": config.gain_set,
+                   "sim": asdict(config.sim)},
+        "law_params": {law: make_law(law, robot, config.sim.dt_s, config.gain_set).params for law in config.laws},
         "conditions": [{"name": c.name, "amplitude_rad": list(c.amplitude_rad), "frequency_hz": list(c.frequency_hz),
                         "duration_s": c.duration_s, "initial_state": c.initial_state,
                         "disturbance": None if c.disturbance is None else asdict(c.disturbance),
@@ -186,7 +189,7 @@ def format_table(results: dict[str, Any]) -> str:
     footer = [
         "",
         f"Robot {results['robot']}; conditions: {', '.join(c['name'] for c in results['conditions'])}; "
-        f"control period {results['config']['sim']['dt_s'] * 1e3:g} ms.",
+        f"control period {results['config']['sim']['dt_s'] * 1e3:g} ms; gain set '{results['config']['gain_set']}'.",
         "Scores: composite of the six metrics, each normalized per condition by its largest value among the "
         "configurations in this table (docs/scoring.md). Times: median wall time per control cycle, one robot.",
         f"Every run finite and inside the joint limits: {limits}.",

@@ -14,7 +14,9 @@ The paper's "V_dot = -s^T Lambda s" would make Lambda the damping K_D, but M^-1 
 The full Slotine-Li regressor of all inertial parameters needs the symbolic dynamics; the
 decentralized one above adapts per joint an effective inertia, a viscous term and an offset that
 absorbs gravity and coupling (an integral action on s). theta starts at [diag M^(q=0), 0, 0] and is
-kept in a box (projection) so the law stays finite: inertia in [0.1, 10] x diag M^(0),
+kept in a box (projection) so the law stays finite: inertia in [0.1, s] x diag M^(0) (s = 10 in the
+"paper" gain set; 2 in "stabilized", since with 10 the adapted inertia outgrows the true one on
+C4/C5 until the discrete velocity loop goes unstable),
 |viscous| <= 1 N*m*s/rad, |offset| <= torque limit. State (B, 3N): [inertia, viscous, offset].
 """
 
@@ -38,13 +40,13 @@ class MRACLaw(FeedbackLaw):
     name = "mrac"
 
     def __init__(self, robot: RobotModel, dt_s: float, alpha: np.ndarray = PAPER_ALPHA, gamma: np.ndarray = PAPER_GAMMA,
-                 lam: np.ndarray = PAPER_LAMBDA) -> None:  # fmt: skip
+                 lam: np.ndarray = PAPER_LAMBDA, inertia_bound_scale: float = 10.0) -> None:  # fmt: skip
         super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
         self.alpha, self.gamma, self.lam = (np.asarray(g, float) for g in (alpha, gamma, lam))
         self.nominal_inertia_kg_m2 = NominalModel(robot).mass_matrix_diagonal(np.zeros(robot.n_joints))
         n = robot.n_joints
         self.theta_min = np.concatenate([0.1 * self.nominal_inertia_kg_m2, np.full(n, -VISCOUS_BOUND_NM_S), -self.torque_limit_nm])
-        self.theta_max = np.concatenate([10.0 * self.nominal_inertia_kg_m2, np.full(n, VISCOUS_BOUND_NM_S), self.torque_limit_nm])
+        self.theta_max = np.concatenate([inertia_bound_scale * self.nominal_inertia_kg_m2, np.full(n, VISCOUS_BOUND_NM_S), self.torque_limit_nm])
 
     @property
     def state_size(self) -> int:
