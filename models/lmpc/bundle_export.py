@@ -97,7 +97,7 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
             "control_period_s": law.dt_s,
             "limits": {"position_rad": robot.position_limit_rad.tolist(), "velocity_rad_s": robot.velocity_limit_rad_s.tolist(),
                        "torque_nm": law.torque_limit_nm.tolist()},
-            "law": {"name": law.name, "params": _jsonable(law.params), "state_size": s,
+            "law": {"name": law.name, "params": _jsonable(law.params), "gain_set": training.get("gain_set"), "state_size": s,
                     "applied_torque_slice": None if law.applied_torque_slice is None
                     else [law.applied_torque_slice.start, law.applied_torque_slice.stop],
                     "initial_state": {"constant": constant.tolist(), "position_gain": gain.tolist()}},

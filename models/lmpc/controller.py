@@ -10,6 +10,7 @@ single-row path, whose wall time (Python around it included) is the t_L column.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,10 @@ from hil_runtime.bundle import BundleError, PolicyBundle
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
+
+def _canonical(params: Any) -> str:
+    return json.dumps(params, sort_keys=True, default=lambda v: np.asarray(v).tolist())
+
 
 SHIPPED_BUNDLES = Path(__file__).resolve().parents[1] / "bundles"
 
@@ -69,4 +74,7 @@ def make_lmpc_controller(law: FeedbackLaw, robot: RobotModel, bundle_dir: str | 
                                expected_joint_names=list(robot.joint_names))  # fmt: skip
     if bundle.law_name != law.name:
         raise BundleError(f"bundle {path / 'manifest.json'}: law '{bundle.law_name}', asked for '{law.name}'")
+    if _canonical(bundle.manifest["law"]["params"]) != _canonical(law.params):
+        raise BundleError(f"bundle {path / 'manifest.json'}: law '{law.name}' parameters differ from the bundle's "
+                          f"(gain set {bundle.manifest['law'].get('gain_set')!r}); re-export with `hil pipeline`")  # fmt: skip
     return LMPCController(bundle, law.name)

@@ -30,7 +30,7 @@ import numpy as np
 
 from models.conditions import Condition, load_conditions, random_conditions
 from models.errors import ModelInputError
-from models.feedback import LAW_NAMES, make_law
+from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
 from models.lmpc.executor import Executor, SerialExecutor
 from models.robots import RobotModel, load_robot
 from models.sim import ControllerStack, SimConfig, simulate
@@ -43,6 +43,7 @@ ARRAYS = ("t_s", "run", "q", "qd", "q_d", "qd_d", "qdd_d", "law_state", "tau_fb"
 class RawDatasetSpec:
     robot: str = "ur5_paper"
     laws: tuple[str, ...] = LAW_NAMES
+    gain_set: str = DEFAULT_GAIN_SET  # models.feedback.GAIN_SETS; the bundles carry the same gains
     conditions: int = 100
     seed: int = 20240601  # random_conditions seed; names R<seed>-<k>
     stride: int = 5  # log every 5th 1 ms period: 1000 samples per 5 s run, 600,000 in all
@@ -106,10 +107,10 @@ class _LoggingController:
 
 def _simulate_chunk(task: tuple) -> dict[str, Any]:
     """Worker: every law on a slice of the conditions, in one vectorized plant."""
-    robot_name, laws, conditions, first_index, sim, stride = task
+    robot_name, laws, gain_set, conditions, first_index, sim, stride = task
     robot = load_robot(robot_name)
     steps = int(round(conditions[0].duration_s / sim.dt_s))
-    loggers = [_LoggingController(make_law(law, robot, sim.dt_s), len(conditions), steps, stride) for law in laws]
+    loggers = [_LoggingController(make_law(law, robot, sim.dt_s, gain_set), len(conditions), steps, stride) for law in laws]
     stack = ControllerStack(loggers, [len(conditions)] * len(laws))
     traj = simulate(robot, stack, [c for _ in laws for c in conditions], sim)
     out: dict[str, Any] = {"first_index": first_index, "laws": {}}
@@ -134,15 +135,15 @@ def generate_raw_dataset(spec: RawDatasetSpec, out_path: Path, executor: Executo
     conditions = make_conditions(spec, robot)
     sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
     bounds = np.linspace(0, len(conditions), min(spec.chunks, len(conditions)) + 1).astype(int)
-    tasks = [(spec.robot, spec.laws, conditions[a:b], int(a), sim, spec.stride) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    tasks = [(spec.robot, spec.laws, spec.gain_set, conditions[a:b], int(a), sim, spec.stride) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     started = time.perf_counter()
     parts: list[dict[str, Any]] = []
     for part in (executor or SerialExecutor()).map(_simulate_chunk, tasks):
         parts.append(part)
         if progress is not None:
             progress(1)
-    laws_params = {law: {"state_size": make_law(law, robot, spec.dt_s).state_size, "params": _jsonable(make_law(law, robot, spec.dt_s).params)}
-                   for law in spec.laws}  # fmt: skip
+    built = {law: make_law(law, robot, spec.dt_s, spec.gain_set) for law in spec.laws}
+    laws_params = {law: {"state_size": built[law].state_size, "params": _jsonable(built[law].params)} for law in spec.laws}
     manifest = {
         "schema": SCHEMA, "spec": asdict(spec), "git_commit": git_commit(), "robot": robot.name,
         "urdf_sha256": _sha256(robot.urdf_path), "joint_names": list(robot.joint_names),

@@ -131,7 +131,7 @@ def train_emulator(features: np.ndarray, targets: np.ndarray, config: TrainConfi
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
-                total += float(loss) * batch.numel()
+                total += float(loss.detach()) * batch.numel()
             schedule.step()
             model.eval()
             with torch.no_grad():

@@ -66,7 +66,10 @@ def stage_dataset(config: PipelineConfig, work: Path, executor: Executor, progre
                   force: bool = False) -> Path:  # fmt: skip
     path = work / "raw.h5"
     if path.exists() and not force:
-        load_raw_dataset(path)  # a corrupt file is an error here, never silently regenerated over
+        raw = load_raw_dataset(path)  # a corrupt file is an error here, never silently regenerated over
+        if raw.manifest.get("spec") != json.loads(json.dumps(asdict(config.dataset))):
+            raise ModelInputError(f"dataset {path}: made with other settings than asked ({raw.manifest.get('spec')}); "
+                                  "use --force-dataset to regenerate it")  # fmt: skip
         return path
     return generate_raw_dataset(config.dataset, path, executor, _progress(progress, "dataset: simulate chunks", config.dataset.chunks))
 
@@ -115,7 +118,7 @@ def stage_label(config: PipelineConfig, work: Path, labeler: Labeler | None = No
     try:
         with h5py.File(tmp, "w") as h5:
             for law_name in config.laws:
-                law = make_law(law_name, robot, config.dataset.dt_s)
+                law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
                 rows, index = raw.laws[law_name], unions[law_name]
                 taus, statuses = [], []
                 law_start = time.perf_counter()
@@ -285,7 +288,7 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
     out = {}
     for law_name in config.laws:
         run = next(r for r in trained["runs"] if r["law"] == law_name and r["strategy"] == strategy and r["seed"] == seed)
-        law = make_law(law_name, robot, config.dataset.dt_s)
+        law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
         emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
         emulator.load_state_dict({k: torch.as_tensor(v) for k, v in run["state_dict"].items()})
         rows, lab = raw.laws[law_name], labels[law_name]
@@ -297,7 +300,7 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
                     "labels": {"labeler": labels_manifest["labeler"], "hmpc_options": labels_manifest["hmpc_options"],
                                "status_counts": np.bincount(lab.status, minlength=4).tolist()},
                     "sampling": {"strategy": strategy, "samples": int(lab.sets[strategy].size), "theorem2": lab.theorem2},
-                    "emulator": run["summary"], "seed": seed, "git_commit": git_commit()}  # fmt: skip
+                    "emulator": run["summary"], "seed": seed, "gain_set": config.dataset.gain_set, "git_commit": git_commit()}  # fmt: skip
         validation = {"val_mse_normalized": run["summary"]["best_val_mse_normalized"], "val_rmse_nm": run["summary"]["val_rmse_nm"],
                       "test_mse_normalized": run["test_mse"], "test_set": "uniform over held-out conditions"}  # fmt: skip
         manifest = export_bundle(bundles / robot.name / law_name, law, robot, emulator, training, validation,

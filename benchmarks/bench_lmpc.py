@@ -1,0 +1,77 @@
+"""t_L: per-cycle wall time of LMPC (law + emulator in one onnxruntime call), one arm, Python included.
+
+Runs the shipped bundles' controller (models.lmpc.LMPCController, which is hil_runtime.bundle's
+single-row path) in a closed loop on the paper's condition C1 and reports the per-call time, plus
+the bare ``PolicyBundle.step`` time. Prints JSON.
+
+    python benchmarks/bench_lmpc.py [--cycles 3000] [--bundles models/bundles]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--cycles", type=int, default=3000)
+    parser.add_argument("--bundles", type=Path, default=None)
+    parser.add_argument("--laws", default="pd,pid,adrc,hinf,smc,mrac")
+    args = parser.parse_args()
+
+    from hil_runtime.bundle import PolicyBundle
+    from models.conditions import load_conditions
+    from models.feedback import make_law
+    from models.lmpc import make_lmpc_controller
+    from models.lmpc.controller import bundle_path
+    from models.robots import load_robot
+    from models.sim import SimConfig, simulate
+
+    robot = load_robot("ur5_paper")
+    condition = load_conditions()[0]
+    sim = SimConfig()
+    short = replace(condition, duration_s=args.cycles * sim.dt_s)
+    out: dict = {"what": "t_L per control cycle, one arm, onnxruntime 1 intra-op thread", "cycles": args.cycles, "laws": {}}
+    for law_name in args.laws.split(","):
+        law = make_law(law_name, robot, sim.dt_s)
+        controller = make_lmpc_controller(law, robot, bundle_dir=args.bundles)
+        simulate(robot, controller, [short], sim)
+        closed = np.asarray(controller.cycle_times_s[100:]) * 1e6
+        bundle = PolicyBundle.load(bundle_path(robot.name, law_name, args.bundles))
+        state = bundle.initial_state(np.zeros(6))
+        q = np.full(6, 0.1)
+        import time
+
+        bare = []
+        for _ in range(args.cycles):
+            start = time.perf_counter()
+            bundle.step(q, q, q, q, q, state)
+            bare.append(time.perf_counter() - start)
+        bare_us = np.asarray(bare[100:]) * 1e6
+        out["laws"][law_name] = {
+            "controller_call_us": {"median": float(np.median(closed)), "p99": float(np.percentile(closed, 99)), "max": float(closed.max())},
+            "bundle_step_us": {"median": float(np.median(bare_us)), "p99": float(np.percentile(bare_us, 99))},
+            "graph_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"]),
+        }  # fmt: skip
+    import onnxruntime
+
+    out["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                      "cpu_count": os.cpu_count(), "python": platform.python_version(), "onnxruntime": onnxruntime.__version__}  # fmt: skip
+    print(json.dumps(out, indent=2))
+
+
+def _nodes(path: Path) -> int:
+    import onnx
+
+    return len(onnx.load(str(path)).graph.node)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,81 @@
+"""``hil pipeline``: recreate the LMPC policy bundles from scratch (dataset, labels, training, export)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from models.errors import ModelInputError
+
+STAGES = ("dataset", "label", "train", "export")
+
+
+def pipeline(
+    stages: Annotated[str, typer.Option(help="Comma-separated stages: dataset, label, train, export.")] = ",".join(STAGES),
+    work: Annotated[Path, typer.Option(help="Working directory (raw.h5, labels.h5, training, plots).")] = Path("results/lmpc"),
+    bundles: Annotated[Path, typer.Option(help="Where bundles go: <bundles>/<robot>/<law>/.")] = Path("models/bundles"),
+    laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
+    conditions: Annotated[int, typer.Option(help="Random operating conditions in D_input.")] = 100,
+    seed: Annotated[int, typer.Option(help="Seed of the random conditions.")] = 20240601,
+    budget: Annotated[int, typer.Option(help="Labeled samples over all laws (Theorem 2 budget).")] = 100_000,
+    duration: Annotated[float, typer.Option(help="Run length (s).")] = 5.0,
+    epochs: Annotated[int, typer.Option(help="Max training epochs.")] = 150,
+    workers: Annotated[Optional[int], typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
+    lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
+    force_dataset: Annotated[bool, typer.Option("--force-dataset", help="Regenerate raw.h5 even if present.")] = False,
+) -> None:
+    """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from models.feedback import LAW_NAMES
+    from models.lmpc.pipeline import PipelineConfig, run_pipeline
+
+    stage_list = tuple(s.strip() for s in stages.split(",") if s.strip())
+    for stage in stage_list:
+        if stage not in STAGES:
+            raise ModelInputError(f"--stages: unknown '{stage}' (known: {', '.join(STAGES)})")
+    law_list = tuple(x.strip() for x in laws.split(",") if x.strip())
+    for law in law_list:
+        if law not in LAW_NAMES:
+            raise ModelInputError(f"--laws: unknown '{law}' (known: {', '.join(LAW_NAMES)})")
+    if lipschitz not in ("zero", "estimate"):
+        raise ModelInputError(f"--lipschitz: unknown '{lipschitz}' (known: zero, estimate)")
+    if conditions < 2:
+        raise ModelInputError(f"--conditions: need >= 2 (a pool and held-out ones), got {conditions}")
+    base = PipelineConfig()
+    config = replace(
+        base,
+        dataset=replace(base.dataset, laws=law_list, conditions=conditions, seed=seed, duration_s=duration),
+        budget=budget, pool_conditions=max(1, int(round(0.9 * conditions))),
+        test_per_law=min(base.test_per_law, max(10, budget // (5 * len(law_list)))),
+        train=replace(base.train, max_epochs=epochs), workers=workers,
+        lipschitz_delta="estimate" if lipschitz == "estimate" else (0.0, 0.0, 0.0),
+    )  # fmt: skip
+    console = Console(stderr=True)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=console) as bar:
+
+        def progress(label: str, total: int):  # type: ignore[no-untyped-def]
+            task = bar.add_task(label, total=total)
+            return lambda n: bar.advance(task, n)
+
+        summary = run_pipeline(config, work, bundles, stage_list, progress=progress, force_dataset=force_dataset)
+    console.print(f"[bold]wall time[/bold] (s): {json.dumps(summary['wall_s'])}")
+    training = summary.get("training")
+    if training:
+        for law, row in training["per_law"].items():
+            console.print(f"{law:5s} val MSE optimal {row['optimal']['val_mse_mean']:.4f} uniform {row['uniform']['val_mse_mean']:.4f} | "
+                          f"test MSE optimal {row['optimal']['test_mse_mean']:.4f} uniform {row['uniform']['test_mse_mean']:.4f}")  # fmt: skip
+        console.print(f"mean optimal/uniform ratio: {json.dumps(training['mean_ratio_optimal_over_uniform'])}")
+    for law, info in summary.get("bundles", {}).items():
+        console.print(f"bundle {info['path']} (onnx vs torch {info['onnx_vs_torch_max_abs_nm']:.1e} N m)")
+    console.print(f"wrote {work}/pipeline.json")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("pipeline")(pipeline)
