@@ -38,6 +38,7 @@ CONVERGED, NONFINITE_INPUT, NOT_CONVERGED, NONFINITE_SOLUTION = 0, 1, 2, 3
 STATUS_NAMES = {CONVERGED: "converged", NONFINITE_INPUT: "nonfinite_input", NOT_CONVERGED: "not_converged",
                 NONFINITE_SOLUTION: "nonfinite_solution"}  # fmt: skip
 ARMIJO = 1e-4
+LEVENBERG_GROWTH = 1e4  # damping factor after a step the line search rejected
 PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
 FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
 
@@ -195,7 +196,9 @@ class HMPCSolver:
             status[bad_solution] = NONFINITE_SOLUTION
             use_mpc = (status == CONVERGED) | ((status == NOT_CONVERGED) & (self.config.on_budget_exhausted == "best_iterate"))
             hold = np.zeros((batch, n)) if hold_torque_nm is None else np.broadcast_to(np.asarray(hold_torque_nm, float), (batch, n))
-            fallback = np.where(np.isfinite(tau_fb), tau_fb, np.nan_to_num(hold, nan=0.0, posinf=0.0, neginf=0.0))
+            # the law's torque where its whole row is finite; otherwise the caller's hold torque
+            fb_ok = np.isfinite(tau_fb).all(1, keepdims=True)
+            fallback = np.where(fb_ok, tau_fb, np.nan_to_num(hold, nan=0.0, posinf=0.0, neginf=0.0))
             tau = np.where(use_mpc[:, None], first, fallback)
             tau = np.clip(np.nan_to_num(tau, nan=0.0, posinf=0.0, neginf=0.0), -self.torque_limit_nm, self.torque_limit_nm)
             # A law state that went non-finite (NaN measurement) is not carried into the next cycle.
@@ -224,12 +227,13 @@ class HMPCSolver:
         iterations = np.zeros(k, int)
         active = np.flatnonzero(np.isfinite(state.cost))
         status[~np.isfinite(state.cost)] = NONFINITE_SOLUTION
+        levenberg = np.ones(k)  # damping multiplier: raised after a failed step (Levenberg-Marquardt)
 
         for _ in range(config.max_iterations):
             if active.size == 0:
                 break
             sub_rows, sub_u, sub_state = rows.take(active), u[active], state.take(active)
-            step, predicted, exact = self._model_step(sub_rows, sub_u, sub_state)
+            step, predicted, exact = self._model_step(sub_rows, sub_u, sub_state, levenberg[active])
             iterations[active] += 1
             # Convergence tests need the model's exact minimizer (QP solved, penalty set settled).
             done = exact & ~(predicted > config.cost_atol + config.cost_rtol * sub_state.cost)
@@ -258,8 +262,11 @@ class HMPCSolver:
                 state.put(active[accepted], trial.take(np.flatnonzero(ok)))
                 moved[accepted] = True
                 pending, alpha = pending[~ok], 0.5 * alpha
-            # Rows whose step could not reduce the cost stop here (status stays NOT_CONVERGED).
-            active = active[moved & ~finished]
+            # A step that could not reduce the cost: retry from the same point with a much more
+            # damped (shorter, more gradient-like) step; a good step relaxes the damping again.
+            levenberg[active[moved]] = np.maximum(1.0, levenberg[active[moved]] * 0.1)
+            levenberg[active[~moved & ~done]] *= LEVENBERG_GROWTH
+            active = active[~finished & ~done]
         return u, state.cost, candidate_cost, status, iterations
 
     def _rollout(self, rows: _Rows, u: np.ndarray) -> _Rollout:
@@ -315,7 +322,8 @@ class HMPCSolver:
         jac = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
         return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
 
-    def _model_step(self, rows: _Rows, u: np.ndarray, state: _Rollout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _model_step(self, rows: _Rows, u: np.ndarray, state: _Rollout,
+                    levenberg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         """The Gauss-Newton step (K, T, N) inside the torque box, the decrease of J it predicts, and
         whether the step is the model's exact minimizer (K,) bool.
 
@@ -325,7 +333,7 @@ class HMPCSolver:
         """
         config, horizon, n = self.config, self.horizon, self.n_joints
         k = u.shape[0]
-        hessian0, gradient0, sens = self._gauss_newton_model(rows, u, state)
+        hessian0, gradient0, sens = self._gauss_newton_model(rows, u, state, levenberg)
         flat_u = u.reshape(k, -1)
         bound = np.tile(self.torque_limit_nm, horizon)
         lower, upper = -bound - flat_u, bound - flat_u
@@ -365,7 +373,8 @@ class HMPCSolver:
         model_change = quadratic + penalty(y) - penalty(x)
         return step.reshape(k, horizon, n), -2.0 * model_change, settled & qp_converged  # the model is of J / 2
 
-    def _gauss_newton_model(self, rows: _Rows, u: np.ndarray, state: _Rollout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _gauss_newton_model(self, rows: _Rows, u: np.ndarray, state: _Rollout,
+                            levenberg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         """Condensed model of J / 2 without the bound penalty: H (K, TN, TN), g (K, TN), and the
         state sensitivities S = dx/dU (K, T 2N, TN)."""
         dt, n, horizon = self.dt_s, self.n_joints, self.horizon
@@ -410,5 +419,6 @@ class HMPCSolver:
         hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self._stage_torque_weight
         gradient = gradient + self._stage_torque_weight * flat_u
         diagonal = hessian[:, np.arange(horizon * n), np.arange(horizon * n)]
-        hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self.config.damping * diagonal.mean(1, keepdims=True) + 1e-300
+        damping = self.config.damping * levenberg[:, None] * diagonal.mean(1, keepdims=True)
+        hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += damping + 1e-300
         return hessian, gradient, flat_sens
