@@ -35,7 +35,7 @@ def serve(
         server.stop()
 
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    bridge = f", bridge ws://{target_config.bridge.host}:{target_config.bridge.port}/" if target_config.bridge else ""
+    bridge = f", bridge {server.bridge_url}" if server.bridge_url else ""
     print(f"target serving {server.plant.n_joints} drives on {target_config.bus.interface}:"
           f"{target_config.bus.channel}{bridge}, clock {target_config.clock}, "
           f"period {target_config.period_s * 1e3:g} ms", file=sys.stderr, flush=True)

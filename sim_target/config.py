@@ -73,6 +73,14 @@ class DriveFault(_Fault):
     error_code: int = Field(0x5530, ge=0, le=0xFFFF)  # default: 0x5530 "data storage" (hardware)
 
 
+class HeartbeatFault(_Fault):
+    """A drive stops (``silent: true``) or resumes sending its heartbeat; PDOs and SDOs go on."""
+
+    kind: Literal["heartbeat"]
+    node_id: int = Field(ge=1, le=127)
+    silent: bool = True
+
+
 class EncoderNoiseFault(_Fault):
     kind: Literal["encoder_noise"]
     position_rad: float = Field(ge=0)  # standard deviation
@@ -101,11 +109,11 @@ class ImpulseFault(_Fault):
 
 
 Fault = Annotated[
-    Union[FrameFault, DriveFault, EncoderNoiseFault, PayloadFault, ImpulseFault], Field(discriminator="kind")
+    Union[FrameFault, DriveFault, HeartbeatFault, EncoderNoiseFault, PayloadFault, ImpulseFault], Field(discriminator="kind")
 ]
 _FAULT_ADAPTER: TypeAdapter[Fault] = TypeAdapter(Fault)
 PLANT_FAULTS = (EncoderNoiseFault, PayloadFault, ImpulseFault)
-DRIVE_FAULTS = (FrameFault, DriveFault)
+DRIVE_FAULTS = (FrameFault, DriveFault, HeartbeatFault)
 
 
 # --- sections --------------------------------------------------------------------------------------
@@ -115,7 +123,7 @@ class BridgeConfig(_Frozen):
     """Serve the target's virtual bus to other processes through python-can-remote (loopback only)."""
 
     host: str = "127.0.0.1"
-    port: int = Field(54701, gt=0, lt=65536)
+    port: int = Field(54701, ge=0, lt=65536)  # 0: any free port (printed by ``hil target serve``)
 
     @model_validator(mode="after")
     def _check(self) -> BridgeConfig:

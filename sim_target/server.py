@@ -38,11 +38,13 @@ from typing import Any, Protocol
 import can
 import numpy as np
 
+from drivers.transport import BridgeServer, open_bus, start_bridge_server
 from sim_target.config import (
     DriveFault,
     EncoderNoiseFault,
     Fault,
     FrameFault,
+    HeartbeatFault,
     ImpulseFault,
     PayloadFault,
     TargetConfig,
@@ -70,6 +72,9 @@ class DriveBank(Protocol):
         """Send the TPDOs for ``state`` (the drives apply their own scaling)."""
 
     def apply_fault(self, fault: FrameFault | DriveFault) -> None: ...
+
+    def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
+        """Stop (or resume) one drive's heartbeat producer; its PDOs go on."""
 
     def safe_stop(self) -> None:
         """Every drive to a safe state (brakes on, torque off)."""
@@ -105,6 +110,7 @@ class TargetServer:
                 self._scheduled.append(fault)
         self._scheduled.sort(key=lambda fault: fault.at_s)
         self._control: _ControlServer | None = None
+        self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
         drives.set_sync_handler(self._on_sync)
 
     # --- clocks ---------------------------------------------------------------------------------
@@ -197,6 +203,8 @@ class TargetServer:
             self.plant.set_payload(fault.mass_kg, fault.inertia_kg_m2)
         elif isinstance(fault, ImpulseFault):
             self.plant.add_impulse(TorqueImpulse(fault.torque_nm, at_s, fault.duration_s))
+        elif isinstance(fault, HeartbeatFault):
+            self.drives.silence_heartbeat(fault.node_id, fault.silent)
         else:
             self.drives.apply_fault(fault)
         self.stats.faults_applied += 1
@@ -294,35 +302,6 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
         raise TargetConfigError(f"plant: {exc}") from None
 
 
-def open_bus(config: TargetConfig) -> can.BusABC:
-    bus_cfg = config.bus
-    if bus_cfg.interface == "remote":
-        return can.Bus(interface="remote", channel=bus_cfg.remote_url)
-    kwargs: dict[str, Any] = {"interface": bus_cfg.interface, "channel": bus_cfg.channel}
-    if bus_cfg.interface != "virtual":
-        kwargs["bitrate"] = bus_cfg.bitrate
-    if bus_cfg.fd:
-        kwargs.update(fd=True, data_bitrate=bus_cfg.data_bitrate)
-    return can.Bus(**kwargs)
-
-
-class Bridge:
-    """python-can-remote's server on loopback, sharing the target's in-process virtual bus."""
-
-    def __init__(self, host: str, port: int, channel: str) -> None:
-        from can_remote.server import RemoteServer
-
-        # Each remote client gets its own virtual-bus endpoint on our channel, in this process.
-        self._server = RemoteServer(host, port, interface="virtual", channel=channel)
-        self.port = self._server.server_port
-        self._thread = threading.Thread(target=self._server.serve_forever, name="can-bridge", daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self._server.shutdown()
-        self._server.server_close()
-
-
 def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBank:
     """The emulated drives of sim_target/drives.py, configured from ``config.drives``."""
     from sim_target import drives as drive_module
@@ -336,11 +315,11 @@ def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBa
 def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]]:
     """Plant, bus (and bridge), drives and control socket; returns the server and a closer."""
     plant = make_plant(config)
-    bridge = None
+    bridge: BridgeServer | None = None
     try:
         if config.bridge is not None:
-            bridge = Bridge(config.bridge.host, config.bridge.port, config.bus.channel)
-        bus = open_bus(config)
+            bridge = start_bridge_server(config.bridge.host, config.bridge.port, config.bus.channel)
+        bus = open_bus(config.bus)
         try:
             drives = make_drives(config, bus, plant.n_joints)
         except Exception:
@@ -352,6 +331,8 @@ def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]
         if bridge is not None:
             bridge.close()
         raise
+    if bridge is not None:
+        server.bridge_url = bridge.url
     if config.control_socket is not None:
         server.serve_control(config.control_socket)
 

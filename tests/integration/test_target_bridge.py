@@ -9,7 +9,7 @@ import uuid
 
 import can
 
-from sim_target.server import Bridge
+from drivers.transport import start_bridge_server
 
 CLIENT = r"""
 import sys, can
@@ -23,11 +23,11 @@ bus.shutdown()
 
 def test_a_remote_process_shares_the_virtual_bus() -> None:
     channel = f"bridge-{uuid.uuid4().hex[:8]}"
-    bridge = Bridge("127.0.0.1", 0, channel)  # port 0: any free loopback port
+    bridge = start_bridge_server("127.0.0.1", 0, channel)  # port 0: any free loopback port
     local = can.Bus(interface="virtual", channel=channel)
     try:
         client = subprocess.Popen(
-            [sys.executable, "-c", CLIENT, f"ws://127.0.0.1:{bridge.port}/"],
+            [sys.executable, "-c", CLIENT, bridge.url],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
         request = local.recv(timeout=20)

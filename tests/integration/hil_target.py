@@ -1,0 +1,120 @@
+"""Helpers shared by the HIL integration tests and benchmarks/bench_hil_lockstep.py: start the
+pybullet target (in this process, or as ``hil target serve`` in another one) and build the driver
+master's config for it. Loopback only: the bridge listens on 127.0.0.1, on a port the OS picks."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from drivers.config import DriveBusConfig, parse_drive_bus_config
+from sim_target.config import parse_target_config
+from sim_target.server import TargetServer, build_server
+
+Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
+# ur5_paper's URDF effort limits: the drives' max torque (0x6072).
+MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
+NODE_IDS = (1, 2, 3, 4, 5, 6)
+FD = {"fd": True, "data_bitrate": 5_000_000}  # six drives above ~420 Hz need CAN FD
+
+
+def unique_channel() -> str:
+    return f"hil-{uuid.uuid4().hex[:8]}"
+
+
+def target_config_dict(channel: str, period_s: float, substeps: int = 32, **extra: Any) -> dict[str, Any]:
+    return {
+        "robot": "ur5_paper",
+        "period_s": period_s,
+        "clock": "lockstep",
+        "bus": {"interface": "virtual", "channel": channel, **FD},
+        "drives": {"node_ids": list(NODE_IDS)},
+        "plant": {"substeps": substeps, "initial_position_rad": list(Q0_RAD)},
+        **extra,
+    }
+
+
+def drive_bus_config(transport: dict[str, Any], period_s: float, **extra: Any) -> DriveBusConfig:
+    return parse_drive_bus_config({
+        "transport": {**FD, **transport},
+        "period_s": period_s,
+        "joints": [{"name": f"joint{n}", "node_id": n, "max_torque_nm": m} for n, m in zip(NODE_IDS, MAX_TORQUE_NM)],
+        **extra,
+    })
+
+
+@contextlib.contextmanager
+def target_in_process(channel: str, period_s: float, **config: Any) -> Iterator[TargetServer]:
+    """The target on the in-process virtual ``channel``, its lock-step clock in a thread."""
+    server, close = build_server(parse_target_config(target_config_dict(channel, period_s, **config)))
+    runner = threading.Thread(target=server.run, name="target", daemon=True)
+    runner.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+        runner.join(timeout=10)
+        close()
+
+
+@dataclass
+class TargetProcess:
+    process: subprocess.Popen[str]
+    bridge_url: str
+    control_socket: Path
+
+    def stop(self, timeout_s: float = 10.0) -> tuple[int, str]:
+        """SIGTERM; the exit code and the rest of stderr."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+        try:
+            _, err = self.process.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            _, err = self.process.communicate()
+            return -9, err
+        return self.process.returncode, err
+
+
+@contextlib.contextmanager
+def target_process(tmp_dir: Path, period_s: float, substeps: int = 32, **config: Any) -> Iterator[TargetProcess]:
+    """``hil target serve`` in a subprocess, its bus served by the bridge on 127.0.0.1:<free port>."""
+    sock = tmp_dir / "target.sock"
+    data = target_config_dict("hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0},
+                              control_socket=str(sock), **config)
+    path = tmp_dir / "target.yaml"
+    path.write_text(yaml.safe_dump(data))
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(path)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+    )
+    assert process.stderr is not None
+    lines = []
+    url = None
+    for line in process.stderr:  # the ready line names the bridge URL with the port it got
+        lines.append(line)
+        found = re.search(r"bridge (ws://127\.0\.0\.1:\d+/)", line)
+        if found:
+            url = found.group(1)
+            break
+    if url is None:
+        process.wait(timeout=10)
+        raise RuntimeError(f"target did not start (exit {process.returncode}): {''.join(lines)}")
+    target = TargetProcess(process, url, sock)
+    try:
+        yield target
+    finally:
+        target.stop()
