@@ -34,5 +34,27 @@ def hmpc_labeler(law: FeedbackLaw, robot: RobotModel, rows: RawLaw, executor: An
 
     config = HMPCConfig.from_options(**{**LABEL_HMPC_OPTIONS, **hmpc_options})
     state = rows.law_state if rows.law_state.shape[1] else None
+    if executor is not None and hasattr(executor, "start"):
+        executor = _StartedPool(executor, law, robot, config)
     return solve_batch(law, robot, rows.q, rows.qd, rows.q_d, rows.qd_d, rows.qdd_d, state, config=config,
                        executor=executor)  # fmt: skip
+
+
+_SPECS: dict[tuple, tuple] = {}
+
+
+class _StartedPool:
+    """The HMPC's process pool started once per (law, robot, config) and reused across calls.
+
+    solve_batch restarts a pool whose spec is not the very same object; labeling calls it once per
+    chunk (for progress), so the spec object is kept here and the pool is not rebuilt per chunk.
+    """
+
+    def __init__(self, pool: Any, law: FeedbackLaw, robot: RobotModel, config: Any) -> None:
+        key = (id(law), id(robot), config)
+        spec = _SPECS.setdefault(key, (law, robot, config))
+        pool.start(spec)
+        self.pool = pool
+
+    def map(self, fn: Callable[[Any], Any], chunks: Any) -> list[Any]:
+        return self.pool.map(fn, chunks)
