@@ -1,0 +1,201 @@
+"""Six CiA 402 drives lock-stepped with the pybullet target, driven by the driver master
+(drivers/drive_bus.py), paced at the control rate with absolute deadlines (``next += period``;
+an overrun is counted and the missed periods skipped, never run in a burst).
+
+- ``inprocess``: target and driver in one process on python-can's ``virtual`` bus, 1 kHz, CAN FD.
+- ``bridge``: the target as ``hil target serve`` in another process, its bus served by the
+  python-can-remote bridge on 127.0.0.1, 500 Hz, CAN FD.
+
+Per mode: achieved exchange rate, exchange latency (``DriveBus.exchange``: RPDOs + SYNC out, every
+TPDO back) median / p99 / max, also as % of the period, cycles whose latency exceeded the period,
+overruns, and frames lost: SYNCs the target never saw plus TPDOs that never arrived (missing at
+their cycle's deadline and not received late either). Prints one JSON document.
+
+    python benchmarks/bench_hil_lockstep.py                 # 60 s per mode
+    python benchmarks/bench_hil_lockstep.py --duration 10 --mode inprocess
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import threading
+import time
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "integration"))
+
+from hil_target import Q0_RAD, drive_bus_config, target_in_process, target_process, unique_channel  # noqa: E402
+
+from drivers.drive_bus import DriveBus  # noqa: E402
+from models.dynamics import make_dynamics  # noqa: E402
+from models.robots import load_robot  # noqa: E402
+from sim_target.server import send_control  # noqa: E402
+
+# The benchmark measures losses rather than stopping at the first stale cycle.
+BENCH_DRIVER = {"max_missed_cycles": 1_000_000, "heartbeat_timeout_s": 1.0}
+
+
+def _run(bus: DriveBus, period_s: float, duration_s: float) -> dict[str, Any]:
+    dynamics = make_dynamics(load_robot("ur5_paper"), backend="pinocchio")  # ~10 µs (own RNE: ~600 µs)
+    amplitude = np.array([0.05, 0.3, 0.1, 0.02, 0.005, 0.001])
+    bus.connect()
+    bus.enable()
+    start_counters = bus.counters
+    n = int(round(duration_s / period_s))
+    latency = np.empty(n)
+    stale = 0
+    overruns = 0
+    q = np.array(Q0_RAD)
+    exchange = bus.exchange
+    perf = time.perf_counter
+    t0 = next_s = perf()
+    k = 0
+    while k < n:
+        torque = dynamics.gravity(q) + amplitude * np.sin(2 * np.pi * 0.5 * k * period_s)
+        a = perf()
+        feedback = exchange(torque)
+        latency[k] = perf() - a
+        if not feedback.fresh.all():
+            stale += 1
+        q = feedback.position_rad
+        k += 1
+        next_s += period_s
+        now = perf()
+        if now > next_s:  # overran: skip the periods already past
+            missed = int((now - next_s) // period_s) + 1
+            overruns += 1
+            next_s += missed * period_s
+        else:
+            while perf() < next_s - 2e-4:  # sleep coarse, spin the last 200 µs
+                time.sleep(max(0.0, next_s - perf() - 3e-4))
+            while perf() < next_s:
+                pass
+    elapsed = perf() - t0
+    time.sleep(0.1)  # let late TPDOs arrive before counting what never came
+    end = bus.counters
+    dropped = end.dropped - start_counters.dropped
+    late = end.late - start_counters.late
+    latency_us = latency * 1e6
+    period_us = period_s * 1e6
+    return {
+        "cycles": n,
+        "period_s": period_s,
+        "elapsed_s": round(elapsed, 3),
+        "achieved_rate_hz": round(n / elapsed, 1),
+        "latency_us": {
+            "median": round(float(np.median(latency_us)), 1),
+            "p99": round(float(np.percentile(latency_us, 99)), 1),
+            "max": round(float(latency_us.max()), 1),
+        },
+        "latency_pct_of_period": {
+            "median": round(float(np.median(latency_us)) / period_us * 100, 1),
+            "p99": round(float(np.percentile(latency_us, 99)) / period_us * 100, 1),
+        },
+        "cycles_over_period": int((latency_us > period_us).sum()),
+        "overruns": overruns,
+        "stale_cycles": stale,  # some TPDO missing at the feedback deadline (arrived late or never)
+        "tpdos_missing_at_deadline": dropped,
+        "tpdos_late": late,
+        "tpdos_lost": dropped - late,
+        "frames_sent": end.frames_sent - start_counters.frames_sent,
+        "frames_received": end.frames_received - start_counters.frames_received,
+        "malformed": end.malformed - start_counters.malformed,
+        "feedback_timeout_s": bus.config.feedback_timeout_s,
+    }
+
+
+def bench_inprocess(duration_s: float, period_s: float, substeps: int) -> dict[str, Any]:
+    channel = unique_channel()
+    with target_in_process(channel, period_s, substeps=substeps) as target:
+        bus = DriveBus(drive_bus_config({"interface": "virtual", "channel": channel}, period_s, **BENCH_DRIVER))
+        try:
+            result = _run(bus, period_s, duration_s)
+            result["syncs_lost"] = bus.counters.cycles - target.stats.syncs
+        finally:
+            bus.close()
+        drives = target.drives.counters  # type: ignore[attr-defined]
+        result["target_frames_received"] = drives.frames_received
+        result["target_frames_sent"] = drives.frames_sent
+    result["frames_lost"] = result["syncs_lost"] + result["tpdos_lost"]
+    return {"mode": "inprocess", "transport": "virtual, CAN FD", "substeps": substeps, **result}
+
+
+def bench_bridge(duration_s: float, period_s: float, substeps: int) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as tmp, target_process(Path(tmp), period_s, substeps=substeps) as target:
+        bus = DriveBus(drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s,
+                                        **BENCH_DRIVER))
+        try:
+            result = _run(bus, period_s, duration_s)
+            status = send_control(target.control_socket, {"kind": "status"})
+            result["syncs_lost"] = bus.counters.cycles - status["syncs"]
+        finally:
+            bus.close()
+        code, _ = target.stop()
+        result["target_exit_code"] = code
+    result["frames_lost"] = result["syncs_lost"] + result["tpdos_lost"]
+    return {"mode": "bridge", "transport": "python-can-remote on 127.0.0.1, CAN FD", "substeps": substeps, **result}
+
+
+def machine() -> dict[str, Any]:
+    cpu = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    versions = {}
+    for package in ("python-can", "python-can-remote", "canopen", "pybullet", "numpy"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "versions": versions,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds per mode (default 60)")
+    parser.add_argument("--mode", choices=["both", "inprocess", "bridge"], default="both")
+    parser.add_argument("--inprocess-period", type=float, default=0.001)
+    parser.add_argument("--bridge-period", type=float, default=0.002)
+    parser.add_argument("--inprocess-substeps", type=int, default=32)
+    parser.add_argument("--bridge-substeps", type=int, default=64)
+    args = parser.parse_args()
+    out: dict[str, Any] = {"benchmark": "hil_lockstep", "drives": 6, "duration_s": args.duration,
+                           "machine_before": machine(), "results": []}
+    if args.mode in ("both", "inprocess"):
+        out["results"].append(bench_inprocess(args.duration, args.inprocess_period, args.inprocess_substeps))
+    if args.mode in ("both", "bridge"):
+        out["results"].append(bench_bridge(args.duration, args.bridge_period, args.bridge_substeps))
+    out["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    for result in out["results"]:
+        target_hz = 1000 if result["mode"] == "inprocess" else 500
+        result["targets"] = {
+            f"rate>={target_hz}Hz": result["achieved_rate_hz"] >= target_hz * 0.995,
+            "p99<=30%": result["latency_pct_of_period"]["p99"] <= 30.0,
+            "zero_frames_lost": result["frames_lost"] == 0,
+        }
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    threading.current_thread().name = "bench"
+    main()
