@@ -717,14 +717,4 @@ class DriveBus:
 
 
 def _od_variable(node: canopen.RemoteNode, index: int, subindex: int) -> ODVariable | None:
-    od = node.object_dictionary
-    try:
-        entry = od[index]
-    except KeyError:
-        return None
-    if isinstance(entry, ODVariable):
-        return entry if subindex == 0 else None
-    try:
-        return entry[subindex]
-    except KeyError:
-        return None
+    return odx.lookup_variable(node.object_dictionary, index, subindex)

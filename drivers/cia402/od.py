@@ -117,7 +117,8 @@ class EdsError(DriveConfigError):
     """An EDS that cannot describe a drive of this layer; one line naming the file and object."""
 
 
-def _lookup(od: ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
+def lookup_variable(od: ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
+    """The variable at (index, subindex) of an object dictionary, or None."""
     try:
         entry = od[index]
     except KeyError:
@@ -140,7 +141,7 @@ def load_object_dictionary(node_id: int, eds_path: Path | str = EDS_PATH) -> Obj
     except (configparser.Error, KeyError, ValueError, UnicodeDecodeError) as exc:
         raise EdsError(f"{path}: unreadable EDS ({type(exc).__name__}: {exc})") from None
     for (index, subindex), data_type in REQUIRED_OBJECTS.items():
-        var = _lookup(od, index, subindex)
+        var = lookup_variable(od, index, subindex)
         if var is None:
             raise EdsError(f"{path}: [{index:04X}] sub {subindex}: required object missing")
         if var.data_type != data_type:
