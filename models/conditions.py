@@ -106,11 +106,16 @@ class Condition:
             )
         t = np.linspace(0.0, self.duration_s, 2001)
         q, qd, _ = self.reference(t)
-        for values, limit, what in ((q, robot.position_limit_rad, "position"), (qd, robot.velocity_limit_rad_s, "velocity")):
-            worst = np.max(np.abs(values), axis=0)
-            bad = np.flatnonzero(worst > limit + 1e-12)
-            if bad.size:
-                j = int(bad[0])
+        lower, upper = robot.position_lower_rad, robot.position_upper_rad
+        checks = (
+            (q, np.max(q, axis=0) > upper + 1e-12, np.max(q, axis=0), upper, "position"),
+            (q, np.min(q, axis=0) < lower - 1e-12, np.min(q, axis=0), lower, "position"),
+            (qd, np.max(np.abs(qd), axis=0) > robot.velocity_limit_rad_s + 1e-12, np.max(np.abs(qd), axis=0),
+             robot.velocity_limit_rad_s, "velocity"),
+        )  # fmt: skip
+        for _, bad, worst, limit, what in checks:
+            if bad.any():
+                j = int(np.flatnonzero(bad)[0])
                 raise ModelInputError(
                     f"{source}: {self.name}: reference {what} reaches {worst[j]:.3f} on joint {j + 1}, "
                     f"beyond its limit {limit[j]:.3f}"

@@ -73,14 +73,28 @@ class RobotModel:
     inertia_kg_m2: np.ndarray  # (N, 3, 3) about the COM, body axes
     ee_rotation: np.ndarray  # (3, 3) end-effector frame in the last body's frame
     ee_translation: np.ndarray  # (3,)
-    position_limit_rad: np.ndarray  # (N,)
+    position_limit_rad: np.ndarray  # (N,) symmetric bound |q| <= this: min(|lower|, |upper|), conservative
     velocity_limit_rad_s: np.ndarray  # (N,)
     torque_limit_nm: np.ndarray  # (N,)
     gravity_m_s2: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    position_range_rad: np.ndarray | None = None  # (N, 2) [lower, upper] when not symmetric (e.g. Panda)
 
     @property
     def n_joints(self) -> int:
         return len(self.joint_names)
+
+    @property
+    def position_lower_rad(self) -> np.ndarray:
+        return -self.position_limit_rad if self.position_range_rad is None else self.position_range_rad[:, 0]
+
+    @property
+    def position_upper_rad(self) -> np.ndarray:
+        return self.position_limit_rad if self.position_range_rad is None else self.position_range_rad[:, 1]
+
+    def position_limit_ratio(self, q: np.ndarray) -> np.ndarray:
+        """|q - mid| / half-range per joint: 1.0 on a limit, > 1 beyond it (|q| / limit when symmetric)."""
+        lower, upper = self.position_lower_rad, self.position_upper_rad
+        return np.abs(q - 0.5 * (lower + upper)) / (0.5 * (upper - lower))
 
     def with_payload(self, mass_kg: float, com_in_ee_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> RobotModel:
         """The same robot carrying a point mass rigidly fixed to the end-effector frame."""
@@ -214,6 +228,7 @@ def load_robot(name_or_path: str | Path, ee_link: str | None = None) -> RobotMod
         robot = replace(
             robot,
             position_limit_rad=np.array(params["position_limit_rad"], float),
+            position_range_rad=None,
             velocity_limit_rad_s=np.full(robot.n_joints, float(params["velocity_limit_rad_s"])),
             torque_limit_nm=np.array(params["torque_limit_nm"], float),
             gravity_m_s2=np.array([0.0, 0.0, -float(params["gravity_m_s2"])]),
@@ -272,7 +287,7 @@ def _chain_from_urdf(
         parts[body].append((mass, rotation @ com + translation, rotation @ inertia @ rotation.T))
     merged = [_combine(p) for p in parts]
 
-    rotations, translations, axes, pos_lim, vel_lim, tau_lim = [], [], [], [], [], []
+    rotations, translations, axes, pos_range, vel_lim, tau_lim = [], [], [], [], [], []
     for i, joint in enumerate(chain_joints):
         parent = joint.find("parent").get("link")  # type: ignore[union-attr]
         body, r_parent, p_parent = body_of[parent]
@@ -291,7 +306,7 @@ def _chain_from_urdf(
         upper = float(limit.get("upper", "inf")) if limit is not None else math.inf
         if joint.get("type") == "continuous":
             lower, upper = -math.inf, math.inf
-        pos_lim.append(min(abs(lower), abs(upper)))
+        pos_range.append((lower, upper))
         vel_lim.append(float(limit.get("velocity", "inf")) if limit is not None else math.inf)
         tau_lim.append(float(limit.get("effort", "inf")) if limit is not None else math.inf)
 
@@ -313,7 +328,8 @@ def _chain_from_urdf(
         inertia_kg_m2=np.array([i for _, _, i in merged]),
         ee_rotation=ee_rotation,
         ee_translation=ee_translation,
-        position_limit_rad=np.array(pos_lim),
+        position_limit_rad=np.array([min(abs(lo), abs(hi)) if lo <= 0 <= hi else 0.0 for lo, hi in pos_range]),
+        position_range_rad=None if all(lo == -hi for lo, hi in pos_range) else np.array(pos_range),
         velocity_limit_rad_s=np.array(vel_lim),
         torque_limit_nm=np.array(tau_lim),
     )

@@ -163,7 +163,7 @@ def simulate(
         tau_fb=None if np.isnan(log_fb).all() else log_fb,
         condition_names=[c.name for c in conditions], disturbance=dist,
     )  # fmt: skip
-    traj.position_ratio = np.max(np.abs(log_q) / robot.position_limit_rad, axis=(1, 2))
+    traj.position_ratio = np.max(robot.position_limit_ratio(log_q), axis=(1, 2))
     traj.velocity_ratio = np.max(np.abs(log_qd) / robot.velocity_limit_rad_s, axis=(1, 2))
     traj.finite = finite
     return traj

@@ -136,3 +136,13 @@ def test_payload_and_scaling_change_the_dynamics_as_physics_says() -> None:
     assert extra[1] == pytest.approx(-0.5 * 9.81 * lever, rel=1e-9)
     scaled = robot.scaled(mass_scale=2.0)
     assert make_dynamics(scaled).gravity(q) == pytest.approx(2 * make_dynamics(robot).gravity(q), rel=1e-12)
+
+
+def test_asymmetric_joint_ranges_are_kept() -> None:
+    panda = load_robot("panda")
+    assert panda.position_lower_rad[3] == pytest.approx(-3.0718)
+    assert panda.position_upper_rad[3] == pytest.approx(-0.0698)
+    assert panda.position_limit_ratio(np.zeros(7))[3] > 1.0  # q4 = 0 is outside the Panda's range
+    paper = load_robot("ur5_paper")
+    assert paper.position_range_rad is None
+    assert paper.position_limit_ratio(paper.position_limit_rad) == pytest.approx(np.ones(6))
