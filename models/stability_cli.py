@@ -25,6 +25,7 @@ def stability(
     beta: Annotated[float, typer.Option(help="Lyapunov cross-term weight beta.")] = 1e-6,
     epsilon: Annotated[float, typer.Option(help="Margin epsilon of Eqs. 19-20.")] = 1e-3,
     stride: Annotated[int, typer.Option(help="Evaluate every stride-th control period.")] = 10,
+    gains: Annotated[str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper'.")] = "stabilized",
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
 ) -> None:
     """Evaluate Theorem 1 (Eqs. 19-21) with P = diag(25, 150, 65, 25, 2, 1); print margins (> 0 holds)."""
@@ -40,7 +41,7 @@ def stability(
     if not 1 <= condition <= len(condition_list):
         raise ModelInputError(f"--condition: {condition} is outside 1..{len(condition_list)}")
     chosen = condition_list[condition - 1]
-    feedback = make_law(law, arm, dt_s=dt)
+    feedback = make_law(law, arm, dt_s=dt, gain_set=gains)
     t = np.arange(int(round(chosen.duration_s / dt))) * dt
     q_d, qd_d, qdd_d = chosen.reference(t)
     states = roll_states(feedback, q_d, qd_d, q_d, qd_d, qdd_d)[::stride]
