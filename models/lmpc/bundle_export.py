@@ -39,6 +39,13 @@ class FusedPolicy(nn.Module):
 
     def __init__(self, law: FeedbackLaw, emulator: Emulator) -> None:
         super().__init__()
+        if hasattr(law, "nominal"):  # H-infinity, SMC: trace the compact RNEIDA (same equations, ~10x fewer nodes)
+            import copy
+
+            from models.lmpc.compact_rne import CompactNominal
+
+            law = copy.copy(law)
+            law.nominal = CompactNominal(law.nominal)  # type: ignore[attr-defined]
         self.law = law
         self.emulator = emulator.double().eval()
         self.n, self.s = law.n_joints, law.state_size

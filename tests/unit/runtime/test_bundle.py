@@ -141,3 +141,26 @@ def test_shipped_bundles_load_with_the_robot_config():
         bundle = PolicyBundle.load(root / law, expected_joints=6, expected_period_s=1e-3, expected_joint_names=robot.joint_names)
         assert bundle.law_name == law
         assert bundle.manifest["validation"]["onnx_vs_torch_max_abs_nm"] <= 1e-5
+
+
+@pytest.mark.parametrize("law_name", ["hinf", "smc"])
+def test_laws_with_the_nominal_model_export_compactly_and_exactly(tmp_path, law_name):
+    import onnx
+
+    from models.feedback import make_law
+    from models.lmpc.bundle_export import export_bundle
+    from models.lmpc.emulator import Emulator
+    from models.robots import load_robot
+
+    robot = load_robot("ur5_paper")
+    law = make_law(law_name, robot, 1e-3)
+    export_bundle(tmp_path / law_name, law, robot, Emulator(30, 6, (8,)), {}, {})
+    assert len(onnx.load(str(tmp_path / law_name / "policy.onnx")).graph.node) < 1000  # the traced rneida gives ~1,700
+    bundle = PolicyBundle.load(tmp_path / law_name)
+    rng = np.random.default_rng(7)
+    q, qd, q_d, qd_d, qdd_d = (rng.normal(size=(6, 6)) * 0.5 for _ in range(5))
+    state = law.initial_state(q) + rng.normal(size=(6, law.state_size)) * 0.01
+    _, tau_fb, nxt = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, state)
+    fb_np, state_np = law.step(np, state, q, qd, q_d, qd_d, qdd_d)
+    np.testing.assert_allclose(tau_fb, fb_np, atol=1e-9)
+    np.testing.assert_allclose(nxt, state_np, atol=1e-9)
