@@ -12,6 +12,7 @@ from models.errors import ModelInputError
 
 PAPER_CANDIDATE_SCALES = tuple(round(0.5 + 0.1 * i, 1) for i in range(11))  # w_sel = [0.5:0.1:1.5]
 BUDGET_POLICIES = ("fallback", "best_iterate")
+KERNELS = ("auto", "numba", "numpy")
 
 Weight = float | tuple[float, ...]
 
@@ -55,6 +56,9 @@ class HMPCConfig:
     damping: float = 1e-10  # Levenberg term, relative to the mean Hessian diagonal
     on_budget_exhausted: str = "fallback"  # "fallback" to tau_fb (counted) or "best_iterate"
     warm_start: bool = True  # add last cycle's shifted solution as a candidate
+    # Inner loops (condensation, box QP, penalty rounds): "numba" (compiled, row by row), "numpy"
+    # (vectorized over the batch), or "auto" (numba when installed). Same algorithms and results.
+    kernels: str = "auto"
 
     def __post_init__(self) -> None:
         def fail(name: str, why: str, value: Any) -> None:
@@ -93,6 +97,8 @@ class HMPCConfig:
             fail("dt_s", "must be a finite number > 0", self.dt_s)
         if self.on_budget_exhausted not in BUDGET_POLICIES:
             fail("on_budget_exhausted", f"must be one of {', '.join(BUDGET_POLICIES)}", self.on_budget_exhausted)
+        if self.kernels not in KERNELS:
+            fail("kernels", f"must be one of {', '.join(KERNELS)}", self.kernels)
         if not isinstance(self.backend, str):
             fail("backend", "must be a string", self.backend)
 

@@ -23,6 +23,7 @@ outside them (e.g. just after the impulse) still gives a feasible problem; torqu
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,19 @@ ARMIJO = 1e-4
 LEVENBERG_GROWTH = 1e4  # damping factor after a step the line search rejected
 PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
 FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
+
+
+def _load_kernels(choice: str):  # type: ignore[no-untyped-def]
+    """The compiled kernels module (models.hmpc.kernels) or None for the numpy paths."""
+    if choice == "numpy":
+        return None
+    if importlib.util.find_spec("numba") is None:
+        if choice == "numba":
+            raise ModelInputError("hmpc config kernels: 'numba' needs the numba package (pip install numba)")
+        return None
+    from models.hmpc import kernels
+
+    return kernels
 
 
 @dataclass
@@ -132,9 +146,14 @@ class HMPCSolver:
             np.full(n_features - 2 * n, config.extra_feature_weight),
         ])  # fmt: skip
         self.n_features = n_features
+        self.kernels = _load_kernels(config.kernels)
+        self.use_kernels = self.kernels is not None
         # Constant pieces of the condensed model.
         self._stage_torque_weight = (self.temporal[:, None] * self.torque_weight).reshape(-1)  # (T N,)
         self._preview_s = self.dt_s * np.arange(1, self.horizon + 1)
+        self._stage_feature_weight = np.ascontiguousarray(self.temporal[:, None] * self.feature_weight)  # (T, nE)
+        self._torque_box = np.tile(self.torque_limit_nm, self.horizon)
+        self._state_box = np.tile(self.state_limit, self.horizon)
 
     def _limit(self, name: str, override: tuple[float, ...] | None, robot_value: np.ndarray) -> np.ndarray:
         value = per_joint(name, override if override is not None else robot_value, self.n_joints)
@@ -280,6 +299,11 @@ class HMPCSolver:
             q = q + dt * qd
             q_path[:, j], qd_path[:, j] = q, qd
         law_states = None
+        if self.use_kernels and not self.law_features:
+            rho = self.config.state_bound_weight if self.config.use_state_bounds else 0.0
+            features, cost = self.kernels.stage_cost(q_path, qd_path, rows.ref_q, rows.ref_qd, u, self.feature_weight,
+                                                     self.torque_weight, self.temporal, self.state_limit, float(rho))  # fmt: skip
+            return _Rollout(q_path, qd_path, features, None, cost)
         if self.law_features:
             features, law_states = self._law_features(rows, u, q_path, qd_path)
         else:
@@ -335,11 +359,16 @@ class HMPCSolver:
         k = u.shape[0]
         hessian0, gradient0, sens = self._gauss_newton_model(rows, u, state, levenberg)
         flat_u = u.reshape(k, -1)
-        bound = np.tile(self.torque_limit_nm, horizon)
+        bound = self._torque_box
         lower, upper = -bound - flat_u, bound - flat_u
         x = np.concatenate([state.q, state.qd], -1).reshape(k, -1)
-        limit = np.tile(self.state_limit, horizon)
+        limit = self._state_box
         rho = config.state_bound_weight if config.use_state_bounds else 0.0
+        if self.use_kernels:
+            step, predicted, exact = self.kernels.model_step(hessian0, gradient0, sens, x, limit, lower, upper, float(rho),
+                                                        PENALTY_ROUNDS, config.max_qp_iterations,
+                                                        config.qp_tolerance)  # fmt: skip
+            return step.reshape(k, horizon, n), predicted, exact
 
         def penalty(y: np.ndarray) -> np.ndarray:
             violation = y - np.clip(y, -limit, limit)
@@ -383,6 +412,11 @@ class HMPCSolver:
         qd_prev = np.concatenate([rows.qd0[:, None], state.qd[:, :-1]], 1).reshape(-1, n)
         _, d_q, d_qd, d_tau = self.predictor.acceleration_derivatives(q_prev, qd_prev, u.reshape(-1, n))
         d_q, d_qd, d_tau = (a.reshape(k, horizon, n, n) for a in (d_q, d_qd, d_tau))
+        if self.use_kernels and not self.law_features:
+            return self.kernels.condense(np.ascontiguousarray(d_q), np.ascontiguousarray(d_qd), np.ascontiguousarray(d_tau),
+                                    dt, self._stage_feature_weight, np.ascontiguousarray(state.features),
+                                    np.ascontiguousarray(u.reshape(k, -1)), self._stage_torque_weight,
+                                    float(self.config.damping), np.ascontiguousarray(levenberg, dtype=np.float64))  # fmt: skip
         eye = np.eye(n)
         # x+ = Phi x + Gamma u (linearized semi-implicit Euler), x = (q, qd)
         phi = np.empty((k, horizon, 2 * n, 2 * n))
