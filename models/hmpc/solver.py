@@ -154,6 +154,11 @@ class HMPCSolver:
         self._stage_feature_weight = np.ascontiguousarray(self.temporal[:, None] * self.feature_weight)  # (T, nE)
         self._torque_box = np.tile(self.torque_limit_nm, self.horizon)
         self._state_box = np.tile(self.state_limit, self.horizon)
+        if self.use_kernels:
+            # Load the compiled kernels now (numba's on-disk cache, ~0.3-0.5 s once per process), not
+            # in the first control cycle: one solve at rest exercises every kernel signature.
+            zero = np.zeros((1, n))
+            self.solve(zero, zero, zero, zero, zero)
 
     def _limit(self, name: str, override: tuple[float, ...] | None, robot_value: np.ndarray) -> np.ndarray:
         value = per_joint(name, override if override is not None else robot_value, self.n_joints)

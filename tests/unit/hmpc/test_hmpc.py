@@ -184,6 +184,7 @@ def test_process_pool_equals_serial(law, robot) -> None:  # type: ignore[no-unty
         {"dt_s": 0.0},
         {"max_iterations": 0},
         {"backend": "matlab"},
+        {"kernels": "fortran"},
         {"no_such_option": 1},
     ],
 )
@@ -218,3 +219,35 @@ def test_box_qp_matches_a_reference_solver() -> None:
                        bounds=Bounds(lower[row], upper[row]), method="L-BFGS-B",
                        options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000})  # fmt: skip
         assert f(x[row]) <= ref.fun + 1e-9
+
+
+def test_compiled_box_qp_matches_numpy() -> None:
+    pytest.importorskip("numba")
+    from models.hmpc import kernels
+
+    rng = np.random.default_rng(2)
+    k, n = 16, 30
+    a = rng.normal(size=(k, n, n)) * np.logspace(-3, 1, n)
+    hessian = a @ np.swapaxes(a, 1, 2) + 1e-6 * np.eye(n)
+    gradient = rng.normal(size=(k, n)) * 10
+    lower, upper = -rng.uniform(0.1, 2.0, (k, n)), rng.uniform(0.1, 2.0, (k, n))
+    x_np, ok_np = solve_box_qp(hessian, gradient, lower, upper, 20)
+    x_nb, ok_nb = kernels.box_qp(hessian, gradient, lower, upper, 20, 1e-9)
+    assert ok_np.all() and ok_nb.all()
+    assert np.all((x_nb >= lower) & (x_nb <= upper))
+    objective = lambda x: np.einsum("ki,ki->k", gradient + 0.5 * np.einsum("kij,kj->ki", hessian, x), x)  # noqa: E731
+    np.testing.assert_allclose(objective(x_nb), objective(x_np), rtol=1e-9, atol=1e-12)
+
+
+def test_compiled_kernels_reach_the_numpy_optimum(law, robot) -> None:  # type: ignore[no-untyped-def]
+    # Large errors (torque box and velocity penalty active, several Gauss-Newton iterations):
+    # the compiled inner loops take the same path as the numpy ones, to round-off.
+    pytest.importorskip("numba")
+    args = states(12, seed=12, error_rad=0.08)
+    fast = HMPCSolver(law, robot, HMPCConfig(kernels="numba", on_budget_exhausted="best_iterate")).solve(*args)
+    slow = HMPCSolver(law, robot, HMPCConfig(kernels="numpy", on_budget_exhausted="best_iterate")).solve(*args)
+    assert fast.iterations.max() >= 2
+    np.testing.assert_array_equal(fast.status, slow.status)
+    np.testing.assert_array_equal(fast.iterations, slow.iterations)
+    np.testing.assert_allclose(fast.cost, slow.cost, rtol=1e-8)
+    np.testing.assert_allclose(fast.candidate_cost, slow.candidate_cost, rtol=1e-12)
