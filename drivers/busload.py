@@ -1,7 +1,7 @@
 """Bus-load budget: how much of the bus one control cycle of N drives takes.
 
 Per cycle the master sends one SYNC and one RPDO per drive, and every drive answers with its
-TPDO(s): classical CAN needs two TPDOs (8 + 4 bytes), CAN FD carries all 12 bytes in one frame.
+TPDO(s): classical CAN needs two TPDOs (8 + 4 bytes), CAN FD carries all 12 bytes and the SYNC counter echo in one 16-byte frame.
 Heartbeats add N one-byte frames per heartbeat period. Frame lengths are worst case: every
 stuffable bit sequence stuffed (one stuff bit per four bits), 11-bit identifiers, 3-bit
 interframe space.
@@ -29,6 +29,7 @@ RPDO_BYTES: Final = 4
 TPDO1_BYTES: Final = 8
 TPDO2_BYTES: Final = 4
 TPDO_FD_BYTES: Final = 12
+TPDO_FD_SYNC_BYTES: Final = 13  # + the SYNC counter echo (the driver's FD layout): a 16-byte FD frame
 HEARTBEAT_BYTES: Final = 1
 
 
@@ -79,6 +80,7 @@ class BusLoad:
     cycle_time_s: float  # bus time one cycle occupies
     heartbeat_load: float  # fraction of the bus taken by heartbeats
     load: float  # fraction of the bus at rate_hz, heartbeats included
+    fd_tpdo_bytes: int = TPDO_FD_BYTES  # CAN FD TPDO data bytes (13 with the SYNC counter echo)
 
     @property
     def max_rate_hz(self) -> float:
@@ -117,8 +119,12 @@ def compute_bus_load(
     bitrate: int,
     data_bitrate: int | None = None,
     heartbeat_period_s: float | None = None,
+    fd_tpdo_bytes: int = TPDO_FD_BYTES,
 ) -> BusLoad:
     """Bus load of one SYNC + N RPDOs + N drives' TPDOs per cycle (+ heartbeats).
+
+    ``fd_tpdo_bytes``: data bytes of the CAN FD TPDO (12, or 13 with the SYNC counter echo the
+    driver maps: padded to a 16-byte frame).
 
     ``data_bitrate`` None means classical CAN; with a value, frames are CAN FD with bit-rate
     switch (a data bitrate equal to the nominal one is CAN FD without switching).
@@ -139,7 +145,7 @@ def compute_bus_load(
             raise ValueError("the CAN FD data bitrate cannot be below the nominal bitrate")
         sync_bits = classical_frame_bits(0)  # SYNC stays a classical frame
         rpdo_nominal, rpdo_data = fd_frame_bits(RPDO_BYTES)
-        tpdo_nominal, tpdo_data = fd_frame_bits(TPDO_FD_BYTES)
+        tpdo_nominal, tpdo_data = fd_frame_bits(fd_tpdo_bytes)
         nominal_bits = sync_bits + n_drives * (rpdo_nominal + tpdo_nominal)
         data_bits = n_drives * (rpdo_data + tpdo_data)
         frames = 1 + 2 * n_drives
@@ -157,6 +163,7 @@ def compute_bus_load(
         cycle_time_s=cycle_time_s,
         heartbeat_load=heartbeat_load,
         load=cycle_time_s * rate_hz + heartbeat_load,
+        fd_tpdo_bytes=fd_tpdo_bytes,
     )
 
 
@@ -169,7 +176,8 @@ def what_would_fit(load: BusLoad, limit: float = DEFAULT_LIMIT) -> str:
     for data_bitrate in STANDARD_FD_DATA_BITRATES:
         if load.data_bitrate is not None and data_bitrate <= load.data_bitrate:
             continue
-        fd = compute_bus_load(load.n_drives, load.rate_hz, load.bitrate, data_bitrate, hb_period)
+        fd = compute_bus_load(load.n_drives, load.rate_hz, load.bitrate, data_bitrate, hb_period,
+                              load.fd_tpdo_bytes)
         if fd.load <= limit:
             parts.append(
                 f"{load.rate_hz:g} Hz needs CAN FD with a {_mbit(data_bitrate)} data phase "
@@ -178,7 +186,8 @@ def what_would_fit(load: BusLoad, limit: float = DEFAULT_LIMIT) -> str:
             break
     per_bus = 0
     for n in range(load.n_drives, 0, -1):
-        if compute_bus_load(n, load.rate_hz, load.bitrate, load.data_bitrate, hb_period).load <= limit:
+        if compute_bus_load(n, load.rate_hz, load.bitrate, load.data_bitrate, hb_period,
+                            load.fd_tpdo_bytes).load <= limit:
             per_bus = n
             break
     if per_bus:
@@ -200,9 +209,10 @@ def check_bus_load(
     heartbeat_period_s: float | None = None,
     limit: float = DEFAULT_LIMIT,
     source: str = "config",
+    fd_tpdo_bytes: int = TPDO_FD_BYTES,
 ) -> BusLoad:
     """The bus load, or :class:`BusLoadError` saying what would fit when above ``limit``."""
-    load = compute_bus_load(n_drives, rate_hz, bitrate, data_bitrate, heartbeat_period_s)
+    load = compute_bus_load(n_drives, rate_hz, bitrate, data_bitrate, heartbeat_period_s, fd_tpdo_bytes)
     if load.load > limit:
         raise BusLoadError(
             f"{source}: {load.describe()}, above the {limit:.0%} limit; {what_would_fit(load, limit)}"

@@ -23,7 +23,7 @@ from urllib.parse import urlparse
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from drivers.busload import DEFAULT_LIMIT, BusLoad, check_bus_load
+from drivers.busload import DEFAULT_LIMIT, TPDO_FD_SYNC_BYTES, BusLoad, check_bus_load
 from drivers.cia402.scaling import INT16_MAX, JointScaling, check_torque_range
 from drivers.errors import DriveConfigError
 
@@ -153,6 +153,7 @@ class DriveBusConfig(_Frozen):
             self.heartbeat_producer_ms / 1000.0,
             self.bus_load_limit,
             source,
+            TPDO_FD_SYNC_BYTES,  # the driver maps the FD TPDO with the SYNC counter echo
         )
 
 

@@ -11,26 +11,43 @@ Transport-independent (any python-can bus from :mod:`drivers.transport`)::
     bus.close()
 
 One :meth:`DriveBus.exchange` per control period sends every drive's RPDO (controlword, target
-torque) and one SYNC, then waits at most ``feedback_timeout_s`` for every drive's TPDO(s)
-(statusword, torque, position, velocity). The SYNC is what makes a lock-stepped target advance.
+torque) and one SYNC carrying the CiA 301 SYNC counter (1..240), then waits at most
+``feedback_timeout_s`` for every drive's TPDO(s) (statusword, torque, position, velocity). The SYNC
+is what makes a lock-stepped target advance.
 
-A receive thread decodes every frame with the pure codec in :mod:`drivers.cia402`: canopen's PDO
-map objects cost ~6.5 µs per TPDO decode and ~3 µs per RPDO encode against ~0.08 µs for the
-precompiled structs (benchmarks/bench_can_exchange.py, "codec"), and it is the code the emulated
-drives share. It also consumes heartbeats (timeout -> HeartbeatLostError),
-EMCY (-> DriveFaultError with the EMCY code) and SDO responses (routed to canopen's SDO client,
-used only at start-up). Errors found on that thread are stored and raised by the caller's next
-``exchange``/``enable``. Malformed frames, unknown COB-IDs, late and missing TPDOs never raise on
-their own: they are counted (:attr:`DriveBus.counters`); a drive missing its TPDOs for more than
+Reception runs on the caller's thread inside the cycle: frames already queued before the SYNC are
+drained first (a TPDO among them belongs to an older cycle: counted late, never used), then the
+caller blocks in ``bus.recv`` until every TPDO of this cycle is in or the deadline passes. With
+CAN FD each TPDO echoes the SYNC counter (object 0x2100), so a TPDO answering an older SYNC is
+recognised even when it arrives after this cycle's SYNC; with classical CAN (no room in the
+8-byte TPDO1) only the drain applies. Heartbeat deadlines are checked at the end of every cycle.
+A background thread receives only while no cycle runs: blocking during start-up and SDO
+transfers (canopen's SDO client waits on it), otherwise it drains the bus when the caller has not
+exchanged for ``_IDLE_TAKEOVER_S`` (late frames, heartbeats, EMCY between runs).
+
+Every frame is decoded with the pure codec in :mod:`drivers.cia402`: canopen's PDO map objects
+cost ~6.5 µs per TPDO decode and ~3 µs per RPDO encode against ~0.08 µs for the precompiled
+structs (benchmarks/bench_can_exchange.py, "codec"), and it is the code the emulated drives share.
+Heartbeats (timeout -> HeartbeatLostError), EMCY (-> DriveFaultError with the EMCY code) and SDO
+responses (routed to canopen's SDO client, used only at start-up) are handled by whichever thread
+receives them; errors are stored and raised by the caller's next ``exchange``/``enable``.
+Malformed frames, unknown COB-IDs, late and missing TPDOs never raise on their own: they are
+counted (:attr:`DriveBus.counters`); a drive missing its TPDOs for more than
 ``max_missed_cycles`` consecutive cycles raises :class:`FeedbackTimeoutError`.
+
+Any run-time error raised by :meth:`exchange` (feedback timeout, drive fault, heartbeat loss, a
+drive leaving Operation Enabled, transport failure) first quick-stops every drive that still
+answers (at most ``_SAFE_STOP_CYCLES`` cycles) and leaves :attr:`enabled` false.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import can
@@ -60,7 +77,11 @@ from drivers.transport import open_bus
 
 log = logging.getLogger(__name__)
 
-_RX_POLL_S = 0.005  # the receive thread wakes at least this often to check heartbeat ages
+_RX_POLL_S = 0.005  # background receive (start-up, SDO): longest blocking wait
+_IDLE_POLL_S = 0.01  # cyclic mode: the background thread looks this often whether the caller is idle
+_IDLE_TAKEOVER_S = 0.02  # no cycle for this long: the background thread drains the bus
+_SAFE_STOP_CYCLES = 3  # quick-stop cycles sent after a run-time error (drives that answer confirm)
+_QUICK_STOP_STATES = frozenset({State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED})
 _CW_ENABLE = 0x000F
 _CW_QUICK_STOP = 0x0002
 _CW_DISABLE_VOLTAGE = 0x0000
@@ -122,16 +143,20 @@ class DriveBus:
         self.node_ids = config.node_ids
         n = len(self.node_ids)
         self.n_joints = n
-        self._layout = odx.FD_LAYOUT if self._fd else odx.CLASSICAL_LAYOUT
+        self._layout = odx.FD_SYNC_LAYOUT if self._fd else odx.CLASSICAL_LAYOUT
         self._tpdos_per_drive = 1 if self._fd else 2
 
         self._max_torque_nm = np.array([j.max_torque_nm for j in config.joints])
         self._permille_per_nm = np.array([1e6 / j.effective_rated_torque_mnm for j in config.joints])
         self._counts_per_rad = np.ones(n)  # read from 0x608F at connect
 
-        # Receive-side state, written by the receive thread under _lock.
-        self._lock = threading.Lock()
-        self._done = threading.Event()
+        # Receive-side state: touched only by the thread that holds _rx_lock (the one calling
+        # bus.recv): the caller inside a cycle, or the background thread.
+        self._rx_lock = threading.Lock()
+        self._caller_rx = False  # True once connected: cycles receive on the caller's thread
+        self._wake = threading.Event()
+        self._last_cycle_end_s = 0.0
+        self._sync_counter = 0
         self._cycle_no = 0
         self._open = False
         self._pending = 0
@@ -171,17 +196,22 @@ class DriveBus:
         self._connected = False
         self._enabled = False
 
+        # Built once; each cycle packs into their data in place (every backend copies or
+        # serialises a frame inside send()).
         self._rpdo_msgs = [
             can.Message(
                 arbitration_id=fr.RPDO1_BASE + node,
-                data=bytes(fr.RPDO_LENGTH),
+                data=bytearray(fr.RPDO_LENGTH),
                 is_extended_id=False,
                 is_fd=self._fd,
                 bitrate_switch=self._fd,
             )
             for node in self.node_ids
         ]
-        self._sync_msg = can.Message(arbitration_id=fr.SYNC_COB_ID, data=b"", is_extended_id=False)
+        self._sync_msg = can.Message(arbitration_id=fr.SYNC_COB_ID, data=bytearray(1), is_extended_id=False)
+        self._cycle_msgs = [*self._rpdo_msgs, self._sync_msg]
+        self._cw_enable = [_CW_ENABLE] * n
+        self._zeros_nm = np.zeros(n)
 
     # --- public API ------------------------------------------------------------------------------
 
@@ -236,14 +266,26 @@ class DriveBus:
             self.close()
             raise
         self._connected = True
+        self._last_cycle_end_s = time.monotonic()
+        self._caller_rx = True
 
-    def enable(self) -> None:
-        """Walk every drive to Operation Enabled (zero torque meanwhile). Faulted drives raise:
-        call :meth:`fault_reset` first."""
+    def enable(self, hold_torque_nm: np.ndarray | None = None) -> DriveFeedback:
+        """Walk every drive to Operation Enabled; returns the last cycle's feedback. Faulted drives
+        raise: call :meth:`fault_reset` first.
+
+        ``hold_torque_nm`` (N,) is sent with every controlword of the walk (clipped and quantised
+        like :meth:`exchange`). A drive applies it from the SYNC at which it enters Operation
+        Enabled, so the arm does not fall for the cycles between brake release and the first
+        :meth:`exchange`: pass the gravity torque at the current position. None: zero torque (the
+        joints sag for those cycles, one or two periods).
+        """
         self._require_connected()
         self._raise_pending()
+        if hold_torque_nm is None:
+            permille, commanded = [0] * self.n_joints, self._zeros_nm
+        else:
+            permille, commanded = self._setpoints(hold_torque_nm, "hold_torque_nm")
         deadline = time.monotonic() + self.config.state_change_timeout_s
-        zeros = [0] * self.n_joints
         while True:
             controlwords = []
             for i, state in enumerate(self._states):
@@ -252,12 +294,12 @@ class DriveBus:
                         self.node_ids[i], self._last_emcy[i], "in Fault: call fault_reset() first"
                     )
                 controlwords.append(self._step_towards(state, State.OPERATION_ENABLED))
-            feedback = self._cycle(controlwords, zeros, np.zeros(self.n_joints))
+            feedback = self._cycle(controlwords, permille, commanded)
             self._raise_pending()
             if feedback.fresh.all() and all(s is State.OPERATION_ENABLED for s in feedback.states):
                 self._missed = [0] * self.n_joints
                 self._enabled = True
-                return
+                return feedback
             if time.monotonic() > deadline:
                 raise DriveStateError(f"not in operation enabled after "
                                       f"{self.config.state_change_timeout_s} s: {self._describe_states()}")
@@ -268,23 +310,48 @@ class DriveBus:
         Set-points are clipped to each joint's max torque and quantised to 1 ‰ of its rated
         torque; ``commanded_torque_nm`` in the result is what was actually sent.
         """
-        self._raise_pending()
         if not self._enabled:
+            self._raise_pending()
             raise DriveStateError("drives are not enabled: call enable() first")
+        try:
+            self._raise_pending()
+            permille, commanded = self._setpoints(torque_nm, "torque_nm")  # DriveCommandError: nothing sent
+            feedback = self._cycle(self._cw_enable, permille, commanded)
+            self._raise_pending()
+            self._check_cycle(feedback)
+        except (FeedbackTimeoutError, DriveFaultError, HeartbeatLostError, DriveStateError, TransportError):
+            self._fail_safe()
+            raise
+        return feedback
+
+    def _setpoints(self, torque_nm: np.ndarray, name: str) -> tuple[list[int], np.ndarray]:
+        """(‰ of rated torque per drive, the torque in N·m those stand for); refuses bad input."""
         torque = np.asarray(torque_nm, dtype=np.float64)
         if torque.shape != (self.n_joints,):
-            raise DriveCommandError(f"torque_nm has shape {torque.shape}, expected ({self.n_joints},)")
+            raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self.n_joints},)")
         if not np.isfinite(torque).all():
             bad = [self.node_ids[i] for i in np.flatnonzero(~np.isfinite(torque))]
             raise DriveCommandError(f"non-finite torque set-point for drive(s) {bad}")
-        clipped = np.clip(torque, -self._max_torque_nm, self._max_torque_nm)
-        permille = np.rint(clipped * self._permille_per_nm)
-        feedback = self._cycle(
-            [_CW_ENABLE] * self.n_joints, permille.astype(np.int64).tolist(), permille / self._permille_per_nm
-        )
-        self._raise_pending()
-        self._check_cycle(feedback)
-        return feedback
+        permille = np.rint(np.clip(torque, -self._max_torque_nm, self._max_torque_nm) * self._permille_per_nm)
+        return permille.astype(np.int64).tolist(), permille / self._permille_per_nm
+
+    def _fail_safe(self) -> None:
+        """After a run-time error: not enabled, and every drive that still answers quick-stopped
+        (a few cycles at most, never raising: the original error is what the caller gets)."""
+        self._enabled = False
+        if self._bus is None or not self._connected:
+            return
+        codes = [_CW_QUICK_STOP] * self.n_joints
+        zeros = [0] * self.n_joints
+        for _ in range(_SAFE_STOP_CYCLES):
+            try:
+                feedback = self._cycle(codes, zeros, self._zeros_nm)
+            except DriveError as exc:
+                log.warning("quick stop after an error failed: %s", exc)
+                return
+            if all(not fresh or s in _QUICK_STOP_STATES or s in _FAULT_STATES
+                   for fresh, s in zip(feedback.fresh, feedback.states)):
+                return
 
     def quick_stop(self) -> tuple[State, ...]:
         """Quick stop every drive (zero torque, brake); best effort, never raises for drive faults.
@@ -303,21 +370,22 @@ class DriveBus:
         self._errors.clear()
         deadline = time.monotonic() + self.config.state_change_timeout_s
         zeros = [0] * self.n_joints
-        self._cycle([_CW_DISABLE_VOLTAGE] * self.n_joints, zeros, np.zeros(self.n_joints))
+        self._cycle([_CW_DISABLE_VOLTAGE] * self.n_joints, zeros, self._zeros_nm)
         while True:
-            feedback = self._cycle([_CW_FAULT_RESET] * self.n_joints, zeros, np.zeros(self.n_joints))
+            feedback = self._cycle([_CW_FAULT_RESET] * self.n_joints, zeros, self._zeros_nm)
             if feedback.fresh.all() and not any(s in _FAULT_STATES for s in feedback.states):
                 self._errors.clear()  # EMCY "error reset" frames may have been queued as errors
                 return
             if time.monotonic() > deadline:
                 raise DriveStateError(f"fault reset failed: {self._describe_states()}")
-            self._cycle([_CW_DISABLE_VOLTAGE] * self.n_joints, zeros, np.zeros(self.n_joints))
+            self._cycle([_CW_DISABLE_VOLTAGE] * self.n_joints, zeros, self._zeros_nm)
 
     def sdo_read(self, node_id: int, index: int, subindex: int = 0) -> bytes:
         """Read an object by SDO (start-up and diagnostics; not for the control loop)."""
         node = self._node(node_id)
         try:
-            return node.sdo.upload(index, subindex)
+            with self._background_receive():
+                return node.sdo.upload(index, subindex)
         except SdoAbortedError as exc:
             raise SdoAbortError(node_id, index, subindex, exc.code) from None
         except SdoCommunicationError as exc:
@@ -332,7 +400,8 @@ class DriveBus:
                 raise SdoAbortError(node_id, index, subindex, 0x06020000)
             value = var.encode_raw(value)
         try:
-            node.sdo.download(index, subindex, value)
+            with self._background_receive():
+                node.sdo.download(index, subindex, value)
         except SdoAbortedError as exc:
             raise SdoAbortError(node_id, index, subindex, exc.code) from None
         except SdoCommunicationError as exc:
@@ -365,6 +434,7 @@ class DriveBus:
                 except DriveError:
                     break
         self._stop.set()
+        self._wake.set()
         if self._rx_thread is not None:
             self._rx_thread.join(timeout=1.0)
             self._rx_thread = None
@@ -383,52 +453,72 @@ class DriveBus:
     # --- the cycle -------------------------------------------------------------------------------
 
     def _cycle(self, controlwords: list[int], permille: list[int], commanded_nm: np.ndarray) -> DriveFeedback:
+        bus = self._bus
+        if bus is None:
+            raise TransportError("bus is closed")
         n = self.n_joints
-        pack = fr.pack_rpdo
-        for i in range(n):
-            msg = self._rpdo_msgs[i]
-            msg.data = bytearray(pack(controlwords[i], permille[i]))
-            self._send(msg)
-        with self._lock:
-            # Opened just before SYNC: a TPDO that arrives while closed belongs to an old cycle.
+        pack = fr.pack_rpdo_into
+        with self._rx_lock:
+            self._drain()  # queued before this SYNC: an older cycle's TPDOs are late, not fresh
+            for i, msg in enumerate(self._rpdo_msgs):
+                pack(msg.data, 0, controlwords[i], permille[i])
             self._cycle_no += 1
             cycle = self._cycle_no
+            self._sync_counter = counter = fr.next_sync_counter(self._sync_counter)
+            self._sync_msg.data[0] = counter
             self._pending = n * self._tpdos_per_drive
             self._open = True
-            self._done.clear()
-        sync_time = time.monotonic()
-        self._send(self._sync_msg)
-        self._done.wait(self.config.feedback_timeout_s)
-        with self._lock:
-            self._open = False
-            got1 = list(self._got1)
-            got2 = list(self._got2)
-            statusword = list(self._statusword)
-            torque_pm = list(self._torque_pm)
-            position = list(self._position)
-            velocity = list(self._velocity)
-            rx_time = list(self._rx_time)
-        if self._fd:
-            fresh = [g == cycle for g in got1]
-            missing = fresh.count(False)
-        else:
-            fresh = [a == cycle and b == cycle for a, b in zip(got1, got2)]
-            missing = got1.count(cycle) + got2.count(cycle)
-            missing = 2 * n - missing
-        self._dropped += missing
-        for i in range(n):
-            if fresh[i]:
-                self._missed[i] = 0
-                self._states[i] = decode_statusword_fast(statusword[i])
+            sync_time = time.monotonic()
+            try:
+                self._send_cycle_frames()
+                deadline = sync_time + self.config.feedback_timeout_s
+                monotonic = time.monotonic
+                dispatch = self._dispatch
+                recv = bus.recv
+                while self._pending > 0:
+                    remaining = deadline - monotonic()
+                    if remaining <= 0:
+                        break
+                    try:
+                        msg = recv(remaining)
+                    except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+                        raise TransportError(f"receiving failed: {exc}") from exc
+                    if msg is None:
+                        break
+                    dispatch(msg, monotonic())
+            finally:
+                self._open = False
+            now = time.monotonic()
+            if self._heartbeat_armed:
+                self._check_heartbeats(now)
+            got1 = self._got1
+            got2 = self._got2
+            statusword = self._statusword
+            if self._fd:
+                fresh = [g == cycle for g in got1]
+                missing = fresh.count(False)
             else:
-                self._missed[i] += 1
+                fresh = [a == cycle and b == cycle for a, b in zip(got1, got2)]
+                missing = 2 * n - got1.count(cycle) - got2.count(cycle)
+            self._dropped += missing
+            for i in range(n):
+                if fresh[i]:
+                    self._missed[i] = 0
+                    self._states[i] = decode_statusword_fast(statusword[i])
+                else:
+                    self._missed[i] += 1
+            position = self._position
+            velocity = self._velocity
+            torque_pm = self._torque_pm
+            rx_time = self._rx_time
+        self._last_cycle_end_s = now
         return DriveFeedback(
             cycle=cycle,
             sync_time_s=sync_time,
             position_rad=np.array(position, dtype=np.float64) / self._counts_per_rad,
             velocity_rad_s=np.array(velocity, dtype=np.float64) / self._counts_per_rad,
             torque_nm=np.array(torque_pm, dtype=np.float64) / self._permille_per_nm,
-            commanded_torque_nm=np.asarray(commanded_nm, dtype=np.float64),
+            commanded_torque_nm=np.array(commanded_nm, dtype=np.float64),
             fresh=np.array(fresh, dtype=bool),
             rx_time_s=np.array(rx_time, dtype=np.float64),
             states=tuple(self._states),
@@ -438,6 +528,7 @@ class DriveBus:
         limit = self.config.max_missed_cycles
         timed_out = tuple(self.node_ids[i] for i, m in enumerate(self._missed) if m > limit)
         if timed_out:
+            self._enabled = False
             raise FeedbackTimeoutError(timed_out, limit + 1)
         for i, state in enumerate(feedback.states):
             if not feedback.fresh[i] or state is State.OPERATION_ENABLED:
@@ -455,7 +546,7 @@ class DriveBus:
         zeros = [0] * self.n_joints
         while True:
             try:
-                feedback = self._cycle([controlword] * self.n_joints, zeros, np.zeros(self.n_joints))
+                feedback = self._cycle([controlword] * self.n_joints, zeros, self._zeros_nm)
             except DriveError as exc:  # the bus itself failed: nothing more to do here
                 log.warning("stopping drives: %s", exc)
                 return tuple(self._states)
@@ -521,6 +612,7 @@ class DriveBus:
         self.sdo_write(node_id, odx.MAX_TORQUE, 0, joint.max_torque_permille)
         self.sdo_write(node_id, odx.QUICK_STOP_OPTION, 0, self.config.quick_stop_option)
         self.sdo_write(node_id, odx.HEARTBEAT_PRODUCER, 0, self.config.heartbeat_producer_ms)
+        self.sdo_write(node_id, odx.SYNC_OVERFLOW, 0, odx.SYNC_COUNTER_MAX)  # SYNCs carry a counter
         self._map_pdo(node_id, odx.RPDO1_COMM, odx.RPDO1_MAP, fr.RPDO1_BASE + node_id, self._layout.rpdo1)
         self._map_pdo(node_id, odx.TPDO1_COMM, odx.TPDO1_MAP, fr.TPDO1_BASE + node_id, self._layout.tpdo1)
         self._map_pdo(node_id, odx.TPDO2_COMM, odx.TPDO2_MAP, fr.TPDO2_BASE + node_id, self._layout.tpdo2)
@@ -558,91 +650,146 @@ class DriveBus:
     def _rx_loop(self) -> None:
         bus = self._bus
         assert bus is not None
-        handlers = self._handlers
         monotonic = time.monotonic
         next_check = monotonic()
         while not self._stop.is_set():
-            try:
-                msg = bus.recv(_RX_POLL_S)
-            except Exception as exc:  # noqa: BLE001 - any backend failure ends reception
-                if not self._stop.is_set():
-                    self._errors.append(TransportError(f"receiving failed: {exc}"))
-                    self._done.set()
-                return
-            now = monotonic()
-            if msg is not None:
-                self._received += 1
-                if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-                    self._malformed += 1
-                else:
-                    entry = handlers.get(msg.arbitration_id)
-                    if entry is None:
-                        self._unknown += 1
-                    else:
-                        handler, i = entry  # type: ignore[misc]
-                        try:
-                            handler(i, msg.data, now)
-                        except (fr.MalformedFrameError, ValueError):
-                            self._malformed += 1
-                        except Exception as exc:  # noqa: BLE001 - keep receiving, report once
-                            log.exception("frame handler failed")
-                            self._errors.append(TransportError(f"frame handler failed: {exc!r}"))
+            if self._caller_rx:
+                # Cycles receive on the caller's thread; step in only when it has gone idle, and
+                # never block in recv while holding the bus (the next cycle must not wait for us).
+                self._wake.wait(_IDLE_POLL_S)
+                self._wake.clear()
+                if self._stop.is_set() or not self._caller_rx:
+                    continue
+                if monotonic() - self._last_cycle_end_s < _IDLE_TAKEOVER_S:
+                    continue
+                if not self._rx_lock.acquire(blocking=False):
+                    continue
+                try:
+                    self._drain()
+                    if self._heartbeat_armed:
+                        self._check_heartbeats(monotonic())
+                except TransportError as exc:
+                    if not self._stop.is_set():
+                        self._errors.append(exc)
+                    return
+                finally:
+                    self._rx_lock.release()
+                continue
+            with self._rx_lock:
+                try:
+                    msg = bus.recv(_RX_POLL_S)
+                except Exception as exc:  # noqa: BLE001 - any backend failure ends reception
+                    if not self._stop.is_set():
+                        self._errors.append(TransportError(f"receiving failed: {exc}"))
+                    return
+                now = monotonic()
+                if msg is not None:
+                    self._dispatch(msg, now)
             if now >= next_check:
                 next_check = now + _RX_POLL_S
                 if self._heartbeat_armed:
                     self._check_heartbeats(now)
 
+    def _drain(self) -> None:
+        """Under _rx_lock: handle every frame already queued, without waiting."""
+        bus = self._bus
+        assert bus is not None
+        monotonic = time.monotonic
+        while True:
+            try:
+                msg = bus.recv(0.0)
+            except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+                raise TransportError(f"receiving failed: {exc}") from exc
+            if msg is None:
+                return
+            self._dispatch(msg, monotonic())
+
+    def _dispatch(self, msg: can.Message, now: float) -> None:
+        self._received += 1
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            self._malformed += 1
+            return
+        entry = self._handlers.get(msg.arbitration_id)
+        if entry is None:
+            self._unknown += 1
+            return
+        handler, i = entry  # type: ignore[misc]
+        try:
+            handler(i, msg, now)
+        except (fr.MalformedFrameError, ValueError):
+            self._malformed += 1
+        except Exception as exc:  # noqa: BLE001 - keep receiving, report once
+            log.exception("frame handler failed")
+            self._errors.append(TransportError(f"frame handler failed: {exc!r}"))
+
+    @contextlib.contextmanager
+    def _background_receive(self) -> Iterator[None]:
+        """The background thread receives (blocking) meanwhile: canopen's SDO client waits for
+        responses it routes."""
+        previous = self._caller_rx
+        self._caller_rx = False
+        self._wake.set()
+        try:
+            yield
+        finally:
+            self._caller_rx = previous
+            self._last_cycle_end_s = time.monotonic()
+
     def _accept(self, i: int, got: list[int]) -> bool:
-        """Under _lock: may this drive's frame count for the open cycle?"""
+        """Under _rx_lock: may this drive's frame count for the open cycle?"""
         if not self._open or got[i] == self._cycle_no:
             self._late += 1
             return False
         got[i] = self._cycle_no
         self._pending -= 1
-        if self._pending == 0:
-            self._done.set()
         return True
 
-    def _on_tpdo1(self, i: int, data: bytearray, now: float) -> None:
+    def _on_tpdo1(self, i: int, msg: can.Message, now: float) -> None:
+        data = msg.data
         if len(data) != fr.TPDO1_LENGTH:
             raise fr.MalformedFrameError("TPDO1 length")
         statusword, torque, position = fr.unpack_tpdo1(data)
         if decode_statusword_fast(statusword) is State.UNKNOWN:
             raise fr.MalformedFrameError("statusword")
-        with self._lock:
-            if self._accept(i, self._got1):
-                self._statusword[i] = statusword
-                self._torque_pm[i] = torque
-                self._position[i] = position
-                self._rx_time[i] = now
+        if self._accept(i, self._got1):
+            self._statusword[i] = statusword
+            self._torque_pm[i] = torque
+            self._position[i] = position
+            self._rx_time[i] = now
 
-    def _on_tpdo2(self, i: int, data: bytearray, now: float) -> None:
+    def _on_tpdo2(self, i: int, msg: can.Message, now: float) -> None:
+        data = msg.data
         if len(data) != fr.TPDO2_LENGTH:
             raise fr.MalformedFrameError("TPDO2 length")
         (velocity,) = fr.unpack_tpdo2(data)
-        with self._lock:
-            if self._accept(i, self._got2):
-                self._velocity[i] = velocity
-                self._rx_time[i] = now
+        if self._accept(i, self._got2):
+            self._velocity[i] = velocity
+            self._rx_time[i] = now
 
-    def _on_tpdo_fd(self, i: int, data: bytearray, now: float) -> None:
-        if len(data) != fr.TPDO_FD_LENGTH:
+    def _on_tpdo_fd(self, i: int, msg: can.Message, now: float) -> None:
+        data = msg.data
+        if len(data) != fr.TPDO_FD_SYNC_LENGTH:
             raise fr.MalformedFrameError("FD TPDO length")
-        statusword, torque, position, velocity = fr.unpack_tpdo_fd(data)
+        statusword, torque, position, velocity, counter = fr.unpack_tpdo_fd_sync(data)
         if decode_statusword_fast(statusword) is State.UNKNOWN:
             raise fr.MalformedFrameError("statusword")
-        with self._lock:
-            if self._accept(i, self._got1):
-                self._statusword[i] = statusword
-                self._torque_pm[i] = torque
-                self._position[i] = position
-                self._velocity[i] = velocity
-                self._rx_time[i] = now
+        if counter != self._sync_counter:  # answers an older SYNC: stale whenever it arrives
+            self._late += 1
+            return
+        if self._accept(i, self._got1):
+            self._statusword[i] = statusword
+            self._torque_pm[i] = torque
+            self._position[i] = position
+            self._velocity[i] = velocity
+            self._rx_time[i] = now
 
-    def _on_heartbeat(self, i: int, data: bytearray, now: float) -> None:
-        state = fr.decode_heartbeat(bytes(data))
+    def _on_heartbeat(self, i: int, msg: can.Message, now: float) -> None:
+        state = fr.decode_heartbeat(bytes(msg.data))
         self._heartbeats += 1
-        self._last_heartbeat[i] = now
+        # When it was on the bus, not when a cycle got round to it: the transport's time stamp
+        # (wall clock in every python-can backend) mapped onto the monotonic clock.
+        seen = msg.timestamp + (now - time.time()) if msg.timestamp > 0 else now
+        self._last_heartbeat[i] = min(now, seen)
         self._heartbeat_lost[i] = False
         previous = self._nmt_state[i]
         self._nmt_state[i] = fr.NmtState.PRE_OPERATIONAL if state is fr.NmtState.BOOT_UP else state
@@ -652,8 +799,8 @@ class DriveBus:
             what = "rebooted (boot-up message)" if state is fr.NmtState.BOOT_UP else f"NMT state {state.name}"
             self._errors.append(DriveStateError(f"drive {self.node_ids[i]}: {what}"))
 
-    def _on_emcy(self, i: int, data: bytearray, now: float) -> None:
-        emcy = fr.decode_emcy(bytes(data))
+    def _on_emcy(self, i: int, msg: can.Message, now: float) -> None:
+        emcy = fr.decode_emcy(bytes(msg.data))
         self._emcy += 1
         if emcy.error_code == fr.EMCY_ERROR_RESET:
             self._last_emcy[i] = 0
@@ -663,10 +810,10 @@ class DriveBus:
             DriveFaultError(self.node_ids[i], emcy.error_code, f"EMCY, error register 0x{emcy.error_register:02X}")
         )
 
-    def _on_sdo(self, i: int, data: bytearray, now: float) -> None:
-        if len(data) != 8:
+    def _on_sdo(self, i: int, msg: can.Message, now: float) -> None:
+        if len(msg.data) != 8:
             raise fr.MalformedFrameError("SDO length")
-        self._nodes[i].sdo.on_response(fr.SDO_TX_BASE + self.node_ids[i], bytes(data), now)
+        self._nodes[i].sdo.on_response(fr.SDO_TX_BASE + self.node_ids[i], bytes(msg.data), now)
 
     def _check_heartbeats(self, now: float) -> None:
         timeout = self.config.heartbeat_timeout_s
@@ -676,6 +823,23 @@ class DriveBus:
                 self._errors.append(HeartbeatLostError(self.node_ids[i], f"no heartbeat for {now - last:.3f} s"))
 
     # --- helpers ---------------------------------------------------------------------------------
+
+    def _send_cycle_frames(self) -> None:
+        """Every RPDO, then the SYNC: one batch where the transport has one (the bridge)."""
+        bus = self._bus
+        assert bus is not None
+        msgs = self._cycle_msgs
+        try:
+            send_batch = getattr(bus, "send_batch", None)
+            if send_batch is not None:
+                send_batch(msgs)
+            else:
+                send = bus.send
+                for msg in msgs:
+                    send(msg)
+        except (can.CanError, OSError) as exc:
+            raise TransportError(f"sending the cycle's frames failed: {exc}") from exc
+        self._sent += len(msgs)
 
     def _send(self, msg: can.Message) -> None:
         if self._bus is None:

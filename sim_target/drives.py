@@ -163,7 +163,9 @@ class _Drive:
     rpdo_valid: bool = True
     tpdo1_valid: bool = True
     tpdo2_valid: bool = True
-    fd_layout: bool = False
+    fd_layout: bool = False  # one FD TPDO (12 bytes, or 16 with the SYNC counter echo)
+    fd_sync_echo: bool = False  # the FD TPDO maps 0x2100: it echoes the answered SYNC's counter
+    tpdo_msgs: dict[int, can.Message] = field(default_factory=dict)  # reused: send() copies
     error_code: int = 0
     error_register: int = 0
     pending_fault: int | None = None
@@ -225,7 +227,7 @@ class EmulatedDrives:
         self._dropped = 0
         self._delayed_count = 0
         self._corrupted = 0
-        self._in_sync = False
+        self._sync_counter = 0  # counter byte of the last SYNC (0: the SYNC carried none)
 
     # --- the server's interface ------------------------------------------------------------------
 
@@ -332,6 +334,9 @@ class EmulatedDrives:
         while not self._stop.is_set():
             now = monotonic()
             due = self._next_due()
+            if now >= due:
+                self._service_timers(now)
+                due = self._next_due()
             try:
                 msg = bus.recv(min(_POLL_S, max(0.0, due - now)))
             except Exception:  # noqa: BLE001 - the bus went away: nothing left to emulate
@@ -344,9 +349,6 @@ class EmulatedDrives:
                     self._dispatch(msg, by_cob)
                 except Exception:  # noqa: BLE001 - an emulator bug must not silence the drives
                     log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
-            now = monotonic()
-            if now >= self._next_due():
-                self._service_timers(now)
 
     def _dispatch(self, msg: can.Message, by_cob: dict) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
@@ -358,7 +360,7 @@ class EmulatedDrives:
             if len(data) > 1 or (len(data) == 1 and not 1 <= data[0] <= 240):
                 self._malformed += 1
                 return
-            self._on_sync()
+            self._on_sync(data[0] if data else 0)
             return
         if cob_id == fr.NMT_COB_ID:
             try:
@@ -393,9 +395,13 @@ class EmulatedDrives:
             return
         drive.node.sdo.on_request(fr.SDO_RX_BASE + drive.node_id, bytes(data), time.time())
 
-    def _on_sync(self) -> None:
+    def _on_sync(self, counter: int) -> None:
+        """Everything a SYNC triggers, on the receiving thread: latch set-points and step the state
+        machines, run the plant handler, answer with every drive's TPDO(s) back to back."""
         self._syncs += 1
-        for drive in self._drives:
+        self._sync_counter = counter
+        drives = self._drives
+        for drive in drives:
             self._step_drive(drive)
         handler = self._sync_handler
         if handler is not None:
@@ -403,10 +409,27 @@ class EmulatedDrives:
                 handler()
             except Exception:  # noqa: BLE001 - keep the bus alive; the plant owner logs its own
                 log.exception("SYNC handler failed")
-        feedback = self._feedback
-        for drive in self._drives:
+        position, velocity, torque = self._scaled_feedback()
+        for drive in drives:
             if drive.nmt is fr.NmtState.OPERATIONAL:
-                self._send_tpdos(drive, feedback)
+                i = drive.index
+                self._send_tpdos(drive, position[i], velocity[i], torque[i])
+
+    def _scaled_feedback(self) -> tuple[list[int], list[int], list[int]]:
+        """The published state in each drive's units (counts, counts/s, ‰), all joints at once.
+        np.rint rounds half to even exactly like round(), so the frames are bit-identical."""
+        feedback = self._feedback
+        n = self.n_joints
+        if feedback is None:
+            return [0] * n, [0] * n, [0] * n
+        position, velocity, torque = feedback
+        counts = np.array([d.counts_per_rad for d in self._drives])
+        rated = np.array([d.rated_torque_mnm for d in self._drives], dtype=np.float64)
+        return (
+            np.clip(np.rint(position * counts), -(2**31), 2**31 - 1).astype(np.int64).tolist(),
+            np.clip(np.rint(velocity * counts), -(2**31), 2**31 - 1).astype(np.int64).tolist(),
+            np.clip(np.rint(torque * 1e6 / rated), -32768, 32767).astype(np.int64).tolist(),
+        )
 
     def _step_drive(self, drive: _Drive) -> None:
         if drive.pending_fault is not None:
@@ -451,17 +474,18 @@ class EmulatedDrives:
                 word |= SW_INTERNAL_LIMIT
         return word
 
-    def _send_tpdos(self, drive: _Drive, feedback: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
-        i = drive.index
-        if feedback is None:
-            position_counts = velocity_counts = torque_permille = 0
-        else:
-            position, velocity, torque = feedback
-            position_counts = _clamp32(round(float(position[i]) * drive.counts_per_rad))
-            velocity_counts = _clamp32(round(float(velocity[i]) * drive.counts_per_rad))
-            torque_permille = _clamp16(round(float(torque[i]) * 1e6 / drive.rated_torque_mnm))
+    def _send_tpdos(self, drive: _Drive, position_counts: int, velocity_counts: int, torque_permille: int) -> None:
         statusword = self._statusword(drive)
         policy = drive.policy
+        if drive.fd_sync_echo and drive.tpdo1_valid and not (
+            policy.faults.active or policy.drop_next or policy.corrupt_next or policy.delay_next
+        ):
+            # The hot path: pack into the drive's own message and send it, nothing allocated here.
+            msg = drive.tpdo_msgs[fr.TPDO1_BASE]
+            fr.pack_tpdo_fd_sync_into(msg.data, 0, statusword, torque_permille, position_counts,
+                                      velocity_counts, self._sync_counter)
+            self._send(msg)
+            return
         if policy.drop_next > 0:
             policy.drop_next -= 1
             self._dropped += 1
@@ -475,7 +499,11 @@ class EmulatedDrives:
             delay_s = policy.delay_next_s
         if drive.fd_layout:
             if drive.tpdo1_valid:
-                data = fr.pack_tpdo_fd(statusword, torque_permille, position_counts, velocity_counts)
+                if drive.fd_sync_echo:
+                    data = fr.pack_tpdo_fd_sync(statusword, torque_permille, position_counts, velocity_counts,
+                                                self._sync_counter)
+                else:
+                    data = fr.pack_tpdo_fd(statusword, torque_permille, position_counts, velocity_counts)
                 self._emit(drive, fr.TPDO1_BASE + drive.node_id, data, fd=True, corrupt=corrupt, delay_s=delay_s)
             return
         if drive.tpdo1_valid:
@@ -569,8 +597,18 @@ class EmulatedDrives:
             mapping: [value(mapping, k) for k in range(value(mapping, 0) + 1)][1:]
             for mapping in (odx.RPDO1_MAP, odx.TPDO1_MAP, odx.TPDO2_MAP)
         }
-        drive.fd_layout = len(drive.mappings[odx.TPDO1_MAP]) == len(odx.FD_LAYOUT.tpdo1)
+        self._set_tpdo1_layout(drive, len(drive.mappings[odx.TPDO1_MAP]))
         self._schedule_heartbeat(drive, time.monotonic())
+
+    @staticmethod
+    def _set_tpdo1_layout(drive: _Drive, n_entries: int) -> None:
+        drive.fd_layout = n_entries in (len(odx.FD_LAYOUT.tpdo1), len(odx.FD_SYNC_LAYOUT.tpdo1))
+        drive.fd_sync_echo = n_entries == len(odx.FD_SYNC_LAYOUT.tpdo1)
+        cob_id = fr.TPDO1_BASE + drive.node_id
+        drive.tpdo_msgs[fr.TPDO1_BASE] = can.Message(
+            arbitration_id=cob_id, data=bytearray(fr.TPDO_FD_SYNC_LENGTH), is_extended_id=False, is_fd=True,
+            bitrate_switch=True,
+        )
 
     def _make_read_callback(self, drive: _Drive) -> Callable[..., int | None]:
         def read(index: int, subindex: int, od: Any) -> int | None:
@@ -586,6 +624,8 @@ class EmulatedDrives:
                 return drive.error_code
             if index == odx.ERROR_REGISTER:
                 return drive.error_register
+            if index == odx.SYNC_COUNTER_ECHO:
+                return self._sync_counter
             if index == odx.MODES_DISPLAY:
                 mode = drive.node.data_store.get(odx.MODES_OF_OPERATION, {}).get(0)
                 return mode[0] if mode is not None else odx.MODE_CYCLIC_SYNC_TORQUE
@@ -605,7 +645,7 @@ class EmulatedDrives:
         pdo_comm = {odx.RPDO1_COMM: fr.RPDO1_BASE, odx.TPDO1_COMM: fr.TPDO1_BASE, odx.TPDO2_COMM: fr.TPDO2_BASE}
         layouts = {
             odx.RPDO1_MAP: (odx.CLASSICAL_LAYOUT.rpdo1, odx.FD_LAYOUT.rpdo1),
-            odx.TPDO1_MAP: (odx.CLASSICAL_LAYOUT.tpdo1, odx.FD_LAYOUT.tpdo1),
+            odx.TPDO1_MAP: (odx.CLASSICAL_LAYOUT.tpdo1, odx.FD_LAYOUT.tpdo1, odx.FD_SYNC_LAYOUT.tpdo1),
             odx.TPDO2_MAP: (odx.CLASSICAL_LAYOUT.tpdo2, odx.FD_LAYOUT.tpdo2),
         }
         comm_of_map = {odx.RPDO1_MAP: odx.RPDO1_COMM, odx.TPDO1_MAP: odx.TPDO1_COMM, odx.TPDO2_MAP: odx.TPDO2_COMM}
@@ -660,7 +700,7 @@ class EmulatedDrives:
                         raise SdoAbortedError(sdo_codes.ABORT_NOT_MAPPABLE)
                     drive.mappings[index] = chosen  # type: ignore[assignment]
                     if index == odx.TPDO1_MAP:
-                        drive.fd_layout = value == len(odx.FD_LAYOUT.tpdo1)
+                        self._set_tpdo1_layout(drive, value)
                     return
                 if entries:
                     raise SdoAbortedError(sdo_codes.ABORT_DEVICE_STATE)  # clear sub 0 first

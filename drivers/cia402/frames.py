@@ -14,7 +14,12 @@ TPDO1       8          statusword u16 (0x6041), torque actual i16 (0x6077, ‰),
                        position actual i32 (0x6064, counts)
 TPDO2       4          velocity actual i32 (0x606C, counts/s)
 TPDO1 (FD)  12         TPDO1 + velocity actual i32: one CAN FD frame per drive
+TPDO1 (FD,  16         the FD TPDO + SYNC counter echo u8 (0x2100) + 3 zero pad bytes (13
+tagged)                data bytes travel in the next valid FD length): what the driver maps
 ==========  =========  ====================================================================
+
+SYNC carries a counter byte 1..240 (CiA 301, 0x1019 = 240); the tagged FD TPDO echoes the counter
+of the SYNC it answers, so the master never takes an older cycle's TPDO for this cycle's.
 """
 
 from __future__ import annotations
@@ -176,11 +181,13 @@ _RPDO: Final = struct.Struct("<Hh")
 _TPDO1: Final = struct.Struct("<Hhi")
 _TPDO2: Final = struct.Struct("<i")
 _TPDO_FD: Final = struct.Struct("<Hhii")
+_TPDO_FD_SYNC: Final = struct.Struct("<HhiiB3x")  # 13 data bytes padded to the FD length 16
 
 RPDO_LENGTH: Final = _RPDO.size
 TPDO1_LENGTH: Final = _TPDO1.size
 TPDO2_LENGTH: Final = _TPDO2.size
 TPDO_FD_LENGTH: Final = _TPDO_FD.size
+TPDO_FD_SYNC_LENGTH: Final = _TPDO_FD_SYNC.size
 
 INT16_MIN: Final = -32768
 INT16_MAX: Final = 32767
@@ -194,6 +201,10 @@ pack_tpdo2 = _TPDO2.pack
 unpack_tpdo2 = _TPDO2.unpack
 pack_tpdo_fd = _TPDO_FD.pack
 unpack_tpdo_fd = _TPDO_FD.unpack
+pack_tpdo_fd_sync = _TPDO_FD_SYNC.pack
+unpack_tpdo_fd_sync = _TPDO_FD_SYNC.unpack
+pack_tpdo_fd_sync_into = _TPDO_FD_SYNC.pack_into
+pack_rpdo_into = _RPDO.pack_into  # (buffer, 0, controlword, torque): no allocation per cycle
 
 
 class RpdoData(NamedTuple):
@@ -255,6 +266,29 @@ def decode_tpdo2(data: bytes) -> int:
     if len(data) != TPDO2_LENGTH:
         raise MalformedFrameError(f"TPDO2 has {len(data)} bytes, expected {TPDO2_LENGTH}")
     return _TPDO2.unpack(data)[0]
+
+
+def encode_tpdo_fd_sync(
+    statusword: int, torque_actual_permille: int, position_counts: int, velocity_counts_s: int, sync_counter: int
+) -> bytes:
+    try:
+        return _TPDO_FD_SYNC.pack(statusword, torque_actual_permille, position_counts, velocity_counts_s,
+                                  sync_counter)
+    except struct.error as exc:
+        raise ValueError(f"tagged FD TPDO field out of range: {exc}") from None
+
+
+def decode_tpdo_fd_sync(data: bytes) -> tuple[TpdoData, int]:
+    """(feedback, SYNC counter echoed) of a tagged 16-byte FD TPDO."""
+    if len(data) != TPDO_FD_SYNC_LENGTH:
+        raise MalformedFrameError(f"tagged FD TPDO has {len(data)} bytes, expected {TPDO_FD_SYNC_LENGTH}")
+    *fields, counter = _TPDO_FD_SYNC.unpack(data)
+    return TpdoData(*fields), counter
+
+
+def next_sync_counter(counter: int) -> int:
+    """The SYNC counter after ``counter``: 1..240, wrapping (CiA 301 with 0x1019 = 240)."""
+    return 1 if counter >= 240 else counter + 1
 
 
 def decode_tpdo_fd(data: bytes) -> TpdoData:

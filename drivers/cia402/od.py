@@ -42,6 +42,10 @@ RATED_TORQUE: Final = 0x6076
 TORQUE_ACTUAL: Final = 0x6077
 ENCODER_RESOLUTION: Final = 0x608F
 SUPPORTED_MODES: Final = 0x6502
+# Manufacturer object: the counter byte of the SYNC a drive's synchronous TPDO answers (0 when the
+# SYNC carried none). Mapped last in the CAN FD TPDO, it tags the feedback with its cycle.
+SYNC_COUNTER_ECHO: Final = 0x2100
+SYNC_COUNTER_MAX: Final = 240  # 0x1019: the SYNC counter runs 1..240 (CiA 301)
 
 MODE_CYCLIC_SYNC_TORQUE: Final = 10
 PDO_COB_ID_INVALID: Final = 0x8000_0000  # bit 31 of a PDO COB-ID: PDO disabled
@@ -78,6 +82,15 @@ FD_LAYOUT: Final = PdoLayout(
     tpdo2=(),
 )
 
+# What the driver maps with CAN FD: FD_LAYOUT plus the SYNC counter echo (13 bytes, a 16-byte FD
+# frame), so feedback that arrives in a later cycle is recognised as stale. The drive also accepts
+# the untagged FD_LAYOUT (a plain 12-byte frame) from other masters.
+FD_SYNC_LAYOUT: Final = PdoLayout(
+    rpdo1=FD_LAYOUT.rpdo1,
+    tpdo1=FD_LAYOUT.tpdo1 + (mapping_entry(SYNC_COUNTER_ECHO, 0, 8),),
+    tpdo2=(),
+)
+
 # (index, subindex) -> data type every drive the runtime talks to must have.
 REQUIRED_OBJECTS: Final[dict[tuple[int, int], int]] = {
     (DEVICE_TYPE, 0): datatypes.UNSIGNED32,
@@ -94,6 +107,7 @@ REQUIRED_OBJECTS: Final[dict[tuple[int, int], int]] = {
     (TPDO2_COMM, 2): datatypes.UNSIGNED8,
     (TPDO1_MAP, 0): datatypes.UNSIGNED8,
     (TPDO1_MAP, 4): datatypes.UNSIGNED32,
+    (TPDO1_MAP, 5): datatypes.UNSIGNED32,
     (TPDO2_MAP, 0): datatypes.UNSIGNED8,
     (TPDO2_MAP, 1): datatypes.UNSIGNED32,
     (ERROR_CODE, 0): datatypes.UNSIGNED16,
@@ -110,6 +124,8 @@ REQUIRED_OBJECTS: Final[dict[tuple[int, int], int]] = {
     (TORQUE_ACTUAL, 0): datatypes.INTEGER16,
     (ENCODER_RESOLUTION, 1): datatypes.UNSIGNED32,
     (ENCODER_RESOLUTION, 2): datatypes.UNSIGNED32,
+    (SYNC_OVERFLOW, 0): datatypes.UNSIGNED8,
+    (SYNC_COUNTER_ECHO, 0): datatypes.UNSIGNED8,
 }
 
 
