@@ -10,18 +10,29 @@
 - ``slcan``: serial-line CAN adapters (classical CAN only).
 
 Configuration files of python-can are ignored on purpose: the bus is exactly what the config says.
+
+Two thin subclasses trim the per-frame cost of the cyclic path without changing what goes on the
+(virtual) wire: :class:`FastVirtualBus` copies a frame with one constructor call instead of
+``copy.deepcopy`` (8 µs -> ~1 µs a frame; it shares python-can's channels, so plain ``virtual``
+buses on the same channel see its frames and vice versa), and :class:`BatchingRemoteBus` sends a
+cycle's RPDOs and SYNC as one TCP segment (``send_batch``, TCP_CORK) instead of seven.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import queue
 import socket
 import threading
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 from urllib.parse import urlparse
 
 import can
+from can.interfaces.virtual import VirtualBus
 
 from drivers.config import TransportConfig, is_loopback_host
 from drivers.errors import DriveConfigError, TransportError
@@ -41,6 +52,60 @@ def socketcan_unavailable(channel: str = "vcan0") -> str | None:
         return f"cannot create a CAN_RAW socket: {exc.strerror}"
     probe.close()
     return None
+
+
+class FastVirtualBus(VirtualBus):  # type: ignore[misc]
+    """python-can's ``virtual`` bus whose send copies each frame with one ``can.Message`` call."""
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._check_if_open()
+        timestamp = msg.timestamp if self.preserve_timestamps else time.time()
+        data = msg.data
+        all_sent = True
+        for bus_queue in self.channel:
+            if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            copy = can.Message(
+                timestamp=timestamp,
+                arbitration_id=msg.arbitration_id,
+                is_extended_id=msg.is_extended_id,
+                is_remote_frame=msg.is_remote_frame,
+                is_error_frame=msg.is_error_frame,
+                channel=self.channel_id,
+                dlc=msg.dlc,
+                data=bytearray(data),
+                is_fd=msg.is_fd,
+                is_rx=bus_queue is not self.queue,
+                bitrate_switch=msg.bitrate_switch,
+                error_state_indicator=msg.error_state_indicator,
+            )
+            try:
+                bus_queue.put(copy, block=True, timeout=timeout)
+            except queue.Full:
+                all_sent = False
+        if not all_sent:
+            raise can.CanOperationError("Could not send message to one or more recipients")
+
+
+def _batching_remote_bus(**kwargs: Any) -> can.BusABC:
+    from can_remote.client import RemoteBus
+
+    class BatchingRemoteBus(RemoteBus):  # type: ignore[misc, valid-type]
+        """The python-can-remote client with ``send_batch``: frames corked into one segment."""
+
+        def send_batch(self, msgs: Sequence[can.Message]) -> None:
+            sock = self.socket
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CORK, 1)
+            try:
+                for msg in msgs:
+                    self.remote_protocol.send_msg(msg)
+            finally:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CORK, 0)  # uncorking sends it now
+
+    channel = kwargs.pop("channel")
+    kwargs.pop("interface")
+    kwargs.pop("ignore_config", None)
+    return BatchingRemoteBus(channel, **kwargs)
 
 
 def open_bus(config: TransportConfig) -> can.BusABC:
@@ -68,7 +133,14 @@ def open_bus(config: TransportConfig) -> can.BusABC:
     else:  # pragma: no cover - the config Literal rules this out
         raise DriveConfigError(f"transport.interface: unknown {config.interface!r}")
     try:
-        bus = can.Bus(**kwargs)
+        if config.interface == "virtual":
+            kwargs.pop("interface")
+            kwargs.pop("ignore_config")
+            bus = FastVirtualBus(**kwargs)
+        elif config.interface == "remote" and hasattr(socket, "TCP_CORK"):
+            bus = _batching_remote_bus(**kwargs)
+        else:
+            bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, AssertionError) as exc:
         # python-can-remote asserts on a bad websocket handshake; all are "could not open".
         raise TransportError(
