@@ -25,19 +25,28 @@ def _objective(hessian: np.ndarray, gradient: np.ndarray, x: np.ndarray) -> np.n
 
 def solve_box_qp(
     hessian: np.ndarray, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-    max_iterations: int = 20, tolerance: float = 1e-9,
+    max_iterations: int = 20, tolerance: float = 1e-9, guess: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """(x (K, n), converged (K,)): the minimizer of each row's QP inside its box.
 
     ``hessian`` (K, n, n) symmetric positive definite, ``gradient``, ``lower``, ``upper`` (K, n) with
     lower <= upper. Converged: the KKT conditions hold (projected gradient below ``tolerance``
     relative to the gradient at x = 0, max norm). ``max_iterations`` bounds each method's solves.
+    ``guess`` (K, n): the bounds a row's guess sits on are its first active set (a warm start:
+    the minimizer is unique, only the iteration count changes); rows whose guess is on no bound
+    start from the unconstrained minimizer.
     """
     k, n = gradient.shape
     scale = np.maximum(np.abs(gradient).max(1), 1e-300)
     with np.errstate(all="ignore"):
         x = -np.linalg.solve(hessian, gradient[..., None])[..., 0]
-    inside = np.all((x >= lower) & (x <= upper), axis=1)
+    if guess is None:
+        preset_upper = preset_lower = np.zeros((k, n), bool)
+    else:
+        preset_upper = guess >= upper - 1e-12 * (1 + np.abs(upper))
+        preset_lower = (guess <= lower + 1e-12 * (1 + np.abs(lower))) & ~preset_upper
+    preset = (preset_upper | preset_lower).any(1)
+    inside = ~preset & np.all((x >= lower) & (x <= upper), axis=1)
     if inside.all():
         return x, np.ones(k, bool)
 
@@ -47,10 +56,14 @@ def solve_box_qp(
     diag_scale = np.einsum("kii->ki", hessian)  # makes multiplier and bound distance comparable
     xt, mult = x[todo], np.zeros((todo.size, n))
     at_upper_prev = at_lower_prev = None
+    first_upper, first_lower, first = preset_upper[todo], preset_lower[todo], preset[todo][:, None]
     for _ in range(max_iterations):
         h, g, lo, hi, c = hessian[todo], gradient[todo], lower[todo], upper[todo], diag_scale[todo]
         at_upper = mult + c * (xt - hi) > 0
         at_lower = (mult + c * (xt - lo) < 0) & ~at_upper
+        if at_upper_prev is None:  # the warm rows' first active set is their guess's
+            at_upper = np.where(first, first_upper, at_upper)
+            at_lower = np.where(first, first_lower, at_lower)
         if at_upper_prev is not None:
             same = np.all(at_upper == at_upper_prev, 1) & np.all(at_lower == at_lower_prev, 1)
             feasible = np.all((xt >= lo - 1e-12 * (1 + np.abs(lo))) & (xt <= hi + 1e-12 * (1 + np.abs(hi))), 1)

@@ -390,8 +390,11 @@ class HMPCSolver:
                 sens_on = sens[todo] * (side[todo] != 0)[..., None]
                 hessian = hessian + rho * np.swapaxes(sens_on, 1, 2) @ sens_on
                 gradient = gradient + rho * np.einsum("kxi,kx->ki", sens_on, x[todo] - side[todo] * limit)
+            # warm start: the first round from the torques already on their limits (step = 0 there,
+            # i.e. last Gauss-Newton step's active set), later rounds from the last round's step
             step[todo], qp_converged[todo] = solve_box_qp(hessian, gradient, lower[todo], upper[todo],
-                                                          config.max_qp_iterations, config.qp_tolerance)  # fmt: skip
+                                                          config.max_qp_iterations, config.qp_tolerance,
+                                                          step[todo])  # fmt: skip
             if rho == 0:
                 break
             y = x[todo] + np.einsum("kxi,ki->kx", sens[todo], step[todo])
