@@ -11,11 +11,11 @@ import typer
 
 from models.errors import ModelInputError
 
-STAGES = ("dataset", "label", "train", "export")
+STAGES = ("dataset", "label", "train", "augment", "export")
 
 
 def pipeline(
-    stages: Annotated[str, typer.Option(help="Comma-separated stages: dataset, label, train, export.")] = ",".join(STAGES),
+    stages: Annotated[str, typer.Option(help="Comma-separated stages: dataset, label, train, augment (beyond the paper), export.")] = ",".join(STAGES),
     work: Annotated[Path, typer.Option(help="Working directory (raw.h5, labels.h5, training, plots).")] = Path("results/lmpc"),
     bundles: Annotated[Path, typer.Option(help="Where bundles go: <bundles>/<robot>/<law>/.")] = Path("models/bundles"),
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
@@ -26,6 +26,7 @@ def pipeline(
     epochs: Annotated[int, typer.Option(help="Max training epochs.")] = 150,
     workers: Annotated[Optional[int], typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
     lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
+    rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 2,
     force_dataset: Annotated[bool, typer.Option("--force-dataset", help="Regenerate raw.h5 even if present.")] = False,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
@@ -53,7 +54,8 @@ def pipeline(
         dataset=replace(base.dataset, laws=law_list, conditions=conditions, seed=seed, duration_s=duration),
         budget=budget, pool_conditions=max(1, int(round(0.9 * conditions))),
         test_per_law=min(base.test_per_law, max(10, budget // (5 * len(law_list)))),
-        train=replace(base.train, max_epochs=epochs), workers=workers,
+        train=replace(base.train, max_epochs=epochs), workers=workers, rollout_conditions=rollouts,
+        dagger_conditions=min(base.dagger_conditions, max(1, int(round(0.9 * conditions)))),
         lipschitz_delta="estimate" if lipschitz == "estimate" else (0.0, 0.0, 0.0),
     )  # fmt: skip
     console = Console(stderr=True)

@@ -50,6 +50,12 @@ class PipelineConfig:
     seeds: tuple[int, ...] = (0, 1, 2)
     train: TrainConfig = TrainConfig()
     label_chunk: int = 2048  # states per progress update
+    # Beyond the paper (docs/lmpc.md): HMPC closed-loop rollouts + one DAgger round before export.
+    rollout_conditions: int = 2  # pool conditions run under the HMPC itself (0: skip the stage)
+    dagger_conditions: int = 20  # pool conditions run under the intermediate LMPC
+    dagger_states_per_law: int = 3000
+    augment_repeat: int = 4  # how many times the rollout and DAgger states are repeated in training
+    augment_epochs: int = 80
     workers: int | None = None  # processes; None = one per CPU
 
     @property
@@ -273,6 +279,82 @@ def plot_sampling_curves(trained: dict[str, Any], laws: tuple[str, ...], path: P
     plt.close(fig)
 
 
+# --- stage 3b (beyond the paper) -------------------------------------------------------------------
+def _augmented_task(task: tuple) -> dict[str, Any]:
+    law, x, y, train_config = task
+    result = train_emulator(x, y, train_config)
+    return {"law": law, "summary": result.summary(), "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()},
+            "box": (x.min(0), x.max(0))}  # fmt: skip
+
+
+def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None,
+                  hmpc_executor: Any = None) -> dict[str, Any]:  # fmt: skip
+    """HMPC rollouts, retrain, one DAgger round, retrain: the emulators the bundles ship."""
+    import pickle
+
+    import torch
+
+    from models.lmpc.bundle_export import export_bundle
+    from models.lmpc.dagger import lmpc_visited_states
+    from models.lmpc.dataset import features, make_conditions
+    from models.lmpc.emulator import Emulator
+    from models.lmpc.expert_rollouts import hmpc_rollouts
+    from models.sim import SimConfig
+
+    spec = config.dataset
+    robot = load_robot(spec.robot)
+    raw = load_raw_dataset(work / "raw.h5", config.laws)
+    _, labels = load_labels(work / "labels.h5")
+    conditions = make_conditions(spec, robot)[: config.pool_conditions]
+    sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
+    train_config = replace(config.train, max_epochs=config.augment_epochs, seed=config.seeds[0])
+    advance = _progress(progress, "augment: HMPC rollouts, DAgger round", 4)
+    rollouts = hmpc_rollouts(spec.robot, config.laws, spec.gain_set, conditions[: config.rollout_conditions], sim,
+                             stride=spec.stride, chunks=2, executor=executor)  # fmt: skip
+    advance(1)
+    base = {}
+    for law in config.laws:
+        idx = labels[law].sets["optimal"]
+        r = rollouts[law]
+        x_roll = features(r["q"], r["qd"], r["q_d"], r["qd_d"], r["tau_fb"])
+        base[law] = ([raw.laws[law].features()[idx]] + [x_roll] * config.augment_repeat,
+                     [labels[law].targets(idx)] + [r["tau_star"]] * config.augment_repeat)  # fmt: skip
+
+    def train_and_export(parts: dict[str, tuple[list, list]], out: Path | None) -> dict[str, Any]:
+        tasks = [(law, np.concatenate(parts[law][0]), np.concatenate(parts[law][1]), train_config) for law in config.laws]
+        results = {r["law"]: r for r in executor.map(_augmented_task, tasks)}
+        if out is not None:
+            for law, r in results.items():
+                emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
+                emulator.load_state_dict({k: torch.as_tensor(v) for k, v in r["state_dict"].items()})
+                export_bundle(out / robot.name / law, make_law(law, robot, spec.dt_s, spec.gain_set), robot, emulator,
+                              {"gain_set": spec.gain_set, "stage": "intermediate (rollouts)"}, {}, trust_region=r["box"])  # fmt: skip
+        return results
+
+    train_and_export(base, work / "bundles_rollouts")
+    advance(1)
+    visited = lmpc_visited_states(work / "bundles_rollouts", robot, config.laws, conditions[: config.dagger_conditions], sim,
+                                  spec.stride, spec.gain_set)  # fmt: skip
+    rng = np.random.default_rng(config.seeds[0])
+    dagger_counts = {}
+    for law in config.laws:
+        rows = visited[law]
+        if len(rows) > config.dagger_states_per_law:
+            rows = rows.take(np.sort(rng.choice(len(rows), config.dagger_states_per_law, replace=False)))
+        dagger_counts[law] = {"visited_in_limits": len(visited[law]), "labeled": len(rows)}
+        if len(rows):
+            tau, _ = hmpc_labeler(make_law(law, robot, spec.dt_s, spec.gain_set), robot, rows, hmpc_executor)
+            base[law][0].extend([rows.features()] * config.augment_repeat)
+            base[law][1].extend([np.asarray(tau, float)] * config.augment_repeat)
+    advance(1)
+    final = train_and_export(base, None)
+    advance(1)
+    with open(work / "augmented.pkl", "wb") as handle:
+        pickle.dump(final, handle)
+    return {"rollout_conditions": config.rollout_conditions, "rollout_states_per_law": {k: int(len(v["t_s"])) for k, v in rollouts.items()},
+            "dagger": dagger_counts, "val_mse": {law: r["summary"]["best_val_mse_normalized"] for law, r in final.items()}}  # fmt: skip
+
+
 # --- stage 4 ----------------------------------------------------------------------------------
 def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bundles: Path,
                  strategy: str = "optimal", seed: int | None = None) -> dict[str, Any]:  # fmt: skip
@@ -285,9 +367,17 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
     raw = load_raw_dataset(work / "raw.h5", config.laws)
     labels_manifest, labels = load_labels(work / "labels.h5")
     seed = config.seeds[0] if seed is None else seed
+    augmented = None
+    if (work / "augmented.pkl").is_file() and config.rollout_conditions > 0:
+        import pickle
+
+        with open(work / "augmented.pkl", "rb") as handle:
+            augmented = pickle.load(handle)
     out = {}
     for law_name in config.laws:
         run = next(r for r in trained["runs"] if r["law"] == law_name and r["strategy"] == strategy and r["seed"] == seed)
+        if augmented is not None:
+            run = {**run, "state_dict": augmented[law_name]["state_dict"], "augmented_summary": augmented[law_name]["summary"]}
         law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
         emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
         emulator.load_state_dict({k: torch.as_tensor(v) for k, v in run["state_dict"].items()})
@@ -300,7 +390,11 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
                     "labels": {"labeler": labels_manifest["labeler"], "hmpc_options": labels_manifest["hmpc_options"],
                                "status_counts": np.bincount(lab.status, minlength=4).tolist()},
                     "sampling": {"strategy": strategy, "samples": int(lab.sets[strategy].size), "theorem2": lab.theorem2},
-                    "emulator": run["summary"], "seed": seed, "gain_set": config.dataset.gain_set, "git_commit": git_commit()}  # fmt: skip
+                    "emulator": run.get("augmented_summary", run["summary"]),
+                    "augmentation": None if augmented is None else {"hmpc_rollout_conditions": config.rollout_conditions,
+                                    "dagger_conditions": config.dagger_conditions, "repeat": config.augment_repeat,
+                                    "note": "D_sample (Theorem 2) + HMPC closed-loop states + one DAgger round; docs/lmpc.md"},
+                    "seed": seed, "gain_set": config.dataset.gain_set, "git_commit": git_commit()}  # fmt: skip
         validation = {"val_mse_normalized": run["summary"]["best_val_mse_normalized"], "val_rmse_nm": run["summary"]["val_rmse_nm"],
                       "test_mse_normalized": run["test_mse"], "test_set": "uniform over held-out conditions"}  # fmt: skip
         manifest = export_bundle(bundles / robot.name / law_name, law, robot, emulator, training, validation,
@@ -313,7 +407,7 @@ def _config_json(config: PipelineConfig) -> dict[str, Any]:
     return json.loads(json.dumps(asdict(config), default=str))
 
 
-def run_pipeline(config: PipelineConfig, work: Path, bundles: Path, stages: tuple[str, ...] = ("dataset", "label", "train", "export"),
+def run_pipeline(config: PipelineConfig, work: Path, bundles: Path, stages: tuple[str, ...] = ("dataset", "label", "train", "augment", "export"),
                  executor: Executor | None = None, labeler: Labeler | None = None, progress: Progress | None = None,
                  force_dataset: bool = False) -> dict[str, Any]:  # fmt: skip
     """Run the stages; write <work>/pipeline.json (timings, Theorem 2 weights, training figures)."""
@@ -356,6 +450,19 @@ def run_pipeline(config: PipelineConfig, work: Path, bundles: Path, stages: tupl
 
         with open(work / "trained.pkl", "wb") as handle:
             pickle.dump(trained, handle)
+    if "augment" in stages and config.rollout_conditions > 0:
+        started = time.perf_counter()
+        hmpc_executor = None
+        if not isinstance(executor, SerialExecutor):
+            from models.hmpc import ProcessPoolBatchExecutor
+
+            hmpc_executor = ProcessPoolBatchExecutor(config.workers)
+        try:
+            summary["augment"] = stage_augment(config, work, executor, progress, hmpc_executor)
+        finally:
+            if hmpc_executor is not None:
+                hmpc_executor.close()
+        summary["wall_s"]["augment"] = round(time.perf_counter() - started, 1)
     if "export" in stages:
         started = time.perf_counter()
         if trained is None:

@@ -66,12 +66,32 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
     config = PipelineConfig(
         dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
         budget=90, pool_conditions=3, test_per_law=30, seeds=(0,),
-        train=TrainConfig(hidden=(16,), max_epochs=3, patience=2), label_chunk=128, workers=1,
+        train=TrainConfig(hidden=(16,), max_epochs=3, patience=2), label_chunk=128, workers=1, rollout_conditions=0,
     )  # fmt: skip
     summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
+    assert "augment" not in summary["wall_s"]
     assert set(summary["wall_s"]) >= {"dataset", "label", "train", "export", "total"}
     np.testing.assert_allclose(sum(summary["theorem2"]["pd"]["weights"]), 1.0)
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
     assert bundle.manifest["training"]["sampling"]["samples"] == 90
     assert bundle.manifest["training"]["labels"]["labeler"] == "hmpc_labeler"
     assert (tmp_path / "work" / "sampling_curves.png").stat().st_size > 1000
+
+
+@pytest.mark.heavy
+def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
+    """Beyond the paper; ~3 min (HMPC closed loop on one 5 s condition)."""
+    from hil_runtime.bundle import PolicyBundle
+    from models.lmpc.dataset import RawDatasetSpec
+    from models.lmpc.executor import SerialExecutor
+    from models.lmpc.pipeline import PipelineConfig, run_pipeline
+
+    config = PipelineConfig(
+        dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
+        budget=90, pool_conditions=3, test_per_law=30, seeds=(0,), train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
+        label_chunk=128, workers=1, rollout_conditions=1, dagger_conditions=2, dagger_states_per_law=50, augment_epochs=3,
+    )  # fmt: skip
+    summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
+    assert summary["augment"]["rollout_states_per_law"]["pd"] == 100
+    bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd")
+    assert bundle.manifest["training"]["augmentation"]["hmpc_rollout_conditions"] == 1

@@ -1,0 +1,71 @@
+"""One DAgger-style round (beyond the paper): HMPC labels on the states the LMPC closed loop visits.
+
+    states = lmpc_visited_states(bundle_dir, robot, laws, conditions)       # per law: RawLaw
+    (label them with models.lmpc.labels.hmpc_labeler, add to the training set, retrain, export)
+
+Only states inside the joint position and velocity limits are kept: a run that has diverged visits
+states no controller should be trained for.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from models.conditions import Condition
+from models.feedback import make_law
+from models.lmpc.controller import make_lmpc_controller
+from models.lmpc.dataset import RawLaw
+from models.robots import RobotModel
+from models.sim import ControllerStack, SimConfig, simulate
+
+
+class _LoggingLMPC:
+    def __init__(self, inner, batch: int, steps: int, stride: int) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.stride = inner, stride
+        self.name = inner.name + "-log"
+        self.cycle_times_s: list[float] = []
+        self.last_tau_fb = None
+        rows, n, s = (steps + stride - 1) // stride, inner.bundle.n_joints, inner.bundle.state_size
+        self.log = {k: np.empty((batch, rows, n)) for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb")}
+        self.log["law_state"] = np.empty((batch, rows, s))
+        self.log["t_s"] = np.empty(rows)
+
+    def reset(self, q0: np.ndarray) -> None:
+        self.inner.reset(q0)
+        self.k = 0
+
+    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        before = self.inner.state.copy()
+        tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
+        self.last_tau_fb = self.inner.last_tau_fb
+        if self.k % self.stride == 0:
+            row, log = self.k // self.stride, self.log
+            log["t_s"][row] = t_s
+            for key, value in (("q", q), ("qd", qd), ("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d),
+                               ("tau_fb", self.last_tau_fb), ("law_state", before)):  # fmt: skip
+                log[key][:, row] = value
+        self.k += 1
+        return tau
+
+
+def lmpc_visited_states(bundle_dir: Path, robot: RobotModel, laws: tuple[str, ...], conditions: list[Condition],
+                        sim: SimConfig = SimConfig(), stride: int = 5, gain_set: str | None = None) -> dict[str, RawLaw]:  # fmt: skip
+    """Run every law's LMPC bundle on ``conditions``; the logged states inside the limits, per law."""
+    steps = int(round(conditions[0].duration_s / sim.dt_s))
+    kwargs = {} if gain_set is None else {"gain_set": gain_set}
+    loggers = [_LoggingLMPC(make_lmpc_controller(make_law(law, robot, sim.dt_s, **kwargs), robot, bundle_dir=bundle_dir),
+                            len(conditions), steps, stride) for law in laws]  # fmt: skip
+    with np.errstate(all="ignore"):
+        simulate(robot, ControllerStack(loggers, [len(conditions)] * len(laws)), [c for _ in laws for c in conditions], sim)
+    out = {}
+    for law, logger in zip(laws, loggers, strict=True):
+        rows = logger.log["t_s"].size
+        flat = {k: v.reshape(len(conditions) * rows, -1) for k, v in logger.log.items() if k != "t_s"}
+        t_s = np.tile(logger.log["t_s"], len(conditions))
+        run = np.repeat(np.arange(len(conditions)), rows)
+        inside = (np.all(np.abs(flat["q"]) <= robot.position_limit_rad, 1) & np.all(np.abs(flat["qd"]) <= robot.velocity_limit_rad_s, 1)
+                  & np.all(np.isfinite(flat["law_state"]), 1) & np.all(np.isfinite(flat["tau_fb"]), 1))  # fmt: skip
+        out[law] = RawLaw(t_s[inside], run[inside], *(flat[k][inside] for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state", "tau_fb")))
+    return out
