@@ -78,9 +78,8 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
     assert (tmp_path / "work" / "sampling_curves.png").stat().st_size > 1000
 
 
-@pytest.mark.heavy
 def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
-    """Beyond the paper; ~3 min (HMPC closed loop on one 5 s condition)."""
+    """Beyond the paper: HMPC closed loop on one 5 s condition, one DAgger round (~15 s)."""
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.dataset import RawDatasetSpec
     from models.lmpc.executor import SerialExecutor
