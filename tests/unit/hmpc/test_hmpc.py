@@ -251,3 +251,22 @@ def test_compiled_kernels_reach_the_numpy_optimum(law, robot) -> None:  # type: 
     np.testing.assert_array_equal(fast.iterations, slow.iterations)
     np.testing.assert_allclose(fast.cost, slow.cost, rtol=1e-8)
     np.testing.assert_allclose(fast.candidate_cost, slow.candidate_cost, rtol=1e-12)
+
+
+def test_warm_started_box_qp_reaches_the_same_minimizer() -> None:
+    # A guess only picks the first active set: from the solution itself, from a wrong set of
+    # bounds, or from none, the minimizer (unique: H positive definite) is the same.
+    rng = np.random.default_rng(3)
+    k, n = 12, 30
+    a = rng.normal(size=(k, n, n)) * np.logspace(-3, 1, n)
+    hessian = a @ np.swapaxes(a, 1, 2) + 1e-6 * np.eye(n)
+    gradient = rng.normal(size=(k, n)) * 10
+    lower, upper = -rng.uniform(0.1, 2.0, (k, n)), rng.uniform(0.1, 2.0, (k, n))
+    cold, ok = solve_box_qp(hessian, gradient, lower, upper, 20)
+    assert ok.all()
+    objective = lambda x: np.einsum("ki,ki->k", gradient + 0.5 * np.einsum("kij,kj->ki", hessian, x), x)  # noqa: E731
+    wrong = np.where(rng.random((k, n)) < 0.3, np.where(rng.random((k, n)) < 0.5, lower, upper), 0.0)
+    for guess in (cold, wrong, np.zeros((k, n))):
+        warm, ok = solve_box_qp(hessian, gradient, lower, upper, 20, guess=guess)
+        assert ok.all() and np.all((warm >= lower) & (warm <= upper))
+        np.testing.assert_allclose(objective(warm), objective(cold), rtol=1e-9, atol=1e-12)
