@@ -131,12 +131,14 @@ def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: 
 def _summarize(runs: list[dict[str, Any]], timing: dict, config: ExperimentConfig, robot: RobotModel,
                conditions: list[Condition]) -> dict[str, Any]:  # fmt: skip
     metrics = {(f"{r['law']}/{r['mode']}", r["condition"]): r["metrics"] for r in runs}
-    scores = composite_scores(metrics)
+    failed = {(f"{r['law']}/{r['mode']}", r["condition"]) for r in runs if not (r["finite"] and r["within_limits"])}
+    scores = composite_scores(metrics, failed)
     table: dict[str, dict[str, Any]] = {}
     for law in config.laws:
         row: dict[str, Any] = {}
         for mode in config.modes:
-            row[mode] = {"score": scores[f"{law}/{mode}"], "time_per_cycle": timing[law][mode]}
+            row[mode] = {"score": scores[f"{law}/{mode}"], "time_per_cycle": timing[law][mode],
+                         "failed_conditions": sorted(k for c, k in failed if c == f"{law}/{mode}")}  # fmt: skip
             if mode != "fb" and "fb" in config.modes:
                 row[mode]["eta"] = improvement(scores[f"{law}/{mode}"], scores[f"{law}/fb"])
         table[law] = row
@@ -178,13 +180,20 @@ def format_table(results: dict[str, Any]) -> str:
     for law, row in results["table"].items():
         cells = [_LAW_TITLE.get(law, law)]
         for mode in modes:
-            cells.append(f"{row[mode]['score']:.3f}")
+            failed = row[mode].get("failed_conditions", [])
+            mark = f" ✗{len(failed)}" if failed else ""
+            score = row[mode]["score"]
+            cells.append(f"{score:.3f}{mark}" if score < 1e3 else f"{score:.1e}{mark}")
             if "eta" in row[mode]:
-                cells.append(f"{100 * row[mode]['eta']:.1f}")
-                etas[mode].append(row[mode]["eta"])
+                if failed or row["fb"].get("failed_conditions"):
+                    cells.append("—")  # eta against or of a run that left the limits means nothing
+                else:
+                    cells.append(f"{100 * row[mode]['eta']:.1f}")
+                    etas[mode].append(row[mode]["eta"])
         cells += [f"{row[m]['time_per_cycle']['median_ms']:.4f}" for m in modes]
         lines.append("| " + " | ".join(cells) + " |")
-    notes = [f"Average {_ETA_TITLE[m]}: {100 * float(np.mean(v)):.1f}" for m, v in etas.items()]
+    notes = [f"Average {_ETA_TITLE[m]} over laws whose runs all stayed inside the limits: {100 * float(np.mean(v)):.1f}"
+             for m, v in etas.items()]  # fmt: skip
     limits = "yes" if results["all_runs_finite_and_within_limits"] else "NO (see results.json runs)"
     footer = [
         "",
@@ -192,7 +201,8 @@ def format_table(results: dict[str, Any]) -> str:
         f"control period {results['config']['sim']['dt_s'] * 1e3:g} ms; gain set '{results['config']['gain_set']}'.",
         "Scores: composite of the six metrics, each normalized per condition by its largest value among the "
         "configurations in this table (docs/scoring.md). Times: median wall time per control cycle, one robot.",
-        f"Every run finite and inside the joint limits: {limits}.",
+        f"Every run finite and inside the joint limits: {limits}. ✗k: k conditions diverged or left the limits "
+        "(excluded from the normalization; η shown as —).",
         *notes,
         "",
     ]

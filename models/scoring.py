@@ -9,7 +9,7 @@ Six smaller-is-better metrics on the joint tracking error e = q_ref - q in degre
 - ``dedt_rms``: RMS of de/dt (deg/s), all joints pooled.
 
 Composite: on each condition, each metric is divided by its largest value among the configurations
-compared, weighted by [0.1, 0.1, 0.1, 0.1, 0.3, 0.3] and summed; scores are averaged over conditions.
+compared (runs that left the limits excluded from that maximum), weighted by [0.1, 0.1, 0.1, 0.1, 0.3, 0.3] and summed; scores are averaged over conditions.
 eta = 1 - score / score_FB for the same law.
 """
 
@@ -47,15 +47,24 @@ def run_metrics(t_s: np.ndarray, q: np.ndarray, q_ref: np.ndarray, disturbance_t
     }
 
 
-def composite_scores(metrics: dict[tuple[str, str], dict[str, float]]) -> dict[str, float]:
-    """Composite score per configuration from ``{(configuration, condition): metrics}``."""
+def composite_scores(
+    metrics: dict[tuple[str, str], dict[str, float]], failed: set[tuple[str, str]] | None = None
+) -> dict[str, float]:
+    """Composite score per configuration from ``{(configuration, condition): metrics}``.
+
+    Runs in ``failed`` (diverged, or outside the joint limits) do not set the normalization: one
+    exploding run would otherwise squash every other score towards zero. They are still scored
+    against it (their normalized metrics exceed 1), and the table marks them.
+    """
+    failed = failed or set()
     configs = sorted({c for c, _ in metrics})
     conditions = sorted({k for _, k in metrics})
     totals = dict.fromkeys(configs, 0.0)
     for condition in conditions:
         present = [c for c in configs if (c, condition) in metrics]
+        reference = [c for c in present if (c, condition) not in failed] or present
         for name, weight in zip(METRICS, WEIGHTS, strict=True):
-            largest = max(metrics[(c, condition)][name] for c in present)
+            largest = max(metrics[(c, condition)][name] for c in reference)
             for c in present:
                 value = metrics[(c, condition)][name]
                 totals[c] += weight * (value / largest if largest > 0 else 0.0) / len(conditions)

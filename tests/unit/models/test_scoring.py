@@ -34,3 +34,13 @@ def test_composite_normalizes_per_condition_and_eta() -> None:
     assert scores["pd/fb"] == pytest.approx(sum(WEIGHTS))
     assert scores["pd/hmpc"] == pytest.approx(0.5 * sum(WEIGHTS))
     assert improvement(scores["pd/hmpc"], scores["pd/fb"]) == pytest.approx(0.5)
+
+
+def test_failed_runs_do_not_set_the_normalization() -> None:
+    good = {"rmse": 1, "mae": 1, "p95": 1, "peak": 1, "settle_s": 1, "dedt_rms": 1}
+    exploded = {k: 1e6 for k in good}
+    metrics = {("pd/fb", "C1"): good, ("pd/lmpc", "C1"): exploded}
+    assert composite_scores(metrics)["pd/fb"] == pytest.approx(1e-6 * sum(WEIGHTS))
+    scores = composite_scores(metrics, failed={("pd/lmpc", "C1")})
+    assert scores["pd/fb"] == pytest.approx(sum(WEIGHTS))
+    assert scores["pd/lmpc"] == pytest.approx(1e6 * sum(WEIGHTS))
