@@ -40,20 +40,29 @@ class ChainArrays:
     ee_rotation: Any  # (3, 3)
     ee_translation: Any  # (3,)
     gravity: Any  # (3,)
+    translation_skew: Any  # (N, 3, 3) skew(joint_translation): w x p = w @ skew(p)
+    com_skew: Any  # (N, 3, 3) skew(com)
+    ee_translation_skew: Any  # (3, 3)
     n_joints: int
 
     @classmethod
     def from_robot(cls, robot: RobotModel, to_array: Any = np.asarray) -> ChainArrays:
         axis = robot.joint_axis
-        skew = np.zeros((robot.n_joints, 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-        skew -= skew.transpose(0, 2, 1)
         outer = np.einsum("ni,nj->nij", axis, axis)
         values = [
-            robot.joint_rotation, robot.joint_translation, axis, skew, outer, np.eye(3) - outer, robot.mass_kg,
-            robot.com_m, robot.inertia_kg_m2, robot.ee_rotation, robot.ee_translation, robot.gravity_m_s2,
+            robot.joint_rotation, robot.joint_translation, axis, _skew(axis), outer, np.eye(3) - outer,
+            robot.mass_kg, robot.com_m, robot.inertia_kg_m2, robot.ee_rotation, robot.ee_translation,
+            robot.gravity_m_s2, _skew(robot.joint_translation), _skew(robot.com_m), _skew(robot.ee_translation),
         ]  # fmt: skip
         return cls(*[to_array(np.asarray(v, dtype=np.float64)) for v in values], n_joints=robot.n_joints)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """skew(v) with skew(v) @ w = v x w, for v of shape (..., 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return out - np.swapaxes(out, -1, -2)
 
 
 def _cross(xp: Any, a: Any, b: Any) -> Any:
@@ -110,20 +119,21 @@ def rneida(
     for i in range(n):
         rot = rotations[i]
         # Eq. 5: acceleration of frame i's origin, from frame i-1's motion, then into frame i.
-        p = chain.joint_translation[i]
-        accel = _matTvec(xp, rot, accel + _cross(xp, omega_dot, p) + _cross(xp, omega, _cross(xp, omega, p)))
+        # (Cross products with a constant vector are one product with its skew matrix: w x p = w @ skew(p).)
+        p_skew = chain.translation_skew[i]
+        accel = _matTvec(xp, rot, accel + omega_dot @ p_skew + _cross(xp, omega, omega @ p_skew))
         # Eqs. 3-4: angular velocity and acceleration in frame i.
         omega_parent = _matTvec(xp, rot, omega)
-        axis_rate = chain.joint_axis[i] * qd[..., i : i + 1]
-        omega = omega_parent + axis_rate
+        rate = qd[..., i : i + 1]
+        omega = omega_parent + chain.joint_axis[i] * rate
         omega_dot = (
             _matTvec(xp, rot, omega_dot)
             + chain.joint_axis[i] * qdd[..., i : i + 1]
-            + _cross(xp, omega_parent, axis_rate)
+            + (omega_parent @ chain.axis_cross[i]) * rate  # omega_parent x (axis qd_i)
         )
         # Eq. 6: COM acceleration; Newton and Euler equations of link i.
-        c = chain.com[i]
-        accel_com = accel + _cross(xp, omega_dot, c) + _cross(xp, omega, _cross(xp, omega, c))
+        c_skew = chain.com_skew[i]
+        accel_com = accel + omega_dot @ c_skew + _cross(xp, omega, omega @ c_skew)
         forces.append(chain.mass[i] * accel_com)
         inertia = chain.inertia[i]
         moments.append(_matvec(xp, inertia, omega_dot) + _cross(xp, omega, _matvec(xp, inertia, omega)))
@@ -132,20 +142,20 @@ def rneida(
     if ee_wrench is None:
         f_next = xp.zeros_like(accel)
         n_next = xp.zeros_like(accel)
-        p_next = chain.ee_translation
     else:
         f_next = -_matvec(xp, chain.ee_rotation, ee_wrench[..., :3])
         n_next = -_matvec(xp, chain.ee_rotation, ee_wrench[..., 3:])
-        p_next = chain.ee_translation
+    p_next_skew = chain.ee_translation_skew
     rot_next = None
     torques = [None] * n
     for i in range(n - 1, -1, -1):
         f_child = f_next if rot_next is None else _matvec(xp, rot_next, f_next)
         n_child = n_next if rot_next is None else _matvec(xp, rot_next, n_next)
         f_i = f_child + forces[i]
-        n_i = moments[i] + n_child + _cross(xp, chain.com[i], forces[i]) + _cross(xp, p_next, f_child)
+        # c x F = -(F @ skew(c)), p x f = -(f @ skew(p))
+        n_i = moments[i] + n_child - forces[i] @ chain.com_skew[i] - f_child @ p_next_skew
         torques[i] = n_i @ chain.joint_axis[i]  # Eq. 12
-        f_next, n_next, p_next, rot_next = f_i, n_i, chain.joint_translation[i], rotations[i]
+        f_next, n_next, p_next_skew, rot_next = f_i, n_i, chain.translation_skew[i], rotations[i]
     return xp.stack(torques, -1)
 
 
