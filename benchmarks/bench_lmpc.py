@@ -5,6 +5,11 @@ single-row path) in a closed loop on the paper's condition C1 and reports the pe
 the bare ``PolicyBundle.step`` time. Prints JSON.
 
     python benchmarks/bench_lmpc.py [--cycles 3000] [--bundles models/bundles]
+    python benchmarks/bench_lmpc.py --fallbacks      # + trust-region counters on the paper's 5 conditions
+
+``--fallbacks``: every law's LMPC on the paper's five conditions (5 s, nominal plant, the
+experiment's settings); per law and condition the cycles outside the trust box (torque = the
+feedback law's) and the cycles with a clamped residual (hil_runtime.bundle documents the rule).
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ def main() -> None:
     parser.add_argument("--cycles", type=int, default=3000)
     parser.add_argument("--bundles", type=Path, default=None)
     parser.add_argument("--laws", default="pd,pid,adrc,hinf,smc,mrac")
+    parser.add_argument("--fallbacks", action="store_true", help="also count trust-region fallbacks on the paper's conditions")
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
 
     from hil_runtime.bundle import PolicyBundle
@@ -60,11 +67,40 @@ def main() -> None:
             "bundle_step_us": {"median": float(np.median(bare_us)), "p99": float(np.percentile(bare_us, 99))},
             "graph_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"]),
         }  # fmt: skip
+    if args.fallbacks:
+        out["trust_region"] = trust_counts(args.laws.split(","), args.bundles)
     import onnxruntime
 
     out["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "python": platform.python_version(), "onnxruntime": onnxruntime.__version__}  # fmt: skip
     print(json.dumps(out, indent=2))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=2))
+
+
+def trust_counts(laws: list[str], bundles: Path | None) -> dict:
+    """Per law: fallback and clamp cycles of the LMPC on each of the paper's five conditions."""
+    from models.conditions import load_conditions
+    from models.feedback import make_law
+    from models.lmpc import make_lmpc_controller
+    from models.robots import load_robot
+    from models.sim import SimConfig, simulate
+
+    robot = load_robot("ur5_paper")
+    conditions = load_conditions()
+    sim = SimConfig()
+    out = {}
+    for law_name in laws:
+        controller = make_lmpc_controller(make_law(law_name, robot, sim.dt_s), robot, bundle_dir=bundles)
+        with np.errstate(all="ignore"):
+            traj = simulate(robot, controller, conditions, sim)
+        counts = controller.trust_counters()
+        out[law_name] = {"cycles_per_run": counts["cycles"],
+                         "fallback_cycles": dict(zip([c.name for c in conditions], counts["fallback_cycles"], strict=True)),
+                         "clamped_cycles": dict(zip([c.name for c in conditions], counts["clamped_cycles"], strict=True)),
+                         "within_limits": [bool(v) for v in traj.within_limits]}  # fmt: skip
+    return out
 
 
 def _nodes(path: Path) -> int:

@@ -4,10 +4,24 @@ A bundle is a directory written by ``models.lmpc.bundle_export`` (ARCHITECTURE.m
 
     <bundle>/manifest.json   schema, robot + URDF sha256, joints, period, limits, law, layout,
                              training provenance, validation error, sha256 of every file
-    <bundle>/policy.onnx     one fused graph: x (B, 5N+S) -> y (B, 2N+S), float64
+    <bundle>/policy.onnx     one fused graph: x (B, 5N+S) -> y (B, 2N+S+2), float64
                              x = [q, qd, q_d, qd_d, qdd_d, law_state]
-                             y = [tau, tau_fb, next_law_state]   (tau: emulator, saturated;
-                                 next_law_state already records tau as the applied torque)
+                             y = [tau, tau_fb, next_law_state, trust]
+                                 tau: the LMPC torque after the trust region, saturated;
+                                 next_law_state already records tau as the applied torque;
+                                 trust = [fallback (1 - alpha, 0..1), joints_clamped (0..N)]
+
+Trust region (schema 2, manifest field ``trust_region``; the rule the runtime's safety supervisor
+uses, applied inside the graph and reproduced in numpy by ``trust_filter``)::
+
+    g = guard features (trust_region.features, GUARD_FEATURES: the full state (q, e, qd, e_dot,
+        qdd_d, tau_fb), whatever the emulator's own inputs), r = emulator output
+    residual target: tau_L = tau_fb + r;  absolute target: r = tau_L_raw - tau_fb
+    d     = max_j max(low_j - g_j, g_j - high_j, 0) / (high_j - low_j)    how far outside the box
+    alpha = clip(1 - d / m, 0, 1),  m = box_margin     (1 inside the box, 0 beyond the margin)
+    tau   = sat(tau_fb + alpha clip(r, -bound, bound))  (bound: residual_bound_nm)
+    alpha = 0 is a full fallback to the feedback law; 0 < alpha < 1 a blend (continuous in the
+    state, so the switch itself does not excite the arm).
 
 ``PolicyBundle.load`` refuses, with a one-line ``BundleError`` (exit code 2), a bundle whose
 manifest is missing or unreadable, whose schema is unknown, whose files are missing or fail their
@@ -32,11 +46,16 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA = "hil-policy-bundle/1"
+SCHEMA = "hil-policy-bundle/2"
 SUPPORTED_SCHEMAS = (SCHEMA,)
 MANIFEST = "manifest.json"
 INPUT_LAYOUT = ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state")
-OUTPUT_LAYOUT = ("tau", "tau_fb", "next_law_state")
+OUTPUT_LAYOUT = ("tau", "tau_fb", "next_law_state", "trust")
+TRUST_SIZE = 2  # [fallback = 1 - alpha, joints_clamped]
+FEATURE_SETS = {"eq22": ("q", "e", "qd", "e_dot", "tau_fb"), "eq22+qdd_d": ("q", "e", "qd", "e_dot", "qdd_d", "tau_fb"),
+                "ref": ("q_d", "qd_d", "qdd_d")}
+GUARD_FEATURES = "eq22+qdd_d"  # what the trust box is over
+TRUST_MIN_SPAN = 1e-9
 
 
 class BundleError(ValueError):
@@ -135,10 +154,27 @@ class PolicyBundle:
             state_size = int(manifest["law"]["state_size"])
             torque = manifest["limits"]["torque_nm"]
             manifest["law"]["initial_state"]["constant"], manifest["law"]["initial_state"]["position_gain"]
+            feature_set = str(manifest["emulator"]["feature_set"])
+            bool(manifest["emulator"]["residual"])
+            trust = manifest["trust_region"]
         except (KeyError, TypeError, ValueError) as exc:
             raise BundleError(f"bundle {manifest_path}: missing or malformed field {exc}") from None
         if len(joint_names) != n_joints or len(torque) != n_joints:
             raise BundleError(f"bundle {manifest_path}: n_joints {n_joints} disagrees with joint_names/limits")
+        if feature_set not in FEATURE_SETS:
+            raise BundleError(f"bundle {manifest_path}: unknown emulator feature_set {feature_set!r} (known: {', '.join(FEATURE_SETS)})")
+        if trust is not None:
+            width = len(FEATURE_SETS[GUARD_FEATURES]) * n_joints
+            try:
+                low, high = np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float)
+                bound = trust["residual_bound_nm"]
+                ok = (low.shape == high.shape == (width,) and float(trust["box_margin"]) >= 0
+                      and (bound is None or np.asarray(bound, float).shape == (n_joints,)))  # fmt: skip
+            except (KeyError, TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise BundleError(f"bundle {manifest_path}: trust_region needs feature_low/high ({width}), box_margin >= 0, "
+                                  f"residual_bound_nm ({n_joints} or null)")  # fmt: skip
         for name, digest in sorted(files.items()):
             file = path / name
             if not file.is_file():
@@ -161,7 +197,7 @@ class PolicyBundle:
         outputs = _layout(graph["output"].get("layout"), OUTPUT_LAYOUT, f"bundle {manifest_path} graph output")
         sizes = {s.name: s.size for s in (*inputs, *outputs)}
         want = {"q": n, "qd": n, "q_d": n, "qd_d": n, "qdd_d": n, "law_state": state_size, "tau": n, "tau_fb": n,
-                "next_law_state": state_size}  # fmt: skip
+                "next_law_state": state_size, "trust": TRUST_SIZE}  # fmt: skip
         if sizes != want:
             raise BundleError(f"bundle {manifest_path}: layout sizes {sizes} do not fit {n} joints and state {state_size}")
         session = _open_session(path / graph_file, intra_op_threads)
@@ -203,21 +239,61 @@ class PolicyBundle:
         x[5 * n :] = law_state
         self.session.run_with_iobinding(self._binding)
         y = self._y[0]
-        return y[:n], y[n : 2 * n], y[2 * n :]
+        return y[:n], y[n : 2 * n], y[2 * n : 2 * n + self.state_size]
+
+    @property
+    def last_trust(self) -> np.ndarray:
+        """[fallback (1 - alpha), joints_clamped] of the last ``step`` (a view of the output row)."""
+        return self._y[0, 2 * self.n_joints + self.state_size :]
 
     def step_batch(self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray,
                    law_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-        """B arms at once ((B, N) arrays, law_state (B, S)): new arrays (tau, tau_fb, next_law_state)."""
+        """B arms at once ((B, N) arrays, law_state (B, S)): new arrays (tau, tau_fb, next_law_state).
+
+        ``last_trust_batch`` holds the (B, 2) trust output of the call.
+        """
         x = np.concatenate([np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1)
         y = self.session.run([self._output_name], {self._input_name: x})[0]
-        n = self.n_joints
-        return y[:, :n], y[:, n : 2 * n], y[:, 2 * n :]
+        n, s = self.n_joints, self.state_size
+        self.last_trust_batch = y[:, 2 * n + s :]
+        return y[:, :n], y[:, n : 2 * n], y[:, 2 * n : 2 * n + s]
 
     def describe(self) -> dict[str, Any]:
         """What telemetry's bundle-info queryable publishes."""
         return {"path": str(self.path), "schema": self.manifest["schema"], "law": self.law_name,
                 "robot": self.manifest["robot"]["name"], "n_joints": self.n_joints, "period_s": self.period_s,
-                "files": self.manifest["files"], "validation": self.manifest.get("validation", {})}  # fmt: skip
+                "files": self.manifest["files"], "validation": self.manifest.get("validation", {}),
+                "trust_region": self.manifest.get("trust_region")}  # fmt: skip
+
+
+def emulator_features(feature_set: str, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,
+                      qdd_d: np.ndarray, tau_fb: np.ndarray) -> np.ndarray:  # fmt: skip
+    """The emulator input s of ``feature_set`` (FEATURE_SETS), last axis."""
+    parts = {"q": q, "e": q_d - q, "qd": qd, "e_dot": qd_d - qd, "q_d": q_d, "qd_d": qd_d, "qdd_d": qdd_d, "tau_fb": tau_fb}
+    return np.concatenate([np.asarray(parts[k], float) for k in FEATURE_SETS[feature_set]], axis=-1)
+
+
+def trust_filter(manifest: dict[str, Any], s: np.ndarray, r: np.ndarray, tau_fb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The trust-region rule (module docstring) in numpy: (tau (B, N), trust (B, 2)) from the guard
+    features s (B, F) (``emulator_features(GUARD_FEATURES, ...)``), the emulator's residual r (B, N)
+    (tau_L_raw - tau_fb for an absolute-target emulator) and tau_fb (B, N). The graph applies the
+    same rule; the safety supervisor can re-check with it."""
+    limit = np.asarray(manifest["limits"]["torque_nm"], float)
+    s, r, tau_fb = np.atleast_2d(s), np.atleast_2d(r), np.atleast_2d(tau_fb)
+    trust = manifest.get("trust_region")
+    alpha = np.ones(s.shape[0])
+    clamped = np.zeros(s.shape[0])
+    if trust is not None:
+        low, high = np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float)
+        span = np.maximum(high - low, TRUST_MIN_SPAN)
+        d = np.max(np.maximum(np.maximum(low - s, s - high), 0.0) / span, axis=1)
+        alpha = np.clip(1.0 - d / max(float(trust["box_margin"]), 1e-12), 0.0, 1.0)
+        if trust.get("residual_bound_nm") is not None:
+            bound = np.asarray(trust["residual_bound_nm"], float)
+            clamped = np.sum(np.abs(r) > bound, axis=1).astype(float)
+            r = np.clip(r, -bound, bound)
+    tau = np.clip(tau_fb + alpha[:, None] * r, -limit, limit)
+    return tau, np.stack([1.0 - alpha, np.where(alpha > 0, clamped, 0.0)], 1)
 
 
 def _open_session(file: Path, intra_op_threads: int) -> Any:

@@ -2,9 +2,14 @@
 
     x (B, 5N+S) = [q, qd, q_d, qd_d, qdd_d, law_state]           float64
     tau_fb, law_state' = law.step(torch, law_state, q, qd, q_d, qd_d, qdd_d)
-    tau = sat(emulator(q, q_d - q, qd, qd_d - qd, tau_fb))        normalization inside the graph
+    s = (q, q_d - q, qd, qd_d - qd, [qdd_d,] tau_fb)              feature set "eq22" or "eq22+qdd_d"
+    r = emulator(s)                                               normalization inside the graph;
+                                                                  residual target: r ~ tau* - tau_fb
+    tau = trust region (hil_runtime.bundle): sat(tau_fb) outside the training box (of the guard
+          features (q, e, qd, e_dot, qdd_d, tau_fb), whatever the emulator's inputs),
+          else sat(tau_fb + clip(r, -bound, bound))
     law_state'[applied_torque_slice] = tau                        (ADRC's observer input)
-    y (B, 2N+S) = [tau, tau_fb, law_state']
+    y (B, 2N+S+2) = [tau, tau_fb, law_state', trust]              trust = [1 - alpha, joints_clamped]
 
 The manifest (hil_runtime.bundle documents the schema) carries everything the runtime checks, and
 the provenance of the training. ``verify_bundle`` checks onnxruntime against torch (<= 1e-5 N m).
@@ -23,7 +28,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from hil_runtime.bundle import INPUT_LAYOUT, MANIFEST, OUTPUT_LAYOUT, SCHEMA, PolicyBundle, sha256_file
+from hil_runtime.bundle import (FEATURE_SETS, GUARD_FEATURES, INPUT_LAYOUT, MANIFEST, OUTPUT_LAYOUT, SCHEMA, TRUST_MIN_SPAN,
+                                TRUST_SIZE, PolicyBundle,
+                                sha256_file)  # fmt: skip
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.lmpc.emulator import Emulator
@@ -37,8 +44,28 @@ PARITY_TOLERANCE_NM = 1e-5
 class FusedPolicy(nn.Module):
     """Law step + emulator + saturation + applied-torque bookkeeping, one packed row in and out."""
 
-    def __init__(self, law: FeedbackLaw, emulator: Emulator) -> None:
+    def __init__(self, law: FeedbackLaw, emulator: Emulator, residual: bool = False,
+                 trust: dict[str, Any] | None = None, feature_set: str | None = None) -> None:  # fmt: skip
         super().__init__()
+        n_features = emulator.in_mean.numel()
+        if feature_set is None:  # by width: the paper's Eq. 22 (5N) or Eq. 22 + qdd_d (6N)
+            feature_set = {5 * law.n_joints: "eq22", 6 * law.n_joints: "eq22+qdd_d"}.get(n_features, "?")
+        if feature_set not in FEATURE_SETS or len(FEATURE_SETS[feature_set]) * law.n_joints != n_features:
+            raise ModelInputError(f"bundle export: emulator takes {n_features} inputs, feature set {feature_set!r} does not fit")
+        self.feature_set = feature_set
+        self.residual = residual
+        width = len(FEATURE_SETS[GUARD_FEATURES]) * law.n_joints
+        box = trust is not None
+        low = np.asarray(trust["feature_low"], float) if box else np.full(width, -1e300)
+        high = np.asarray(trust["feature_high"], float) if box else np.full(width, 1e300)
+        margin = float(trust["box_margin"]) if box else 1.0
+        bound = trust.get("residual_bound_nm") if box else None
+        self.register_buffer("box_low", torch.as_tensor(low, dtype=torch.float64))
+        self.register_buffer("box_high", torch.as_tensor(high, dtype=torch.float64))
+        self.register_buffer("box_inv_span", torch.as_tensor(1.0 / np.maximum(high - low, TRUST_MIN_SPAN), dtype=torch.float64))
+        self.inv_margin = 1.0 / max(margin, 1e-12)
+        self.register_buffer("bound", torch.as_tensor(np.full(law.n_joints, 1e300) if bound is None else np.asarray(bound, float),
+                                                      dtype=torch.float64))  # fmt: skip
         if hasattr(law, "nominal"):  # H-infinity, SMC: trace the compact RNEIDA (same equations, ~10x fewer nodes)
             import copy
 
@@ -57,12 +84,21 @@ class FusedPolicy(nn.Module):
         q, qd, q_d, qd_d, qdd_d = (x[:, i * n : (i + 1) * n] for i in range(5))
         state = x[:, 5 * n : 5 * n + self.s]
         tau_fb, next_state = self.law.step(torch, state, q, qd, q_d, qd_d, qdd_d)
-        s = torch.cat([q, q_d - q, qd, qd_d - qd, tau_fb], 1)
-        tau = torch.minimum(torch.maximum(self.emulator(s), -self.limit), self.limit)
+        named = {"q": q, "e": q_d - q, "qd": qd, "e_dot": qd_d - qd, "q_d": q_d, "qd_d": qd_d, "qdd_d": qdd_d, "tau_fb": tau_fb}
+        s = torch.cat([named[k] for k in FEATURE_SETS[self.feature_set]], 1)
+        guard = torch.cat([named[k] for k in FEATURE_SETS[GUARD_FEATURES]], 1)
+        r = self.emulator(s)
+        if not self.residual:
+            r = r - tau_fb
+        excess = torch.clamp(torch.maximum(self.box_low - guard, guard - self.box_high), min=0.0) * self.box_inv_span
+        alpha = torch.clamp(1.0 - torch.amax(excess, 1, keepdim=True) * self.inv_margin, 0.0, 1.0)
+        clamped = torch.sum((torch.abs(r) > self.bound).to(torch.float64), 1, keepdim=True) * (alpha > 0).to(torch.float64)
+        r = torch.minimum(torch.maximum(r, -self.bound), self.bound)
+        tau = torch.minimum(torch.maximum(tau_fb + alpha * r, -self.limit), self.limit)
         if self.applied is not None:
             a, b = self.applied.start, self.applied.stop
             next_state = torch.cat([next_state[:, :a], tau, next_state[:, b:]], 1)
-        parts = [tau, tau_fb] + ([next_state] if self.s else [])
+        parts = [tau, tau_fb] + ([next_state] if self.s else []) + [1.0 - alpha, clamped]
         return torch.cat(parts, 1)
 
 
@@ -80,15 +116,31 @@ def initial_state_map(law: FeedbackLaw) -> tuple[np.ndarray, np.ndarray]:
 def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: Emulator,
                   training: dict[str, Any], validation: dict[str, Any],
                   trust_region: tuple[np.ndarray, np.ndarray] | None = None,
-                  parity_inputs: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
-    """Write the bundle directory (atomically: a temporary sibling renamed at the end); return the manifest."""
+                  parity_inputs: np.ndarray | None = None, residual: bool = False,
+                  residual_bound_nm: np.ndarray | None = None, box_margin: float = 0.1,
+                  feature_set: str | None = None) -> dict[str, Any]:  # fmt: skip
+    """Write the bundle directory (atomically: a temporary sibling renamed at the end); return the manifest.
+
+    ``residual``: the emulator predicts tau* - tau_fb (its zero is the feedback law). ``trust_region``
+    (feature box of the training inputs), ``residual_bound_nm`` and ``box_margin``: the trust region
+    applied in the graph and written to the manifest (hil_runtime.bundle documents the rule).
+    """
     n, s = law.n_joints, law.state_size
     out_dir = Path(out_dir)
     tmp = out_dir.with_name(f".{out_dir.name}.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        model = FusedPolicy(law, emulator).eval()
+        trust = None if trust_region is None else {
+            "features": GUARD_FEATURES, "feature_names": list(FEATURE_SETS[GUARD_FEATURES]),
+            "feature_low": np.asarray(trust_region[0], float).tolist(), "feature_high": np.asarray(trust_region[1], float).tolist(),
+            "box_margin": float(box_margin),
+            "residual_bound_nm": None if residual_bound_nm is None else np.asarray(residual_bound_nm, float).tolist(),
+            "rule": "d = max_j max(low_j - g_j, g_j - high_j, 0) / (high_j - low_j); alpha = clip(1 - d / box_margin, 0, 1); "
+                    "tau = sat(tau_fb + alpha clip(tau_L - tau_fb, -residual_bound_nm, residual_bound_nm)); "
+                    "alpha = 0: fallback to the feedback law (hil_runtime.bundle)",
+            "bound_source": "per-joint percentile of |tau* - tau_fb| over the training labels (training.trust)"}  # fmt: skip
+        model = FusedPolicy(law, emulator, residual, trust, feature_set).eval()
         example = torch.zeros(2, 5 * n + s, dtype=torch.float64)
         import warnings
 
@@ -110,12 +162,16 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
                     "initial_state": {"constant": constant.tolist(), "position_gain": gain.tolist()}},
             "graph": {"file": GRAPH_FILE, "opset": OPSET, "dtype": "float64",
                       "input": {"name": "x", "layout": [{"name": k, "size": n if k != "law_state" else s} for k in INPUT_LAYOUT]},
-                      "output": {"name": "y", "layout": [{"name": k, "size": n if k != "next_law_state" else s} for k in OUTPUT_LAYOUT]},
-                      "fused": "law step + emulator (normalization inside) + saturation + applied-torque state update"},
-            "emulator": {"features": "s = (q, e, qd, e_dot, tau_fb), e = q_d - q (Eq. 22)", "target": "HMPC torque tau* (N m)",
+                      "output": {"name": "y", "layout": [{"name": k, "size": {"next_law_state": s, "trust": TRUST_SIZE}.get(k, n)}
+                                                         for k in OUTPUT_LAYOUT]},
+                      "fused": "law step + emulator (normalization inside) + trust region + saturation + applied-torque state update"},
+            "emulator": {"feature_set": model.feature_set, "features": list(FEATURE_SETS[model.feature_set]),
+                         "features_note": "e = q_d - q, e_dot = qd_d - qd; (q, e, qd, e_dot, tau_fb) is the paper's Eq. 22; "
+                                          "'ref' = the reference only (docs/lmpc.md)",
+                         "residual": bool(residual),
+                         "target": "tau* - tau_fb (N m): the network's zero is the feedback law" if residual else "HMPC torque tau* (N m)",
                          "hidden": list(emulator_hidden(emulator)), "activation": "relu", "output": "linear"},
-            "trust_region": None if trust_region is None else {"feature_low": trust_region[0].tolist(),
-                                                              "feature_high": trust_region[1].tolist()},
+            "trust_region": trust,
             "training": _jsonable(training),
             "validation": _jsonable(validation),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -148,8 +204,9 @@ def verify_bundle(bundle_dir: Path, model: FusedPolicy, inputs: np.ndarray | Non
         expected = model(torch.as_tensor(inputs, dtype=torch.float64)).numpy()
     n = bundle.n_joints
     tau, tau_fb, state = bundle.step_batch(*(inputs[:, i * n : (i + 1) * n] for i in range(5)), inputs[:, 5 * n :])
-    got = np.concatenate([tau, tau_fb, state], 1)
-    single = np.concatenate(bundle.step(*(inputs[0, i * n : (i + 1) * n] for i in range(5)), inputs[0, 5 * n :]))
+    got = np.concatenate([tau, tau_fb, state, bundle.last_trust_batch], 1)
+    single = np.concatenate([*bundle.step(*(inputs[0, i * n : (i + 1) * n] for i in range(5)), inputs[0, 5 * n :]),
+                             bundle.last_trust])  # fmt: skip
     error = float(max(np.abs(got - expected).max(), np.abs(single - expected[0]).max()))
     if not error <= PARITY_TOLERANCE_NM:
         raise ModelInputError(f"bundle {bundle_dir}: onnxruntime differs from torch by {error:.3g} (> {PARITY_TOLERANCE_NM})")

@@ -26,7 +26,8 @@ def pipeline(
     epochs: Annotated[int, typer.Option(help="Max training epochs.")] = 150,
     workers: Annotated[Optional[int], typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
     lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
-    rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 2,
+    rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 16,
+    dagger_rounds: Annotated[int, typer.Option(help="DAgger rounds in the augment stage.")] = 0,
     force_dataset: Annotated[bool, typer.Option("--force-dataset", help="Regenerate raw.h5 even if present.")] = False,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
@@ -54,7 +55,7 @@ def pipeline(
         dataset=replace(base.dataset, laws=law_list, conditions=conditions, seed=seed, duration_s=duration),
         budget=budget, pool_conditions=max(1, int(round(0.9 * conditions))),
         test_per_law=min(base.test_per_law, max(10, budget // (5 * len(law_list)))),
-        train=replace(base.train, max_epochs=epochs), workers=workers, rollout_conditions=rollouts,
+        train=replace(base.train, max_epochs=epochs), workers=workers, rollout_conditions=rollouts, dagger_rounds=dagger_rounds,
         dagger_conditions=min(base.dagger_conditions, max(1, int(round(0.9 * conditions)))),
         lipschitz_delta="estimate" if lipschitz == "estimate" else (0.0, 0.0, 0.0),
     )  # fmt: skip

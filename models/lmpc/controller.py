@@ -46,10 +46,23 @@ class LMPCController:
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None
         self.state = np.zeros((1, bundle.state_size))
+        self.fallbacks = np.zeros(1, np.int64)  # per arm: cycles of full fallback (alpha = 0: tau = sat(tau_fb))
+        self.blended = np.zeros(1, np.int64)  # per arm: cycles with 0 < alpha < 1 (near the box edge)
+        self.clamped = np.zeros(1, np.int64)  # per arm: cycles with >= 1 joint's residual clamped to the bound
+        self.cycles = 0
 
     def reset(self, q0: np.ndarray) -> None:
         self.state = np.atleast_2d(self.bundle.initial_state(np.atleast_2d(np.asarray(q0, float))))
         self.cycle_times_s = []
+        self.fallbacks = np.zeros(self.state.shape[0], np.int64)
+        self.blended = np.zeros(self.state.shape[0], np.int64)
+        self.clamped = np.zeros(self.state.shape[0], np.int64)
+        self.cycles = 0
+
+    def trust_counters(self) -> dict[str, object]:
+        """Trust-region counters since the last reset (per arm): what the runtime's supervisor counts."""
+        return {"cycles": self.cycles, "fallback_cycles": self.fallbacks.tolist(), "blended_cycles": self.blended.tolist(),
+                "clamped_cycles": self.clamped.tolist()}
 
     def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         start = time.perf_counter()
@@ -57,8 +70,21 @@ class LMPCController:
             tau, tau_fb, state = self.bundle.step(q[0], qd[0], q_d[0], qd_d[0], qdd_d[0], self.state[0])
             self.state[0] = state
             tau, tau_fb = tau[None].copy(), tau_fb[None].copy()
+            fallback, clamped = self.bundle.last_trust
+            if fallback > 0.0:
+                if fallback >= 1.0:
+                    self.fallbacks[0] += 1
+                else:
+                    self.blended[0] += 1
+            if clamped > 0.5:
+                self.clamped[0] += 1
         else:
             tau, tau_fb, self.state = self.bundle.step_batch(q, qd, q_d, qd_d, qdd_d, self.state)
+            trust = self.bundle.last_trust_batch
+            self.fallbacks += trust[:, 0] >= 1.0
+            self.blended += (trust[:, 0] > 0.0) & (trust[:, 0] < 1.0)
+            self.clamped += trust[:, 1] > 0.5
+        self.cycles += 1
         self.cycle_times_s.append(time.perf_counter() - start)
         self.last_tau_fb = tau_fb
         return tau

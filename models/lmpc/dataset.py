@@ -195,9 +195,14 @@ class RawLaw:
     def take(self, index: np.ndarray) -> RawLaw:
         return RawLaw(*(getattr(self, k)[index] for k in ARRAYS))
 
-    def features(self) -> np.ndarray:
-        """s = (q, e, qd, e_dot, tau_fb) (Eq. 22), (M, 5N); e = q_d - q."""
-        return features(self.q, self.qd, self.q_d, self.qd_d, self.tau_fb)
+    def features(self, feature_set: str = "eq22") -> np.ndarray:
+        """s = (q, e, qd, e_dot, tau_fb) (Eq. 22), (M, 5N); e = q_d - q. ``feature_set="eq22+qdd_d"``:
+        (q, e, qd, e_dot, qdd_d, tau_fb), (M, 6N) (hil_runtime.bundle.FEATURE_SETS)."""
+        if feature_set == "eq22":
+            return features(self.q, self.qd, self.q_d, self.qd_d, self.tau_fb)
+        from hil_runtime.bundle import emulator_features
+
+        return emulator_features(feature_set, self.q, self.qd, self.q_d, self.qd_d, self.qdd_d, self.tau_fb)
 
 
 def features(q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, tau_fb: np.ndarray) -> np.ndarray:

@@ -32,6 +32,7 @@ class TrainConfig:
     validation_fraction: float = 0.15
     seed: int = 0
     threads: int = 1
+    center_targets: bool = True  # False for a residual target (tau* - tau_fb): out_mean = 0, RMS scale
 
     def __post_init__(self) -> None:
         if not self.hidden or any(h < 1 for h in self.hidden):
@@ -57,12 +58,18 @@ class Emulator(nn.Module):
         for name, size in (("in_mean", n_inputs), ("in_std", n_inputs), ("out_mean", n_outputs), ("out_std", n_outputs)):
             self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
 
-    def set_normalization(self, features: np.ndarray, targets: np.ndarray) -> None:
+    def set_normalization(self, features: np.ndarray, targets: np.ndarray, center_targets: bool = True) -> None:
+        """Standardize inputs; outputs too, or (``center_targets=False``, for a residual target whose
+        zero must stay the feedback law) scale them by their RMS with out_mean = 0."""
         dtype = self.in_mean.dtype
         self.in_mean.copy_(torch.as_tensor(features.mean(0), dtype=dtype))
         self.in_std.copy_(torch.as_tensor(np.maximum(features.std(0), 1e-6), dtype=dtype))
-        self.out_mean.copy_(torch.as_tensor(targets.mean(0), dtype=dtype))
-        self.out_std.copy_(torch.as_tensor(np.maximum(targets.std(0), 1e-6), dtype=dtype))
+        if center_targets:
+            self.out_mean.copy_(torch.as_tensor(targets.mean(0), dtype=dtype))
+            self.out_std.copy_(torch.as_tensor(np.maximum(targets.std(0), 1e-6), dtype=dtype))
+        else:
+            self.out_mean.zero_()
+            self.out_std.copy_(torch.as_tensor(np.maximum(np.sqrt(np.mean(targets**2, 0)), 1e-6), dtype=dtype))
 
     def normalized(self, s: torch.Tensor) -> torch.Tensor:
         return self.net((s - self.in_mean) / self.in_std)
@@ -113,7 +120,7 @@ def train_emulator(features: np.ndarray, targets: np.ndarray, config: TrainConfi
     val_idx, train_idx = order[:n_val], order[n_val:]
     model = Emulator(features.shape[1], targets.shape[1], config.hidden)
     norm_x, norm_y = normalization if normalization is not None else (features[train_idx], targets[train_idx])
-    model.set_normalization(norm_x, norm_y)
+    model.set_normalization(norm_x, norm_y, config.center_targets)
     x = torch.as_tensor(features, dtype=torch.float32)
     y = (torch.as_tensor(targets, dtype=torch.float32) - model.out_mean) / model.out_std
     x_train, y_train, x_val, y_val = x[train_idx], y[train_idx], x[val_idx], y[val_idx]

@@ -26,6 +26,7 @@ import numpy as np
 
 from models.errors import ModelInputError
 from models.feedback import make_law
+from hil_runtime.bundle import FEATURE_SETS, GUARD_FEATURES
 from models.lmpc.dataset import RawDatasetSpec, RawLaw, generate_raw_dataset, git_commit, load_raw_dataset
 from models.lmpc.emulator import TrainConfig, train_emulator
 from models.lmpc.executor import Executor, SerialExecutor
@@ -50,12 +51,23 @@ class PipelineConfig:
     seeds: tuple[int, ...] = (0, 1, 2)
     train: TrainConfig = TrainConfig()
     label_chunk: int = 2048  # states per progress update
-    # Beyond the paper (docs/lmpc.md): HMPC closed-loop rollouts + one DAgger round before export.
-    rollout_conditions: int = 2  # pool conditions run under the HMPC itself (0: skip the stage)
-    dagger_conditions: int = 20  # pool conditions run under the intermediate LMPC
-    dagger_states_per_law: int = 3000
-    augment_repeat: int = 4  # how many times the rollout and DAgger states are repeated in training
-    augment_epochs: int = 80
+    # Beyond the paper (docs/lmpc.md): the deployed emulators (augment stage): residual target,
+    # HMPC closed-loop rollouts + DAgger rounds, trust region.
+    rollout_conditions: int = 16  # pool conditions run under the HMPC itself (0: skip the stage)
+    rollout_duration_s: float = 3.0  # 0 .. 3 s: the start-up transient and the disturbance at 2 s
+    rollout_stride: int = 3
+    dagger_rounds: int = 0  # the shipped bundles: 0 (docs/lmpc.md); --dagger-rounds N
+    dagger_conditions: int = 24  # pool conditions (after the rollout ones) run under the intermediate LMPC
+    dagger_duration_s: float = 3.0
+    dagger_states_per_law: int = 4000
+    augment_repeat: int = 2  # base repeat of the on-policy (rollout, DAgger) samples in training
+    augment_epochs: int = 100
+    deploy_hidden: tuple[int, ...] = (128, 128)
+    feature_set: str = "ref"  # hil_runtime.bundle.FEATURE_SETS; "ref" = (q_d, qd_d, qdd_d), docs/lmpc.md
+    deploy_use_d_sample: bool = False  # also train the deployed emulator on D_sample (feedback-only states)
+    on_policy_max_error_rad: float = 0.0175  # on-policy samples kept where every |e_j| is below this (1 deg)
+    residual_percentile: float = 100.0  # trust region: per-joint bound on |tau_L - tau_fb|
+    box_margin: float = 0.5  # trust region: alpha fades from 1 at the box edge to 0 at this fraction of its range outside
     workers: int | None = None  # processes; None = one per CPU
 
     @property
@@ -283,21 +295,51 @@ def plot_sampling_curves(trained: dict[str, Any], laws: tuple[str, ...], path: P
 def _augmented_task(task: tuple) -> dict[str, Any]:
     law, x, y, train_config = task
     result = train_emulator(x, y, train_config)
-    return {"law": law, "summary": result.summary(), "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()},
-            "box": (x.min(0), x.max(0))}  # fmt: skip
+    return {"law": law, "summary": result.summary(), "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()}}
+
+
+def theorem2_repeats(t_s: np.ndarray, weights: np.ndarray, base: int) -> np.ndarray:
+    """Per-sample repeat counts that give each time region its Theorem 2 weight w_i* of the samples.
+
+    With A_i the region's share of the on-policy samples, a sample of region i is repeated
+    base * round((w_i / A_i) / min_j (w_j / A_j)) times (regions without samples are ignored).
+    """
+    region = region_index(t_s)
+    shares = np.array([(region == i).mean() for i in range(len(weights))])
+    ratio = np.where(shares > 0, np.asarray(weights, float) / np.maximum(shares, 1e-12), np.inf)
+    finite = np.isfinite(ratio)
+    per_region = base * np.maximum(1, np.round(np.where(finite, ratio, 1.0) / ratio[finite].min())).astype(int)
+    return np.where(region >= 0, per_region[np.clip(region, 0, None)], base)
+
+
+def _residual_set(feature_set: str, rows: Any, tau_star: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from hil_runtime.bundle import emulator_features
+
+    x = emulator_features(feature_set, rows["q"], rows["qd"], rows["q_d"], rows["qd_d"], rows["qdd_d"], rows["tau_fb"])
+    return x, np.asarray(tau_star, float) - np.asarray(rows["tau_fb"], float)
+
+
+def _rows(raw_law: RawLaw) -> dict[str, np.ndarray]:
+    return {k: getattr(raw_law, k) for k in ("t_s", "q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb", "law_state")}
 
 
 def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None,
                   hmpc_executor: Any = None) -> dict[str, Any]:  # fmt: skip
-    """HMPC rollouts, retrain, one DAgger round, retrain: the emulators the bundles ship."""
+    """The deployed emulators: residual target, on-policy data (HMPC rollouts + DAgger rounds), trust region.
+
+    1. HMPC closed-loop rollouts on ``rollout_conditions`` pool conditions (0 .. ``rollout_duration_s``,
+       the disturbance inside), labeled with the torque the HMPC applied (cached in
+       <work>/expert_rollouts.pkl with the settings that made them).
+    2. Training set = D_sample (Theorem 2) + the rollouts, the on-policy samples repeated per time
+       region so that the regions get the Theorem 2 weights (``theorem2_repeats``); target
+       tau* - tau_fb; features ``feature_set``.
+    3. ``dagger_rounds`` times: export, run the LMPC on ``dagger_conditions`` pool conditions, label
+       the visited in-limit states with the HMPC (cold solves), add them, retrain.
+    """
     import pickle
 
-    import torch
-
-    from models.lmpc.bundle_export import export_bundle
     from models.lmpc.dagger import lmpc_visited_states
-    from models.lmpc.dataset import features, make_conditions
-    from models.lmpc.emulator import Emulator
+    from models.lmpc.dataset import make_conditions
     from models.lmpc.expert_rollouts import hmpc_rollouts
     from models.sim import SimConfig
 
@@ -305,54 +347,121 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     robot = load_robot(spec.robot)
     raw = load_raw_dataset(work / "raw.h5", config.laws)
     _, labels = load_labels(work / "labels.h5")
-    conditions = make_conditions(spec, robot)[: config.pool_conditions]
+    pool = make_conditions(spec, robot)[: config.pool_conditions]
     sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
-    train_config = replace(config.train, max_epochs=config.augment_epochs, seed=config.seeds[0])
-    advance = _progress(progress, "augment: HMPC rollouts, DAgger round", 4)
-    rollouts = hmpc_rollouts(spec.robot, config.laws, spec.gain_set, conditions[: config.rollout_conditions], sim,
-                             stride=spec.stride, chunks=2, executor=executor)  # fmt: skip
+    train_config = replace(config.train, hidden=config.deploy_hidden, max_epochs=config.augment_epochs, seed=config.seeds[0],
+                           center_targets=False)  # fmt: skip
+    steps = 2 + 2 * config.dagger_rounds
+    advance = _progress(progress, "augment: HMPC rollouts, DAgger rounds, training", steps)
+    wall: dict[str, float] = {}
+    started = time.perf_counter()
+    key = {"robot": spec.robot, "laws": list(config.laws), "gain_set": spec.gain_set, "seed": spec.seed,
+           "conditions": config.rollout_conditions, "duration_s": config.rollout_duration_s, "stride": config.rollout_stride}  # fmt: skip
+    cache = work / "expert_rollouts.pkl"
+    rollouts = None
+    if cache.is_file():
+        with open(cache, "rb") as handle:
+            cached = pickle.load(handle)
+        if isinstance(cached, dict) and cached.get("key") == key:
+            rollouts, wall["rollouts_cached_s"] = cached["data"], cached["wall_s"]
+    if rollouts is None:
+        conditions = [replace(c, duration_s=config.rollout_duration_s) for c in pool[: config.rollout_conditions]]
+        rollouts = hmpc_rollouts(spec.robot, config.laws, spec.gain_set, conditions, sim, stride=config.rollout_stride,
+                                 chunks=max(2, config.workers or os.cpu_count() or 1), executor=executor)  # fmt: skip
+        wall["rollouts_s"] = round(time.perf_counter() - started, 1)
+        with open(cache, "wb") as handle:
+            pickle.dump({"key": key, "data": rollouts, "wall_s": wall["rollouts_s"]}, handle)
     advance(1)
-    base = {}
-    for law in config.laws:
-        idx = labels[law].sets["optimal"]
-        r = rollouts[law]
-        x_roll = features(r["q"], r["qd"], r["q_d"], r["qd_d"], r["tau_fb"])
-        base[law] = ([raw.laws[law].features()[idx]] + [x_roll] * config.augment_repeat,
-                     [labels[law].targets(idx)] + [r["tau_star"]] * config.augment_repeat)  # fmt: skip
+    fs = config.feature_set
+    data: dict[str, tuple[list, list]] = {}
+    kept: dict[str, Any] = {}
 
-    def train_and_export(parts: dict[str, tuple[list, list]], out: Path | None) -> dict[str, Any]:
+    guards: dict[str, list[np.ndarray]] = {}
+
+    def on_policy(rows: dict[str, np.ndarray], tau: np.ndarray, law: str) -> tuple[np.ndarray, np.ndarray, int]:
+        keep = np.all(np.abs(rows["q_d"] - rows["q"]) <= config.on_policy_max_error_rad, 1)
+        kept_rows = {k: v[keep] for k, v in rows.items()}
+        x, y = _residual_set(fs, kept_rows, np.asarray(tau)[keep])
+        guards.setdefault(law, []).append(_residual_set(GUARD_FEATURES, kept_rows, np.asarray(tau)[keep])[0])
+        rep = theorem2_repeats(rows["t_s"][keep], labels[law].theorem2["weights"], config.augment_repeat)
+        return np.repeat(x, rep, 0), np.repeat(y, rep, 0), int(keep.sum())
+
+    for law in config.laws:
+        x1, y1, kept[law] = on_policy(rollouts[law], rollouts[law]["tau_star"], law)
+        data[law] = ([x1], [y1])
+        if config.deploy_use_d_sample:
+            idx = labels[law].sets["optimal"]
+            x0, y0 = _residual_set(fs, _rows(raw.laws[law].take(idx)), labels[law].targets(idx))
+            data[law][0].append(x0)
+            data[law][1].append(y0)
+
+    def train(parts: dict[str, tuple[list, list]]) -> dict[str, Any]:
         tasks = [(law, np.concatenate(parts[law][0]), np.concatenate(parts[law][1]), train_config) for law in config.laws]
         results = {r["law"]: r for r in executor.map(_augmented_task, tasks)}
-        if out is not None:
-            for law, r in results.items():
-                emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
-                emulator.load_state_dict({k: torch.as_tensor(v) for k, v in r["state_dict"].items()})
-                export_bundle(out / robot.name / law, make_law(law, robot, spec.dt_s, spec.gain_set), robot, emulator,
-                              {"gain_set": spec.gain_set, "stage": "intermediate (rollouts)"}, {}, trust_region=r["box"])  # fmt: skip
+        for law, r in results.items():
+            y, g = np.concatenate(parts[law][1]), np.concatenate(guards[law])
+            r["box"] = (g.min(0), g.max(0))  # trust box: the guard features of the on-policy states
+            r["samples"] = int(y.shape[0])
+            r["residual_bound_nm"] = np.percentile(np.abs(y), config.residual_percentile, axis=0)
         return results
 
-    train_and_export(base, work / "bundles_rollouts")
+    def export(results: dict[str, Any], out: Path) -> None:
+        for law, r in results.items():
+            _export_deployed(config, robot, law, r, out / robot.name / law, {"stage": "intermediate (DAgger)"}, {})
+
+    results = train(data)
     advance(1)
-    visited = lmpc_visited_states(work / "bundles_rollouts", robot, config.laws, conditions[: config.dagger_conditions], sim,
-                                  spec.stride, spec.gain_set)  # fmt: skip
     rng = np.random.default_rng(config.seeds[0])
-    dagger_counts = {}
-    for law in config.laws:
-        rows = visited[law]
-        if len(rows) > config.dagger_states_per_law:
-            rows = rows.take(np.sort(rng.choice(len(rows), config.dagger_states_per_law, replace=False)))
-        dagger_counts[law] = {"visited_in_limits": len(visited[law]), "labeled": len(rows)}
-        if len(rows):
-            tau, _ = hmpc_labeler(make_law(law, robot, spec.dt_s, spec.gain_set), robot, rows, hmpc_executor)
-            base[law][0].extend([rows.features()] * config.augment_repeat)
-            base[law][1].extend([np.asarray(tau, float)] * config.augment_repeat)
-    advance(1)
-    final = train_and_export(base, None)
-    advance(1)
+    dagger_counts: list[dict[str, Any]] = []
+    for round_ in range(config.dagger_rounds):
+        out = work / f"bundles_dagger{round_}"
+        export(results, out)
+        conditions = [replace(c, duration_s=config.dagger_duration_s)
+                      for c in pool[config.rollout_conditions : config.rollout_conditions + config.dagger_conditions]]  # fmt: skip
+        visited = lmpc_visited_states(out, robot, config.laws, conditions, sim, spec.stride, spec.gain_set)
+        advance(1)
+        counts = {}
+        for law in config.laws:
+            rows = visited[law]
+            if len(rows) > config.dagger_states_per_law:
+                rows = rows.take(np.sort(rng.choice(len(rows), config.dagger_states_per_law, replace=False)))
+            counts[law] = {"visited_in_limits": len(visited[law]), "labeled": len(rows)}
+            if len(rows):
+                tau, _ = hmpc_labeler(make_law(law, robot, spec.dt_s, spec.gain_set), robot, rows, hmpc_executor)
+                x, y, counts[law]["kept"] = on_policy(_rows(rows), tau, law)
+                data[law][0].append(x)
+                data[law][1].append(y)
+        dagger_counts.append(counts)
+        results = train(data)
+        advance(1)
+    wall["total_s"] = round(time.perf_counter() - started, 1)
     with open(work / "augmented.pkl", "wb") as handle:
-        pickle.dump(final, handle)
-    return {"rollout_conditions": config.rollout_conditions, "rollout_states_per_law": {k: int(len(v["t_s"])) for k, v in rollouts.items()},
-            "dagger": dagger_counts, "val_mse": {law: r["summary"]["best_val_mse_normalized"] for law, r in final.items()}}  # fmt: skip
+        pickle.dump(results, handle)
+    return {"rollout_conditions": config.rollout_conditions, "rollout_duration_s": config.rollout_duration_s,
+            "rollout_states_per_law": {k: int(len(v["t_s"])) for k, v in rollouts.items()},
+            "rollout_states_kept": kept, "feature_set": fs,
+            "dagger": dagger_counts, "wall_s": wall, "samples": {law: r["samples"] for law, r in results.items()},
+            "val_mse": {law: r["summary"]["best_val_mse_normalized"] for law, r in results.items()},
+            "residual_bound_nm": {law: r["residual_bound_nm"].tolist() for law, r in results.items()}}  # fmt: skip
+
+
+def _export_deployed(config: PipelineConfig, robot: Any, law_name: str, result: dict[str, Any], out: Path,
+                     training: dict[str, Any], validation: dict[str, Any], parity_inputs: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
+    import torch
+
+    from models.lmpc.bundle_export import export_bundle
+    from models.lmpc.emulator import Emulator
+
+    spec = config.dataset
+    width = len(FEATURE_SETS[config.feature_set]) * robot.n_joints
+    emulator = Emulator(width, robot.n_joints, config.deploy_hidden)
+    emulator.load_state_dict({k: torch.as_tensor(v) for k, v in result["state_dict"].items()})
+    training = {"gain_set": spec.gain_set, **training, "trust": {"residual_percentile": config.residual_percentile,
+                "box": "min/max of the guard features over the on-policy training states", "box_margin": config.box_margin}}  # fmt: skip
+    return export_bundle(out, make_law(law_name, robot, spec.dt_s, spec.gain_set), robot, emulator, training, validation,
+                         trust_region=result["box"], parity_inputs=parity_inputs, residual=True,
+                         residual_bound_nm=result["residual_bound_nm"], box_margin=config.box_margin,
+                         feature_set=config.feature_set)  # fmt: skip
 
 
 # --- stage 4 ----------------------------------------------------------------------------------
@@ -379,10 +488,8 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
         if augmented is not None:
             run = {**run, "state_dict": augmented[law_name]["state_dict"], "augmented_summary": augmented[law_name]["summary"]}
         law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
-        emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
-        emulator.load_state_dict({k: torch.as_tensor(v) for k, v in run["state_dict"].items()})
         rows, lab = raw.laws[law_name], labels[law_name]
-        x_train = rows.features()[lab.sets[strategy]]
+        x_train = rows.features(GUARD_FEATURES)[lab.sets[strategy]]  # the trust box is over the guard features
         parity = rows.take(lab.sets["test"][:256])
         parity_x = np.concatenate([parity.q, parity.qd, parity.q_d, parity.qd_d, parity.qdd_d, parity.law_state], 1)
         training = {"dataset": {"file": "raw.h5", "spec": raw.manifest["spec"], "git_commit": raw.manifest["git_commit"],
@@ -392,13 +499,25 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
                     "sampling": {"strategy": strategy, "samples": int(lab.sets[strategy].size), "theorem2": lab.theorem2},
                     "emulator": run.get("augmented_summary", run["summary"]),
                     "augmentation": None if augmented is None else {"hmpc_rollout_conditions": config.rollout_conditions,
+                                    "rollout_duration_s": config.rollout_duration_s, "dagger_rounds": config.dagger_rounds,
                                     "dagger_conditions": config.dagger_conditions, "repeat": config.augment_repeat,
-                                    "note": "D_sample (Theorem 2) + HMPC closed-loop states + one DAgger round; docs/lmpc.md"},
+                                    "samples": augmented[law_name].get("samples"), "feature_set": config.feature_set,
+                                    "note": "D_sample (Theorem 2) + HMPC closed-loop states + DAgger rounds, residual target "
+                                            "tau* - tau_fb, Theorem 2 region weights on the on-policy samples; docs/lmpc.md"},
                     "seed": seed, "gain_set": config.dataset.gain_set, "git_commit": git_commit()}  # fmt: skip
         validation = {"val_mse_normalized": run["summary"]["best_val_mse_normalized"], "val_rmse_nm": run["summary"]["val_rmse_nm"],
                       "test_mse_normalized": run["test_mse"], "test_set": "uniform over held-out conditions"}  # fmt: skip
-        manifest = export_bundle(bundles / robot.name / law_name, law, robot, emulator, training, validation,
-                                 trust_region=(x_train.min(0), x_train.max(0)), parity_inputs=parity_x)  # fmt: skip
+        if augmented is not None:
+            validation["note"] = ("val/test MSE above: the paper-recipe emulator of the train stage; the deployed one's "
+                                  "validation is training.emulator (residual target, normalized by its RMS)")
+            manifest = _export_deployed(config, robot, law_name, augmented[law_name], bundles / robot.name / law_name,
+                                        {k: v for k, v in training.items() if k != "gain_set"}, validation, parity_x)  # fmt: skip
+        else:
+            emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
+            emulator.load_state_dict({k: torch.as_tensor(v) for k, v in run["state_dict"].items()})
+            manifest = export_bundle(bundles / robot.name / law_name, law, robot, emulator, training, validation,
+                                     trust_region=(x_train.min(0), x_train.max(0)), parity_inputs=parity_x,
+                                     box_margin=config.box_margin)  # fmt: skip
         out[law_name] = {"path": str(bundles / robot.name / law_name), "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"]}
     return out
 

@@ -38,6 +38,7 @@ def test_lmpc_with_a_feedback_emulator_reproduces_the_feedback_run(tmp_path, law
     c = simulate(robot, single, [condition], SimConfig())  # the runtime's single-row path
     np.testing.assert_allclose(c.q[0], b.q[0], atol=1e-9)
     assert len(single.cycle_times_s) == 300
+    assert single.trust_counters() == {"cycles": 300, "fallback_cycles": [0], "blended_cycles": [0], "clamped_cycles": [0]}
 
 
 def test_a_bundle_with_other_law_parameters_is_refused(tmp_path):
@@ -79,7 +80,7 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
 
 
 def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
-    """Beyond the paper: HMPC closed loop on one 5 s condition, one DAgger round (~15 s)."""
+    """Beyond the paper: HMPC closed loop on one 2.5 s condition, one DAgger round, residual + trust region."""
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.dataset import RawDatasetSpec
     from models.lmpc.executor import SerialExecutor
@@ -88,9 +89,15 @@ def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
     config = PipelineConfig(
         dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
         budget=90, pool_conditions=3, test_per_law=30, seeds=(0,), train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
-        label_chunk=128, workers=1, rollout_conditions=1, dagger_conditions=2, dagger_states_per_law=50, augment_epochs=3,
+        label_chunk=128, workers=1, rollout_conditions=1, rollout_duration_s=2.5, rollout_stride=25, dagger_rounds=1,
+        dagger_conditions=2, dagger_duration_s=0.5, dagger_states_per_law=50, augment_epochs=3, deploy_hidden=(16,),
+        on_policy_max_error_rad=10.0,
     )  # fmt: skip
     summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
     assert summary["augment"]["rollout_states_per_law"]["pd"] == 100
+    assert summary["augment"]["dagger"][0]["pd"]["labeled"] > 0
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd")
     assert bundle.manifest["training"]["augmentation"]["hmpc_rollout_conditions"] == 1
+    assert bundle.manifest["emulator"]["residual"] and bundle.manifest["emulator"]["feature_set"] == "ref"
+    trust = bundle.manifest["trust_region"]
+    assert len(trust["feature_low"]) == 36 and len(trust["residual_bound_nm"]) == 6

@@ -58,13 +58,13 @@ def test_onnxruntime_matches_torch_and_the_numpy_law(exported):
     tau, tau_fb, nxt = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, state)
     with torch.no_grad():
         expected = model(torch.as_tensor(np.concatenate([q, qd, q_d, qd_d, qdd_d, state], 1))).numpy()
-    np.testing.assert_allclose(np.concatenate([tau, tau_fb, nxt], 1), expected, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(np.concatenate([tau, tau_fb, nxt, bundle.last_trust_batch], 1), expected, atol=1e-5, rtol=0)
     fb_np, state_np = law.step(np, state, q, qd, q_d, qd_d, qdd_d)
     np.testing.assert_allclose(tau_fb, fb_np, atol=1e-9)
     np.testing.assert_allclose(nxt, law.with_applied_torque(state_np, tau), atol=1e-9)
     assert np.all(np.abs(tau) <= robot.torque_limit_nm + 1e-12)
     one = bundle.step(q[3], qd[3], q_d[3], qd_d[3], qdd_d[3], state[3])
-    np.testing.assert_allclose(np.concatenate(one), expected[3], atol=1e-5, rtol=0)
+    np.testing.assert_allclose(np.concatenate([*one, bundle.last_trust]), expected[3], atol=1e-5, rtol=0)
     np.testing.assert_allclose(bundle.initial_state(q[:2]), law.initial_state(q[:2]))
 
 
@@ -90,6 +90,50 @@ def test_refuses_an_unknown_schema(bundle_copy):
     manifest["schema"] = "hil-policy-bundle/99"
     (bundle_copy / "manifest.json").write_text(json.dumps(manifest))
     _refuse(bundle_copy, "unknown schema 'hil-policy-bundle/99'")
+
+
+def test_refuses_a_malformed_trust_region(bundle_copy):
+    manifest = json.loads((bundle_copy / "manifest.json").read_text())
+    manifest["trust_region"] = {"feature_low": [0.0], "feature_high": [1.0], "box_margin": 0.1, "residual_bound_nm": None}
+    (bundle_copy / "manifest.json").write_text(json.dumps(manifest))
+    _refuse(bundle_copy, "trust_region needs")
+
+
+def test_trust_region_in_the_graph_matches_the_numpy_rule_and_falls_back(tmp_path):
+    """Residual emulator + training box + residual bound: graph == hil_runtime.bundle.trust_filter;
+    outside the box tau = sat(tau_fb) and the fallback flag is set; large residuals are clamped."""
+    from hil_runtime.bundle import emulator_features, trust_filter
+    from models.feedback import make_law
+    from models.lmpc.bundle_export import export_bundle
+    from models.lmpc.emulator import Emulator
+    from models.robots import load_robot
+
+    robot = load_robot("ur5_paper")
+    law = make_law("pid", robot, 1e-3)
+    torch.manual_seed(1)
+    emulator = Emulator(36, 6, (16,))
+    emulator.out_std.fill_(30.0)  # residuals of tens of N m, some above the bound
+    box = (np.r_[np.full(30, -1.0), np.full(6, -1e3)], np.r_[np.full(30, 1.0), np.full(6, 1e3)])
+    bound = np.array([20.0, 20.0, 10.0, 5.0, 5.0, 5.0])
+    export_bundle(tmp_path / "pid", law, robot, emulator, {}, {}, trust_region=box, residual=True, residual_bound_nm=bound,
+                  box_margin=0.0)  # fmt: skip
+    bundle = PolicyBundle.load(tmp_path / "pid", expected_joints=6)
+    assert bundle.manifest["emulator"]["residual"] and bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
+    rng = np.random.default_rng(3)
+    q, qd, q_d, qd_d, qdd_d = (rng.uniform(-0.02, 0.02, size=(16, 6)) for _ in range(5))
+    q[8:, 0] = 1.5  # outside the box: fallback
+    state = law.initial_state(q)
+    tau, tau_fb, _ = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, state)
+    s = emulator_features("eq22+qdd_d", q, qd, q_d, qd_d, qdd_d, tau_fb)
+    with torch.no_grad():
+        r = emulator(torch.as_tensor(s)).numpy()
+    tau_np, trust_np = trust_filter(bundle.manifest, s, r, tau_fb)
+    np.testing.assert_allclose(tau, tau_np, atol=1e-9)
+    np.testing.assert_allclose(bundle.last_trust_batch, trust_np)
+    assert np.all(trust_np[8:, 0] == 1) and np.all(trust_np[:8, 0] == 0)
+    np.testing.assert_allclose(tau[8:], np.clip(tau_fb[8:], -robot.torque_limit_nm, robot.torque_limit_nm))
+    assert trust_np[:8, 1].sum() > 0  # some residuals clamped
+    assert np.all(np.abs(tau[:8] - tau_fb[:8]) <= bound + 1e-9)
 
 
 def test_refuses_a_joint_count_mismatch(bundle_copy):
