@@ -53,11 +53,12 @@ class PipelineConfig:
     label_chunk: int = 2048  # states per progress update
     # Beyond the paper (docs/lmpc.md): the deployed emulators (augment stage): residual target,
     # HMPC closed-loop rollouts + DAgger rounds, trust region.
-    rollout_conditions: int = 16  # pool conditions run under the HMPC itself (0: skip the stage)
+    rollout_conditions: int = 24  # pool conditions run under the HMPC itself (0: skip the stage)
     rollout_duration_s: float = 3.0  # 0 .. 3 s: the start-up transient and the disturbance at 2 s
     rollout_stride: int = 3
+    rollout_initial_state: str = "reference"  # start on the reference, as the paper's conditions do ("home": from zeros)
     dagger_rounds: int = 0  # the shipped bundles: 0 (docs/lmpc.md); --dagger-rounds N
-    dagger_conditions: int = 24  # pool conditions (after the rollout ones) run under the intermediate LMPC
+    dagger_conditions: int = 16  # pool conditions (after the rollout ones) run under the intermediate LMPC
     dagger_duration_s: float = 3.0
     dagger_states_per_law: int = 4000
     augment_repeat: int = 2  # base repeat of the on-policy (rollout, DAgger) samples in training
@@ -68,6 +69,10 @@ class PipelineConfig:
     on_policy_max_error_rad: float = 0.0175  # on-policy samples kept where every |e_j| is below this (1 deg)
     residual_percentile: float = 100.0  # trust region: per-joint bound on |tau_L - tau_fb|
     box_margin: float = 0.5  # trust region: alpha fades from 1 at the box edge to 0 at this fraction of its range outside
+    # per law, the margin is chosen among these by closed-loop runs on pool conditions (never the paper's)
+    margin_candidates: tuple[float, ...] = (0.5, 4.0, 32.0, 256.0)
+    selection_conditions: int = 6  # pool conditions after the rollout and DAgger ones
+    selection_duration_s: float = 3.0
     workers: int | None = None  # processes; None = one per CPU
 
     @property
@@ -356,7 +361,8 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     wall: dict[str, float] = {}
     started = time.perf_counter()
     key = {"robot": spec.robot, "laws": list(config.laws), "gain_set": spec.gain_set, "seed": spec.seed,
-           "conditions": config.rollout_conditions, "duration_s": config.rollout_duration_s, "stride": config.rollout_stride}  # fmt: skip
+           "conditions": config.rollout_conditions, "duration_s": config.rollout_duration_s, "stride": config.rollout_stride,
+           "initial_state": config.rollout_initial_state}  # fmt: skip
     cache = work / "expert_rollouts.pkl"
     rollouts = None
     if cache.is_file():
@@ -365,7 +371,8 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
         if isinstance(cached, dict) and cached.get("key") == key:
             rollouts, wall["rollouts_cached_s"] = cached["data"], cached["wall_s"]
     if rollouts is None:
-        conditions = [replace(c, duration_s=config.rollout_duration_s) for c in pool[: config.rollout_conditions]]
+        conditions = [replace(c, duration_s=config.rollout_duration_s, initial_state=config.rollout_initial_state)
+                      for c in pool[: config.rollout_conditions]]  # fmt: skip
         rollouts = hmpc_rollouts(spec.robot, config.laws, spec.gain_set, conditions, sim, stride=config.rollout_stride,
                                  chunks=max(2, config.workers or os.cpu_count() or 1), executor=executor)  # fmt: skip
         wall["rollouts_s"] = round(time.perf_counter() - started, 1)
@@ -416,7 +423,7 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     for round_ in range(config.dagger_rounds):
         out = work / f"bundles_dagger{round_}"
         export(results, out)
-        conditions = [replace(c, duration_s=config.dagger_duration_s)
+        conditions = [replace(c, duration_s=config.dagger_duration_s, initial_state=config.rollout_initial_state)
                       for c in pool[config.rollout_conditions : config.rollout_conditions + config.dagger_conditions]]  # fmt: skip
         visited = lmpc_visited_states(out, robot, config.laws, conditions, sim, spec.stride, spec.gain_set)
         advance(1)
@@ -434,15 +441,53 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
         dagger_counts.append(counts)
         results = train(data)
         advance(1)
+    selection = {}
+    if config.margin_candidates:
+        first = config.rollout_conditions + config.dagger_conditions
+        conditions = [replace(c, duration_s=config.selection_duration_s, initial_state=config.rollout_initial_state)
+                      for c in pool[first : first + config.selection_conditions]]  # fmt: skip
+        selection = select_margins(config, robot, results, conditions, sim, work / "bundles_select")
+        for law, r in results.items():
+            r["box_margin"] = selection[law]["chosen"]
     wall["total_s"] = round(time.perf_counter() - started, 1)
     with open(work / "augmented.pkl", "wb") as handle:
         pickle.dump(results, handle)
     return {"rollout_conditions": config.rollout_conditions, "rollout_duration_s": config.rollout_duration_s,
             "rollout_states_per_law": {k: int(len(v["t_s"])) for k, v in rollouts.items()},
             "rollout_states_kept": kept, "feature_set": fs,
-            "dagger": dagger_counts, "wall_s": wall, "samples": {law: r["samples"] for law, r in results.items()},
+            "dagger": dagger_counts, "wall_s": wall, "margin_selection": selection, "samples": {law: r["samples"] for law, r in results.items()},
             "val_mse": {law: r["summary"]["best_val_mse_normalized"] for law, r in results.items()},
             "residual_bound_nm": {law: r["residual_bound_nm"].tolist() for law, r in results.items()}}  # fmt: skip
+
+
+def select_margins(config: PipelineConfig, robot: Any, results: dict[str, Any], conditions: list, sim: Any,
+                   out: Path) -> dict[str, Any]:  # fmt: skip
+    """Per law, the trust-region margin with the lowest closed-loop tracking RMSE on ``conditions``
+    (pool conditions: never the paper's) among the candidates whose runs all stay finite and inside
+    the limits; the smallest candidate (mostly the feedback law) when none does better."""
+    from models.lmpc.controller import make_lmpc_controller
+    from models.sim import simulate
+
+    spec = config.dataset
+    table: dict[str, Any] = {law: {"candidates": {}} for law in results}
+    for i, margin in enumerate(config.margin_candidates):
+        for law, r in results.items():
+            path = out / f"m{i}" / robot.name / law
+            _export_deployed(replace(config, box_margin=margin), robot, law, r, path, {"stage": "margin selection"}, {})
+            controller = make_lmpc_controller(make_law(law, robot, spec.dt_s, spec.gain_set), robot, bundle_dir=path.parent.parent)
+            with np.errstate(all="ignore"):
+                traj = simulate(robot, controller, conditions, sim)
+            ok = bool(np.all(traj.finite) and np.all(traj.within_limits))
+            err = traj.q - traj.q_ref
+            rmse = float(np.sqrt(np.mean(err**2))) if ok else float("inf")
+            counts = controller.trust_counters()
+            table[law]["candidates"][str(margin)] = {"rmse_rad": rmse, "inside_limits": ok,
+                                                     "fallback_share": float(np.mean(counts["fallback_cycles"])) / max(1, counts["cycles"])}  # fmt: skip
+    for law, row in table.items():
+        scores = {float(m): c["rmse_rad"] for m, c in row["candidates"].items()}
+        best = min(scores, key=lambda m: (scores[m], m))
+        row["chosen"] = best if np.isfinite(scores[best]) else float(min(config.margin_candidates))
+    return table
 
 
 def _export_deployed(config: PipelineConfig, robot: Any, law_name: str, result: dict[str, Any], out: Path,
@@ -453,6 +498,8 @@ def _export_deployed(config: PipelineConfig, robot: Any, law_name: str, result: 
     from models.lmpc.emulator import Emulator
 
     spec = config.dataset
+    if "box_margin" in result:  # chosen per law by select_margins
+        config = replace(config, box_margin=result["box_margin"])
     width = len(FEATURE_SETS[config.feature_set]) * robot.n_joints
     emulator = Emulator(width, robot.n_joints, config.deploy_hidden)
     emulator.load_state_dict({k: torch.as_tensor(v) for k, v in result["state_dict"].items()})
