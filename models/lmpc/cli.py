@@ -26,7 +26,7 @@ def pipeline(
     epochs: Annotated[int, typer.Option(help="Max training epochs.")] = 150,
     workers: Annotated[Optional[int], typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
     lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
-    rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 24,
+    rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 60,
     dagger_rounds: Annotated[int, typer.Option(help="DAgger rounds in the augment stage.")] = 0,
     force_dataset: Annotated[bool, typer.Option("--force-dataset", help="Regenerate raw.h5 even if present.")] = False,
 ) -> None:

@@ -53,7 +53,7 @@ class PipelineConfig:
     label_chunk: int = 2048  # states per progress update
     # Beyond the paper (docs/lmpc.md): the deployed emulators (augment stage): residual target,
     # HMPC closed-loop rollouts + DAgger rounds, trust region.
-    rollout_conditions: int = 24  # pool conditions run under the HMPC itself (0: skip the stage)
+    rollout_conditions: int = 60  # pool conditions run under the HMPC itself (0: skip the stage)
     rollout_duration_s: float = 3.0  # 0 .. 3 s: the start-up transient and the disturbance at 2 s
     rollout_stride: int = 3
     rollout_initial_state: str = "reference"  # start on the reference, as the paper's conditions do ("home": from zeros)
@@ -69,8 +69,11 @@ class PipelineConfig:
     on_policy_max_error_rad: float = 0.0175  # on-policy samples kept where every |e_j| is below this (1 deg)
     residual_percentile: float = 100.0  # trust region: per-joint bound on |tau_L - tau_fb|
     box_margin: float = 0.5  # trust region: alpha fades from 1 at the box edge to 0 at this fraction of its range outside
-    # per law, the margin is chosen among these by closed-loop runs on pool conditions (never the paper's)
-    margin_candidates: tuple[float, ...] = (0.5, 4.0, 32.0, 256.0)
+    # per law, the trust region (box, margin) is chosen among these by closed-loop runs on pool
+    # conditions (never the paper's); box "on_policy": the on-policy training states, "labeled": those
+    # and every HMPC-labeled D_sample state (feedback-only states with errors of degrees)
+    trust_candidates: tuple[tuple[str, float], ...] = (("on_policy", 0.5), ("on_policy", 32.0), ("on_policy", 256.0),
+                                                       ("labeled", 0.1))
     selection_conditions: int = 6  # pool conditions after the rollout and DAgger ones
     selection_duration_s: float = 3.0
     workers: int | None = None  # processes; None = one per CPU
@@ -408,6 +411,8 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
         for law, r in results.items():
             y, g = np.concatenate(parts[law][1]), np.concatenate(guards[law])
             r["box"] = (g.min(0), g.max(0))  # trust box: the guard features of the on-policy states
+            gl = raw.laws[law].features(GUARD_FEATURES)[labels[law].sets["optimal"]]
+            r["box_labeled"] = (np.minimum(g.min(0), gl.min(0)), np.maximum(g.max(0), gl.max(0)))
             r["samples"] = int(y.shape[0])
             r["residual_bound_nm"] = np.percentile(np.abs(y), config.residual_percentile, axis=0)
         return results
@@ -442,13 +447,16 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
         results = train(data)
         advance(1)
     selection = {}
-    if config.margin_candidates:
-        first = config.rollout_conditions + config.dagger_conditions
+    first = config.rollout_conditions + config.dagger_conditions
+    if config.trust_candidates and first < len(pool):
         conditions = [replace(c, duration_s=config.selection_duration_s, initial_state=config.rollout_initial_state)
                       for c in pool[first : first + config.selection_conditions]]  # fmt: skip
         selection = select_margins(config, robot, results, conditions, sim, work / "bundles_select")
         for law, r in results.items():
-            r["box_margin"] = selection[law]["chosen"]
+            kind, r["box_margin"] = selection[law]["chosen"]
+            r["box_kind"] = kind
+            if kind == "labeled":
+                r["box"] = r["box_labeled"]
     wall["total_s"] = round(time.perf_counter() - started, 1)
     with open(work / "augmented.pkl", "wb") as handle:
         pickle.dump(results, handle)
@@ -462,18 +470,20 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
 
 def select_margins(config: PipelineConfig, robot: Any, results: dict[str, Any], conditions: list, sim: Any,
                    out: Path) -> dict[str, Any]:  # fmt: skip
-    """Per law, the trust-region margin with the lowest closed-loop tracking RMSE on ``conditions``
-    (pool conditions: never the paper's) among the candidates whose runs all stay finite and inside
-    the limits; the smallest candidate (mostly the feedback law) when none does better."""
+    """Per law, the trust region (box kind, margin) with the lowest closed-loop tracking RMSE on
+    ``conditions`` (pool conditions: never the paper's) among the candidates whose runs all stay
+    finite and inside the limits; the first candidate (mostly the feedback law) when none does."""
     from models.lmpc.controller import make_lmpc_controller
     from models.sim import simulate
 
     spec = config.dataset
     table: dict[str, Any] = {law: {"candidates": {}} for law in results}
-    for i, margin in enumerate(config.margin_candidates):
+    for i, (kind, margin) in enumerate(config.trust_candidates):
         for law, r in results.items():
             path = out / f"m{i}" / robot.name / law
-            _export_deployed(replace(config, box_margin=margin), robot, law, r, path, {"stage": "margin selection"}, {})
+            candidate = {**r, "box": r["box_labeled"] if kind == "labeled" else r["box"]}
+            candidate.pop("box_margin", None)
+            _export_deployed(replace(config, box_margin=margin), robot, law, candidate, path, {"stage": "trust selection"}, {})
             controller = make_lmpc_controller(make_law(law, robot, spec.dt_s, spec.gain_set), robot, bundle_dir=path.parent.parent)
             with np.errstate(all="ignore"):
                 traj = simulate(robot, controller, conditions, sim)
@@ -481,12 +491,12 @@ def select_margins(config: PipelineConfig, robot: Any, results: dict[str, Any], 
             err = traj.q - traj.q_ref
             rmse = float(np.sqrt(np.mean(err**2))) if ok else float("inf")
             counts = controller.trust_counters()
-            table[law]["candidates"][str(margin)] = {"rmse_rad": rmse, "inside_limits": ok,
+            table[law]["candidates"][f"{kind}:{margin}"] = {"box": kind, "margin": margin, "rmse_rad": rmse, "inside_limits": ok,
                                                      "fallback_share": float(np.mean(counts["fallback_cycles"])) / max(1, counts["cycles"])}  # fmt: skip
     for law, row in table.items():
-        scores = {float(m): c["rmse_rad"] for m, c in row["candidates"].items()}
-        best = min(scores, key=lambda m: (scores[m], m))
-        row["chosen"] = best if np.isfinite(scores[best]) else float(min(config.margin_candidates))
+        scores = [(c["rmse_rad"], i, (c["box"], c["margin"])) for i, c in enumerate(row["candidates"].values())]
+        best = min(scores)
+        row["chosen"] = best[2] if np.isfinite(best[0]) else tuple(config.trust_candidates[0])
     return table
 
 
@@ -504,7 +514,9 @@ def _export_deployed(config: PipelineConfig, robot: Any, law_name: str, result: 
     emulator = Emulator(width, robot.n_joints, config.deploy_hidden)
     emulator.load_state_dict({k: torch.as_tensor(v) for k, v in result["state_dict"].items()})
     training = {"gain_set": spec.gain_set, **training, "trust": {"residual_percentile": config.residual_percentile,
-                "box": "min/max of the guard features over the on-policy training states", "box_margin": config.box_margin}}  # fmt: skip
+                "box": result.get("box_kind", "on_policy"), "box_margin": config.box_margin,
+                "box_note": "on_policy: min/max of the guard features over the on-policy training states; labeled: "
+                            "those and the HMPC-labeled D_sample states; chosen per law (augment stage, docs/lmpc.md)"}}  # fmt: skip
     return export_bundle(out, make_law(law_name, robot, spec.dt_s, spec.gain_set), robot, emulator, training, validation,
                          trust_region=result["box"], parity_inputs=parity_inputs, residual=True,
                          residual_bound_nm=result["residual_bound_nm"], box_margin=config.box_margin,

@@ -90,8 +90,8 @@ def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
         dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
         budget=90, pool_conditions=3, test_per_law=30, seeds=(0,), train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
         label_chunk=128, workers=1, rollout_conditions=1, rollout_duration_s=2.5, rollout_stride=25, dagger_rounds=1,
-        dagger_conditions=2, dagger_duration_s=0.5, dagger_states_per_law=50, augment_epochs=3, deploy_hidden=(16,),
-        on_policy_max_error_rad=10.0,
+        dagger_conditions=1, dagger_duration_s=0.5, dagger_states_per_law=50, augment_epochs=3, deploy_hidden=(16,),
+        on_policy_max_error_rad=10.0, trust_candidates=(("on_policy", 0.5), ("labeled", 0.1)), selection_duration_s=0.3,
     )  # fmt: skip
     summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
     assert summary["augment"]["rollout_states_per_law"]["pd"] == 100
@@ -101,3 +101,5 @@ def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
     assert bundle.manifest["emulator"]["residual"] and bundle.manifest["emulator"]["feature_set"] == "ref"
     trust = bundle.manifest["trust_region"]
     assert len(trust["feature_low"]) == 36 and len(trust["residual_bound_nm"]) == 6
+    chosen = summary["augment"]["margin_selection"]["pd"]["chosen"]
+    assert [bundle.manifest["training"]["trust"]["box"], trust["box_margin"]] == list(chosen)
