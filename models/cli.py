@@ -23,7 +23,7 @@ def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
 
 def experiment(
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
-    modes: Annotated[str, typer.Option(help="Comma-separated modes: fb, hmpc, lmpc.")] = "fb,hmpc",
+    modes: Annotated[str, typer.Option(help="Comma-separated modes: fb, hmpc, lmpc.")] = "fb,hmpc,lmpc",
     conditions: Annotated[Optional[Path], typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
     robot: Annotated[str, typer.Option(help="Robot name or URDF path.")] = "ur5_paper",
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/experiment"),
