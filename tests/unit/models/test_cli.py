@@ -52,9 +52,9 @@ def test_experiment_writes_table_results_trajectories_and_plots(tmp_path: Path) 
     assert result.returncode == 0, result.stderr
     results = json.loads((out / "results.json").read_text())
     assert set(results["table"]) == {"pd", "pid"}
-    assert len(results["runs"]) == 4 and all(r["finite"] for r in results["runs"])  # fb and hmpc by default
+    assert len(results["runs"]) == 6 and all(r["finite"] for r in results["runs"])  # fb, hmpc, lmpc by default
     table = (out / "table.md").read_text()
-    assert "| PD |" in table and "η_H (%)" in table
+    assert "| PD |" in table and "η_H (%)" in table and "η_L (%)" in table
     run = dict(__import__("numpy").load(out / "trajectories" / "pd_fb_S1.npz"))
     assert run["q"].shape == (600, 6) and set(run) >= {"t", "q", "qd", "q_ref", "tau"}
     assert (out / "plots" / "pd_S1.png").stat().st_size > 1000
