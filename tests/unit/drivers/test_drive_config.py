@@ -39,7 +39,7 @@ def test_bus_load_refused_at_load(tmp_path: Path) -> None:
         load_drive_bus_config(path)
 
 
-@pytest.mark.parametrize("host", ["10.1.2.3", "example.com"])
+@pytest.mark.parametrize("host", ["192.0.2.10", "example.com"])
 def test_remote_bridge_must_be_loopback(host: str) -> None:
     with pytest.raises(DriveConfigError, match="not loopback"):
         parse_drive_bus_config(

@@ -51,7 +51,7 @@ def test_remote_bridge_not_listening_is_a_transport_error() -> None:
 
 def test_bridge_server_refuses_non_loopback() -> None:
     with pytest.raises(DriveConfigError, match="not loopback"):
-        start_bridge_server("0.0.0.0", 0)
+        start_bridge_server("::", 0)  # all interfaces (IPv6 wildcard)
 
 
 def test_slcan_has_no_fd() -> None:

@@ -50,7 +50,7 @@ def test_config_is_frozen() -> None:
     [
         ("period_s: -1\n", "period_s"),
         ("clock: sometimes\n", "clock"),
-        ("bridge: {host: 10.0.0.5}\n", "bridge"),
+        ("bridge: {host: 198.51.100.5}\n", "bridge"),
         ("bus: {interface: remote, bridge_host: 192.168.1.2}\n", "bus"),
         ("faults: [{kind: payload, mass_kg: -2}]\n", "faults.0.payload.mass_kg"),
         ("faults: [{kind: earthquake}]\n", "faults.0"),
