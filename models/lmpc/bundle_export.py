@@ -33,6 +33,7 @@ from hil_runtime.bundle import (FEATURE_SETS, GUARD_FEATURES, INPUT_LAYOUT, MANI
                                 sha256_file)  # fmt: skip
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
+from models.lmpc.dataset import jsonable
 from models.lmpc.emulator import Emulator
 from models.robots import RobotModel
 
@@ -156,7 +157,7 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
             "control_period_s": law.dt_s,
             "limits": {"position_rad": robot.position_limit_rad.tolist(), "velocity_rad_s": robot.velocity_limit_rad_s.tolist(),
                        "torque_nm": law.torque_limit_nm.tolist()},
-            "law": {"name": law.name, "params": _jsonable(law.params), "gain_set": training.get("gain_set"), "state_size": s,
+            "law": {"name": law.name, "params": jsonable(law.params), "gain_set": training.get("gain_set"), "state_size": s,
                     "applied_torque_slice": None if law.applied_torque_slice is None
                     else [law.applied_torque_slice.start, law.applied_torque_slice.stop],
                     "initial_state": {"constant": constant.tolist(), "position_gain": gain.tolist()}},
@@ -172,8 +173,8 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
                          "target": "tau* - tau_fb (N m): the network's zero is the feedback law" if residual else "HMPC torque tau* (N m)",
                          "hidden": list(emulator_hidden(emulator)), "activation": "relu", "output": "linear"},
             "trust_region": trust,
-            "training": _jsonable(training),
-            "validation": _jsonable(validation),
+            "training": jsonable(training),
+            "validation": jsonable(validation),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }  # fmt: skip
         manifest["files"] = {GRAPH_FILE: sha256_file(tmp / GRAPH_FILE)}
@@ -211,17 +212,3 @@ def verify_bundle(bundle_dir: Path, model: FusedPolicy, inputs: np.ndarray | Non
     if not error <= PARITY_TOLERANCE_NM:
         raise ModelInputError(f"bundle {bundle_dir}: onnxruntime differs from torch by {error:.3g} (> {PARITY_TOLERANCE_NM})")
     return error
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value

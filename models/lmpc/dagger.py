@@ -17,37 +17,9 @@ from models.conditions import Condition
 from models.feedback import make_law
 from models.lmpc.controller import make_lmpc_controller
 from models.lmpc.dataset import RawLaw
+from models.lmpc.expert_rollouts import StateLogger
 from models.robots import RobotModel
 from models.sim import ControllerStack, SimConfig, simulate
-
-
-class _LoggingLMPC:
-    def __init__(self, inner, batch: int, steps: int, stride: int) -> None:  # type: ignore[no-untyped-def]
-        self.inner, self.stride = inner, stride
-        self.name = inner.name + "-log"
-        self.cycle_times_s: list[float] = []
-        self.last_tau_fb = None
-        rows, n, s = (steps + stride - 1) // stride, inner.bundle.n_joints, inner.bundle.state_size
-        self.log = {k: np.empty((batch, rows, n)) for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb")}
-        self.log["law_state"] = np.empty((batch, rows, s))
-        self.log["t_s"] = np.empty(rows)
-
-    def reset(self, q0: np.ndarray) -> None:
-        self.inner.reset(q0)
-        self.k = 0
-
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
-        before = self.inner.state.copy()
-        tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
-        self.last_tau_fb = self.inner.last_tau_fb
-        if self.k % self.stride == 0:
-            row, log = self.k // self.stride, self.log
-            log["t_s"][row] = t_s
-            for key, value in (("q", q), ("qd", qd), ("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d),
-                               ("tau_fb", self.last_tau_fb), ("law_state", before)):  # fmt: skip
-                log[key][:, row] = value
-        self.k += 1
-        return tau
 
 
 def lmpc_visited_states(bundle_dir: Path, robot: RobotModel, laws: tuple[str, ...], conditions: list[Condition],
@@ -55,8 +27,10 @@ def lmpc_visited_states(bundle_dir: Path, robot: RobotModel, laws: tuple[str, ..
     """Run every law's LMPC bundle on ``conditions``; the logged states inside the limits, per law."""
     steps = int(round(conditions[0].duration_s / sim.dt_s))
     kwargs = {} if gain_set is None else {"gain_set": gain_set}
-    loggers = [_LoggingLMPC(make_lmpc_controller(make_law(law, robot, sim.dt_s, **kwargs), robot, bundle_dir=bundle_dir),
-                            len(conditions), steps, stride) for law in laws]  # fmt: skip
+    controllers = [make_lmpc_controller(make_law(law, robot, sim.dt_s, **kwargs), robot, bundle_dir=bundle_dir)
+                   for law in laws]  # fmt: skip
+    loggers = [StateLogger(c, len(conditions), steps, stride, c.bundle.n_joints, c.bundle.state_size,
+                           law_state=lambda c: c.state, log_applied=False) for c in controllers]  # fmt: skip
     with np.errstate(all="ignore"):
         simulate(robot, ControllerStack(loggers, [len(conditions)] * len(laws)), [c for _ in laws for c in conditions], sim)
     out = {}

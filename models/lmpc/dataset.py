@@ -143,7 +143,7 @@ def generate_raw_dataset(spec: RawDatasetSpec, out_path: Path, executor: Executo
         if progress is not None:
             progress(1)
     built = {law: make_law(law, robot, spec.dt_s, spec.gain_set) for law in spec.laws}
-    laws_params = {law: {"state_size": built[law].state_size, "params": _jsonable(built[law].params)} for law in spec.laws}
+    laws_params = {law: {"state_size": built[law].state_size, "params": jsonable(built[law].params)} for law in spec.laws}
     manifest = {
         "schema": SCHEMA, "spec": asdict(spec), "git_commit": git_commit(), "robot": robot.name,
         "urdf_sha256": _sha256(robot.urdf_path), "joint_names": list(robot.joint_names),
@@ -251,13 +251,16 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _jsonable(value: Any) -> Any:
+def jsonable(value: Any) -> Any:
+    """Plain JSON types from nested dicts, lists, numpy arrays and scalars (non-finite floats: None)."""
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return jsonable(value.tolist())
     if isinstance(value, np.generic):
-        return value.item()
+        return jsonable(value.item())
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
     return value

@@ -10,6 +10,7 @@ emulator's errors compound (docs/lmpc.md). These runs add the expert's own state
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,17 +22,28 @@ from models.robots import load_robot
 from models.sim import ControllerStack, SimConfig, simulate
 
 
-class _LoggingExpert:
-    """Wraps an HMPCController; logs every ``stride``-th period with the law state before the call."""
+def _expert_logger(inner: Any, batch: int, steps: int, stride: int) -> StateLogger:
+    return StateLogger(inner, batch, steps, stride, inner.law.n_joints, inner.law.state_size,
+                       law_state=lambda c: c._law_state, log_applied=True)  # fmt: skip
 
-    def __init__(self, inner: Any, batch: int, steps: int, stride: int) -> None:
-        self.inner, self.stride = inner, stride
+
+class StateLogger:
+    """Wraps a controller; logs every ``stride``-th period with the law state before the call.
+
+    ``law_state`` reads the wrapped controller's law state; with ``log_applied`` the torque the
+    controller applied is logged too (as ``tau_star``: the expert's label).
+    """
+
+    def __init__(self, inner: Any, batch: int, steps: int, stride: int, n_joints: int, state_size: int,
+                 law_state: Callable[[Any], np.ndarray], log_applied: bool) -> None:  # fmt: skip
+        self.inner, self.stride, self.law_state, self.log_applied = inner, stride, law_state, log_applied
         self.name = inner.name + "-log"
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None
-        rows, n, s = (steps + stride - 1) // stride, inner.law.n_joints, inner.law.state_size
-        self.log = {k: np.empty((batch, rows, n)) for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb", "tau_star")}
-        self.log["law_state"] = np.empty((batch, rows, s))
+        rows = (steps + stride - 1) // stride
+        keys = ("q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb") + (("tau_star",) if log_applied else ())
+        self.log = {k: np.empty((batch, rows, n_joints)) for k in keys}
+        self.log["law_state"] = np.empty((batch, rows, state_size))
         self.log["t_s"] = np.empty(rows)
 
     def reset(self, q0: np.ndarray) -> None:
@@ -39,14 +51,17 @@ class _LoggingExpert:
         self.k = 0
 
     def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
-        before = self.inner._law_state.copy()
+        before = self.law_state(self.inner).copy()
         tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
         self.last_tau_fb = self.inner.last_tau_fb
         if self.k % self.stride == 0:
             row, log = self.k // self.stride, self.log
             log["t_s"][row] = t_s
-            for key, value in (("q", q), ("qd", qd), ("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d),
-                               ("tau_fb", self.last_tau_fb), ("tau_star", tau), ("law_state", before)):  # fmt: skip
+            values = [("q", q), ("qd", qd), ("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d),
+                      ("tau_fb", self.last_tau_fb), ("law_state", before)]  # fmt: skip
+            if self.log_applied:
+                values.append(("tau_star", tau))
+            for key, value in values:
                 log[key][:, row] = value
         self.k += 1
         return tau
@@ -58,7 +73,7 @@ def _rollout_chunk(task: tuple) -> dict[str, Any]:
     robot_name, laws, gain_set, conditions, sim, stride = task
     robot = load_robot(robot_name)
     steps = int(round(conditions[0].duration_s / sim.dt_s))
-    loggers = [_LoggingExpert(make_hmpc_controller(make_law(law, robot, sim.dt_s, gain_set), robot), len(conditions), steps, stride)
+    loggers = [_expert_logger(make_hmpc_controller(make_law(law, robot, sim.dt_s, gain_set), robot), len(conditions), steps, stride)
                for law in laws]  # fmt: skip
     simulate(robot, ControllerStack(loggers, [len(conditions)] * len(laws)), [c for _ in laws for c in conditions], sim)
     out = {}
