@@ -157,7 +157,8 @@ class DriveBusConfig(_Frozen):
         )
 
 
-def _format_validation_error(source: str, exc: ValidationError) -> str:
+def format_validation_error(source: str, exc: ValidationError) -> str:
+    """One line naming the file and the first failing field (pydantic's own message is multi-line)."""
     errors = exc.errors()
     first = errors[0]
     loc = ".".join(str(part) for part in first["loc"]) or "(top level)"
@@ -170,7 +171,7 @@ def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
     try:
         config = DriveBusConfig.model_validate(data)
     except ValidationError as exc:
-        raise DriveConfigError(_format_validation_error(source, exc)) from None
+        raise DriveConfigError(format_validation_error(source, exc)) from None
     config.bus_load(source)
     return config
 

@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from drivers.config import TransportConfig, is_loopback_host
+from drivers.config import TransportConfig, format_validation_error, is_loopback_host
 
 
 class TargetConfigError(ValueError):
@@ -177,19 +177,11 @@ class TargetConfig(_Frozen):
 # --- loading ---------------------------------------------------------------------------------------
 
 
-def _one_line(source: str, exc: ValidationError) -> str:
-    errors = exc.errors()
-    first = errors[0]
-    loc = ".".join(str(part) for part in first["loc"]) or "(top level)"
-    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-    return f"{source}: {loc}: {first['msg']}{more}"
-
-
 def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
     try:
         return TargetConfig.model_validate(data if data is not None else {})
     except ValidationError as exc:
-        raise TargetConfigError(_one_line(source, exc)) from None
+        raise TargetConfigError(format_validation_error(source, exc)) from None
 
 
 def load_target_config(path: Path | str) -> TargetConfig:
@@ -216,4 +208,4 @@ def parse_fault(data: Any, source: str = "fault") -> Fault:
     try:
         return _FAULT_ADAPTER.validate_python(data)
     except ValidationError as exc:
-        raise TargetConfigError(_one_line(source, exc)) from None
+        raise TargetConfigError(format_validation_error(source, exc)) from None
