@@ -10,7 +10,7 @@ Example (deploy/target.virtual.yaml)::
     drives: {node_ids: [1, 2, 3, 4, 5, 6]}
     plant: {substeps: 32, initial_position_rad: [0, -0.5, 0.8, 0, 0, 0]}
     faults:
-      - {kind: impulse, at_s: 2.0, duration_s: 0.001, torque_nm: [1, 1, 5, 5, 10, 10]}
+      - {kind: impulse, at_s: 2.0, duration_s: 2.0e-5, torque_nm: [1, 1, 5, 5, 10, 10]}
     control_socket: /tmp/hil-target.sock      # optional: run-time fault injection
 
 Faults share one schema between the file (scheduled at ``at_s``, simulated seconds in lock-step,
@@ -100,7 +100,7 @@ class ImpulseFault(_Fault):
 
     kind: Literal["impulse"]
     torque_nm: tuple[float, ...] = (1.0, 1.0, 5.0, 5.0, 10.0, 10.0)
-    duration_s: float = Field(1e-3, gt=0)
+    duration_s: float = Field(2e-5, gt=0)  # 20 µs, as in the models simulator (docs/conditions.md)
 
     @model_validator(mode="after")
     def _check(self) -> ImpulseFault:
