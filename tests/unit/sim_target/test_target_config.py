@@ -51,7 +51,7 @@ def test_config_is_frozen() -> None:
         ("period_s: -1\n", "period_s"),
         ("clock: sometimes\n", "clock"),
         ("bridge: {host: 198.51.100.5}\n", "bridge"),
-        ("bus: {interface: remote, bridge_host: 192.168.1.2}\n", "bus"),
+        ("bus: {interface: remote, bridge_host: 203.0.113.2}\n", "bus"),
         ("faults: [{kind: payload, mass_kg: -2}]\n", "faults.0.payload.mass_kg"),
         ("faults: [{kind: earthquake}]\n", "faults.0"),
         ("plant: {substeps: 0}\n", "plant.substeps"),
