@@ -1,0 +1,121 @@
+"""hil_runtime.conditions: the light reference evaluation and the conditions file format."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_runtime.conditions import PAPER_CONDITIONS, Condition, ConditionError, load_conditions
+
+SIX = "[0, 0, 0, 0, 0, 0]"
+
+
+def test_importing_it_pulls_in_no_science_package() -> None:
+    code = (
+        "import sys, hil_runtime.conditions as c; c.load_conditions(None)[0].reference(0.1); "
+        "bad = [m for m in ('models', 'torch', 'pinocchio', 'pybullet', 'scipy') if m in sys.modules]; "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_paper_conditions_load_without_a_robot() -> None:
+    conditions = load_conditions(None)
+    assert PAPER_CONDITIONS.is_file()
+    assert [c.name for c in conditions] == ["C1", "C2", "C3", "C4", "C5"]
+    c1 = conditions[0]
+    q, qd, qdd = c1.reference(np.array([0.0, 2.5]))
+    assert q.shape == qd.shape == qdd.shape == (2, 6)
+    assert q[0] == pytest.approx(np.zeros(6))  # f = 0.1 Hz, phase T/2: starts at 0
+    assert q[1] == pytest.approx(0.5 * np.array(c1.amplitude_rad))
+    assert c1.initial_position() == pytest.approx(np.zeros(6))
+
+
+def test_check_limits_accepts_any_limits_object() -> None:
+    class Limits:
+        name = "configured"
+        n_joints = 1
+        position_lower_rad = np.array([-1.0])
+        position_upper_rad = np.array([1.0])
+        velocity_limit_rad_s = np.array([10.0])
+
+    Condition("ok", (0.9,), (0.1,)).check_limits(Limits())
+    with pytest.raises(ConditionError, match="reference position reaches 1.100 on joint 1"):
+        Condition("far", (1.1,), (0.1,)).check_limits(Limits(), source="x.yaml")
+    with pytest.raises(ConditionError, match="velocity"):
+        Condition("fast", (0.9,), (5.0,)).check_limits(Limits())
+
+
+def _condition(extra: str) -> str:
+    return f"conditions:\n  - name: A\n    amplitude_rad: {SIX}\n{extra}"
+
+
+BAD_FILES = [
+    (_condition("    mismatch: {payload_kg: -1}\n"), "conditions[0].mismatch.payload_kg: must be >= 0"),
+    (_condition("    mismatch: {inertia_scale: 0}\n"), "conditions[0].mismatch.inertia_scale[0]: must be > 0"),
+    (_condition("    mismatch: {inertia_scale: [1, 1, -1, 1, 1, 1]}\n"), "mismatch.inertia_scale[2]: must be > 0"),
+    (_condition("    mismatch: {mass_scale: -0.5}\n"), "mismatch.mass_scale[0]: must be > 0"),
+    (_condition("    mismatch: {viscous_friction_nm_s: -0.1}\n"), "mismatch.viscous_friction_nm_s[0]: must be >= 0"),
+    (_condition("    frequency_hz: -0.1\n"), "conditions[0].frequency_hz[0]: must be >= 0"),
+    (_condition("    frequency_hz: [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]\n"), "frequency_hz[2]: must be >= 0"),
+    (_condition("    duration_s: 3\n    disturbance: {time_s: 4}\n"), "disturbance.time_s: 4 s is not before the end"),
+    (_condition("    disturbance: {time_s: 1, torque_nm: [1, 2]}\n"), "disturbance.torque_nm: expected 6 values"),
+    (_condition("    disturbance: {duration_s: -1}\n"), "disturbance.duration_s: must be >= 0"),
+    (_condition("    duration_s: 0\n"), "duration_s: must be positive"),
+    (_condition("    name: [1]\n"), "conditions[0].name: expected a string"),
+    ("", "empty file"),
+    ("colour: red\nconditions:\n  - amplitude_rad: [0]\n", "unknown top-level field 'colour'"),
+    (_condition("  - name: A\n    amplitude_rad: [0, 0, 0, 0, 0, 0]\n"), "duplicate name 'A'"),
+    (_condition("    phase_s: .inf\n"), "phase_s: not finite"),
+    (_condition("    amplitude_rad: '9' \n").replace(f"    amplitude_rad: {SIX}\n", ""), "expected a list of numbers"),
+]
+
+
+@pytest.mark.parametrize(("body", "message"), BAD_FILES)
+def test_bad_values_are_one_line_errors_naming_file_and_field(tmp_path: Path, body: str, message: str) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(body)
+    with pytest.raises(ConditionError) as info:
+        load_conditions(path)
+    text = str(info.value)
+    assert message in text and "bad.yaml" in text and "\n" not in text
+    assert info.value.exit_code == 2
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (bytes(range(256)) * 4, "not a UTF-8 text file"),
+        (b"\x7fELF\x02\x01\x01\x00" + b"\x00" * 64, "not a text file"),
+        (b"conditions:\n  - name: \x01\x02\n", "not valid YAML"),
+    ],
+)
+def test_binary_files_are_refused(tmp_path: Path, data: bytes, message: str) -> None:
+    path = tmp_path / "bin.yaml"
+    path.write_bytes(data)
+    with pytest.raises(ConditionError, match=message) as info:
+        load_conditions(path)
+    assert "bin.yaml" in str(info.value)
+
+
+def test_a_directory_and_a_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConditionError, match="not a regular file"):
+        load_conditions(tmp_path)
+    with pytest.raises(ConditionError, match="file not found"):
+        load_conditions(tmp_path / "nope.yaml")
+
+
+def test_zero_frequency_and_pi_expressions_are_accepted(tmp_path: Path) -> None:
+    path = tmp_path / "ok.yaml"
+    path.write_text("conditions:\n  - name: Z\n    amplitude_rad: [pi/4, -2*pi/3]\n    frequency_hz: 0\n    disturbance: null\n")
+    (c,) = load_conditions(path)
+    assert c.amplitude_rad == pytest.approx((math.pi / 4, -2 * math.pi / 3))
+    assert c.disturbance is None
+    q, qd, _ = c.reference(1.0)
+    assert np.all(np.isfinite(q)) and qd == pytest.approx(np.zeros(2))
