@@ -48,7 +48,6 @@ import logging
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import can
 import canopen
@@ -73,7 +72,10 @@ from drivers.errors import (
     SdoTimeoutError,
     TransportError,
 )
+from drivers.feedback import BusCounters, DriveFeedback
 from drivers.transport import open_bus
+
+__all__ = ["BusCounters", "DriveBus", "DriveFeedback"]
 
 log = logging.getLogger(__name__)
 
@@ -88,34 +90,6 @@ _CW_DISABLE_VOLTAGE = 0x0000
 _CW_SHUTDOWN = 0x0006
 _CW_FAULT_RESET = 0x0080
 _FAULT_STATES = frozenset({State.FAULT, State.FAULT_REACTION_ACTIVE})
-
-
-@dataclass(frozen=True, slots=True)
-class DriveFeedback:
-    """One control cycle's result, arrays in joint order of the config."""
-
-    cycle: int
-    sync_time_s: float  # time.monotonic() when the SYNC was sent
-    position_rad: np.ndarray
-    velocity_rad_s: np.ndarray
-    torque_nm: np.ndarray  # measured (0x6077)
-    commanded_torque_nm: np.ndarray  # what was sent: clipped to max torque, quantised to 1 ‰
-    fresh: np.ndarray  # bool: this cycle's TPDOs arrived; False: values from an older cycle
-    rx_time_s: np.ndarray  # time.monotonic() the drive's last TPDO was received
-    states: tuple[State, ...]
-
-
-@dataclass(frozen=True, slots=True)
-class BusCounters:
-    cycles: int = 0
-    frames_sent: int = 0
-    frames_received: int = 0
-    dropped: int = 0  # expected TPDOs not received by the cycle's deadline
-    late: int = 0  # TPDOs received after their deadline (or twice in one cycle)
-    malformed: int = 0  # wrong length, impossible content, error/remote/extended frames
-    unknown_cob_id: int = 0
-    emcy: int = 0
-    heartbeats: int = 0
 
 
 class _SdoNetwork(canopen.Network):
