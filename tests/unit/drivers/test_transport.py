@@ -66,3 +66,70 @@ def test_socketcan_missing_interface_is_explained() -> None:
         assert "'hilnosuch0' does not exist" in reason
     with pytest.raises(TransportError, match="cannot open socketcan bus 'hilnosuch0'"):
         open_bus(TransportConfig(interface="socketcan", channel="hilnosuch0"))
+
+
+def test_every_config_interface_has_a_backend_and_each_resolves() -> None:
+    import importlib
+    from typing import get_args
+
+    from drivers.config import Interface
+    from drivers.transport import BACKENDS
+
+    assert set(BACKENDS) == set(get_args(Interface))
+    for module, function in BACKENDS.values():
+        assert callable(getattr(importlib.import_module(module), function))
+
+
+def test_python_can_version_is_the_one_fast_virtual_bus_was_written_against() -> None:
+    # FastVirtualBus.send reimplements VirtualBus.send with its internals; pyproject pins the
+    # minor version. A python-can upgrade must come with a re-read of virtual.py (then bump both).
+    from drivers.interfaces.virtual import PYTHON_CAN_VERSION
+
+    assert can.__version__.rsplit(".", 1)[0] == PYTHON_CAN_VERSION
+
+
+def test_virtual_bus_internals_fast_virtual_bus_relies_on() -> None:
+    from can.interfaces import virtual
+
+    from drivers.interfaces.virtual import FastVirtualBus
+
+    bus = virtual.VirtualBus(channel="t-internals")
+    try:
+        assert bus.channel is virtual.channels["t-internals"]  # the channel's list of receive queues
+        assert bus.queue in bus.channel
+        assert callable(bus._check_if_open)
+        assert {"receive_own_messages", "preserve_timestamps", "channel_id"} <= set(vars(bus))
+    finally:
+        bus.shutdown()
+    # Every Message field the copy must carry (a new slot would be lost by the fast copy).
+    assert set(can.Message.__slots__) == {
+        "__weakref__", "arbitration_id", "bitrate_switch", "channel", "data", "dlc", "error_state_indicator",
+        "is_error_frame", "is_extended_id", "is_fd", "is_remote_frame", "is_rx", "timestamp"}
+    assert FastVirtualBus.__mro__[1] is virtual.VirtualBus
+
+
+@pytest.mark.parametrize("msg", [
+    can.Message(arbitration_id=0x201, data=bytes(range(6)), is_extended_id=False),
+    can.Message(arbitration_id=0x181, data=bytes(range(12)), is_fd=True, bitrate_switch=True,
+                error_state_indicator=True, is_extended_id=False),
+    can.Message(arbitration_id=0x1ABCDEF, is_remote_frame=True, dlc=4, is_extended_id=True),
+    can.Message(is_error_frame=True, data=b"\x01", is_extended_id=False),
+], ids=["classical", "fd", "remote", "error"])
+def test_fast_virtual_bus_delivers_what_virtual_bus_delivers(msg: can.Message) -> None:
+    from can.interfaces.virtual import VirtualBus
+
+    from drivers.interfaces.virtual import FastVirtualBus
+
+    received = []
+    for cls in (VirtualBus, FastVirtualBus):
+        sender, receiver = cls(channel="t-parity", preserve_timestamps=True), VirtualBus(channel="t-parity")
+        try:
+            sender.send(msg)
+            got = receiver.recv(1.0)
+        finally:
+            sender.shutdown()
+            receiver.shutdown()
+        assert got is not None
+        received.append({slot: getattr(got, slot) for slot in can.Message.__slots__ if slot != "__weakref__"})
+        assert got.data is not msg.data
+    assert received[0] == received[1]

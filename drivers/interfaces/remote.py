@@ -1,0 +1,180 @@
+"""``remote``: the python-can-remote websocket bridge, a virtual bus shared between processes.
+
+Loopback only. :func:`start_bridge_server` hosts the bridge inside a process (the sim target), so
+the emulated drives sit on the bridge's own virtual channel and only the runtime crosses the
+socket. The client bus opened here differs from python-can-remote's ``RemoteBus`` in three ways:
+
+- ``send_batch`` sends a cycle's RPDOs and SYNC as one TCP segment (TCP_CORK) instead of seven,
+  and Nagle is off (a SYNC right after six RPDOs would otherwise wait for a delayed ACK);
+- when the peer process dies, ``recv``/``send`` raise ``TransportError("peer closed: ...")``
+  (python-can-remote raises a bare ``WebsocketClosed``/``BrokenPipeError``, or after a close
+  frame silently drops what is sent);
+- ``shutdown`` never raises and never waits more than ``_CLOSE_WAIT_S`` for the close handshake
+  (python-can-remote's raises ``OSError`` on a dead socket, masking the error that stopped the
+  run, and loops until the server answers).
+
+python-can-remote is the ``sim`` extra: it is imported when a remote bus or bridge is opened.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import socket
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import urlparse
+
+import can
+
+from drivers.config import TransportConfig, is_loopback_host
+from drivers.errors import DriveConfigError, TransportError
+
+log = logging.getLogger(__name__)
+
+_CLOSE_WAIT_S = 1.0  # shutdown: longest wait for the server to answer the websocket close
+
+
+@functools.cache
+def _remote_bus_class() -> type[can.BusABC]:
+    from can_remote.client import RemoteBus
+    from can_remote.protocol import RemoteError
+    from can_remote.websocket import WebsocketClosed
+
+    class BatchingRemoteBus(RemoteBus):  # type: ignore[misc, valid-type]  # untyped package
+        """python-can-remote's client with ``send_batch``, a typed peer-closed error and a
+        shutdown that cannot raise."""
+
+        _peer_closed: str | None = None
+
+        def _closed(self, exc: BaseException) -> TransportError:
+            if self._peer_closed is None:
+                self._peer_closed = (f"peer closed: the bridge at {self.channel} closed the connection "
+                                     f"({type(exc).__name__}: {exc})")
+            return TransportError(self._peer_closed)
+
+        def _check_peer(self) -> None:
+            if self._peer_closed is not None:
+                raise TransportError(self._peer_closed)
+            if self.remote_protocol._ws.closed:  # a close frame was read: sends would be dropped
+                raise self._closed(ConnectionError("websocket closed by the peer"))
+
+        def recv(self, timeout: float | None = None) -> can.Message | None:
+            self._check_peer()
+            try:
+                return super().recv(timeout)
+            except (WebsocketClosed, OSError, ValueError) as exc:  # ValueError: select on a closed fd
+                raise self._closed(exc) from exc
+
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            self._check_peer()
+            try:
+                self.remote_protocol.send_msg(msg)
+            except OSError as exc:
+                raise self._closed(exc) from exc
+
+        def send_batch(self, msgs: Sequence[can.Message]) -> None:
+            self._check_peer()
+            sock = self.socket
+            cork = getattr(socket, "TCP_CORK", None)  # Linux only; elsewhere one segment a frame
+            try:
+                if cork is not None:
+                    sock.setsockopt(socket.IPPROTO_TCP, cork, 1)
+                try:
+                    for msg in msgs:
+                        self.remote_protocol.send_msg(msg)
+                finally:
+                    if cork is not None:
+                        sock.setsockopt(socket.IPPROTO_TCP, cork, 0)  # uncorking sends it now
+            except OSError as exc:
+                raise self._closed(exc) from exc
+
+        def shutdown(self) -> None:
+            if self._is_shutdown:
+                return
+            try:
+                if self._peer_closed is None and not self.remote_protocol._ws.closed:
+                    self.remote_protocol.close()  # close frame + half-close
+                    deadline = time.monotonic() + _CLOSE_WAIT_S
+                    while (remaining := deadline - time.monotonic()) > 0:
+                        try:
+                            self.remote_protocol.recv(remaining)
+                        except WebsocketClosed:
+                            break
+                        except RemoteError:
+                            pass
+            except (OSError, ValueError, WebsocketClosed) as exc:
+                log.debug("bridge close handshake failed (peer gone): %s", exc)
+            finally:
+                try:
+                    self.socket.close()
+                except OSError:
+                    pass
+                can.BusABC.shutdown(self)
+
+    return BatchingRemoteBus
+
+
+def open_bus(config: TransportConfig) -> can.BusABC:
+    url = config.remote_url
+    if not is_loopback_host(urlparse(url).hostname or ""):
+        raise DriveConfigError(f"transport.channel: {url} is not a loopback address")
+    kwargs: dict[str, Any] = {"bitrate": config.bitrate, "fd": config.fd}
+    if config.fd and config.data_bitrate:
+        kwargs["data_bitrate"] = config.data_bitrate
+    bus = _remote_bus_class()(url, **kwargs)
+    # The bridge client leaves Nagle on: a SYNC right after six RPDOs would wait for the ACK of
+    # the first segment (tens of ms with delayed ACKs). The server side already disables it.
+    sock = getattr(bus, "socket", None)
+    if isinstance(sock, socket.socket):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return bus
+
+
+@dataclass
+class BridgeServer:
+    """A python-can-remote server on loopback serving one virtual channel, in a daemon thread."""
+
+    host: str
+    port: int
+    channel: str
+    _server: Any
+    _thread: threading.Thread
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}/"
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+        self._thread.join(timeout=2.0)
+
+
+def start_bridge_server(host: str = "127.0.0.1", port: int = 0, channel: str = "hil") -> BridgeServer:
+    """Serve the in-process virtual ``channel`` to bridge clients on ``host:port`` (0: any free).
+
+    Every client gets its own virtual bus on ``channel`` inside this process, so buses opened
+    here with ``interface="virtual", channel=channel`` see the clients' frames and vice versa.
+    """
+    if not is_loopback_host(host):
+        raise DriveConfigError(f"bridge host {host!r} is not loopback (127.0.0.1/::1)")
+    try:
+        from can_remote import RemoteServer
+    except ImportError as exc:
+        raise TransportError("python-can-remote is not installed (pip install python-can-remote)") from exc
+
+    class _Server(RemoteServer):  # type: ignore[misc, valid-type]  # untyped package
+        address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
+
+    try:
+        server = _Server(host, port, interface="virtual", channel=channel, ignore_config=True)
+    except OSError as exc:
+        raise TransportError(f"cannot listen on {host}:{port}: {exc.strerror}") from exc
+    thread = threading.Thread(target=server.serve_forever, name="can-bridge", daemon=True)
+    thread.start()
+    return BridgeServer(host, server.server_port, channel, server, thread)
