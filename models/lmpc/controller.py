@@ -22,8 +22,34 @@ from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
 
-def _canonical(params: Any) -> str:
-    return json.dumps(params, sort_keys=True, default=lambda v: np.asarray(v).tolist())
+# Law parameters from a synthesis (H-infinity's gamma) differ at ~1e-8 between numerical stacks
+# (slycot/scipy/numpy versions): far below what changes the law, far above a JSON string match.
+# A bundle for another gain set differs by 1e-2 or more, so this tolerance still catches it.
+PARAMS_RTOL = 1e-6
+PARAMS_ATOL = 1e-9
+
+
+def _canonical(params: Any) -> Any:
+    return json.loads(json.dumps(params, sort_keys=True, default=lambda v: np.asarray(v).tolist()))
+
+
+def params_difference(bundle: Any, law: Any, where: str = "params") -> str | None:
+    """The first field where two law-parameter trees differ beyond PARAMS_RTOL/ATOL, or None.
+
+    Structure, strings and booleans must match exactly; numbers within the tolerance."""
+    a, b = _canonical(bundle), _canonical(law)
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return f"{where}: fields {sorted(set(a) ^ set(b))}"
+        return next((d for k in sorted(a) if (d := params_difference(a[k], b[k], f"{where}.{k}"))), None)
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return f"{where}: {len(a)} values vs {len(b)}"
+        return next((d for i, (x, y) in enumerate(zip(a, b)) if (d := params_difference(x, y, f"{where}[{i}]"))), None)
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+        return None if abs(a - b) <= PARAMS_ATOL + PARAMS_RTOL * max(abs(a), abs(b)) else f"{where}: {a!r} vs {b!r}"
+    return None if a == b and type(a) is type(b) else f"{where}: {a!r} vs {b!r}"
 
 
 SHIPPED_BUNDLES = Path(__file__).resolve().parents[1] / "bundles"
@@ -100,7 +126,9 @@ def make_lmpc_controller(law: FeedbackLaw, robot: RobotModel, bundle_dir: str | 
                                expected_joint_names=list(robot.joint_names))  # fmt: skip
     if bundle.law_name != law.name:
         raise BundleError(f"bundle {path / 'manifest.json'}: law '{bundle.law_name}', asked for '{law.name}'")
-    if _canonical(bundle.manifest["law"]["params"]) != _canonical(law.params):
+    difference = params_difference(bundle.manifest["law"]["params"], law.params)
+    if difference is not None:
         raise BundleError(f"bundle {path / 'manifest.json'}: law '{law.name}' parameters differ from the bundle's "
-                          f"(gain set {bundle.manifest['law'].get('gain_set')!r}); re-export with `hil pipeline`")  # fmt: skip
+                          f"(gain set {bundle.manifest['law'].get('gain_set')!r}; bundle vs law {difference}); "
+                          "re-export with `hil pipeline`")  # fmt: skip
     return LMPCController(bundle, law.name)
