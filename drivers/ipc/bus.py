@@ -1,0 +1,418 @@
+"""``interface="ipc"``: a virtual CAN bus shared by any number of processes on one machine.
+
+No network, no kernel module, no hub process: the bus is a directory. Every bus instance binds
+a Unix SOCK_SEQPACKET socket in it and connects to every other instance's socket, so each frame
+goes straight from sender to receiver as one datagram in SocketCAN's layout
+(:mod:`drivers.ipc.frame`). A hub (every frame in, then out again to each peer) was measured at
+twice the round-trip median of direct delivery on a 2-core machine and adds a process that
+competes for the CPUs, so there is none (docs/ipc_bus.md gives the figures).
+
+    bus = can.Bus(interface="ipc", channel="/tmp/hil-can", fd=True)   # a directory, created if missing
+    bus = can.Bus(interface="ipc", channel="hil")                      # a name: <tmp>/hil-can-<uid>/hil
+
+Semantics, as close to python-can's ``virtual`` and SocketCAN as sockets allow:
+
+- A bus sees every frame sent by the others after its constructor returned; with
+  ``receive_own_messages`` it also sees its own (through the kernel, so :meth:`fileno` wakes).
+- Frames from one sender arrive in the order sent. Frames of different senders have no global
+  order (each pair of peers has its own queue).
+- ``send`` never blocks: a peer whose queue is full (``queue_bytes``, it is not reading) loses the
+  frame; the loss is counted in :attr:`IpcBus.stats` and the peer gets SocketCAN's RX-overflow
+  error frame once its queue drains. A peer that exits or dies is dropped from the bus.
+- Joining is serialised with ``flock`` on the directory; a socket left by a killed process
+  (connection refused) is removed by the next peer that joins. A bus removes only its own socket.
+- ``fd=True`` sends and receives CAN FD frames; a classical bus refuses to send them and ignores
+  those it receives, as a SocketCAN socket without CAN_RAW_FD_FRAMES does.
+
+Linux only (SOCK_SEQPACKET on AF_UNIX).
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import logging
+import os
+import secrets
+import select
+import socket
+import stat
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from drivers.ipc.frame import CANFD_MTU, FrameError, decode, encode, rx_overflow_frame
+
+log = logging.getLogger(__name__)
+
+SOCKET_SUFFIX = ".sock"
+MAX_PATH_BYTES = 107  # sun_path is 108 bytes with the terminating NUL
+DEFAULT_QUEUE_BYTES = 1 << 20  # per peer pair: ~2700 FD frames queued before a slow reader loses some
+_CONNECT_TIMEOUT_S = 1.0
+_WAKE = b"\x00"  # one byte on the loopback pair: shutdown wakes a blocked reader
+
+
+def bus_directory(channel: str | os.PathLike[str]) -> Path:
+    """The directory a channel names: a path as given, a bare name under the user's temp dir."""
+    text = os.fspath(channel)
+    if not text:
+        raise ValueError("ipc bus channel is empty")
+    if os.sep in text or text.startswith("."):
+        return Path(text)
+    return Path(tempfile.gettempdir()) / f"hil-can-{os.getuid()}" / text
+
+
+@dataclass
+class IpcBusStats:
+    """Counters of one bus instance (frames, not datagrams to each peer, unless noted)."""
+
+    frames_sent: int = 0
+    frames_received: int = 0
+    frames_dropped: int = 0  # (frame, peer) pairs lost because that peer's queue was full
+    fd_frames_ignored: int = 0  # CAN FD frames received on a classical bus
+    malformed: int = 0  # datagrams that were not SocketCAN frames
+    peers_joined: int = 0  # connections made or accepted, this bus's lifetime
+    peers_left: int = 0
+    stale_sockets_removed: int = 0
+
+
+class _Peer:
+    """One connection to another bus instance (or the loopback pair to ourselves)."""
+
+    __slots__ = ("sock", "fd", "dropped", "overflowed")
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.fd = sock.fileno()
+        self.dropped = 0
+        self.overflowed = False  # frames were lost: the RX-overflow error frame goes first next time
+
+
+class IpcBus(can.BusABC):  # type: ignore[misc]  # python-can's BusABC is untyped in places
+    """A python-can bus over Unix SOCK_SEQPACKET sockets in a shared directory (see module doc)."""
+
+    def __init__(
+        self,
+        channel: str | os.PathLike[str] = "hil",
+        can_filters: can.typechecking.CanFilters | None = None,
+        receive_own_messages: bool = False,
+        fd: bool = False,
+        queue_bytes: int = DEFAULT_QUEUE_BYTES,
+        **kwargs: Any,
+    ) -> None:
+        """``channel``: the bus directory (or a name, see :func:`bus_directory`); ``fd``: CAN FD;
+        ``queue_bytes``: kernel buffer per peer pair (SO_SNDBUF, capped by net.core.wmem_max).
+        Other python-can arguments (``bitrate``, ``data_bitrate``...) are accepted and ignored."""
+        if not hasattr(socket, "SOCK_SEQPACKET") or not hasattr(select, "epoll"):
+            raise can.CanInterfaceNotImplementedError("the ipc bus needs Linux (AF_UNIX SOCK_SEQPACKET, epoll)")
+        self.channel = os.fspath(channel)
+        self.directory = bus_directory(channel).absolute()
+        self.channel_info = f"ipc bus {self.directory}"
+        self.stats = IpcBusStats()
+        self._fd = bool(fd)
+        self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
+        self._receive_own = bool(receive_own_messages)
+        self._queue_bytes = int(queue_bytes)
+        self._lock = threading.Lock()  # membership changes (accept, peer gone) from send or recv threads
+        self._closed = False
+        self._peers: dict[int, _Peer] = {}  # fd -> peer, the other bus instances
+        self._targets: tuple[_Peer, ...] = ()  # who a frame goes to: a snapshot, swapped under _lock
+        self._ready: list[_Peer] = []  # readable after the last epoll; only the receiving thread
+        self._epoll = select.epoll()
+        self._loop_tx, self._loop_rx = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self._loop_tx.setblocking(False)
+        self._loop_rx.setblocking(False)
+        self._loop = _Peer(self._loop_rx)
+        self._loop_out = _Peer(self._loop_tx)
+        self._epoll.register(self._loop.fd, select.EPOLLIN)
+        self._listen: socket.socket | None = None
+        self._path: Path | None = None
+        self._inode: tuple[int, int] | None = None
+        try:
+            self._join()
+        except BaseException:
+            self._close_sockets()
+            raise
+        self._listen_fd = self._listen.fileno() if self._listen is not None else -1
+        self._pending_joins = select.poll()  # a peer waiting in our listen backlog: accept before sending
+        self._pending_joins.register(self._listen_fd, select.POLLIN)
+        super().__init__(channel=self.channel, can_filters=can_filters, **kwargs)
+
+    # --- joining and leaving ---------------------------------------------------------------------
+
+    def _join(self) -> None:
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            dir_fd = os.open(self.directory, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError as exc:
+            raise can.CanInitializationError(f"ipc bus: cannot use directory {self.directory}: {exc.strerror}") from exc
+        try:
+            # One joiner at a time: each newcomer connects to everyone already listening, and is
+            # seen by no one twice. Without the lock two newcomers could miss or double each other.
+            fcntl.flock(dir_fd, fcntl.LOCK_EX)
+            name = f"{os.getpid()}-{secrets.token_hex(4)}{SOCKET_SUFFIX}"
+            path = self.directory / name
+            if len(os.fsencode(path)) > MAX_PATH_BYTES:
+                raise can.CanInitializationError(
+                    f"ipc bus: socket path {path} is longer than {MAX_PATH_BYTES} bytes; use a shorter directory")
+            listen = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            try:
+                listen.bind(os.fspath(path))
+                listen.listen(socket.SOMAXCONN)
+                listen.setblocking(False)
+            except OSError as exc:
+                listen.close()
+                raise can.CanInitializationError(f"ipc bus: cannot listen on {path}: {exc.strerror}") from exc
+            self._listen, self._path = listen, path
+            st = os.stat(path)
+            self._inode = (st.st_dev, st.st_ino)
+            self._epoll.register(listen.fileno(), select.EPOLLIN)
+            for entry in os.scandir(dir_fd):
+                if entry.name.endswith(SOCKET_SUFFIX) and entry.name != name:
+                    self._connect(self.directory / entry.name)
+            self._publish_targets()
+        finally:
+            os.close(dir_fd)  # releases the lock
+
+    def _connect(self, path: Path) -> None:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        sock.settimeout(_CONNECT_TIMEOUT_S)  # a stopped (SIGSTOP) peer with a full backlog must not hang us
+        try:
+            sock.connect(os.fspath(path))
+        except ConnectionRefusedError:
+            sock.close()
+            # Under the directory lock every live peer listens: refused means its owner is gone.
+            try:
+                if stat.S_ISSOCK(os.lstat(path).st_mode):
+                    os.unlink(path)
+                    self.stats.stale_sockets_removed += 1
+            except FileNotFoundError:
+                pass
+            return
+        except (FileNotFoundError, socket.timeout, OSError) as exc:
+            sock.close()
+            if not isinstance(exc, FileNotFoundError):
+                log.warning("ipc bus: peer %s not joined: %s", path, exc)
+            return
+        self._add_peer(sock)
+
+    def _add_peer(self, sock: socket.socket) -> None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self._queue_bytes)
+        except OSError:
+            pass  # the default buffer still works
+        sock.setblocking(False)
+        peer = _Peer(sock)
+        self._peers[peer.fd] = peer
+        self._epoll.register(peer.fd, select.EPOLLIN)
+        self.stats.peers_joined += 1
+
+    def _publish_targets(self) -> None:
+        others = tuple(self._peers.values())
+        self._targets = ((self._loop_out,) + others) if self._receive_own else others
+
+    def _accept_pending(self) -> None:
+        with self._lock:
+            if self._closed or self._listen is None:
+                return
+            while True:
+                try:
+                    sock, _ = self._listen.accept()
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError as exc:
+                    log.warning("ipc bus: accept failed: %s", exc)
+                    break
+                self._add_peer(sock)
+            self._publish_targets()
+
+    def _drop_peer(self, peer: _Peer) -> None:
+        with self._lock:
+            if self._peers.pop(peer.fd, None) is None:
+                return
+            try:
+                self._epoll.unregister(peer.fd)
+            except (OSError, ValueError):
+                pass
+            peer.sock.close()
+            self.stats.peers_left += 1
+            self._publish_targets()
+        if peer in self._ready:
+            self._ready.remove(peer)
+
+    @property
+    def peer_count(self) -> int:
+        """Other bus instances this one is connected to now (joins not yet accepted excluded)."""
+        return len(self._peers)
+
+    # --- sending ---------------------------------------------------------------------------------
+
+    def _encode(self, msg: can.Message) -> bytes:
+        if msg.is_fd and not self._fd:
+            raise can.CanOperationError("ipc bus: CAN FD frame on a classical bus (open it with fd=True)")
+        try:
+            return encode(msg)
+        except FrameError as exc:
+            raise can.CanOperationError(f"ipc bus: {exc}") from exc
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Put ``msg`` on the bus; never blocks (``timeout`` is accepted and unused, see module doc)."""
+        if self._closed:
+            raise can.CanOperationError("ipc bus: the bus is shut down")
+        frame = self._encode(msg)
+        if self._pending_joins.poll(0):
+            self._accept_pending()
+        self._fan_out(frame)
+        self.stats.frames_sent += 1
+
+    def send_batch(self, msgs: list[can.Message] | tuple[can.Message, ...]) -> None:
+        """Send several frames in order, checking for newcomers once (what DriveBus uses per cycle)."""
+        if self._closed:
+            raise can.CanOperationError("ipc bus: the bus is shut down")
+        frames = [self._encode(msg) for msg in msgs]
+        if self._pending_joins.poll(0):
+            self._accept_pending()
+        for frame in frames:
+            self._fan_out(frame)
+        self.stats.frames_sent += len(frames)
+
+    def _fan_out(self, frame: bytes) -> None:
+        for peer in self._targets:
+            if peer.overflowed and not self._notify_overflow(peer):
+                peer.dropped += 1
+                self.stats.frames_dropped += 1
+                continue
+            try:
+                peer.sock.send(frame, socket.MSG_NOSIGNAL)
+            except BlockingIOError:
+                peer.dropped += 1
+                peer.overflowed = True
+                self.stats.frames_dropped += 1
+            except OSError as exc:  # EPIPE, ECONNRESET: the peer exited; EBADF: dropped meanwhile
+                if exc.errno not in (errno.EPIPE, errno.ECONNRESET, errno.EBADF, errno.ENOTCONN):
+                    raise can.CanOperationError(f"ipc bus: send failed: {exc}") from exc
+                if peer is not self._loop_out:
+                    self._drop_peer(peer)
+
+    def _notify_overflow(self, peer: _Peer) -> bool:
+        try:
+            peer.sock.send(rx_overflow_frame(), socket.MSG_NOSIGNAL)
+        except OSError:
+            return False
+        peer.overflowed = False
+        return True
+
+    # --- receiving -------------------------------------------------------------------------------
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        ready = self._ready
+        while True:
+            while ready:
+                peer = ready[0]
+                try:
+                    data = peer.sock.recv(CANFD_MTU)
+                except (BlockingIOError, InterruptedError):
+                    ready.pop(0)
+                    continue
+                except OSError:
+                    ready.pop(0)
+                    self._drop_peer(peer)
+                    continue
+                if len(data) == len(_WAKE) and peer is self._loop:  # shutdown() wakes us
+                    raise can.CanOperationError("ipc bus: the bus is shut down")
+                if not data:  # EOF: the peer closed or died
+                    ready.pop(0)
+                    self._drop_peer(peer)
+                    continue
+                if len(data) == CANFD_MTU and not self._fd:
+                    self.stats.fd_frames_ignored += 1
+                    continue
+                try:
+                    msg = decode(data, self.channel, time.time(), peer is not self._loop)
+                except FrameError:
+                    self.stats.malformed += 1
+                    continue
+                self.stats.frames_received += 1
+                return msg, False
+            if self._closed:
+                raise can.CanOperationError("ipc bus: the bus is shut down")
+            if deadline is None:
+                wait_s = -1.0
+            else:
+                wait_s = deadline - time.monotonic()
+                if wait_s < 0:
+                    wait_s = 0.0
+            try:
+                events = self._epoll.poll(wait_s)
+            except InterruptedError:
+                events = []
+            except (OSError, ValueError) as exc:  # the epoll was closed by shutdown()
+                raise can.CanOperationError("ipc bus: the bus is shut down") from exc
+            for fd, _mask in events:
+                if fd == self._listen_fd:
+                    self._accept_pending()
+                    continue
+                peer = self._peers.get(fd) or (self._loop if fd == self._loop.fd else None)
+                if peer is not None and peer not in ready:
+                    ready.append(peer)
+            if not ready and deadline is not None and time.monotonic() >= deadline:
+                return None, False
+
+    def fileno(self) -> int:
+        """An epoll descriptor, readable when a frame (or a newcomer) is waiting: for select/asyncio."""
+        return self._epoll.fileno()
+
+    # --- shutdown ----------------------------------------------------------------------------------
+
+    def shutdown(self) -> None:
+        """Leave the bus: close every connection and remove our own socket file (only ours)."""
+        if self._closed:
+            return
+        super().shutdown()
+        with self._lock:
+            self._closed = True
+        try:
+            self._loop_tx.send(_WAKE, socket.MSG_NOSIGNAL)  # a reader blocked in epoll returns
+        except OSError:
+            pass
+        self._close_sockets()
+
+    def _close_sockets(self) -> None:
+        with self._lock:
+            self._closed = True
+            if self._listen is not None:
+                self._listen.close()
+                self._remove_own_socket()
+            for peer in self._peers.values():
+                peer.sock.close()
+            self._peers.clear()
+            self._targets = ()
+        # The loopback pair and the epoll stay open until the object goes: a reader thread may be
+        # between epoll and recv right now; closing its fds under it could hand them to new sockets.
+
+    def _remove_own_socket(self) -> None:
+        if self._path is None or self._inode is None:
+            return
+        try:
+            st = os.lstat(self._path)
+        except FileNotFoundError:
+            return
+        if stat.S_ISSOCK(st.st_mode) and (st.st_dev, st.st_ino) == self._inode:
+            try:
+                os.unlink(self._path)
+            except FileNotFoundError:
+                pass
+        self._path = None
+
+    def __del__(self) -> None:
+        super().__del__()
+        for closable in ("_loop_tx", "_loop_rx", "_epoll"):
+            obj = getattr(self, closable, None)
+            if obj is not None:
+                obj.close()

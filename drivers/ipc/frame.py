@@ -1,0 +1,116 @@
+"""SocketCAN's frame layout, as pure functions: one datagram of the ipc bus is one frame.
+
+Classical frames are Linux's ``struct can_frame`` (16 bytes), CAN FD frames its ``struct
+canfd_frame`` (72 bytes), both in host byte order as a CAN_RAW socket reads them::
+
+    struct can_frame   { u32 can_id; u8 len; u8 __pad; u8 __res0; u8 len8_dlc; u8 data[8];  }
+    struct canfd_frame { u32 can_id; u8 len; u8 flags; u8 __res0; u8 __res1; u8 data[64]; }
+
+``can_id`` carries the identifier (11 or 29 bits) and three flags: CAN_EFF_FLAG (extended id),
+CAN_RTR_FLAG (remote request), CAN_ERR_FLAG (error frame; the identifier is then the error class,
+linux/can/error.h). The datagram's length tells the two layouts apart, as CAN_MTU and CANFD_MTU do
+on a SocketCAN socket. See docs/ipc_bus.md.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import can
+
+CAN_EFF_FLAG = 0x80000000
+CAN_RTR_FLAG = 0x40000000
+CAN_ERR_FLAG = 0x20000000
+CAN_EFF_MASK = 0x1FFFFFFF
+CAN_SFF_MASK = 0x000007FF
+
+CANFD_BRS = 0x01  # bit rate switch
+CANFD_ESI = 0x02  # error state indicator of the sender
+CANFD_FDF = 0x04  # set on every FD frame (Linux >= 5.14 marks them so)
+
+CAN_MTU = 16
+CANFD_MTU = 72
+CAN_MAX_DLEN = 8
+CANFD_MAX_DLEN = 64
+CANFD_LENGTHS = frozenset({0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64})
+
+# linux/can/error.h: a controller problem, byte 1 says which; RX overflow is what a slow reader sees.
+CAN_ERR_CRTL = 0x00000004
+CAN_ERR_CRTL_RX_OVERFLOW = 0x01
+CAN_ERR_DLC = 8
+
+_CAN_FRAME = struct.Struct("=IBBBB8s")
+_CANFD_FRAME = struct.Struct("=IBBBB64s")
+
+
+class FrameError(ValueError):
+    """A datagram that is not a SocketCAN frame, or a message that cannot become one."""
+
+
+def _can_id(msg: can.Message) -> int:
+    can_id = msg.arbitration_id
+    if msg.is_error_frame:
+        return CAN_ERR_FLAG | (can_id & CAN_EFF_MASK)
+    if msg.is_extended_id:
+        if can_id > CAN_EFF_MASK:
+            raise FrameError(f"extended id 0x{can_id:X} exceeds 29 bits")
+        can_id |= CAN_EFF_FLAG
+    elif can_id > CAN_SFF_MASK:
+        raise FrameError(f"standard id 0x{can_id:X} exceeds 11 bits")
+    if msg.is_remote_frame:
+        can_id |= CAN_RTR_FLAG
+    return can_id
+
+
+def encode(msg: can.Message) -> bytes:
+    """The SocketCAN bytes of ``msg``: 16 bytes for a classical frame, 72 for CAN FD."""
+    can_id = _can_id(msg)
+    length = msg.dlc
+    data = bytes(msg.data) if msg.data else b""
+    if msg.is_fd:
+        if length not in CANFD_LENGTHS or len(data) > length:
+            raise FrameError(f"CAN FD frame 0x{msg.arbitration_id:X}: length {length} is not a CAN FD length")
+        flags = CANFD_FDF | (CANFD_BRS if msg.bitrate_switch else 0) | (CANFD_ESI if msg.error_state_indicator else 0)
+        return _CANFD_FRAME.pack(can_id, length, flags, 0, 0, data)
+    if length > CAN_MAX_DLEN or len(data) > CAN_MAX_DLEN:
+        raise FrameError(f"classical frame 0x{msg.arbitration_id:X}: {max(length, len(data))} bytes (max 8)")
+    return _CAN_FRAME.pack(can_id, length, 0, 0, 0, data)
+
+
+def decode(frame: bytes, channel: str | None = None, timestamp: float = 0.0, is_rx: bool = True) -> can.Message:
+    """A :class:`can.Message` from SocketCAN bytes; :class:`FrameError` if they are not a frame."""
+    size = len(frame)
+    if size == CAN_MTU:
+        can_id, length, _pad, _res0, _len8_dlc, payload = _CAN_FRAME.unpack(frame)
+        is_fd = False
+        flags = 0
+        if length > CAN_MAX_DLEN:
+            raise FrameError(f"classical frame with length {length}")
+    elif size == CANFD_MTU:
+        can_id, length, flags, _res0, _res1, payload = _CANFD_FRAME.unpack(frame)
+        is_fd = True
+        if length not in CANFD_LENGTHS:
+            raise FrameError(f"CAN FD frame with length {length}")
+    else:
+        raise FrameError(f"datagram of {size} bytes is neither a CAN ({CAN_MTU}) nor a CAN FD ({CANFD_MTU}) frame")
+    remote = bool(can_id & CAN_RTR_FLAG)
+    return can.Message(
+        timestamp=timestamp,
+        arbitration_id=can_id & CAN_EFF_MASK,
+        is_extended_id=bool(can_id & CAN_EFF_FLAG),
+        is_remote_frame=remote,
+        is_error_frame=bool(can_id & CAN_ERR_FLAG),
+        dlc=length,
+        data=None if remote else payload[:length],
+        is_fd=is_fd,
+        bitrate_switch=bool(flags & CANFD_BRS),
+        error_state_indicator=bool(flags & CANFD_ESI),
+        channel=channel,
+        is_rx=is_rx,
+    )
+
+
+def rx_overflow_frame() -> bytes:
+    """The error frame a SocketCAN controller reports after losing received frames."""
+    data = bytes([0, CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0])
+    return _CAN_FRAME.pack(CAN_ERR_FLAG | CAN_ERR_CRTL, CAN_ERR_DLC, 0, 0, 0, data)
