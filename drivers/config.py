@@ -27,7 +27,7 @@ from drivers.busload import DEFAULT_LIMIT, TPDO_FD_SYNC_BYTES, BusLoad, check_bu
 from drivers.cia402.scaling import INT16_MAX, JointScaling, check_torque_range
 from drivers.errors import DriveConfigError
 
-Interface = Literal["virtual", "socketcan", "remote", "slcan"]
+Interface = Literal["virtual", "socketcan", "remote", "slcan", "ipc"]
 LOOPBACK_NAMES = frozenset({"localhost", "ip6-localhost"})
 
 
@@ -50,6 +50,7 @@ class TransportConfig(_Frozen):
     interface: Interface = "virtual"
     # virtual: any name shared in-process; socketcan: vcan0/can0; slcan: serial port;
     # remote: a ws:// URL (left empty, it is built from bridge_host/bridge_port).
+    # ipc: the bus directory shared by the processes, or a name (docs/ipc_bus.md).
     channel: str = "hil"
     bitrate: int = Field(1_000_000, gt=0)  # nominal (arbitration) bit rate, bit/s
     fd: bool = False  # CAN FD frames (one 12-byte TPDO per drive)

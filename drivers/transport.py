@@ -10,6 +10,7 @@ so the runtime never imports an interface it does not use (python-can-remote is 
 - ``remote``: the python-can-remote websocket bridge, a virtual bus shared between processes;
   loopback only; :func:`start_bridge_server` hosts one (the sim target).
 - ``slcan``: serial-line CAN adapters (classical CAN only).
+- ``ipc``: the project's bus between processes (:mod:`drivers.ipc`, docs/ipc_bus.md).
 
 Configuration files of python-can are ignored on purpose: the bus is exactly what the config says.
 Adding an interface: one row here, its name in ``drivers.config.Interface``, and a module with
@@ -36,6 +37,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "socketcan": ("drivers.interfaces.socketcan", "open_bus"),
     "remote": ("drivers.interfaces.remote", "open_bus"),
     "slcan": ("drivers.interfaces.slcan", "open_bus"),
+    "ipc": ("drivers.ipc.bus", "open_bus"),
 }
 
 

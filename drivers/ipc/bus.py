@@ -42,11 +42,14 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
 from drivers.ipc.frame import CANFD_MTU, FrameError, decode, encode, rx_overflow_frame
+
+if TYPE_CHECKING:
+    from drivers.config import TransportConfig
 
 log = logging.getLogger(__name__)
 
@@ -416,3 +419,8 @@ class IpcBus(can.BusABC):  # type: ignore[misc]  # python-can's BusABC is untype
             obj = getattr(self, closable, None)
             if obj is not None:
                 obj.close()
+
+
+def open_bus(config: TransportConfig) -> IpcBus:
+    """The row of ``drivers.transport.BACKENDS``: ``transport: {interface: ipc, channel: DIR}``."""
+    return IpcBus(config.channel, fd=config.fd)
