@@ -1,0 +1,201 @@
+"""The runtime's configuration: one YAML file, validated once, frozen (``hil run --config FILE``).
+
+::
+
+    robot: ur5_paper                     # must be the bundle's robot
+    bundle:
+      path: ../models/bundles/ur5_paper/pd   # relative paths are relative to this file
+      mode: lmpc                         # lmpc: the fused law + emulator; fb: the law alone
+    bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
+      transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
+                  fd: true, data_bitrate: 5000000}
+      period_s: 0.002                    # the control period: one SYNC, one policy step
+      joints:                            # order = the bundle's joint order
+        - {name: shoulder_pan_joint, node_id: 1, max_torque_nm: 102.0}
+        - ...
+    reference:
+      kind: condition                    # condition | hold (the measured start pose)
+      conditions_file: null              # null: the paper's five (hil_runtime/data)
+      condition: C1
+      ramp_s: 2.0                        # from the measured pose onto the reference start
+    loop:
+      pacing: clock                      # clock: absolute deadlines; bus: as fast as the bus answers
+      cpu_affinity: null                 # e.g. [1]: the loop thread only
+      fifo_priority: null                # e.g. 50: SCHED_FIFO on the loop thread only
+      lock_memory: false                 # mlockall(MCL_CURRENT | MCL_FUTURE)
+      duration_s: null                   # stop (exit 0) after this long in ACTIVE; null: run on
+    safety:                              # null: the bundle manifest's limits
+      position_lower_rad: null
+      position_upper_rad: null
+      velocity_limit_rad_s: null
+      max_stale_cycles: 1
+    telemetry: {enabled: false}          # hil_runtime.telemetry
+    control_socket: /run/hil/runtime.sock   # hil status / hil reset / hil stop; null: none
+
+Bad input raises :class:`RuntimeConfigError` (exit code 2) with one line naming the file and the
+field. Whether the bundle matches the drives (joint count, order, period) is checked when the
+bundle is loaded (:func:`hil_runtime.runtime.load_bundle_for`), before the bus is touched.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.config import DriveBusConfig, format_validation_error
+from drivers.errors import DriveConfigError
+
+try:  # the telemetry helper's model; a minimal stand-in keeps the runtime usable without it
+    from hil_runtime.telemetry.config import TelemetryConfig
+except ImportError:  # pragma: no cover - only while telemetry/config.py does not exist
+
+    class TelemetryConfig(BaseModel):  # type: ignore[no-redef]
+        model_config = ConfigDict(frozen=True, extra="forbid")
+        enabled: bool = False
+
+
+class RuntimeConfigError(ValueError):
+    """A runtime config the daemon refuses: one line naming the file and the field."""
+
+    exit_code = 2
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class BundleSection(_Frozen):
+    path: Path  # the bundle directory (manifest.json + policy.onnx)
+    mode: Literal["lmpc", "fb"] = "lmpc"  # lmpc: fused law + emulator; fb: the law's torque alone
+
+
+class ReferenceSection(_Frozen):
+    kind: Literal["condition", "hold"] = "condition"
+    conditions_file: Path | None = None  # None: the paper's five (hil_runtime/data)
+    condition: str | None = None  # required for kind: condition
+    ramp_s: float = Field(2.0, ge=0.0)  # shortest ramp from the measured pose onto the reference start
+    # The ramp is lengthened so its peak speed stays below this fraction of each joint's limit.
+    ramp_speed_fraction: float = Field(0.25, gt=0.0, le=1.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> ReferenceSection:
+        if self.kind == "condition" and not self.condition:
+            raise ValueError("condition: required when kind is 'condition' (e.g. C1)")
+        if self.kind == "hold" and (self.condition or self.conditions_file):
+            raise ValueError("kind 'hold' takes no condition or conditions_file")
+        return self
+
+
+class LoopSection(_Frozen):
+    # clock: absolute deadlines on the monotonic clock at bus.period_s (overruns counted, skipped).
+    # bus: no sleeping; a lock-stepped target's answer paces the loop (simulated time still
+    # advances one period per cycle).
+    pacing: Literal["clock", "bus"] = "clock"
+    cpu_affinity: tuple[int, ...] | None = None  # CPUs for the loop thread only
+    fifo_priority: int | None = Field(None, ge=1, le=99)  # SCHED_FIFO priority of the loop thread
+    lock_memory: bool = False  # mlockall; needs LimitMEMLOCK (systemd) or CAP_IPC_LOCK
+    warmup_cycles: int = Field(200, ge=0)  # policy/supervisor calls before ACTIVE
+    stats_window: int = Field(4096, ge=16, le=1 << 20)  # cycles kept for median/p99/max
+    stats_interval_s: float = Field(1.0, gt=0.0)  # stats to telemetry / STATUS= this often
+    duration_s: float | None = Field(None, gt=0.0)  # leave ACTIVE (stop, exit 0) after this long
+    idle_poll_s: float = Field(0.01, gt=0.0, le=1.0)  # INACTIVE/FAULT: how often requests are read
+    activate_on_reset: bool = True  # a reset goes on to ACTIVE (ramp from the measured pose)
+
+
+class SafetySection(_Frozen):
+    """Soft limits; None takes the bundle manifest's limits (position ±, velocity ±)."""
+
+    position_lower_rad: tuple[float, ...] | None = None
+    position_upper_rad: tuple[float, ...] | None = None
+    velocity_limit_rad_s: tuple[float, ...] | None = None
+    max_stale_cycles: int = Field(1, ge=0)  # consecutive cycles with stale feedback before FAULT
+
+    @model_validator(mode="after")
+    def _check(self) -> SafetySection:
+        for name in ("position_lower_rad", "position_upper_rad", "velocity_limit_rad_s"):
+            value = getattr(self, name)
+            if value is not None and not all(math.isfinite(v) for v in value):
+                raise ValueError(f"{name}: values must be finite")
+        if self.velocity_limit_rad_s is not None and any(v <= 0 for v in self.velocity_limit_rad_s):
+            raise ValueError("velocity_limit_rad_s: values must be positive")
+        lo, hi = self.position_lower_rad, self.position_upper_rad
+        if lo is not None and hi is not None and (len(lo) != len(hi) or any(a >= b for a, b in zip(lo, hi))):
+            raise ValueError("position_lower_rad must be below position_upper_rad, joint by joint")
+        return self
+
+
+class RuntimeConfig(_Frozen):
+    robot: str
+    bundle: BundleSection
+    bus: DriveBusConfig
+    reference: ReferenceSection = ReferenceSection(kind="hold")
+    loop: LoopSection = LoopSection()
+    safety: SafetySection = SafetySection()
+    telemetry: TelemetryConfig = TelemetryConfig()
+    control_socket: Path | None = None  # Unix stream socket: hil status / reset / stop
+    source: str = Field("config", exclude=True)  # the file it came from, for messages
+
+    @model_validator(mode="after")
+    def _check(self) -> RuntimeConfig:
+        n = len(self.bus.joints)
+        for name in ("position_lower_rad", "position_upper_rad", "velocity_limit_rad_s"):
+            value = getattr(self.safety, name)
+            if value is not None and len(value) != n:
+                raise ValueError(f"safety.{name}: {len(value)} values for {n} joints")
+        return self
+
+    @property
+    def period_s(self) -> float:
+        return self.bus.period_s
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(j.name for j in self.bus.joints)
+
+
+def _resolve(path: Path | None, base: Path) -> Path | None:
+    if path is None:
+        return None
+    path = path.expanduser()
+    return path if path.is_absolute() else (base / path)
+
+
+def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | None = None) -> RuntimeConfig:
+    """Validate a mapping; relative paths are taken relative to ``base_dir`` (the file's folder)."""
+    if not isinstance(data, dict):
+        raise RuntimeConfigError(f"{source}: expected a mapping at the top level")
+    try:
+        config = RuntimeConfig.model_validate({**data, "source": source})
+    except ValidationError as exc:
+        raise RuntimeConfigError(format_validation_error(source, exc)) from None
+    try:
+        config.bus.bus_load(f"{source}: bus")  # the bus-load budget, before anything is opened
+    except DriveConfigError as exc:
+        raise RuntimeConfigError(str(exc)) from None
+    base = base_dir or Path.cwd()
+    bundle = config.bundle.model_copy(update={"path": _resolve(config.bundle.path, base)})
+    reference = config.reference.model_copy(
+        update={"conditions_file": _resolve(config.reference.conditions_file, base)})
+    control = _resolve(config.control_socket, base)
+    return config.model_copy(update={"bundle": bundle, "reference": reference, "control_socket": control})
+
+
+def load_runtime_config(path: Path | str) -> RuntimeConfig:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise RuntimeConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise RuntimeConfigError(f"{path}: not a UTF-8 text file") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise RuntimeConfigError(f"{path}: not valid YAML{where}") from None
+    return parse_runtime_config(data, str(path), path.resolve().parent)

@@ -1,0 +1,170 @@
+"""Pacing the loop: absolute deadlines on the monotonic clock, and per-cycle timing statistics.
+
+:class:`Pacer` keeps ``next_s += period_s`` (ros2_control's ``sleep_until``, python-can's periodic
+sender): it never drifts, and when a cycle overruns its deadline the missed periods are counted
+and skipped, never run in a burst to catch up. ``tick`` counts periods since :meth:`Pacer.start`,
+skipped ones included, so a reference indexed by it stays on the wall clock.
+
+With ``pacing="bus"`` the pacer never sleeps: a lock-stepped target answers each SYNC after one
+simulated period, so the bus itself paces the loop and ``tick`` advances one per cycle.
+
+:class:`RollingStats` keeps the last ``window`` samples in a fixed ring buffer (one float store per
+cycle, nothing allocated) and computes median / p99 / max on demand (about 1 Hz), plus the
+all-time max and count.
+
+The clock and the sleep are injectable, so the unit tests run the pacer on a fake clock.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+
+Pacing = Literal["clock", "bus"]
+
+
+class RollingStats:
+    """Median, p99 and max over the last ``window`` samples; all-time max and count."""
+
+    def __init__(self, window: int = 4096) -> None:
+        if window < 1:
+            raise ValueError("window must be at least 1")
+        self._buf = np.zeros(window)
+        self._window = window
+        self._i = 0
+        self.count = 0
+        self.max_all = 0.0
+
+    def add(self, value: float) -> None:
+        self._buf[self._i] = value
+        self._i += 1
+        if self._i == self._window:
+            self._i = 0
+        self.count += 1
+        if value > self.max_all:
+            self.max_all = value
+
+    def reset(self) -> None:
+        self._i = 0
+        self.count = 0
+        self.max_all = 0.0
+
+    def values(self) -> np.ndarray:
+        """The samples in the window (a copy, oldest order not kept)."""
+        return self._buf[: min(self.count, self._window)].copy()
+
+    def summary(self) -> dict[str, float]:
+        """{median, p99, max} over the window (max_all: since reset); NaN when empty."""
+        n = min(self.count, self._window)
+        if n == 0:
+            return {"median": math.nan, "p99": math.nan, "max": math.nan, "max_all": math.nan, "count": 0}
+        data = self._buf[:n]
+        median, p99 = np.percentile(data, (50.0, 99.0))
+        return {"median": float(median), "p99": float(p99), "max": float(data.max()), "max_all": self.max_all,
+                "count": self.count}
+
+
+class Pacer:
+    """Absolute-deadline pacing with overrun accounting (see the module docstring)."""
+
+    def __init__(
+        self,
+        period_s: float,
+        pacing: Pacing = "clock",
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        stats_window: int = 4096,
+    ) -> None:
+        if not period_s > 0:
+            raise ValueError("period_s must be positive")
+        self.period_s = period_s
+        self.pacing = pacing
+        self._clock = clock
+        self._sleep = sleep
+        self.tick = 0  # periods since start(), skipped ones included
+        self.cycles = 0  # cycles actually run
+        self.overruns = 0  # cycles that started after their deadline (the one before ran too long)
+        self.skipped = 0  # periods skipped because of overruns
+        self.started_s = 0.0
+        self._next_s = 0.0
+        self._last_start_s = math.nan
+        self.period_stats = RollingStats(stats_window)  # start-to-start, seconds
+        self.compute_stats = RollingStats(stats_window)  # loop work per cycle, seconds
+        self.exchange_stats = RollingStats(stats_window)  # waiting on the bus per cycle, seconds
+
+    def start(self) -> float:
+        """Arm the pacer: the first cycle starts now, tick 0."""
+        now = self._clock()
+        self.started_s = now
+        self._next_s = now
+        self._last_start_s = math.nan
+        self.tick = 0
+        self.cycles = 0
+        self.overruns = 0
+        self.skipped = 0
+        for stats in (self.period_stats, self.compute_stats, self.exchange_stats):
+            stats.reset()
+        return now
+
+    def wait(self) -> float:
+        """Block until this cycle's deadline; returns the cycle's start time (clock seconds).
+
+        Clock pacing: when the previous cycle ran past this cycle's deadline, that is an overrun;
+        this cycle starts at once, in the latest period slot already begun, and the periods wholly
+        past are skipped (``tick`` jumps over them), so the loop never runs a burst of late cycles.
+        """
+        clock = self._clock
+        if self.cycles == 0:
+            now = clock()
+        elif self.pacing == "bus":
+            now = clock()
+            self.tick += 1
+        else:
+            deadline = self._next_s + self.period_s
+            now = clock()
+            if now < deadline:
+                self._sleep(deadline - now)
+                now = clock()
+                self.tick += 1
+                self._next_s = deadline
+            else:  # the last cycle ran past this deadline: an overrun
+                late = int((now - deadline) // self.period_s)  # whole periods already past: skipped
+                self.overruns += 1
+                self.skipped += late
+                self.tick += 1 + late
+                self._next_s = deadline + late * self.period_s
+        if self.cycles > 0:
+            self.period_stats.add(now - self._last_start_s)
+        self._last_start_s = now
+        self.cycles += 1
+        return now
+
+    @property
+    def elapsed_s(self) -> float:
+        return self._clock() - self.started_s
+
+    def achieved_rate_hz(self) -> float:
+        """Cycles per second over the last window (median period), NaN before two cycles."""
+        median = self.period_stats.summary()["median"]
+        return 1.0 / median if median and median > 0 else math.nan
+
+    def summary(self) -> dict[str, float]:
+        """What telemetry's ``stats`` and the benchmark report: seconds, counts."""
+        elapsed = max(self._last_start_s - self.started_s, 0.0) if self.cycles > 1 else 0.0
+        out: dict[str, float] = {
+            "cycles": self.cycles,
+            "tick": self.tick,
+            "overruns": self.overruns,
+            "skipped_periods": self.skipped,
+            "rate_hz": (self.cycles - 1) / elapsed if elapsed > 0 else math.nan,
+        }
+        for name, stats in (("period", self.period_stats), ("compute", self.compute_stats),
+                            ("exchange", self.exchange_stats)):  # fmt: skip
+            for key, value in stats.summary().items():
+                if key != "count":
+                    out[f"{name}_{key}_s"] = value  # e.g. period_median_s, compute_p99_s
+        return out

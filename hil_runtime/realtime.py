@@ -1,0 +1,87 @@
+"""Real-time hygiene where the OS allows it; where it refuses, one warning and carry on.
+
+- :func:`lock_memory`: ``mlockall(MCL_CURRENT | MCL_FUTURE)`` through ctypes (no page faults in
+  the loop; needs ``LimitMEMLOCK=infinity`` under systemd or CAP_IPC_LOCK).
+- :func:`set_thread_fifo` / :func:`set_thread_affinity`: SCHED_FIFO and CPU affinity for the
+  *calling thread only* (``os.sched_setscheduler(0, ...)`` acts on the calling thread on Linux).
+  Threads created afterwards inherit them, so the runtime starts its helper threads first.
+- :class:`GcQuiet`: ``gc.collect(); gc.freeze()`` after start-up (the survivors are never scanned
+  again) and ``gc.disable()`` while ACTIVE, so no collection pauses the loop; re-enabled after.
+
+Each returns whether it took effect; :class:`RealtimeReport` collects what happened for the logs
+and the docs' figures.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import gc
+import logging
+import os
+from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
+
+MCL_CURRENT = 1
+MCL_FUTURE = 2
+
+
+@dataclass
+class RealtimeReport:
+    applied: list[str] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
+
+    def note(self, what: str, ok: bool, why: str = "") -> bool:
+        if ok:
+            self.applied.append(what)
+        else:
+            self.refused.append(f"{what} ({why})" if why else what)
+            log.warning("real time: %s refused%s; carrying on without it", what, f": {why}" if why else "")
+        return ok
+
+
+def lock_memory(report: RealtimeReport | None = None) -> bool:
+    report = report or RealtimeReport()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    except OSError as exc:
+        return report.note("mlockall", False, str(exc))
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        err = ctypes.get_errno()
+        return report.note("mlockall", False, f"{errno.errorcode.get(err, err)}: {os.strerror(err)}")
+    return report.note("mlockall", True)
+
+
+def set_thread_fifo(priority: int, report: RealtimeReport | None = None) -> bool:
+    report = report or RealtimeReport()
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return report.note(f"SCHED_FIFO {priority}", False, getattr(exc, "strerror", None) or str(exc))
+    return report.note(f"SCHED_FIFO {priority}", True)
+
+
+def set_thread_affinity(cpus: tuple[int, ...], report: RealtimeReport | None = None) -> bool:
+    report = report or RealtimeReport()
+    try:
+        os.sched_setaffinity(0, set(cpus))
+    except (OSError, ValueError, AttributeError) as exc:
+        return report.note(f"CPU affinity {list(cpus)}", False, getattr(exc, "strerror", None) or str(exc))
+    return report.note(f"CPU affinity {list(cpus)}", True)
+
+
+class GcQuiet:
+    """``with GcQuiet():`` no garbage collection inside; start-up garbage frozen first."""
+
+    def __enter__(self) -> GcQuiet:
+        self._was_enabled = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._was_enabled:
+            gc.enable()

@@ -1,0 +1,97 @@
+"""The reference the loop tracks, precomputed per period: a ramp, then a condition, then hold.
+
+- ``hold``: the measured start pose, zero velocity and acceleration, forever.
+- ``condition``: a quintic ramp from the measured pose (at rest) onto the condition's start
+  (its position, velocity and acceleration at t = 0), never a step; then the condition from its
+  t = 0; after its end, its last position held at rest.
+
+The ramp lasts at least ``ramp_s`` and is lengthened until its peak speed is within
+``speed_fraction`` of every joint's velocity limit. The whole table is computed before ACTIVE
+(5 s at 1 kHz: 5000 rows, 0.7 MB), so a cycle reads row ``k`` and allocates nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil_runtime.conditions import Condition
+
+_MAX_LENGTHEN = 40
+
+
+def quintic(p0: np.ndarray, p1: np.ndarray, v1: np.ndarray, a1: np.ndarray, duration_s: float,
+            t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Rest at p0 (t = 0) to (p1, v1, a1) at t = duration_s: (q, qd, qdd), shaped t.shape + (N,)."""
+    T = duration_s
+    h = p1 - p0
+    c3 = (20 * h - 8 * v1 * T + a1 * T**2) / (2 * T**3)
+    c4 = (-30 * h + 14 * v1 * T - 2 * a1 * T**2) / (2 * T**4)
+    c5 = (12 * h - 6 * v1 * T + a1 * T**2) / (2 * T**5)
+    t = np.asarray(t_s, float)[..., None]
+    q = p0 + c3 * t**3 + c4 * t**4 + c5 * t**5
+    qd = 3 * c3 * t**2 + 4 * c4 * t**3 + 5 * c5 * t**4
+    qdd = 6 * c3 * t + 12 * c4 * t**2 + 20 * c5 * t**3
+    return q, qd, qdd
+
+
+@dataclass
+class Reference:
+    q: np.ndarray  # (K, N)
+    qd: np.ndarray
+    qdd: np.ndarray
+    ramp_cycles: int  # rows 0..ramp_cycles-1 are the ramp
+    name: str
+
+    def __post_init__(self) -> None:
+        self._hold_q = self.q[-1].copy()
+        self._zeros = np.zeros_like(self._hold_q)
+        self.cycles = self.q.shape[0]
+
+    def at(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q_d, qd_d, qdd_d) for period ``k`` since activation (views; do not write)."""
+        if k < self.cycles:
+            return self.q[k], self.qd[k], self.qdd[k]
+        return self._hold_q, self._zeros, self._zeros
+
+    @classmethod
+    def hold(cls, q0: np.ndarray) -> Reference:
+        q0 = np.asarray(q0, float).reshape(1, -1).copy()
+        return cls(q0, np.zeros_like(q0), np.zeros_like(q0), 0, "hold")
+
+    @classmethod
+    def ramp_then(cls, q0: np.ndarray, condition: Condition, period_s: float, ramp_s: float,
+                  velocity_limit_rad_s: np.ndarray, speed_fraction: float = 0.25) -> Reference:  # fmt: skip
+        q0 = np.asarray(q0, float)
+        if condition.n_joints != q0.shape[0]:
+            raise ValueError(f"condition {condition.name} has {condition.n_joints} joints, the arm {q0.shape[0]}")
+        p1, v1, a1 = (np.asarray(x, float) for x in condition.reference(0.0))
+        duration = ramp_duration_s(q0, p1, v1, a1, ramp_s, np.asarray(velocity_limit_rad_s, float) * speed_fraction,
+                                   period_s)
+        n_ramp = int(round(duration / period_s))
+        n_cond = int(math.floor(condition.duration_s / period_s + 1e-9)) + 1
+        t_cond = np.arange(n_cond) * period_s
+        cq, cqd, cqdd = (np.asarray(x, float) for x in condition.reference(t_cond))
+        if n_ramp > 0:
+            rq, rqd, rqdd = quintic(q0, p1, v1, a1, duration, np.arange(n_ramp) * period_s)
+            cq, cqd, cqdd = (np.concatenate(p) for p in ((rq, cq), (rqd, cqd), (rqdd, cqdd)))
+        return cls(np.ascontiguousarray(cq), np.ascontiguousarray(cqd), np.ascontiguousarray(cqdd), n_ramp,
+                   condition.name)
+
+
+def ramp_duration_s(q0: np.ndarray, p1: np.ndarray, v1: np.ndarray, a1: np.ndarray, min_s: float,
+                    max_speed_rad_s: np.ndarray, period_s: float) -> float:  # fmt: skip
+    """The shortest whole number of periods >= min_s whose quintic ramp stays below max_speed."""
+    if np.all(np.abs(p1 - q0) < 1e-12) and np.all(np.abs(v1) < 1e-12) and np.all(np.abs(a1) < 1e-12) and min_s == 0:
+        return 0.0
+    # Rest-to-rest quintic peaks at 1.875 h / T: start there, then check numerically.
+    duration = max(min_s, float(np.max(1.875 * np.abs(p1 - q0) / max_speed_rad_s)), 10 * period_s)
+    for _ in range(_MAX_LENGTHEN):
+        duration = math.ceil(duration / period_s - 1e-9) * period_s
+        _, qd, _ = quintic(q0, p1, v1, a1, duration, np.linspace(0.0, duration, 201))
+        if np.all(np.abs(qd) <= np.maximum(max_speed_rad_s, np.abs(v1)) + 1e-12):
+            return duration
+        duration *= 1.25
+    return duration

@@ -1,0 +1,621 @@
+"""The runtime: lifecycle + pacer + bus + reference + controller + supervisor + telemetry, one loop.
+
+A library first, the daemon second (``hil run`` wraps it, :mod:`hil_runtime.daemon`)::
+
+    runtime = Runtime(config, bus)                 # bundle + conditions loaded and checked, no I/O
+    runtime.configure()                            # UNCONFIGURED -> INACTIVE: bus up, policy warm
+    runtime.activate()                             # INACTIVE -> ACTIVE: drives enabled, ramp built
+    result = runtime.run(max_cycles=5000)          # the loop, on the calling thread
+    runtime.record.arrays()                        # t_s, q, qd, q_ref, qd_ref, tau, tau_fb, fallback
+    runtime.shutdown()                             # quick stop, disable, close: FINALIZED
+
+Per cycle (ACTIVE), on one thread:
+
+    pacer.wait ─▶ bus.exchange(set-points) ─▶ supervisor.check_feedback ─▶ reference row
+        ─▶ controller.step (one onnxruntime call) ─▶ supervisor.select_torque ─▶ next set-points
+        ─▶ telemetry.offer_state (bounded, never blocks) ─▶ record ─▶ watchdog ping (sd_notify)
+
+The set-points computed from cycle k's feedback go out with cycle k+1's SYNC: a lock-stepped
+target then advances exactly one period under them, as the models simulator's zero-order hold.
+Any fault (a driver error, which the driver raises after quick-stopping the drives; a supervisor
+rule; an unexpected exception) quick-stops the drives and enters FAULT: the loop thread stays up,
+keeps the watchdog fed, reports why, and waits for :meth:`request_reset` or :meth:`request_stop`.
+
+:meth:`request_stop`, :meth:`request_reset` and :meth:`request_activate` only set flags the loop
+reads: any thread (signal handler, control socket, Zenoh queryable) may call them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import DriveError
+from drivers.joint_bus import JointBus, JointFeedback
+from hil_runtime.bundle import BundleError, PolicyBundle
+from hil_runtime.conditions import Condition, ConditionError, load_conditions
+from hil_runtime.config import RuntimeConfig, RuntimeConfigError
+from hil_runtime.controller import Controller
+from hil_runtime.lifecycle import Lifecycle, LifecycleState, Transition
+from hil_runtime.pacer import Pacer
+from hil_runtime.realtime import GcQuiet, RealtimeReport, set_thread_affinity, set_thread_fifo
+from hil_runtime.reference import Reference
+from hil_runtime.sdnotify import Notifier
+from hil_runtime.supervisor import Fault, FaultKind, SafetyLimits, Supervisor, classify_bus_error
+from hil_runtime.telemetry.sink import NullTelemetry, TelemetrySink
+
+log = logging.getLogger(__name__)
+
+
+class StartupError(RuntimeError):
+    """The daemon could not start (bus unreachable, drives silent): one line, exit 2, never enabled."""
+
+    exit_code = 2
+
+
+# --- what the config names, loaded and cross-checked before any I/O ---------------------------------
+
+
+def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
+    """The config's bundle, refused unless it matches the drives: robot, joint count/order, period."""
+    bundle = PolicyBundle.load(config.bundle.path, expected_joints=len(config.bus.joints),
+                               expected_period_s=config.period_s, expected_joint_names=config.joint_names)  # fmt: skip
+    robot = bundle.manifest["robot"].get("name")
+    if robot != config.robot:
+        raise RuntimeConfigError(f"{config.source}: robot: '{config.robot}' but bundle {config.bundle.path} "
+                                 f"is for '{robot}'")  # fmt: skip
+    return bundle
+
+
+def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimits:
+    """Soft limits: the config's, else the bundle manifest's; torque: the tighter of bundle and drives."""
+    limits = bundle.manifest["limits"]
+    n = bundle.n_joints
+    position = np.asarray(limits.get("position_rad", [math.pi] * n), float)
+    velocity = np.asarray(limits.get("velocity_rad_s", [math.inf] * n), float)
+    safety = config.safety
+    lower = np.asarray(safety.position_lower_rad, float) if safety.position_lower_rad is not None else -position
+    upper = np.asarray(safety.position_upper_rad, float) if safety.position_upper_rad is not None else position
+    vmax = np.asarray(safety.velocity_limit_rad_s, float) if safety.velocity_limit_rad_s is not None else velocity
+    drives = np.array([j.max_torque_nm for j in config.bus.joints])
+    torque = np.minimum(np.asarray(bundle.torque_limit_nm, float), drives)
+    try:
+        return SafetyLimits(lower, upper, vmax, torque, safety.max_stale_cycles)
+    except ValueError as exc:
+        raise RuntimeConfigError(f"{config.source}: safety: {exc}") from None
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """The JointLimits view of the safety limits that a condition is checked against."""
+
+    name: str
+    n_joints: int
+    position_lower_rad: np.ndarray
+    position_upper_rad: np.ndarray
+    velocity_limit_rad_s: np.ndarray
+
+
+def condition_for(config: RuntimeConfig, limits: SafetyLimits) -> Condition | None:
+    """The configured condition (None for hold), checked against the soft limits."""
+    ref = config.reference
+    if ref.kind == "hold":
+        return None
+    view = _Limits(config.robot, limits.n_joints, limits.position_lower_rad, limits.position_upper_rad,
+                   limits.velocity_limit_rad_s)  # fmt: skip
+    conditions = load_conditions(ref.conditions_file, view)
+    for condition in conditions:
+        if condition.name == ref.condition:
+            return condition
+    names = ", ".join(c.name for c in conditions)
+    where = ref.conditions_file or "the paper's conditions"
+    raise RuntimeConfigError(f"{config.source}: reference.condition: no condition '{ref.condition}' in {where} "
+                             f"(known: {names})")  # fmt: skip
+
+
+# --- the record of a run -----------------------------------------------------------------------------
+
+
+class RunRecord:
+    """Preallocated per-cycle arrays (``capacity`` rows); rows past it are counted, not kept."""
+
+    FIELDS = ("q", "qd", "q_ref", "qd_ref", "tau", "tau_fb")
+
+    def __init__(self, capacity: int, n_joints: int) -> None:
+        self.capacity = capacity
+        self.n = 0
+        self.overflow = 0
+        self.t_s = np.zeros(capacity)  # reference time of the row: period index x period
+        self.wall_s = np.zeros(capacity)  # monotonic clock at the cycle's start, from activation
+        self.q = np.zeros((capacity, n_joints))
+        self.qd = np.zeros((capacity, n_joints))
+        self.q_ref = np.zeros((capacity, n_joints))
+        self.qd_ref = np.zeros((capacity, n_joints))
+        self.tau = np.zeros((capacity, n_joints))  # the command the supervisor chose
+        self.tau_fb = np.zeros((capacity, n_joints))
+        self.fallback = np.zeros(capacity)
+        self.compute_s = np.zeros(capacity)  # this cycle's loop work, policy call included
+        self.exchange_s = np.zeros(capacity)  # this cycle's wait on the bus
+
+    def add(self, t_s: float, wall_s: float, q: np.ndarray, qd: np.ndarray, q_ref: np.ndarray, qd_ref: np.ndarray,
+            tau: np.ndarray, tau_fb: np.ndarray, fallback: float, exchange_s: float) -> int:  # fmt: skip
+        """Store one row; returns its index (-1 when full). The loop fills compute_s at the cycle's end."""
+        i = self.n
+        if i >= self.capacity:
+            self.overflow += 1
+            return -1
+        self.t_s[i] = t_s
+        self.wall_s[i] = wall_s
+        self.q[i] = q
+        self.qd[i] = qd
+        self.q_ref[i] = q_ref
+        self.qd_ref[i] = qd_ref
+        self.tau[i] = tau
+        self.tau_fb[i] = tau_fb
+        self.fallback[i] = fallback
+        self.exchange_s[i] = exchange_s
+        self.n = i + 1
+        return i
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The filled rows (views)."""
+        n = self.n
+        names = ("t_s", "wall_s", *self.FIELDS, "fallback", "compute_s", "exchange_s")
+        return {name: getattr(self, name)[:n] for name in names}
+
+    def save_npz(self, path: Path | str) -> None:
+        np.savez_compressed(path, **self.arrays())
+
+
+@dataclass
+class RunResult:
+    """What :meth:`Runtime.run` returns: why it ended and the counters of the run."""
+
+    reason: str  # "stop", "cycles", "duration", "fault"
+    state: LifecycleState
+    fault: str | None
+    cycles: int
+    stats: dict[str, Any]
+
+
+# --- the runtime ---------------------------------------------------------------------------------------
+
+
+class Runtime:
+    """One arm's runtime. Construct, configure, activate, run, shutdown (module docstring)."""
+
+    def __init__(
+        self,
+        config: RuntimeConfig,
+        bus: JointBus,
+        *,
+        bundle: PolicyBundle | None = None,
+        telemetry: TelemetrySink | None = None,
+        notifier: Notifier | None = None,
+        record_cycles: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self.config = config
+        self.bus = bus
+        if bus.n_joints != len(config.bus.joints):
+            raise RuntimeConfigError(f"{config.source}: bus: {bus.n_joints} drives on the bus, "
+                                     f"{len(config.bus.joints)} joints in the config")  # fmt: skip
+        self.bundle = bundle if bundle is not None else load_bundle_for(config)
+        self.limits = safety_limits_for(config, self.bundle)
+        self.condition = condition_for(config, self.limits)
+        self.controller = Controller(self.bundle, config.bundle.mode)
+        self.supervisor = Supervisor(self.limits, config.joint_names)
+        self.telemetry: TelemetrySink = telemetry if telemetry is not None else NullTelemetry()
+        self.notifier = notifier if notifier is not None else Notifier(None)
+        self.lifecycle = Lifecycle()
+        self.lifecycle.subscribe(self._on_lifecycle)
+        self._clock = clock
+        self.pacer = Pacer(config.period_s, config.loop.pacing, clock=clock, sleep=sleep,
+                           stats_window=config.loop.stats_window)  # fmt: skip
+        n = self.bundle.n_joints
+        self.record = RunRecord(record_cycles, n)
+        self.reference: Reference = Reference.hold(np.zeros(n))
+        self.realtime = RealtimeReport()
+        self._command = np.zeros(n)  # the set-points the next exchange sends
+        self._ref_base = 1  # reference row of the pacer's tick 0: exchange k returns period k + 1
+        self._t0_s = 0.0  # clock at activation
+        self._stop = False
+        self._reset = False
+        self._activate = False
+        self._wake = threading.Event()
+        self._rt_thread: int | None = None
+        self._ready_sent = False
+        self._activations = 0
+        self._faults = 0
+        self.total_cycles = 0
+        self.last_fault: Fault | None = None
+        self._last_stats: dict[str, Any] = {}
+
+    # --- requests from any thread -------------------------------------------------------------
+    def request_stop(self) -> None:
+        """Leave the loop at the next cycle boundary; drives quick-stopped and disabled (thread-safe)."""
+        self._stop = True
+        self._wake.set()
+
+    def request_reset(self) -> None:
+        """Clear FAULT (drive fault reset, then INACTIVE; ACTIVE again if loop.activate_on_reset)."""
+        self._reset = True
+        self._wake.set()
+
+    def request_activate(self) -> None:
+        """INACTIVE -> ACTIVE at the loop's next look (thread-safe)."""
+        self._activate = True
+        self._wake.set()
+
+    @property
+    def state(self) -> LifecycleState:
+        return self.lifecycle.state
+
+    # --- lifecycle transitions (the loop's thread) -----------------------------------------------
+    def configure(self) -> None:
+        """UNCONFIGURED -> INACTIVE: the bus connected (drives configured, no torque), the policy
+        warm, telemetry started. A bus that does not come up raises :class:`StartupError`."""
+        try:
+            self.bus.connect()
+        except DriveError as exc:
+            self._close_quietly()
+            raise StartupError(f"{self.config.source}: bus: {exc}") from None
+        self._warm_up()
+        self.telemetry.start()
+        self.lifecycle.apply(Transition.CONFIGURE)
+
+    def activate(self) -> bool:
+        """INACTIVE -> ACTIVE: drives enabled, the reference ramped from the measured pose.
+        False (and FAULT) when the drives refuse or the measured pose is already outside the limits."""
+        self._activate = False
+        try:
+            feedback = self.bus.enable(None)  # one period at zero torque; see docs/runtime.md
+        except DriveError as exc:
+            self._enter_fault(classify_bus_error(exc))
+            return False
+        q0 = np.array(feedback.position_rad, dtype=float)
+        self.supervisor.stale_run = 0
+        fault = self.supervisor.check_feedback(q0, feedback.velocity_rad_s, feedback.fresh)
+        if fault is not None:
+            self._enter_fault(fault)
+            return False
+        self.reference = self._build_reference(q0)
+        self.controller.reset(q0)
+        self._ref_base = 1
+        self._t0_s = now = self._clock()
+        fault = self._compute(feedback, 0, now, now)
+        if fault is not None:
+            self._enter_fault(fault)
+            return False
+        self._activations += 1
+        self.lifecycle.apply(Transition.ACTIVATE)
+        self.telemetry.event("activated", self.total_cycles,
+                             f"reference {self.reference.name}, ramp {self.reference.ramp_cycles} cycles")
+        log.info("ACTIVE: reference %s, ramp %.3f s from %s", self.reference.name,
+                 self.reference.ramp_cycles * self.config.period_s, np.round(q0, 4).tolist())
+        return True
+
+    def shutdown(self) -> None:
+        """Any state -> FINALIZED: drives quick-stopped (when they were enabled) and disabled, bus
+        closed, telemetry closed. Never raises for the drives; idempotent."""
+        if self.lifecycle.state is LifecycleState.FINALIZED:
+            return
+        if self.lifecycle.state is LifecycleState.ACTIVE or self.bus.enabled:
+            self._quick_stop("shutdown")
+        try:
+            self.bus.disable()
+        except DriveError as exc:
+            log.warning("disable at shutdown: %s", exc)
+        except Exception as exc:  # noqa: BLE001 - a bus that is already gone
+            log.warning("disable at shutdown: %r", exc)
+        self.notifier.stopping(f"FINALIZED after {self.total_cycles} cycles")
+        self.lifecycle.apply(Transition.SHUTDOWN)
+        self._close_quietly()
+        try:
+            self.telemetry.close()
+        except Exception as exc:  # noqa: BLE001 - telemetry never keeps the daemon from stopping
+            log.warning("telemetry close: %r", exc)
+
+    # --- the loop -------------------------------------------------------------------------------
+    def run(self, max_cycles: int | None = None, *, stop_on_fault: bool = False,
+            shutdown_at_end: bool = False) -> RunResult:  # fmt: skip
+        """Run the lifecycle on the calling thread until a stop request, ``max_cycles`` ACTIVE
+        cycles, ``loop.duration_s`` in ACTIVE, or (``stop_on_fault``) a fault. INACTIVE and FAULT
+        wait for requests (activate, reset, stop) with the watchdog fed."""
+        self._apply_thread_settings()
+        reason = "stop"
+        loop = self.config.loop
+        duration_ticks = None if loop.duration_s is None else int(round(loop.duration_s / self.config.period_s))
+        cycles_left = max_cycles
+        try:
+            while not self._stop:
+                state = self.lifecycle.state
+                if state is LifecycleState.ACTIVE:
+                    reason = self._run_active(cycles_left, duration_ticks)
+                    if cycles_left is not None:
+                        cycles_left -= self.pacer.cycles
+                    if reason in ("cycles", "duration"):
+                        break
+                    continue
+                if state is LifecycleState.FAULT and stop_on_fault:
+                    reason = "fault"
+                    break
+                if state is LifecycleState.INACTIVE and self._activate:
+                    self.activate()
+                    continue
+                if state is LifecycleState.FAULT and self._reset:
+                    self._do_reset()
+                    continue
+                if state in (LifecycleState.UNCONFIGURED, LifecycleState.FINALIZED):
+                    raise RuntimeError(f"run() needs a configured runtime, it is {state.value}")
+                self._idle()
+            result = RunResult(reason if not self._stop else "stop", self.lifecycle.state, self.lifecycle.fault,
+                               self.total_cycles, self.stats())  # fmt: skip
+        finally:
+            if shutdown_at_end:
+                self.shutdown()
+        return result
+
+    def _idle(self) -> None:
+        """INACTIVE/FAULT: wait for a request, keep the watchdog fed (the thread is alive)."""
+        self._wake.wait(self.config.loop.idle_poll_s)
+        self._wake.clear()
+        self.notifier.watchdog_if_due(self._clock())
+
+    def _run_active(self, max_cycles: int | None, duration_ticks: int | None) -> str:
+        pacer = self.pacer
+        bus = self.bus
+        clock = self._clock
+        notifier = self.notifier
+        compute = self._compute
+        exchange_stats = pacer.exchange_stats
+        compute_stats = pacer.compute_stats
+        stats_interval = self.config.loop.stats_interval_s
+        command = self._command
+        record = self.record
+        base = self._ref_base
+        reason = "stop"
+        with GcQuiet():
+            pacer.start()
+            next_stats = clock() + stats_interval
+            while True:
+                start = pacer.wait()
+                if self._stop:
+                    break
+                try:
+                    feedback = bus.exchange(command)
+                except DriveError as exc:  # the driver has quick-stopped the drives already
+                    self._enter_fault(classify_bus_error(exc))
+                    reason = "fault"
+                    break
+                except Exception as exc:  # noqa: BLE001 - nothing may crash the loop
+                    self._enter_fault(Fault(FaultKind.INTERNAL, f"exchange: {exc!r}"))
+                    reason = "fault"
+                    break
+                received = clock()
+                try:
+                    fault = compute(feedback, base + pacer.tick, start, received)
+                except Exception as exc:  # noqa: BLE001 - a bug must still stop the arm safely
+                    log.exception("loop computation failed")
+                    fault = Fault(FaultKind.INTERNAL, f"{type(exc).__name__}: {exc}")
+                self.total_cycles += 1
+                if fault is not None:
+                    self._enter_fault(fault)
+                    reason = "fault"
+                    break
+                done = clock()
+                exchange_stats.add(received - start)
+                compute_stats.add(done - received)
+                if record.n and not record.overflow:
+                    record.compute_s[record.n - 1] = done - received
+                notifier.watchdog_if_due(done)
+                if done >= next_stats:
+                    next_stats = done + stats_interval
+                    self._publish_stats()
+                if max_cycles is not None and pacer.cycles >= max_cycles:
+                    reason = "cycles"
+                    break
+                if duration_ticks is not None and base + pacer.tick >= duration_ticks:
+                    reason = "duration"
+                    break
+        if pacer.cycles:
+            self._ref_base = base + pacer.tick + 1  # a later run() goes on along the reference
+        self._publish_stats()
+        return reason
+
+    def _compute(self, feedback: JointFeedback, k: int, start_s: float, received_s: float) -> Fault | None:
+        """Feedback -> supervisor -> reference row k -> policy -> supervisor -> self._command.
+
+        ``start_s``: the cycle's start (before the exchange); ``received_s``: when feedback came in.
+        """
+        q = feedback.position_rad
+        qd = feedback.velocity_rad_s
+        supervisor = self.supervisor
+        fault = supervisor.check_feedback(q, qd, feedback.fresh)
+        if fault is not None:
+            return fault
+        q_d, qd_d, qdd_d = self.reference.at(k)
+        controller = self.controller
+        tau, tau_fb, fallback = controller.step(q, qd, q_d, qd_d, qdd_d)
+        command = self._command
+        fault = supervisor.select_torque(tau, tau_fb, fallback, command)
+        if fault is not None:
+            return fault
+        controller.commit(command)
+        # compute_s here: this cycle's work up to the hand-off (the pacer's stats hold the full cycle's)
+        self.telemetry.offer_state(self.total_cycles, time.monotonic_ns(), q, qd, q_d, qd_d, command, tau_fb,
+                                   fallback, self._clock() - received_s)  # fmt: skip
+        if self.record.capacity:
+            self.record.add(k * self.pacer.period_s, start_s - self._t0_s, q, qd, q_d, qd_d, command, tau_fb,
+                            fallback, received_s - start_s)  # fmt: skip
+        return None
+
+    # --- faults, reset -------------------------------------------------------------------------------
+    def _enter_fault(self, fault: Fault) -> None:
+        """Quick-stop the drives (best effort), FAULT with the reason; the loop thread stays up."""
+        self._quick_stop(fault.kind.value)
+        self.last_fault = fault
+        self._faults += 1
+        log.error("FAULT: %s", fault)
+        self.lifecycle.apply(Transition.FAULT, str(fault))
+        self.telemetry.event("fault", self.total_cycles, str(fault))
+
+    def _quick_stop(self, why: str) -> None:
+        try:
+            self.bus.quick_stop()
+        except Exception as exc:  # noqa: BLE001 - the stop must not raise past this point
+            log.warning("quick stop (%s) failed: %r", why, exc)
+
+    def _do_reset(self) -> None:
+        self._reset = False
+        try:
+            self.bus.fault_reset()
+        except DriveError as exc:
+            self._enter_fault(classify_bus_error(exc))
+            return
+        except Exception as exc:  # noqa: BLE001
+            self._enter_fault(Fault(FaultKind.INTERNAL, f"fault reset: {exc!r}"))
+            return
+        self.lifecycle.apply(Transition.RESET)
+        self.telemetry.event("reset", self.total_cycles, "fault cleared")
+        if self.config.loop.activate_on_reset:
+            self.activate()
+
+    # --- helpers -------------------------------------------------------------------------------------
+    def _build_reference(self, q0: np.ndarray) -> Reference:
+        ref = self.config.reference
+        if self.condition is None:
+            return Reference.hold(q0)
+        return Reference.ramp_then(q0, self.condition, self.config.period_s, ref.ramp_s,
+                                   self.limits.velocity_limit_rad_s, ref.ramp_speed_fraction)  # fmt: skip
+
+    def _warm_up(self) -> None:
+        """Run the policy, the supervisor and the reference code paths before ACTIVE (onnxruntime's
+        first calls allocate), then restore the controller and counters."""
+        n = self.bundle.n_joints
+        mid = 0.5 * (self.limits.position_lower_rad + self.limits.position_upper_rad)
+        fresh = np.ones(n, dtype=bool)
+        reference = Reference.hold(mid)
+        self.controller.reset(mid)
+        scratch = np.zeros(n)
+        zeros = np.zeros(n)
+        for k in range(self.config.loop.warmup_cycles):
+            self.supervisor.check_feedback(mid, zeros, fresh)
+            q_d, qd_d, qdd_d = reference.at(k)
+            tau, tau_fb, fallback = self.controller.step(mid, zeros, q_d, qd_d, qdd_d)
+            self.supervisor.select_torque(tau, tau_fb, fallback, scratch)
+            self.controller.commit(scratch)
+            self.pacer.compute_stats.add(0.0)
+        self.pacer.summary()
+        self.pacer.compute_stats.reset()
+        self.supervisor.reset_counters()
+        self.controller.reset(mid)
+
+    def _apply_thread_settings(self) -> None:
+        ident = threading.get_ident()
+        if self._rt_thread == ident:
+            return
+        self._rt_thread = ident
+        loop = self.config.loop
+        if loop.cpu_affinity:
+            set_thread_affinity(loop.cpu_affinity, self.realtime)
+        if loop.fifo_priority:
+            set_thread_fifo(loop.fifo_priority, self.realtime)
+
+    def _close_quietly(self) -> None:
+        try:
+            self.bus.close()
+        except Exception as exc:  # noqa: BLE001
+            log.warning("closing the bus: %r", exc)
+
+    def _on_lifecycle(self, state: LifecycleState, fault: str | None) -> None:
+        self.telemetry.set_status(state.value, fault)
+        if state is LifecycleState.ACTIVE and not self._ready_sent:
+            self._ready_sent = True
+            self.notifier.ready(self.status_line())
+        else:
+            self.notifier.status(self.status_line())
+
+    def _publish_stats(self) -> None:
+        stats = self.stats()
+        self._last_stats = stats
+        self.telemetry.offer_stats(stats)
+        self.notifier.status(self.status_line(stats))
+
+    # --- reporting (any thread) ----------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        """Numbers for telemetry ``stats`` (names of hil_runtime.telemetry.codec.STATS_FIELDS first)."""
+        out: dict[str, Any] = dict(self.pacer.summary())
+        counters = self.supervisor.counters()
+        out["cycles"] = self.total_cycles
+        out["fallbacks"] = counters["fallback_cycles"]
+        out["saturations"] = counters["saturated_cycles"]
+        out.update(counters)
+        bus_counters = self.bus.counters
+        if dataclasses.is_dataclass(bus_counters):
+            for field in dataclasses.fields(bus_counters):
+                out[f"bus_{field.name}"] = getattr(bus_counters, field.name)
+        out["activations"] = self._activations
+        out["faults"] = self._faults
+        out["record_overflow"] = self.record.overflow
+        return out
+
+    def status_line(self, stats: dict[str, Any] | None = None) -> str:
+        state = self.lifecycle.state
+        if state is LifecycleState.FAULT:
+            return f"FAULT: {self.lifecycle.fault}"
+        if state is LifecycleState.ACTIVE:
+            stats = stats or self._last_stats
+            rate = stats.get("rate_hz", math.nan) if stats else math.nan
+            rate_text = f"{rate:.0f} Hz" if rate == rate else "starting"
+            return (f"ACTIVE {rate_text}, {self.total_cycles} cycles, overruns {self.pacer.overruns}, "
+                    f"reference {self.reference.name}")  # fmt: skip
+        return state.value
+
+    def status(self) -> dict[str, Any]:
+        """A JSON-able snapshot for the control socket."""
+        stats = self._last_stats or {}
+        return {
+            "state": self.lifecycle.state.value,
+            "fault": self.lifecycle.fault,
+            "robot": self.config.robot,
+            "bundle": str(self.config.bundle.path),
+            "mode": self.config.bundle.mode,
+            "reference": self.reference.name,
+            "cycles": self.total_cycles,
+            "rate_hz": _finite(stats.get("rate_hz")),
+            "overruns": self.pacer.overruns,
+            "compute_median_s": _finite(stats.get("compute_median_s")),
+            "compute_p99_s": _finite(stats.get("compute_p99_s")),
+            "supervisor": self.supervisor.counters(),
+            "realtime": {"applied": self.realtime.applied, "refused": self.realtime.refused},
+        }
+
+
+def _finite(value: Any) -> float | None:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return number if math.isfinite(number) else None
+
+
+def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
+    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet."""
+    from drivers.drive_bus import DriveBus
+
+    return Runtime(config, DriveBus(config.bus), **kwargs)
+
+
+__all__ = ["BundleError", "ConditionError", "Runtime", "RunRecord", "RunResult", "StartupError", "build_runtime",
+           "load_bundle_for"]  # fmt: skip

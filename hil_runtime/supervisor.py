@@ -1,0 +1,196 @@
+"""The safety supervisor: pure rules over one cycle's feedback and policy output.
+
+No I/O, no clock, no bus: the loop calls it and acts on what it returns (quick stop and FAULT), so
+every rule is table-tested (tests/unit/runtime/test_supervisor.py).
+
+Feedback (:meth:`Supervisor.check_feedback`), before the policy runs:
+
+    position or velocity non-finite                   -> FAULT feedback_nonfinite
+    position outside [lower, upper]                    -> FAULT position_limit
+    |velocity| above its limit                         -> FAULT velocity_limit
+    stale feedback more than max_stale_cycles in a row -> FAULT stale_feedback
+
+Policy output (:meth:`Supervisor.select_torque`), after it:
+
+    tau finite                       -> tau (clipped to the torque limit)
+    tau non-finite, tau_fb finite    -> the law's tau_fb, clipped; counted (law_substitutions)
+    both non-finite                  -> FAULT policy_nonfinite
+    |torque| at the limit            -> counted (saturated_cycles)
+    trust fallback > 0 (alpha < 1)   -> counted (fallback_cycles; full_fallback_cycles at 1)
+
+Bus errors (:func:`classify_bus_error`): the driver raises them after quick-stopping the drives;
+each is a FAULT of its own kind (feedback_timeout, heartbeat_lost, drive_fault, ...).
+
+The checks use preallocated buffers: a healthy cycle allocates nothing.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.errors import (
+    DriveCommandError,
+    DriveFaultError,
+    DriveStateError,
+    FeedbackTimeoutError,
+    HeartbeatLostError,
+    TransportError,
+)
+
+
+class FaultKind(str, enum.Enum):
+    FEEDBACK_NONFINITE = "feedback_nonfinite"
+    POSITION_LIMIT = "position_limit"
+    VELOCITY_LIMIT = "velocity_limit"
+    STALE_FEEDBACK = "stale_feedback"
+    POLICY_NONFINITE = "policy_nonfinite"
+    FEEDBACK_TIMEOUT = "feedback_timeout"
+    HEARTBEAT_LOST = "heartbeat_lost"
+    DRIVE_FAULT = "drive_fault"
+    DRIVE_STATE = "drive_state"
+    TRANSPORT = "transport"
+    COMMAND = "command"
+    INTERNAL = "internal"
+
+
+@dataclass(frozen=True)
+class Fault:
+    kind: FaultKind
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.kind.value}: {self.detail}"
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    position_lower_rad: np.ndarray
+    position_upper_rad: np.ndarray
+    velocity_limit_rad_s: np.ndarray
+    torque_limit_nm: np.ndarray
+    max_stale_cycles: int = 1
+
+    def __post_init__(self) -> None:
+        n = self.torque_limit_nm.shape
+        shapes = {a.shape for a in (self.position_lower_rad, self.position_upper_rad, self.velocity_limit_rad_s)}
+        if shapes != {n} or len(n) != 1:
+            raise ValueError("every limit needs one value per joint")
+        if np.any(self.position_lower_rad >= self.position_upper_rad) or np.any(self.velocity_limit_rad_s <= 0):
+            raise ValueError("position_lower < position_upper and velocity_limit > 0 are required")
+        if np.any(self.torque_limit_nm <= 0):
+            raise ValueError("torque limits must be positive")
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.torque_limit_nm.shape[0])
+
+
+# Driver errors, most specific first (FeedbackTimeoutError and HeartbeatLostError are TimeoutErrors).
+_BUS_ERRORS: tuple[tuple[type[Exception], FaultKind], ...] = (
+    (FeedbackTimeoutError, FaultKind.FEEDBACK_TIMEOUT),
+    (HeartbeatLostError, FaultKind.HEARTBEAT_LOST),
+    (DriveFaultError, FaultKind.DRIVE_FAULT),
+    (DriveStateError, FaultKind.DRIVE_STATE),
+    (TransportError, FaultKind.TRANSPORT),
+    (DriveCommandError, FaultKind.COMMAND),
+)
+
+
+def classify_bus_error(exc: BaseException) -> Fault:
+    """The FAULT a driver error stands for (INTERNAL for anything unexpected)."""
+    for error_type, kind in _BUS_ERRORS:
+        if isinstance(exc, error_type):
+            return Fault(kind, str(exc) or type(exc).__name__)
+    return Fault(FaultKind.INTERNAL, f"{type(exc).__name__}: {exc}")
+
+
+class Supervisor:
+    """The rules of the module docstring, with the counters they keep."""
+
+    def __init__(self, limits: SafetyLimits, joint_names: tuple[str, ...] | None = None) -> None:
+        self.limits = limits
+        n = limits.n_joints
+        self.joint_names = joint_names or tuple(f"joint {i + 1}" for i in range(n))
+        self._lower = np.asarray(limits.position_lower_rad, float)
+        self._upper = np.asarray(limits.position_upper_rad, float)
+        self._vmax = np.asarray(limits.velocity_limit_rad_s, float)
+        self._tmax = np.asarray(limits.torque_limit_nm, float)
+        self._neg_tmax = -self._tmax
+        self._sat_level = self._tmax * (1.0 - 1e-9)
+        self._ok = np.zeros(n, dtype=bool)
+        self._ok2 = np.zeros(n, dtype=bool)
+        self._abs = np.zeros(n)
+        self.stale_run = 0  # consecutive cycles with some stale feedback
+        self.reset_counters()
+
+    def reset_counters(self) -> None:
+        self.law_substitutions = 0
+        self.saturated_cycles = 0
+        self.fallback_cycles = 0
+        self.full_fallback_cycles = 0
+        self.stale_cycles = 0
+        self.stale_run = 0
+
+    def counters(self) -> dict[str, int]:
+        return {"law_substitutions": self.law_substitutions, "saturated_cycles": self.saturated_cycles,
+                "fallback_cycles": self.fallback_cycles, "full_fallback_cycles": self.full_fallback_cycles,
+                "stale_cycles": self.stale_cycles}  # fmt: skip
+
+    # --- feedback -----------------------------------------------------------------------------
+    def check_feedback(self, q: np.ndarray, qd: np.ndarray, fresh: np.ndarray) -> Fault | None:
+        """None when the feedback is usable; else the FAULT to enter."""
+        ok, ok2 = self._ok, self._ok2
+        # NaN compares False everywhere, so one pass per bound also catches non-finite values.
+        np.greater_equal(q, self._lower, out=ok)
+        np.less_equal(q, self._upper, out=ok2)
+        np.logical_and(ok, ok2, out=ok)
+        np.abs(qd, out=self._abs)
+        np.less_equal(self._abs, self._vmax, out=ok2)
+        if not (ok.all() and ok2.all()):
+            return self._describe_feedback(q, qd)
+        if fresh.all():
+            self.stale_run = 0
+        else:
+            self.stale_cycles += 1
+            self.stale_run += 1
+            if self.stale_run > self.limits.max_stale_cycles:
+                stale = [self.joint_names[i] for i in np.flatnonzero(~np.asarray(fresh, bool))]
+                return Fault(FaultKind.STALE_FEEDBACK, f"no fresh feedback from {', '.join(stale)} for "
+                                                       f"{self.stale_run} consecutive cycles")  # fmt: skip
+        return None
+
+    def _describe_feedback(self, q: np.ndarray, qd: np.ndarray) -> Fault:
+        bad = ~(np.isfinite(q) & np.isfinite(qd))
+        if bad.any():
+            j = int(np.flatnonzero(bad)[0])
+            return Fault(FaultKind.FEEDBACK_NONFINITE, f"{self.joint_names[j]}: position {q[j]}, velocity {qd[j]}")
+        out = (q < self._lower) | (q > self._upper)
+        if out.any():
+            j = int(np.flatnonzero(out)[0])
+            return Fault(FaultKind.POSITION_LIMIT, f"{self.joint_names[j]} at {q[j]:.4f} rad, limits "
+                                                   f"[{self._lower[j]:.4f}, {self._upper[j]:.4f}]")  # fmt: skip
+        j = int(np.argmax(np.abs(qd) - self._vmax))
+        return Fault(FaultKind.VELOCITY_LIMIT, f"{self.joint_names[j]} at {qd[j]:.4f} rad/s, limit ±{self._vmax[j]:.4f}")
+
+    # --- policy output --------------------------------------------------------------------------
+    def select_torque(self, tau: np.ndarray, tau_fb: np.ndarray, fallback: float, out: np.ndarray) -> Fault | None:
+        """Write the torque to command into ``out``; None, or the FAULT when nothing is usable."""
+        if np.isfinite(tau).all():
+            source = tau
+        elif np.isfinite(tau_fb).all():
+            source = tau_fb
+            self.law_substitutions += 1
+        else:
+            return Fault(FaultKind.POLICY_NONFINITE, "policy and feedback-law torques are both non-finite")
+        np.clip(source, self._neg_tmax, self._tmax, out=out)
+        np.abs(out, out=self._abs)
+        if np.greater_equal(self._abs, self._sat_level, out=self._ok).any():
+            self.saturated_cycles += 1
+        if fallback > 0.0:  # NaN trust is no fallback evidence either way: not counted
+            self.fallback_cycles += 1
+            if fallback >= 1.0:
+                self.full_fallback_cycles += 1
+        return None
