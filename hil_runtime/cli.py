@@ -15,6 +15,8 @@ from importlib.metadata import entry_points
 
 import typer
 
+from hil_runtime.commands import register as _register_runtime_commands
+
 app = typer.Typer(
     name="hil",
     help="HIL runtime for learned hybrid MPC-feedback arm controllers.",
@@ -22,6 +24,9 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
+
+# The runtime's own commands: run (the daemon), status, reset, stop (hil_runtime/commands.py).
+_register_runtime_commands(app)
 
 
 def _load_plugins() -> None:

@@ -1,0 +1,115 @@
+"""``hil run``: the runtime as a long-running process a systemd unit can run (Type=notify).
+
+Start-up, in this order (helper threads first, so the loop thread alone gets SCHED_FIFO):
+
+1. config (one-line errors, exit 2), bundle and condition checked against the drives, DriveBus built;
+2. telemetry sink made, memory locked (``loop.lock_memory``), control socket opened;
+3. bus connected, drives configured (never enabled on any start-up error: exit 2), policy warm;
+4. the loop thread: affinity / SCHED_FIFO on itself, activate (READY=1), run;
+5. SIGTERM / SIGINT: stop requested; the loop quick-stops and disables the drives at the next cycle
+   boundary, STOPPING=1, exit 0.
+
+A FAULT does not end the process: drives stay stopped, the reason is in STATUS=, the control
+socket and telemetry, until ``hil reset`` (or the Zenoh reset queryable) clears it.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from hil_runtime.config import RuntimeConfig, load_runtime_config
+from hil_runtime.control import ControlServer
+from hil_runtime.lifecycle import LifecycleState
+from hil_runtime.realtime import lock_memory
+from hil_runtime.runtime import Runtime, build_runtime
+from hil_runtime.sdnotify import Notifier
+
+log = logging.getLogger("hil_runtime.daemon")
+
+EXTRA_STATS = ("tick", "skipped_periods", "exchange_median_s", "exchange_p99_s", "exchange_max_s",
+               "law_substitutions", "full_fallback_cycles", "stale_cycles", "faults")  # fmt: skip
+
+
+def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
+    """The telemetry hook: ``hil_runtime.telemetry.make_sink`` with what it publishes."""
+    from hil_runtime.telemetry.factory import make_sink
+
+    bundle = runtime.bundle
+    digest = next(iter(bundle.manifest.get("files", {}).values()), "")
+    info = {
+        "joints": list(config.joint_names),
+        "config": config.model_dump(mode="json"),
+        "bundle": {**bundle.describe(), "bundle_id": f"{bundle.law_name}:{str(digest)[:12]}"},
+        "stats_fields": list(EXTRA_STATS),
+    }
+    return make_sink(config.telemetry, config.robot, info, controls=runtime)
+
+
+def _say(text: str) -> None:
+    print(f"hil run: {text}", file=sys.stderr, flush=True)
+
+
+def serve(config_path: Path | str, record_path: Path | None = None, record_cycles: int = 0) -> int:
+    """Run the daemon until SIGTERM/SIGINT (or loop.duration_s); the process exit code."""
+    config = load_runtime_config(config_path)
+    notifier = Notifier.from_environment()
+    runtime = build_runtime(config, notifier=notifier, record_cycles=record_cycles)
+    runtime.telemetry = make_telemetry(config, runtime)
+    runtime.lifecycle.subscribe(lambda state, fault: _say(f"state {state.value}" + (f": {fault}" if fault else "")))
+    if config.loop.lock_memory:
+        lock_memory(runtime.realtime)
+    control = ControlServer(config.control_socket, runtime) if config.control_socket else None
+    stop_seen = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if not stop_seen.is_set():
+            stop_seen.set()
+            notifier.send(stopping=1, status=f"stopping on {signal.Signals(signum).name}")
+        runtime.request_stop()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    outcome: dict[str, Any] = {}
+    try:
+        runtime.configure()  # StartupError (exit 2): drives never enabled
+        _say(f"configured {len(config.joint_names)} joints, bundle {runtime.bundle.law_name} "
+             f"({config.bundle.mode}), period {config.period_s * 1e3:g} ms, pacing {config.loop.pacing}"
+             + (f", control socket {config.control_socket}" if control else ""))  # fmt: skip
+
+        def loop() -> None:
+            try:
+                outcome["result"] = runtime.run(shutdown_at_end=True)
+            except BaseException as exc:  # noqa: BLE001 - reported below, exit code 1
+                outcome["error"] = exc
+                log.exception("the loop thread failed")
+                runtime.shutdown()
+
+        runtime.request_activate()
+        thread = threading.Thread(target=loop, name="hil-loop")
+        thread.start()
+        while thread.is_alive():
+            thread.join(0.05)  # wakes for signals: the handlers run on this (main) thread
+    finally:
+        if runtime.state is not LifecycleState.FINALIZED and "result" not in outcome and "error" not in outcome:
+            runtime.shutdown()
+        if control is not None:
+            control.close()
+        notifier.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if record_path is not None and runtime.record.n:
+        runtime.record.save_npz(record_path)
+    if "error" in outcome:
+        _say(f"loop failed: {outcome['error']!r}")
+        return 1
+    result = outcome["result"]
+    stats = result.stats
+    _say(f"stopped ({result.reason}) after {result.cycles} cycles, {stats.get('rate_hz', float('nan')):.1f} Hz, "
+         f"overruns {stats.get('overruns', 0)}, compute median {stats.get('compute_median_s', float('nan')) * 1e6:.1f} µs"
+         + (f", last fault: {runtime.last_fault}" if runtime.last_fault else ""))  # fmt: skip
+    return 0
+
