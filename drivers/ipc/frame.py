@@ -39,6 +39,9 @@ CAN_ERR_CRTL = 0x00000004
 CAN_ERR_CRTL_RX_OVERFLOW = 0x01
 CAN_ERR_DLC = 8
 
+# The smallest CAN FD length that holds n bytes, n = 0..64.
+_FD_LENGTH = tuple(min(length for length in CANFD_LENGTHS if length >= n) for n in range(CANFD_MAX_DLEN + 1))
+
 _CAN_FRAME = struct.Struct("=IBBBB8s")
 _CANFD_FRAME = struct.Struct("=IBBBB64s")
 
@@ -68,8 +71,9 @@ def encode(msg: can.Message) -> bytes:
     length = msg.dlc
     data = bytes(msg.data) if msg.data else b""
     if msg.is_fd:
-        if length not in CANFD_LENGTHS or len(data) > length:
-            raise FrameError(f"CAN FD frame 0x{msg.arbitration_id:X}: length {length} is not a CAN FD length")
+        if length > CANFD_MAX_DLEN or len(data) > CANFD_MAX_DLEN:
+            raise FrameError(f"CAN FD frame 0x{msg.arbitration_id:X}: {max(length, len(data))} bytes (max 64)")
+        length = _FD_LENGTH[max(length, len(data))]  # padded up to a CAN FD length, as SocketCAN does
         flags = CANFD_FDF | (CANFD_BRS if msg.bitrate_switch else 0) | (CANFD_ESI if msg.error_state_indicator else 0)
         return _CANFD_FRAME.pack(can_id, length, flags, 0, 0, data)
     if length > CAN_MAX_DLEN or len(data) > CAN_MAX_DLEN:

@@ -1,0 +1,395 @@
+"""The ``ipc`` interface back to back, as python-can tests its own transports: buses in one process,
+in several processes, peers joining late, leaving, dying and not reading."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import stat
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from drivers.config import TransportConfig
+from drivers.ipc import IpcBus, bus_directory
+from drivers.ipc.frame import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
+from drivers.transport import open_bus
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
+
+
+@pytest.fixture
+def bus_dir(tmp_path: Path) -> Path:
+    return tmp_path / "bus"
+
+
+@pytest.fixture
+def pair(bus_dir: Path) -> Iterator[tuple[IpcBus, IpcBus]]:
+    a = IpcBus(bus_dir, fd=True)
+    b = IpcBus(bus_dir, fd=True)
+    try:
+        yield a, b
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def _msg(can_id: int, data: bytes = b"", **kwargs: object) -> can.Message:
+    return can.Message(arbitration_id=can_id, data=data, is_extended_id=kwargs.pop("is_extended_id", False), **kwargs)
+
+
+def _sockets(bus_dir: Path) -> list[str]:
+    return sorted(p.name for p in bus_dir.iterdir() if p.name.endswith(".sock"))
+
+
+def test_opened_by_name_through_python_cans_entry_point(bus_dir: Path) -> None:
+    with can.Bus(interface="ipc", channel=str(bus_dir)) as a, can.Bus(interface="ipc", channel=str(bus_dir)) as b:
+        assert isinstance(a, IpcBus)
+        a.send(_msg(0x10, b"\x01"))
+        got = b.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x10 and got.channel == str(bus_dir)
+
+
+def test_opened_from_the_drivers_transport_config(bus_dir: Path) -> None:
+    config = TransportConfig(interface="ipc", channel=str(bus_dir), fd=True, data_bitrate=5_000_000)
+    bus = open_bus(config)
+    try:
+        assert isinstance(bus, IpcBus) and bus.protocol == can.CanProtocol.CAN_FD
+    finally:
+        bus.shutdown()
+
+
+def test_a_bare_name_is_a_directory_under_the_users_temp_dir() -> None:
+    assert bus_directory("hil").parts[-2:] == (f"hil-can-{os.getuid()}", "hil")
+    assert bus_directory("/srv/can") == Path("/srv/can")
+    assert bus_directory("./rel") == Path("./rel")
+
+
+def test_no_message_times_out(pair: tuple[IpcBus, IpcBus]) -> None:
+    _, b = pair
+    start = time.monotonic()
+    assert b.recv(0.1) is None
+    assert 0.09 <= time.monotonic() - start < 1.0
+    assert b.recv(0) is None
+
+
+def test_frame_kinds_arrive_intact(pair: tuple[IpcBus, IpcBus]) -> None:
+    a, b = pair
+    sent = [
+        _msg(0x7FF, bytes(range(8))),
+        _msg(0x000),
+        _msg(0x1ABCDEF0 & 0x1FFFFFFF, b"\xaa", is_extended_id=True),
+        _msg(0x601, is_remote_frame=True, dlc=4),
+        _msg(0x181, bytes(range(64)), is_fd=True, bitrate_switch=True),
+        _msg(0x182, bytes(range(12)), is_fd=True, error_state_indicator=True),
+        _msg(0x0040, bytes(8), is_error_frame=True),
+    ]
+    before = time.time()
+    for msg in sent:
+        a.send(msg)
+    for msg in sent:
+        got = b.recv(2.0)
+        assert got is not None
+        assert got.equals(msg, timestamp_delta=None, check_channel=False, check_direction=False), (got, msg)
+        assert got.is_rx and before <= got.timestamp <= time.time()
+
+
+def test_frames_of_one_sender_keep_their_order_and_none_is_lost(pair: tuple[IpcBus, IpcBus]) -> None:
+    a, b = pair
+    n = 2000  # below the default 1 MiB queue, so none may be dropped
+    for i in range(n):
+        a.send(_msg(0x100 + i % 16, i.to_bytes(4, "little")))
+    received = [int.from_bytes(b.recv(2.0).data, "little") for _ in range(n)]  # type: ignore[union-attr]
+    assert received == list(range(n))
+    assert b.recv(0) is None
+    assert a.stats.frames_sent == n and a.stats.frames_dropped == 0 and b.stats.frames_received == n
+
+
+def test_classical_bus_refuses_to_send_fd_and_ignores_fd_it_receives(bus_dir: Path) -> None:
+    fd_bus = IpcBus(bus_dir, fd=True)
+    classic = IpcBus(bus_dir)
+    try:
+        assert classic.protocol == can.CanProtocol.CAN_20
+        with pytest.raises(can.CanOperationError, match="CAN FD frame on a classical bus"):
+            classic.send(_msg(0x1, bytes(12), is_fd=True))
+        fd_bus.send(_msg(0x2, bytes(12), is_fd=True))
+        fd_bus.send(_msg(0x3, b"\x01"))
+        got = classic.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x3
+        assert classic.stats.fd_frames_ignored == 1
+    finally:
+        fd_bus.shutdown()
+        classic.shutdown()
+
+
+def test_invalid_message_is_a_can_operation_error(pair: tuple[IpcBus, IpcBus]) -> None:
+    a, _ = pair
+    with pytest.raises(can.CanOperationError, match="exceeds 11 bits"):
+        a.send(_msg(0x800))
+
+
+def test_receive_own_messages_come_back_marked_tx_and_wake_fileno(bus_dir: Path) -> None:
+    a = IpcBus(bus_dir, receive_own_messages=True)
+    b = IpcBus(bus_dir)
+    try:
+        a.send(_msg(0x55, b"\x01"))
+        readable, _, _ = select.select([a.fileno()], [], [], 2.0)
+        assert readable == [a.fileno()]
+        own = a.recv(1.0)
+        assert own is not None and own.arbitration_id == 0x55 and not own.is_rx
+        other = b.recv(1.0)
+        assert other is not None and other.is_rx
+        b.send(_msg(0x66))
+        got = a.recv(1.0)
+        assert got is not None and got.arbitration_id == 0x66 and got.is_rx
+        assert b.recv(0.05) is None  # without receive_own_messages nothing comes back
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def test_filters_apply(bus_dir: Path) -> None:
+    a = IpcBus(bus_dir)
+    b = IpcBus(bus_dir, can_filters=[{"can_id": 0x180, "can_mask": 0x780}])
+    try:
+        for can_id in (0x201, 0x181, 0x601, 0x182):
+            a.send(_msg(can_id))
+        assert [b.recv(1.0).arbitration_id for _ in range(2)] == [0x181, 0x182]  # type: ignore[union-attr]
+        assert b.recv(0.05) is None
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def test_notifier_receives_through_fileno(pair: tuple[IpcBus, IpcBus]) -> None:
+    a, b = pair
+    assert b.fileno() >= 0
+    reader = can.BufferedReader()
+    notifier = can.Notifier(b, [reader], timeout=0.1)
+    try:
+        for i in range(10):
+            a.send(_msg(0x300 + i))
+        got = [reader.get_message(2.0) for _ in range(10)]
+        assert [m.arbitration_id for m in got if m is not None] == [0x300 + i for i in range(10)]
+    finally:
+        notifier.stop()
+
+
+def test_many_peers_each_see_every_other(bus_dir: Path) -> None:
+    buses = [IpcBus(bus_dir) for _ in range(8)]
+    try:
+        for i, bus in enumerate(buses):
+            for k in range(3):
+                bus.send(_msg(0x100 + i, bytes([k])))
+        for i, bus in enumerate(buses):
+            got = [bus.recv(2.0) for _ in range(3 * 7)]
+            assert all(m is not None for m in got)
+            by_sender: dict[int, list[int]] = {}
+            for m in got:
+                by_sender.setdefault(m.arbitration_id, []).append(m.data[0])  # type: ignore[union-attr]
+            assert sorted(by_sender) == [0x100 + j for j in range(8) if j != i]
+            assert all(seq == [0, 1, 2] for seq in by_sender.values())  # each sender's order kept
+            assert bus.recv(0) is None
+            assert bus.peer_count == 7
+    finally:
+        for bus in buses:
+            bus.shutdown()
+    assert _sockets(bus_dir) == []
+
+
+def test_late_joiner_gets_frames_sent_after_it_opened_even_from_a_peer_that_never_reads(bus_dir: Path) -> None:
+    sender = IpcBus(bus_dir)  # never calls recv: it takes newcomers in on its next send
+    try:
+        sender.send(_msg(0x1))  # nobody there yet: lost, as on a bus with no other node
+        late = IpcBus(bus_dir)
+        try:
+            sender.send(_msg(0x2))
+            got = late.recv(2.0)
+            assert got is not None and got.arbitration_id == 0x2
+            assert late.recv(0.05) is None
+        finally:
+            late.shutdown()
+    finally:
+        sender.shutdown()
+
+
+def test_a_peer_that_leaves_removes_only_its_socket_and_the_others_go_on(bus_dir: Path) -> None:
+    a, b, c = IpcBus(bus_dir), IpcBus(bus_dir), IpcBus(bus_dir)
+    try:
+        assert len(_sockets(bus_dir)) == 3
+        b.shutdown()
+        assert len(_sockets(bus_dir)) == 2
+        a.send(_msg(0x7))
+        got = c.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x7
+        assert c.recv(0.05) is None
+        c.send(_msg(0x8))
+        assert a.recv(2.0) is not None
+        assert a.peer_count == 1 and a.stats.peers_left == 1
+        b.shutdown()  # twice: harmless
+        with pytest.raises(can.CanOperationError, match="shut down"):
+            b.send(_msg(0x9))
+    finally:
+        a.shutdown()
+        c.shutdown()
+
+
+def test_shutdown_wakes_a_reader_blocked_without_timeout(pair: tuple[IpcBus, IpcBus]) -> None:
+    _, b = pair
+    raised: list[BaseException] = []
+
+    def reader() -> None:
+        try:
+            b.recv()
+        except can.CanOperationError as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=reader, daemon=True)
+    thread.start()
+    time.sleep(0.1)
+    b.shutdown()
+    thread.join(2.0)
+    assert not thread.is_alive() and raised and "shut down" in str(raised[0])
+
+
+def test_files_in_the_directory_that_are_not_live_peers(bus_dir: Path) -> None:
+    bus_dir.mkdir()
+    (bus_dir / "notes.sock").write_text("a regular file named like a socket")  # refused, not removed
+    (bus_dir / "README").write_text("ignored")
+    bus = IpcBus(bus_dir)
+    try:
+        assert bus.peer_count == 0 and bus.stats.stale_sockets_removed == 0
+        assert (bus_dir / "notes.sock").is_file()
+    finally:
+        bus.shutdown()
+    assert sorted(p.name for p in bus_dir.iterdir()) == ["README", "notes.sock"]
+
+
+def test_a_too_long_path_is_refused_with_a_clear_error(tmp_path: Path) -> None:
+    deep = tmp_path / ("d" * 100)
+    with pytest.raises(can.CanInitializationError, match="longer than 107 bytes"):
+        IpcBus(deep)
+
+
+def test_a_slow_reader_loses_frames_without_blocking_the_sender_and_is_told(bus_dir: Path) -> None:
+    sender = IpcBus(bus_dir, queue_bytes=4096)  # the kernel's floor: a few frames per peer
+    slow = IpcBus(bus_dir)
+    fast = IpcBus(bus_dir)
+    try:
+        sender.send(_msg(0x1))  # takes both in
+        assert slow.recv(1.0) is not None and fast.recv(1.0) is not None
+        n = 2000
+        start = time.perf_counter()
+        for i in range(n):
+            sender.send(_msg(0x200, i.to_bytes(2, "little")))
+            fast_msg = fast.recv(1.0)  # the fast reader keeps up and gets every frame
+            assert fast_msg is not None and int.from_bytes(fast_msg.data, "little") == i
+        elapsed_s = time.perf_counter() - start
+        assert elapsed_s < 5.0  # never waited on the slow peer
+        assert sender.stats.frames_dropped > 0
+        # The slow reader drains what fitted, in order; then the overflow is reported once space frees.
+        first = []
+        while (msg := slow.recv(0.05)) is not None:
+            first.append(msg)
+        assert first and all(not m.is_error_frame for m in first)
+        seq = [int.from_bytes(m.data, "little") for m in first]
+        assert seq == sorted(seq) and seq[0] == 0
+        sender.send(_msg(0x201, b"\x00\x00"))
+        overflow = slow.recv(1.0)
+        assert overflow is not None and overflow.is_error_frame and overflow.arbitration_id == CAN_ERR_CRTL
+        assert overflow.data[1] == CAN_ERR_CRTL_RX_OVERFLOW
+        after = slow.recv(1.0)
+        assert after is not None and after.arbitration_id == 0x201
+    finally:
+        for bus in (sender, slow, fast):
+            bus.shutdown()
+
+
+# --- across processes ----------------------------------------------------------------------------
+
+ECHO = r"""
+import sys, can
+bus = can.Bus(interface="ipc", channel=sys.argv[1], fd=True)
+print("ready", flush=True)
+while True:
+    msg = bus.recv(10.0)
+    if msg is None or msg.arbitration_id == 0x7FF:
+        break
+    bus.send(can.Message(arbitration_id=msg.arbitration_id + 1, data=msg.data, is_fd=msg.is_fd,
+                         is_extended_id=False, bitrate_switch=msg.bitrate_switch))
+bus.shutdown()
+"""
+
+SLEEPER = r"""
+import sys, time, can
+bus = can.Bus(interface="ipc", channel=sys.argv[1])
+print("ready", flush=True)
+time.sleep(60)
+"""
+
+
+def _start(script: str, bus_dir: Path) -> subprocess.Popen[str]:
+    process = subprocess.Popen([sys.executable, "-c", script, str(bus_dir)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stdout is not None
+    line = process.stdout.readline()
+    if line.strip() != "ready":
+        process.kill()
+        raise AssertionError(f"peer did not start: {line} {process.stderr.read() if process.stderr else ''}")
+    return process
+
+
+def test_frames_cross_two_real_processes_both_ways_in_order(bus_dir: Path) -> None:
+    bus_dir.mkdir()
+    echo = _start(ECHO, bus_dir)
+    bus = IpcBus(bus_dir, fd=True)
+    try:
+        for i in range(500):
+            fd = i % 2 == 0
+            bus.send(_msg(0x100, i.to_bytes(2, "little") + bytes(10 if fd else 0), is_fd=fd, bitrate_switch=fd))
+            reply = bus.recv(5.0)
+            assert reply is not None and reply.arbitration_id == 0x101 and reply.is_fd == fd
+            assert int.from_bytes(reply.data[:2], "little") == i
+        bus.send(_msg(0x7FF))
+        assert echo.wait(10) == 0, echo.stderr.read() if echo.stderr else ""
+        assert bus.recv(0.5) is None  # the echo peer left: EOF handled, nothing raised
+        assert bus.peer_count == 0 and bus.stats.peers_left == 1
+    finally:
+        if echo.poll() is None:
+            echo.kill()
+        bus.shutdown()
+
+
+def test_a_killed_peer_is_dropped_and_its_stale_socket_removed_by_the_next_joiner(bus_dir: Path) -> None:
+    bus_dir.mkdir()
+    victim = _start(SLEEPER, bus_dir)
+    a = IpcBus(bus_dir)
+    b = IpcBus(bus_dir)
+    try:
+        assert len(_sockets(bus_dir)) == 3
+        victim.send_signal(signal.SIGKILL)
+        victim.wait(10)
+        for i in range(3):  # sending to a dead peer neither raises nor blocks
+            a.send(_msg(0x10 + i))
+        assert [b.recv(2.0).arbitration_id for _ in range(3)] == [0x10, 0x11, 0x12]  # type: ignore[union-attr]
+        assert a.peer_count == 1 and a.stats.peers_left == 1
+        assert len(_sockets(bus_dir)) == 3  # a SIGKILLed process cannot remove its socket file...
+        c = IpcBus(bus_dir)  # ...the next joiner finds it refused and removes it
+        try:
+            assert c.stats.stale_sockets_removed == 1 and c.peer_count == 2
+            assert len(_sockets(bus_dir)) == 3
+            assert all(stat.S_ISSOCK((bus_dir / s).lstat().st_mode) for s in _sockets(bus_dir))
+        finally:
+            c.shutdown()
+    finally:
+        if victim.poll() is None:
+            victim.kill()
+        a.shutdown()
+        b.shutdown()
