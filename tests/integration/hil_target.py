@@ -72,8 +72,9 @@ def target_in_process(channel: str, period_s: float, **config: Any) -> Iterator[
 @dataclass
 class TargetProcess:
     process: subprocess.Popen[str]
-    bridge_url: str
+    bridge_url: str  # "" on the ipc bus
     control_socket: Path
+    ipc_dir: Path | None = None  # the ipc bus directory (transport "ipc")
 
     def stop(self, timeout_s: float = 10.0) -> tuple[int, str]:
         """SIGTERM; the exit code and the rest of stderr."""
@@ -89,11 +90,18 @@ class TargetProcess:
 
 
 @contextlib.contextmanager
-def target_process(tmp_dir: Path, period_s: float, substeps: int = 32, **config: Any) -> Iterator[TargetProcess]:
-    """``hil target serve`` in a subprocess, its bus served by the bridge on 127.0.0.1:<free port>."""
+def target_process(tmp_dir: Path, period_s: float, substeps: int = 32, transport: str = "bridge",
+                   **config: Any) -> Iterator[TargetProcess]:
+    """``hil target serve`` in a subprocess, its bus served by the bridge on 127.0.0.1:<free port>,
+    or (``transport="ipc"``) on the ipc bus in ``tmp_dir/bus``."""
     sock = tmp_dir / "target.sock"
-    data = target_config_dict("hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0},
-                              control_socket=str(sock), **config)
+    ipc_dir = tmp_dir / "bus" if transport == "ipc" else None
+    if ipc_dir is not None:
+        data = target_config_dict("hil", period_s, substeps, control_socket=str(sock), **config)
+        data["bus"] = {**data["bus"], "interface": "ipc", "channel": str(ipc_dir)}
+    else:
+        data = target_config_dict("hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0},
+                                  control_socket=str(sock), **config)
     path = tmp_dir / "target.yaml"
     path.write_text(yaml.safe_dump(data))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -110,10 +118,13 @@ def target_process(tmp_dir: Path, period_s: float, substeps: int = 32, **config:
         if found:
             url = found.group(1)
             break
+        if ipc_dir is not None and "target serving" in line:
+            url = ""
+            break
     if url is None:
         process.wait(timeout=10)
         raise RuntimeError(f"target did not start (exit {process.returncode}): {''.join(lines)}")
-    target = TargetProcess(process, url, sock)
+    target = TargetProcess(process, url, sock, ipc_dir)
     try:
         yield target
     finally:
