@@ -270,6 +270,9 @@ class Runtime:
         except DriveError as exc:
             self._close_quietly()
             raise StartupError(f"{self.config.source}: bus: {exc}") from None
+        except Exception as exc:  # noqa: BLE001 - python-can backends raise their own types
+            self._close_quietly()
+            raise StartupError(f"{self.config.source}: bus: {type(exc).__name__}: {exc}") from None
         self._warm_up()
         self.telemetry.start()
         self.lifecycle.apply(Transition.CONFIGURE)
@@ -282,6 +285,10 @@ class Runtime:
             feedback = self.bus.enable(None)  # one period at zero torque; see docs/runtime.md
         except DriveError as exc:
             self._enter_fault(classify_bus_error(exc))
+            return False
+        except Exception as exc:  # noqa: BLE001 - nothing at run time may crash the loop thread
+            log.exception("enable failed")
+            self._enter_fault(Fault(FaultKind.INTERNAL, f"enable: {exc!r}"))
             return False
         q0 = np.array(feedback.position_rad, dtype=float)
         self.supervisor.stale_run = 0

@@ -1,0 +1,84 @@
+"""Shared by the runtime's unit tests: a runtime config for the shipped PD bundle, and a stand-in
+bundle whose outputs a test sets (NaN policy output, trust fallbacks) without onnxruntime."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[3]
+PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
+JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+               "wrist_3_joint")  # fmt: skip
+MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
+Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
+
+
+def config_dict(**overrides: Any) -> dict[str, Any]:
+    """A valid runtime config (virtual transport, the PD bundle, hold); sections merged shallowly."""
+    data: dict[str, Any] = {
+        "robot": "ur5_paper",
+        "bundle": {"path": str(PD_BUNDLE), "mode": "lmpc"},
+        "bus": {
+            "transport": {"interface": "virtual", "channel": "unit", "fd": True, "data_bitrate": 5_000_000},
+            "period_s": 0.001,
+            "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
+                       for i, (n, t) in enumerate(zip(JOINT_NAMES, MAX_TORQUE_NM))],  # fmt: skip
+        },
+        "reference": {"kind": "hold"},
+        "loop": {"pacing": "bus", "warmup_cycles": 5},
+    }
+    data = copy.deepcopy(data)
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return data
+
+
+class StubBundle:
+    """Quacks like PolicyBundle for the loop: tau = ``tau_value`` (or a PD law when None)."""
+
+    def __init__(self, n: int = 6, period_s: float = 0.001, state_size: int = 0, applied: list[int] | None = None):
+        self.n_joints, self.period_s, self.state_size = n, period_s, state_size
+        self.law_name = "stub"
+        self.joint_names = JOINT_NAMES[:n]
+        self.torque_limit_nm = np.array(MAX_TORQUE_NM[:n])
+        self.manifest = {
+            "robot": {"name": "ur5_paper", "n_joints": n, "joint_names": list(self.joint_names)},
+            "limits": {"position_rad": [3.0] * n, "velocity_rad_s": [2.5] * n, "torque_nm": list(self.torque_limit_nm)},
+            "law": {"name": "stub", "state_size": state_size, "applied_torque_slice": applied},
+            "files": {},
+        }
+        self._y = np.zeros(2 * n + state_size + 2)
+        self.tau_value: np.ndarray | None = None
+        self.tau_fb_value: np.ndarray | None = None
+        self.trust_value = 0.0
+        self.states_seen: list[np.ndarray] = []
+        self.calls = 0
+
+    @property
+    def last_trust(self) -> np.ndarray:
+        return self._y[2 * self.n_joints + self.state_size :]
+
+    def initial_state(self, q0: np.ndarray) -> np.ndarray:
+        return np.zeros(self.state_size)
+
+    def step(self, q, qd, q_d, qd_d, qdd_d, state):  # type: ignore[no-untyped-def]
+        self.calls += 1
+        n, s = self.n_joints, self.state_size
+        self.states_seen.append(np.array(state))
+        law = 50.0 * (q_d - q) + 5.0 * (qd_d - qd)
+        y = self._y
+        y[n : 2 * n] = law if self.tau_fb_value is None else self.tau_fb_value
+        y[:n] = np.clip(y[n : 2 * n], -self.torque_limit_nm, self.torque_limit_nm) if self.tau_value is None else self.tau_value
+        y[2 * n : 2 * n + s] = state + 1.0
+        y[2 * n + s] = self.trust_value
+        return y[:n], y[n : 2 * n], y[2 * n : 2 * n + s]
+
+    def describe(self) -> dict[str, Any]:
+        return {"law": "stub"}
