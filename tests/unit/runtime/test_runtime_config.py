@@ -1,0 +1,187 @@
+"""The runtime config: one-line errors naming the file and the field (exit code 2); bundles that do
+not match the drives refused before any I/O; ``hil run`` with bad input exits 2, drives never enabled."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from runtime_fixtures import PD_BUNDLE, config_dict
+
+from drivers.testing import FakeJointBus
+from hil_runtime.bundle import BundleError
+from hil_runtime.conditions import ConditionError
+from hil_runtime.config import RuntimeConfigError, load_runtime_config, parse_runtime_config
+from hil_runtime.runtime import Runtime
+
+
+def _write(tmp_path: Path, data: object, name: str = "runtime.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data) if not isinstance(data, str) else data)
+    return path
+
+
+def _refused(tmp_path: Path, data: object, *fragments: str) -> str:
+    path = _write(tmp_path, data)
+    with pytest.raises(RuntimeConfigError) as info:
+        load_runtime_config(path)
+    text = str(info.value)
+    assert info.value.exit_code == 2
+    assert "\n" not in text
+    assert text.startswith(str(path)), text
+    for fragment in fragments:
+        assert fragment in text, text
+    return text
+
+
+def test_a_valid_config_loads_frozen_with_paths_relative_to_the_file(tmp_path: Path) -> None:
+    data = config_dict(bundle={"path": "bundles/pd"}, control_socket="run/rt.sock",
+                       reference={"kind": "condition", "condition": "C1", "conditions_file": "c.yaml"})
+    config = load_runtime_config(_write(tmp_path, data))
+    assert config.bundle.path == tmp_path / "bundles" / "pd"
+    assert config.control_socket == tmp_path / "run" / "rt.sock"
+    assert config.reference.conditions_file == tmp_path / "c.yaml"
+    assert config.period_s == 0.001 and len(config.joint_names) == 6
+    with pytest.raises(Exception):
+        config.robot = "other"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("change", "fragments"),
+    [
+        ({"bundle": {"path": "x", "mode": "mpc"}}, ["bundle.mode"]),
+        ({"loop": {"pacing": "fast"}}, ["loop.pacing"]),
+        ({"loop": {"fifo_priority": 120}}, ["loop.fifo_priority"]),
+        ({"loop": {"period_s": 0.001}}, ["loop.period_s", "Extra inputs"]),
+        ({"reference": {"kind": "condition"}}, ["reference", "condition: required"]),
+        ({"reference": {"kind": "condition", "condition": "C1", "ramp_s": -1}}, ["reference.ramp_s"]),
+        ({"safety": {"velocity_limit_rad_s": [1, 1, 1]}}, ["safety.velocity_limit_rad_s", "3 values for 6 joints"]),
+        ({"safety": {"position_lower_rad": [0] * 6, "position_upper_rad": [0] * 6}}, ["position_lower_rad"]),
+        ({"robot": None}, ["robot"]),
+        ({"telemetry": {"enabled": "maybe"}}, ["telemetry.enabled"]),
+    ],
+)
+def test_bad_fields_are_named(tmp_path: Path, change: dict, fragments: list[str]) -> None:
+    data = config_dict()
+    data.update(change)
+    _refused(tmp_path, data, *fragments)
+
+
+def test_bad_drive_bus_fields_are_named_with_their_path(tmp_path: Path) -> None:
+    data = config_dict()
+    data["bus"]["joints"][2]["node_id"] = 200
+    _refused(tmp_path, data, "bus.joints.2.node_id")
+    data = config_dict()
+    del data["bus"]["period_s"]
+    _refused(tmp_path, data, "bus.period_s")
+
+
+def test_a_bus_over_its_load_budget_is_refused(tmp_path: Path) -> None:
+    data = config_dict()
+    data["bus"]["transport"] = {"interface": "virtual", "fd": False}  # six drives at 1 kHz, classical CAN
+    _refused(tmp_path, data, "bus")
+
+
+def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(RuntimeConfigError, match="cannot read"):
+        load_runtime_config(tmp_path / "absent.yaml")
+    _refused(tmp_path, "robot: [unclosed\n", "not valid YAML")
+    _refused(tmp_path, "- a list\n", "mapping")
+
+
+@pytest.mark.parametrize(
+    ("change", "error", "fragment"),
+    [
+        ({"robot": "ur10"}, RuntimeConfigError, "for 'ur5_paper'"),
+        ({"bus_period": 0.002}, BundleError, "control period"),
+        ({"drop_joint": True}, BundleError, "6 joints, the config has 5"),
+        ({"swap_joints": True}, BundleError, "joint order"),
+    ],
+)
+def test_a_bundle_that_does_not_match_the_drives_is_refused_before_any_io(tmp_path: Path, change: dict,
+                                                                           error: type, fragment: str) -> None:  # fmt: skip
+    data = config_dict()
+    if "robot" in change:
+        data["robot"] = change["robot"]
+    if "bus_period" in change:
+        data["bus"]["period_s"] = change["bus_period"]
+    if change.get("drop_joint"):
+        data["bus"]["joints"] = data["bus"]["joints"][:5]
+    if change.get("swap_joints"):
+        joints = data["bus"]["joints"]
+        joints[0]["name"], joints[1]["name"] = joints[1]["name"], joints[0]["name"]
+    config = parse_runtime_config(data, "rt.yaml")
+    bus = FakeJointBus(len(data["bus"]["joints"]), period_s=config.period_s)
+    with pytest.raises(error) as info:
+        Runtime(config, bus)
+    assert info.value.exit_code == 2 and fragment in str(info.value) and "\n" not in str(info.value)
+    assert bus.events == []  # nothing was touched
+
+
+def test_a_tampered_bundle_is_refused(tmp_path: Path) -> None:
+    bundle = tmp_path / "pd"
+    shutil.copytree(PD_BUNDLE, bundle)
+    with open(bundle / "policy.onnx", "ab") as handle:
+        handle.write(b"\0")
+    config = parse_runtime_config(config_dict(bundle={"path": str(bundle)}))
+    with pytest.raises(BundleError, match="sha256 mismatch"):
+        Runtime(config, FakeJointBus(6))
+
+
+def test_conditions_missing_file_unknown_name_and_out_of_limits(tmp_path: Path) -> None:
+    missing = parse_runtime_config(config_dict(reference={"kind": "condition", "condition": "C1",
+                                                          "conditions_file": str(tmp_path / "none.yaml")}))  # fmt: skip
+    with pytest.raises(ConditionError, match="file not found"):
+        Runtime(missing, FakeJointBus(6))
+    unknown = parse_runtime_config(config_dict(reference={"kind": "condition", "condition": "C9"}), "rt.yaml")
+    with pytest.raises(RuntimeConfigError, match=r"reference.condition: no condition 'C9'.*known: C1, C2"):
+        Runtime(unknown, FakeJointBus(6))
+    tight = parse_runtime_config(config_dict(reference={"kind": "condition", "condition": "C4"},
+                                             safety={"velocity_limit_rad_s": [0.1] * 6}))  # fmt: skip
+    with pytest.raises(ConditionError, match="velocity"):
+        Runtime(tight, FakeJointBus(6))
+
+
+def _hil(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)  # fmt: skip
+
+
+def test_hil_run_refuses_bad_input_with_one_line_and_exit_2(tmp_path: Path) -> None:
+    bad = config_dict()
+    bad["bus"]["joints"][0]["max_torque_nm"] = -1
+    result = _hil("run", "--config", str(_write(tmp_path, bad)))
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "bus.joints.0.max_torque_nm" in lines[0], result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_hil_run_with_an_unreachable_bus_exits_2_without_enabling(tmp_path: Path) -> None:
+    data = config_dict()
+    data["bus"]["transport"] = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": 9,
+                                "fd": True, "data_bitrate": 5_000_000}  # nothing listens on port 9
+    result = _hil("run", "--config", str(_write(tmp_path, data)))
+    assert result.returncode == 2, result.stderr
+    assert "error:" in result.stderr and "bus:" in result.stderr and "Traceback" not in result.stderr
+    assert "state ACTIVE" not in result.stderr
+
+
+def test_hil_run_with_silent_drives_exits_2_without_enabling(tmp_path: Path) -> None:
+    data = config_dict(control_socket=str(tmp_path / "rt.sock"))
+    data["bus"]["state_change_timeout_s"] = 0.2  # nobody answers on this virtual channel
+    result = _hil("run", "--config", str(_write(tmp_path, data)))
+    assert result.returncode == 2, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "no boot-up message" in errors[0], result.stderr
+    assert "state ACTIVE" not in result.stderr
+    assert not (tmp_path / "rt.sock").exists()
+
+
+def test_hil_status_without_a_daemon(tmp_path: Path) -> None:
+    result = _hil("status", "--socket", str(tmp_path / "none.sock"))
+    assert result.returncode == 2 and "is hil run running" in result.stderr

@@ -1,0 +1,272 @@
+"""The runtime's loop on a fake joint bus: tracking, faults -> quick stop + FAULT, reset, stop from
+another thread, fb mode, the record, the applied-torque state, and what telemetry is handed."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from runtime_fixtures import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
+
+from drivers.cia402.state_machine import State
+from drivers.errors import DriveFaultError, FeedbackTimeoutError, HeartbeatLostError
+from drivers.testing import FakeJointBus
+from hil_runtime.config import parse_runtime_config
+from hil_runtime.lifecycle import LifecycleState
+from hil_runtime.runtime import Runtime
+from hil_runtime.telemetry.sink import NullTelemetry
+
+INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
+
+
+def _bus(**kwargs: object) -> FakeJointBus:
+    return FakeJointBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM,
+                        initial_position_rad=Q0_RAD, **kwargs)  # type: ignore[arg-type]
+
+
+class RecordingSink(NullTelemetry):
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.statuses: list[tuple[str, str | None]] = []
+        self.events: list[tuple[str, int, str]] = []
+        self.states = 0
+        self.stats: list[dict] = []
+
+    def start(self) -> None:
+        self.calls.append("start")
+
+    def offer_state(self, *args: object) -> None:
+        self.states += 1
+        assert len(args) == 10
+
+    def offer_stats(self, stats: object) -> None:
+        self.stats.append(dict(stats))  # type: ignore[call-overload]
+
+    def set_status(self, state: str, fault: str | None) -> None:
+        self.statuses.append((state, fault))
+
+    def event(self, kind: str, cycle: int, detail: str) -> None:
+        self.events.append((kind, cycle, detail))
+
+    def close(self) -> None:
+        self.calls.append("close")
+
+
+def _runtime(bus: FakeJointBus, record: int = 0, bundle: object = None, **overrides: object) -> Runtime:
+    config = parse_runtime_config(config_dict(**overrides), "rt.yaml")
+    return Runtime(config, bus, record_cycles=record, bundle=bundle, telemetry=RecordingSink())  # type: ignore[arg-type]
+
+
+def test_pd_bundle_ramps_onto_c1_and_tracks_it_inside_the_limits() -> None:
+    bus = _bus()
+    rt = _runtime(bus, record=8000, reference={"kind": "condition", "condition": "C1", "ramp_s": 1.0})
+    rt.configure()
+    assert rt.state is LifecycleState.INACTIVE and bus.events == ["connect"]
+    assert rt.activate()
+    ramp = rt.reference.ramp_cycles
+    assert ramp >= 1000
+    result = rt.run(max_cycles=ramp + 5000)
+    assert result.reason == "cycles" and result.state is LifecycleState.ACTIVE
+    rec = rt.record.arrays()
+    assert rec["q"].shape == (ramp + 5001, 6)  # the activation row + every cycle
+    # The reference starts at the measured pose (no step) and reaches C1's start at the ramp's end.
+    np.testing.assert_allclose(rec["q_ref"][0], Q0_RAD, atol=1e-12)
+    np.testing.assert_allclose(rec["qd_ref"][0], 0.0, atol=1e-12)
+    steps = np.abs(np.diff(rec["q_ref"], axis=0)).max()
+    assert steps < 3e-3, f"reference step {steps}"
+    np.testing.assert_allclose(rec["t_s"][:3], [0.0, 0.001, 0.002])
+    tracking = np.abs(rec["q"] - rec["q_ref"])[ramp:].max()
+    assert tracking < 0.3
+    assert np.all(np.abs(rec["tau"]) <= np.array(MAX_TORQUE_NM) + 1e-9)
+    assert np.all(np.abs(rec["q"]) <= np.pi)
+    # The torque chosen in each row is what the next exchange sent (row 0: from enable's feedback).
+    assert len(bus.commands) == ramp + 5000
+    np.testing.assert_allclose(np.array(bus.commands), rec["tau"][:-1], atol=1e-12)
+    assert np.all(rec["compute_s"][1:] > 0)
+    rt.shutdown()
+    assert rt.state is LifecycleState.FINALIZED
+    assert bus.events[-3:] == ["quick_stop", "disable", "close"]
+    assert rt.telemetry.calls == ["start", "close"]  # type: ignore[attr-defined]
+    assert [s for s, _ in rt.telemetry.statuses] == ["INACTIVE", "ACTIVE", "FINALIZED"]  # type: ignore[attr-defined]
+
+
+def test_a_second_run_goes_on_along_the_reference() -> None:
+    rt = _runtime(_bus(), record=100, reference={"kind": "condition", "condition": "C1", "ramp_s": 0.5})
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=30)
+    rt.run(max_cycles=30)
+    np.testing.assert_allclose(np.diff(rt.record.t_s[: rt.record.n]), 0.001)
+
+
+@pytest.mark.parametrize(
+    ("error", "kind"),
+    [
+        (FeedbackTimeoutError((3,), 2), "feedback_timeout"),
+        (HeartbeatLostError(5, "no heartbeat for 0.3 s"), "heartbeat_lost"),
+        (DriveFaultError(4, 0x2310, "EMCY"), "drive_fault"),
+    ],
+)
+def test_a_driver_error_is_a_fault_drives_stopped_daemon_up_until_reset(error: Exception, kind: str) -> None:
+    bus = _bus()
+    rt = _runtime(bus, loop={"pacing": "bus", "idle_poll_s": 0.001})
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=20)
+    bus.fail_next_exchange(error)  # type: ignore[arg-type]
+    result = rt.run(max_cycles=20, stop_on_fault=True)
+    assert result.reason == "fault" and result.state is LifecycleState.FAULT
+    assert result.fault is not None and result.fault.startswith(kind)
+    assert rt.last_fault is not None and rt.last_fault.kind.value == kind
+    assert not bus.enabled and bus.fail_safe_count == 1 and bus.quick_stop_calls >= 1
+    assert ("fault", 20, result.fault) in rt.telemetry.events  # type: ignore[attr-defined]
+    # FAULT: the loop thread waits for a reset; then ACTIVE again from the measured pose.
+    done = threading.Event()
+    outcome = {}
+
+    def loop() -> None:
+        outcome["result"] = rt.run()
+        done.set()
+
+    thread = threading.Thread(target=loop)
+    thread.start()
+    time.sleep(0.05)
+    assert rt.state is LifecycleState.FAULT and not done.is_set()
+    rt.request_reset()
+    deadline = time.monotonic() + 5
+    while rt.state is not LifecycleState.ACTIVE and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert rt.state is LifecycleState.ACTIVE
+    assert "fault_reset" in bus.events and bus.enabled
+    rt.request_stop()
+    thread.join(5)
+    assert done.is_set() and outcome["result"].reason == "stop"
+    rt.shutdown()
+    assert bus.states == (State.SWITCH_ON_DISABLED,) * 6
+
+
+def test_stale_feedback_faults_within_two_cycles() -> None:
+    bus = _bus(max_missed_cycles=1000)  # the bus tolerates it: the supervisor must not
+    rt = _runtime(bus)
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=10)
+    bus.make_stale([2], cycles=5)
+    before = len(bus.commands)
+    result = rt.run(max_cycles=10, stop_on_fault=True)
+    assert result.fault is not None and result.fault.startswith("stale_feedback")
+    assert len(bus.commands) - before == 2
+    assert bus.quick_stop_calls == 1 and not bus.enabled
+
+
+def test_leaving_the_position_limits_quick_stops_and_faults() -> None:
+    def runaway(q: np.ndarray, qd: np.ndarray, tau: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        qd = qd.copy()
+        qd[1] = -2.0  # something drags joint 2 down faster than any command
+        return q + qd * dt, qd
+
+    bus = FakeJointBus(6, period_s=0.001, plant=runaway, max_torque_nm=MAX_TORQUE_NM,
+                       initial_position_rad=(0.0, -2.0, 0.0, 0.0, 0.0, 0.0))  # fmt: skip
+    rt = _runtime(bus, record=2000)
+    rt.configure()
+    rt.activate()
+    result = rt.run(max_cycles=2000, stop_on_fault=True)
+    assert result.fault is not None and result.fault.startswith("position_limit: shoulder_lift_joint")
+    lower = -2.5132741228718345  # the bundle manifest's limit
+    assert rt.record.q[rt.record.n - 1, 1] >= lower  # every recorded sample inside the limits
+    assert bus.position_rad[1] < lower + 0.003  # the fault came at the first sample beyond it
+    assert bus.quick_stop_calls == 1
+
+
+def test_non_finite_policy_output_falls_back_to_the_law_then_faults_when_both_are_bad() -> None:
+    bundle = StubBundle()
+    bus = _bus()
+    rt = _runtime(bus, bundle=bundle)
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=5)
+    bundle.tau_value = np.full(6, np.nan)
+    rt.run(max_cycles=5)
+    assert rt.state is LifecycleState.ACTIVE
+    assert rt.supervisor.law_substitutions == 5
+    assert np.isfinite(np.array(bus.commands)).all()
+    bundle.tau_fb_value = np.full(6, np.inf)
+    result = rt.run(max_cycles=5, stop_on_fault=True)
+    assert result.fault is not None and result.fault.startswith("policy_nonfinite")
+    assert bus.quick_stop_calls == 1
+
+
+def test_an_exception_inside_the_loop_is_a_fault_not_a_crash() -> None:
+    bundle = StubBundle()
+    bus = _bus()
+    rt = _runtime(bus, bundle=bundle)
+    rt.configure()
+    rt.activate()
+
+    def broken(*args: object) -> None:
+        raise ZeroDivisionError("bug")
+
+    bundle.step = broken  # type: ignore[method-assign]
+    result = rt.run(max_cycles=5, stop_on_fault=True)
+    assert result.fault == "internal: ZeroDivisionError: bug"
+    assert bus.quick_stop_calls == 1
+
+
+def test_fb_mode_commands_the_law_torque_and_the_state_records_it() -> None:
+    bundle = StubBundle(state_size=8, applied=[2, 8])
+    bundle.tau_value = np.full(6, 7.0)  # what lmpc would command
+    bus = _bus()
+    config = parse_runtime_config(config_dict(bundle={"path": "unused", "mode": "fb"}), "rt.yaml")
+    rt = Runtime(config, bus, bundle=bundle)  # type: ignore[arg-type]
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=3)
+    sent = np.array(bus.commands)
+    assert not np.allclose(sent, 7.0)  # the law's torque, not the policy's
+    # The next state's applied-torque slot holds what was commanded; the rest is the graph's.
+    state = rt.controller.state
+    np.testing.assert_allclose(state[2:8], rt._command)
+    assert state[0] == pytest.approx(bundle.states_seen[-1][0] + 1.0)
+
+
+def test_request_stop_from_another_thread_ends_the_loop_promptly() -> None:
+    bus = _bus()
+    rt = _runtime(bus, loop={"pacing": "clock"})
+    rt.configure()
+    rt.activate()
+    timer = threading.Timer(0.2, rt.request_stop)
+    timer.start()
+    t0 = time.monotonic()
+    result = rt.run(shutdown_at_end=True)
+    assert time.monotonic() - t0 < 1.0
+    assert result.reason == "stop" and rt.state is LifecycleState.FINALIZED
+    assert 100 <= result.cycles <= 260  # clock pacing at 1 kHz for ~0.2 s
+    assert bus.events[-3:] == ["quick_stop", "disable", "close"]
+
+
+def test_duration_ends_the_run_and_stats_carry_the_telemetry_fields() -> None:
+    rt = _runtime(_bus(), loop={"pacing": "bus", "duration_s": 0.2, "stats_interval_s": 0.05})
+    rt.configure()
+    rt.activate()
+    result = rt.run()
+    assert result.reason == "duration" and result.cycles == 200  # 200 exchanges: the arm reached period 200 = 0.2 s
+    stats = result.stats
+    for name in ("rate_hz", "period_median_s", "period_p99_s", "period_max_s", "compute_median_s", "compute_p99_s",
+                 "compute_max_s", "cycles", "overruns", "fallbacks", "saturations", "bus_frames_sent",
+                 "bus_dropped"):  # fmt: skip
+        assert name in stats, name
+    assert rt.telemetry.states == 201  # the activation row + one per exchange  # type: ignore[attr-defined]
+    assert rt.telemetry.stats  # type: ignore[attr-defined]
+
+
+def test_status_snapshot_is_json_able() -> None:
+    import json
+
+    rt = _runtime(_bus())
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=50)
+    status = json.loads(json.dumps(rt.status()))
+    assert status["state"] == "ACTIVE" and status["cycles"] == 50 and status["fault"] is None
