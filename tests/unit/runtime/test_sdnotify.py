@@ -1,0 +1,173 @@
+"""systemd's notify protocol through a Unix datagram socket of our own as NOTIFY_SOCKET: READY,
+STATUS, WATCHDOG at half of WATCHDOG_USEC from the loop, none while the loop is stalled, STOPPING."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+from runtime_fixtures import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
+
+from drivers.testing import FakeJointBus
+from hil_runtime.config import parse_runtime_config
+from hil_runtime.runtime import Runtime
+from hil_runtime.sdnotify import Notifier
+
+
+class NotifyListener:
+    """What systemd does: receive datagrams, keep (time, fields)."""
+
+    def __init__(self, path: str) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(path)
+        self.sock.settimeout(0.05)
+        self.messages: list[tuple[float, dict[str, str]]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            fields = dict(line.split("=", 1) for line in data.decode().splitlines())
+            self.messages.append((time.monotonic(), fields))
+
+    def with_key(self, key: str) -> list[tuple[float, dict[str, str]]]:
+        return [(t, f) for t, f in self.messages if key in f]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.sock.close()
+
+
+@pytest.fixture
+def listener(tmp_path: Path):  # type: ignore[no-untyped-def]
+    path = str(tmp_path / "notify.sock")
+    lst = NotifyListener(path)
+    yield path, lst
+    lst.close()
+
+
+def test_environment_rules(listener: tuple) -> None:
+    path, _ = listener
+    assert not Notifier.from_environment({}).enabled
+    n = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000"})
+    assert n.enabled and n.watchdog_interval_s == pytest.approx(1.0)
+    other = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000", "WATCHDOG_PID": "1"})
+    assert other.watchdog_interval_s is None  # the watchdog is someone else's
+    mine = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "100000",
+                                      "WATCHDOG_PID": str(os.getpid())})  # fmt: skip
+    assert mine.watchdog_interval_s == pytest.approx(0.05)
+    for n in (n, other, mine):
+        n.close()
+
+
+def test_abstract_namespace_socket() -> None:
+    name = f"hil-test-{uuid.uuid4().hex[:8]}"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind("\0" + name)
+    server.settimeout(2)
+    try:
+        notifier = Notifier(f"@{name}")
+        assert notifier.status("hello")
+        assert server.recv(100) == b"STATUS=hello"
+        notifier.close()
+    finally:
+        server.close()
+
+
+def test_a_missing_socket_never_raises() -> None:
+    notifier = Notifier("/nonexistent/notify.sock", 1000)
+    assert notifier.ready("x") is False and notifier.failed == 1
+    notifier.watchdog_if_due(0.0)
+    notifier.close()
+
+
+def _runtime(notifier: Notifier, bundle: StubBundle) -> Runtime:
+    config = parse_runtime_config(config_dict(loop={"pacing": "clock", "idle_poll_s": 0.005}), "rt.yaml")
+    bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
+    return Runtime(config, bus, bundle=bundle, notifier=notifier)  # type: ignore[arg-type]
+
+
+def test_ready_status_watchdog_from_the_loop_and_a_stall_stops_the_pings(listener: tuple) -> None:
+    path, lst = listener
+    notifier = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "40000"})  # pings every 20 ms
+    bundle = StubBundle()
+    stall = threading.Event()
+    release = threading.Event()
+    original = bundle.step
+
+    def step(*args):  # type: ignore[no-untyped-def]
+        if stall.is_set():
+            release.wait(5)  # the loop hangs inside the policy call
+            stall.clear()
+        return original(*args)
+
+    bundle.step = step  # type: ignore[method-assign]
+    rt = _runtime(notifier, bundle)
+    rt.configure()
+    thread = threading.Thread(target=rt.run, kwargs={"shutdown_at_end": True})
+    rt.request_activate()
+    thread.start()
+    time.sleep(0.3)
+    stall.set()
+    time.sleep(0.3)  # stalled: 15 watchdog intervals without a ping
+    stalled_from = time.monotonic() - 0.3
+    release.set()
+    time.sleep(0.2)
+    rt.request_stop()
+    thread.join(5)
+    notifier.close()
+    time.sleep(0.1)
+
+    ready = lst.with_key("READY")
+    assert len(ready) == 1 and ready[0][1]["READY"] == "1" and ready[0][1]["STATUS"].startswith("ACTIVE")
+    assert ready[0][1]["MAINPID"] == str(os.getpid())
+    pings = [t for t, f in lst.with_key("WATCHDOG") if f["WATCHDOG"] == "1"]
+    before = [t for t in pings if t < stalled_from]
+    assert len(before) >= 8  # ~every 20 ms while healthy
+    gaps = np.diff(pings)
+    assert gaps.max() > 0.25  # the stall: no pings for its whole length...
+    assert sum(1 for t in pings if stalled_from + 0.02 < t < stalled_from + 0.28) == 0
+    assert pings[-1] > stalled_from + 0.3  # ...and they resume once the loop moves again
+    assert np.median(gaps) == pytest.approx(0.02, abs=0.01)
+    statuses = [f["STATUS"] for _, f in lst.with_key("STATUS")]
+    assert any(s.startswith("ACTIVE") and "Hz" in s for s in statuses)
+    stopping = lst.with_key("STOPPING")
+    assert stopping and stopping[-1][1]["STOPPING"] == "1"
+    assert stopping[-1][0] >= ready[0][0]
+
+
+def test_fault_reason_goes_to_status_and_the_idle_thread_keeps_pinging(listener: tuple) -> None:
+    path, lst = listener
+    notifier = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "40000"})
+    bundle = StubBundle()
+    rt = _runtime(notifier, bundle)
+    rt.configure()
+    rt.activate()
+    bundle.tau_value = np.full(6, np.nan)
+    bundle.tau_fb_value = np.full(6, np.nan)
+    thread = threading.Thread(target=rt.run)
+    thread.start()
+    time.sleep(0.3)
+    rt.request_stop()
+    thread.join(5)
+    rt.shutdown()
+    notifier.close()
+    time.sleep(0.1)
+    statuses = [f["STATUS"] for _, f in lst.with_key("STATUS")]
+    assert any(s.startswith("FAULT: policy_nonfinite") for s in statuses), statuses
+    fault_t = next(t for t, f in lst.with_key("STATUS") if f["STATUS"].startswith("FAULT"))
+    assert sum(1 for t, _ in lst.with_key("WATCHDOG") if t > fault_t) >= 5  # alive, waiting for a reset
