@@ -6,6 +6,7 @@ PDO objects (why the cyclic path has its own codec), and machine info.
 
     python benchmarks/bench_can_exchange.py                       # 6 drives, 1 kHz, CAN FD, in-process
     python benchmarks/bench_can_exchange.py --mode bridge --rate-hz 500   # across processes (loopback)
+    python benchmarks/bench_can_exchange.py --mode ipc            # across processes on the ipc bus
     python benchmarks/bench_can_exchange.py --unpaced             # back-to-back: the ceiling
 
 The plant is the fake double integrator of tests/integration/fake_plant.py (lock-stepped: each SYNC
@@ -131,11 +132,13 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
-def run_bridge(args: argparse.Namespace) -> dict[str, Any]:
+def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str, Any]:
+    """The drives in another process: behind the python-can-remote bridge, or on the ipc bus."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    extra = ["--ipc-dir", ipc_dir] + ([] if args.fd else ["--classical"]) if ipc_dir else []
     proc = subprocess.Popen(
         [sys.executable, str(ROOT / "tests" / "integration" / "drive_target_process.py"),
-         "--drives", str(args.drives), "--period-s", str(1.0 / args.rate_hz)],
+         "--drives", str(args.drives), "--period-s", str(1.0 / args.rate_hz), *extra],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )
     try:
@@ -143,9 +146,12 @@ def run_bridge(args: argparse.Namespace) -> dict[str, Any]:
         selector.register(proc.stdout, selectors.EVENT_READ)  # type: ignore[arg-type]
         if not selector.select(30.0):
             raise RuntimeError("target process did not start")
-        port = json.loads(proc.stdout.readline())["port"]  # type: ignore[union-attr]
-        config = _config(args, {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port,
-                                "channel": ""})
+        ready = json.loads(proc.stdout.readline())  # type: ignore[union-attr]
+        if ipc_dir:
+            config = _config(args, {"interface": "ipc", "channel": ready["ipc_dir"]})
+        else:
+            config = _config(args, {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": ready["port"],
+                                    "channel": ""})
         driver = DriveBus(config)
         try:
             driver.connect()
@@ -160,6 +166,13 @@ def run_bridge(args: argparse.Namespace) -> dict[str, Any]:
             proc.kill()
     result["bus_load"] = config.bus_load().describe()
     return result
+
+
+def run_ipc(args: argparse.Namespace) -> dict[str, Any]:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return run_bridge(args, str(Path(tmp) / "bus"))
 
 
 def codec_cost() -> dict[str, float]:
@@ -187,10 +200,10 @@ def codec_cost() -> dict[str, float]:
         return bytes(rpdo.data)
 
     def ours_decode() -> tuple[int, int, int]:
-        return fr.unpack_tpdo1(data)
+        return tuple(fr.decode_tpdo1(data)[:3])  # type: ignore[return-value]  # three int fields
 
     def ours_encode() -> bytes:
-        return fr.pack_rpdo(0x000F, -1000)
+        return fr.encode_rpdo(0x000F, -1000)
 
     assert canopen_decode() == ours_decode() and canopen_encode() == ours_encode()
     return {name: round(timeit.timeit(fn, number=n) / n * 1e6, 3) for name, fn in (
@@ -211,7 +224,7 @@ def machine_info() -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--mode", choices=("inprocess", "bridge"), default="inprocess")
+    parser.add_argument("--mode", choices=("inprocess", "bridge", "ipc"), default="inprocess")
     parser.add_argument("--drives", type=int, default=6)
     parser.add_argument("--rate-hz", type=float, default=1000.0)
     parser.add_argument("--seconds", type=float, default=10.0)
@@ -221,7 +234,7 @@ def main() -> None:
     parser.add_argument("--feedback-timeout-s", type=float, default=0.005)
     parser.add_argument("--unpaced", action="store_true", help="back-to-back exchanges, no pacing")
     args = parser.parse_args()
-    runner = run_in_process if args.mode == "inprocess" else run_bridge
+    runner = {"inprocess": run_in_process, "bridge": run_bridge, "ipc": run_ipc}[args.mode]
     result = {
         "benchmark": "can_exchange",
         "mode": args.mode,

@@ -2,7 +2,8 @@
 
 Per cycle the master sends one SYNC and one RPDO per drive, and every drive answers with its
 TPDO(s): classical CAN needs two TPDOs (8 + 4 bytes), CAN FD carries all 12 bytes and the SYNC counter echo in one 16-byte frame.
-Heartbeats add N one-byte frames per heartbeat period. Frame lengths are worst case: every
+Heartbeats add N one-byte frames per heartbeat period (and the master's own, one frame per its
+period). Frame lengths are worst case: every
 stuffable bit sequence stuffed (one stuff bit per four bits), 11-bit identifiers, 3-bit
 interframe space.
 
@@ -81,6 +82,8 @@ class BusLoad:
     heartbeat_load: float  # fraction of the bus taken by heartbeats
     load: float  # fraction of the bus at rate_hz, heartbeats included
     fd_tpdo_bytes: int = TPDO_FD_BYTES  # CAN FD TPDO data bytes (13 with the SYNC counter echo)
+    heartbeat_period_s: float | None = None  # the drives' heartbeat period (None: not counted)
+    master_heartbeat_period_s: float | None = None  # the master's own heartbeat (None: not counted)
 
     @property
     def max_rate_hz(self) -> float:
@@ -120,8 +123,10 @@ def compute_bus_load(
     data_bitrate: int | None = None,
     heartbeat_period_s: float | None = None,
     fd_tpdo_bytes: int = TPDO_FD_BYTES,
+    master_heartbeat_period_s: float | None = None,
 ) -> BusLoad:
-    """Bus load of one SYNC + N RPDOs + N drives' TPDOs per cycle (+ heartbeats).
+    """Bus load of one SYNC + N RPDOs + N drives' TPDOs per cycle (+ heartbeats: the drives'
+    every ``heartbeat_period_s``, the master's every ``master_heartbeat_period_s``).
 
     ``fd_tpdo_bytes``: data bytes of the CAN FD TPDO (12, or 13 with the SYNC counter echo the
     driver maps: padded to a 16-byte frame).
@@ -152,6 +157,8 @@ def compute_bus_load(
         cycle_time_s = nominal_bits / bitrate + data_bits / data_bitrate
         heartbeat_time_s = n_drives * classical_frame_bits(HEARTBEAT_BYTES) / bitrate
     heartbeat_load = heartbeat_time_s / heartbeat_period_s if heartbeat_period_s else 0.0
+    if master_heartbeat_period_s:
+        heartbeat_load += classical_frame_bits(HEARTBEAT_BYTES) / bitrate / master_heartbeat_period_s
     return BusLoad(
         n_drives=n_drives,
         rate_hz=rate_hz,
@@ -164,20 +171,20 @@ def compute_bus_load(
         heartbeat_load=heartbeat_load,
         load=cycle_time_s * rate_hz + heartbeat_load,
         fd_tpdo_bytes=fd_tpdo_bytes,
+        heartbeat_period_s=heartbeat_period_s,
+        master_heartbeat_period_s=master_heartbeat_period_s,
     )
 
 
 def what_would_fit(load: BusLoad, limit: float = DEFAULT_LIMIT) -> str:
     """One sentence on what does fit: this bus's max rate, an FD data rate, or more buses."""
     parts = [f"this bus fits about {math.floor(max_rate_hz(load, limit))} Hz"]
-    hb_period = (
-        None if load.heartbeat_load == 0 else _heartbeat_period(load)
-    )
+    hb_period, master_hb_period = load.heartbeat_period_s, load.master_heartbeat_period_s
     for data_bitrate in STANDARD_FD_DATA_BITRATES:
         if load.data_bitrate is not None and data_bitrate <= load.data_bitrate:
             continue
         fd = compute_bus_load(load.n_drives, load.rate_hz, load.bitrate, data_bitrate, hb_period,
-                              load.fd_tpdo_bytes)
+                              load.fd_tpdo_bytes, master_hb_period)
         if fd.load <= limit:
             parts.append(
                 f"{load.rate_hz:g} Hz needs CAN FD with a {_mbit(data_bitrate)} data phase "
@@ -187,18 +194,13 @@ def what_would_fit(load: BusLoad, limit: float = DEFAULT_LIMIT) -> str:
     per_bus = 0
     for n in range(load.n_drives, 0, -1):
         if compute_bus_load(n, load.rate_hz, load.bitrate, load.data_bitrate, hb_period,
-                            load.fd_tpdo_bytes).load <= limit:
+                            load.fd_tpdo_bytes, master_hb_period).load <= limit:
             per_bus = n
             break
     if per_bus:
         buses = math.ceil(load.n_drives / per_bus)
         parts.append(f"or {buses} buses of at most {per_bus} drives")
     return "; ".join(parts)
-
-
-def _heartbeat_period(load: BusLoad) -> float:
-    per_hb_time = load.n_drives * classical_frame_bits(HEARTBEAT_BYTES) / load.bitrate
-    return per_hb_time / load.heartbeat_load
 
 
 def check_bus_load(
@@ -210,9 +212,11 @@ def check_bus_load(
     limit: float = DEFAULT_LIMIT,
     source: str = "config",
     fd_tpdo_bytes: int = TPDO_FD_BYTES,
+    master_heartbeat_period_s: float | None = None,
 ) -> BusLoad:
     """The bus load, or :class:`BusLoadError` saying what would fit when above ``limit``."""
-    load = compute_bus_load(n_drives, rate_hz, bitrate, data_bitrate, heartbeat_period_s, fd_tpdo_bytes)
+    load = compute_bus_load(n_drives, rate_hz, bitrate, data_bitrate, heartbeat_period_s, fd_tpdo_bytes,
+                            master_heartbeat_period_s)
     if load.load > limit:
         raise BusLoadError(
             f"{source}: {load.describe()}, above the {limit:.0%} limit; {what_would_fit(load, limit)}"

@@ -128,6 +128,12 @@ class DriveBusConfig(_Frozen):
     sdo_timeout_s: float = Field(0.3, gt=0)
     state_change_timeout_s: float = Field(1.0, gt=0)  # NMT / CiA 402 transitions at start-up
     quick_stop_option: int = Field(2, ge=0, le=8)  # written to 0x605A
+    # The master's own heartbeat (NMT node id, period): the drives consume it (0x1016).
+    master_node_id: int = Field(127, ge=1, le=127)
+    master_heartbeat_ms: int = Field(20, ge=1, le=65535)
+    # Loss of the master: a drive that misses its heartbeat, its RPDOs or the SYNC for this long
+    # quick-stops on its own (0x1016, 0x1400:05, 0x2101; 0x6007 = quick stop). None: not set up.
+    comm_loss_timeout_s: float | None = Field(0.1, gt=0, le=65.535)
     bus_load_limit: float = Field(DEFAULT_LIMIT, gt=0, le=1)
     eds_path: Path | None = None  # None: the EDS shipped in drivers/cia402/data
 
@@ -138,6 +144,13 @@ class DriveBusConfig(_Frozen):
             raise ValueError(f"duplicate node_id in joints: {ids}")
         if self.heartbeat_timeout_s * 1000 <= self.heartbeat_producer_ms:
             raise ValueError("heartbeat_timeout_s must exceed the heartbeat producer time")
+        if self.master_node_id in ids:
+            raise ValueError(f"master_node_id {self.master_node_id} is also a drive's node_id")
+        if self.comm_loss_timeout_s is not None:
+            if round(self.comm_loss_timeout_s * 1000) <= self.master_heartbeat_ms:
+                raise ValueError("comm_loss_timeout_s must exceed the master heartbeat period (master_heartbeat_ms)")
+            if self.comm_loss_timeout_s <= self.period_s:
+                raise ValueError("comm_loss_timeout_s must exceed period_s")
         return self
 
     @property
@@ -155,6 +168,7 @@ class DriveBusConfig(_Frozen):
             self.bus_load_limit,
             source,
             TPDO_FD_SYNC_BYTES,  # the driver maps the FD TPDO with the SYNC counter echo
+            self.master_heartbeat_ms / 1000.0,
         )
 
 

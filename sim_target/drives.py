@@ -385,7 +385,7 @@ class EmulatedDrives:
         if len(data) != fr.RPDO_LENGTH:
             self._malformed += 1
             return
-        drive.controlword, drive.target_permille = fr.unpack_rpdo(data)
+        drive.controlword, drive.target_permille = fr.decode_rpdo(data)
 
     def _on_sdo(self, drive: _Drive, data: bytearray) -> None:
         if drive.nmt is fr.NmtState.STOPPED:
@@ -482,7 +482,7 @@ class EmulatedDrives:
         ):
             # The hot path: pack into the drive's own message and send it, nothing allocated here.
             msg = drive.tpdo_msgs[fr.TPDO1_BASE]
-            fr.pack_tpdo_fd_sync_into(msg.data, 0, statusword, torque_permille, position_counts,
+            fr.encode_tpdo_fd_sync_into(msg.data, statusword, torque_permille, position_counts,
                                       velocity_counts, self._sync_counter)
             self._send(msg)
             return
@@ -500,17 +500,17 @@ class EmulatedDrives:
         if drive.fd_layout:
             if drive.tpdo1_valid:
                 if drive.fd_sync_echo:
-                    data = fr.pack_tpdo_fd_sync(statusword, torque_permille, position_counts, velocity_counts,
+                    data = fr.encode_tpdo_fd_sync(statusword, torque_permille, position_counts, velocity_counts,
                                                 self._sync_counter)
                 else:
-                    data = fr.pack_tpdo_fd(statusword, torque_permille, position_counts, velocity_counts)
+                    data = fr.encode_tpdo_fd(statusword, torque_permille, position_counts, velocity_counts)
                 self._emit(drive, fr.TPDO1_BASE + drive.node_id, data, fd=True, corrupt=corrupt, delay_s=delay_s)
             return
         if drive.tpdo1_valid:
-            data = fr.pack_tpdo1(statusword, torque_permille, position_counts)
+            data = fr.encode_tpdo1(statusword, torque_permille, position_counts)
             self._emit(drive, fr.TPDO1_BASE + drive.node_id, data, corrupt=corrupt, delay_s=delay_s)
         if drive.tpdo2_valid:
-            data = fr.pack_tpdo2(velocity_counts)
+            data = fr.encode_tpdo2(velocity_counts)
             self._emit(drive, fr.TPDO2_BASE + drive.node_id, data, corrupt=corrupt, delay_s=delay_s)
 
     # --- NMT and heartbeat -----------------------------------------------------------------------

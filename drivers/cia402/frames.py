@@ -154,7 +154,9 @@ EMCY_OVERCURRENT: Final = 0x2310
 EMCY_OVERVOLTAGE: Final = 0x3210
 EMCY_OVERTEMPERATURE: Final = 0x4310
 EMCY_FOLLOWING_ERROR: Final = 0x8611
-EMCY_COMMUNICATION: Final = 0x8100
+EMCY_COMMUNICATION: Final = 0x8100  # generic communication error; the drives' SYNC loss
+EMCY_HEARTBEAT: Final = 0x8130  # life guard / heartbeat consumer timeout (the master's heartbeat)
+EMCY_RPDO_TIMEOUT: Final = 0x8250  # no RPDO within its event timer (0x1400:05)
 
 ERROR_REGISTER_GENERIC: Final = 0x01
 ERROR_REGISTER_CURRENT: Final = 0x02
@@ -175,7 +177,7 @@ def decode_emcy(data: bytes) -> Emcy:
     return Emcy(code, register, manufacturer)
 
 
-# --- PDOs (the hot path: precompiled structs, no validation beyond length) ------------------------
+# --- PDOs (the hot path: precompiled structs, no validation beyond length and range) --------------
 
 _RPDO: Final = struct.Struct("<Hh")
 _TPDO1: Final = struct.Struct("<Hhi")
@@ -192,19 +194,13 @@ TPDO_FD_SYNC_LENGTH: Final = _TPDO_FD_SYNC.size
 INT16_MIN: Final = -32768
 INT16_MAX: Final = 32767
 
-# Bound methods: the driver and the emulated drives call these once per drive per cycle.
-pack_rpdo = _RPDO.pack
-unpack_rpdo = _RPDO.unpack
-pack_tpdo1 = _TPDO1.pack
-unpack_tpdo1 = _TPDO1.unpack
-pack_tpdo2 = _TPDO2.pack
-unpack_tpdo2 = _TPDO2.unpack
-pack_tpdo_fd = _TPDO_FD.pack
-unpack_tpdo_fd = _TPDO_FD.unpack
-pack_tpdo_fd_sync = _TPDO_FD_SYNC.pack
-unpack_tpdo_fd_sync = _TPDO_FD_SYNC.unpack
-pack_tpdo_fd_sync_into = _TPDO_FD_SYNC.pack_into
-pack_rpdo_into = _RPDO.pack_into  # (buffer, 0, controlword, torque): no allocation per cycle
+_pack_rpdo_into = _RPDO.pack_into
+_pack_tpdo_fd_sync_into = _TPDO_FD_SYNC.pack_into
+_unpack_rpdo = _RPDO.unpack
+_unpack_tpdo1 = _TPDO1.unpack
+_unpack_tpdo2 = _TPDO2.unpack
+_unpack_tpdo_fd = _TPDO_FD.unpack
+_unpack_tpdo_fd_sync = _TPDO_FD_SYNC.unpack
 
 
 class RpdoData(NamedTuple):
@@ -227,10 +223,19 @@ def encode_rpdo(controlword: int, target_torque_permille: int) -> bytes:
         raise ValueError(f"RPDO field out of range: {exc}") from None
 
 
+def encode_rpdo_into(buffer: bytearray, controlword: int, target_torque_permille: int) -> None:
+    """RPDO1 written into a reused frame buffer (the master's cycle: nothing allocated)."""
+    try:
+        _pack_rpdo_into(buffer, 0, controlword, target_torque_permille)
+    except struct.error as exc:
+        raise ValueError(f"RPDO field out of range: {exc}") from None
+
+
 def decode_rpdo(data: bytes) -> RpdoData:
     if len(data) != RPDO_LENGTH:
         raise MalformedFrameError(f"RPDO1 has {len(data)} bytes, expected {RPDO_LENGTH}")
-    return RpdoData(*_RPDO.unpack(data))
+    controlword, torque = _unpack_rpdo(data)
+    return RpdoData(controlword, torque)
 
 
 def encode_tpdo1(statusword: int, torque_actual_permille: int, position_counts: int) -> bytes:
@@ -259,13 +264,14 @@ def encode_tpdo_fd(
 def decode_tpdo1(data: bytes) -> TpdoData:
     if len(data) != TPDO1_LENGTH:
         raise MalformedFrameError(f"TPDO1 has {len(data)} bytes, expected {TPDO1_LENGTH}")
-    return TpdoData(*_TPDO1.unpack(data), None)
+    statusword, torque, position = _unpack_tpdo1(data)
+    return TpdoData(statusword, torque, position, None)
 
 
 def decode_tpdo2(data: bytes) -> int:
     if len(data) != TPDO2_LENGTH:
         raise MalformedFrameError(f"TPDO2 has {len(data)} bytes, expected {TPDO2_LENGTH}")
-    return _TPDO2.unpack(data)[0]
+    return int(_unpack_tpdo2(data)[0])
 
 
 def encode_tpdo_fd_sync(
@@ -278,12 +284,24 @@ def encode_tpdo_fd_sync(
         raise ValueError(f"tagged FD TPDO field out of range: {exc}") from None
 
 
+def encode_tpdo_fd_sync_into(
+    buffer: bytearray, statusword: int, torque_actual_permille: int, position_counts: int,
+    velocity_counts_s: int, sync_counter: int,
+) -> None:
+    """The tagged FD TPDO written into a reused 16-byte frame buffer (the drive's SYNC answer)."""
+    try:
+        _pack_tpdo_fd_sync_into(buffer, 0, statusword, torque_actual_permille, position_counts,
+                                velocity_counts_s, sync_counter)
+    except struct.error as exc:
+        raise ValueError(f"tagged FD TPDO field out of range: {exc}") from None
+
+
 def decode_tpdo_fd_sync(data: bytes) -> tuple[TpdoData, int]:
     """(feedback, SYNC counter echoed) of a tagged 16-byte FD TPDO."""
     if len(data) != TPDO_FD_SYNC_LENGTH:
         raise MalformedFrameError(f"tagged FD TPDO has {len(data)} bytes, expected {TPDO_FD_SYNC_LENGTH}")
-    *fields, counter = _TPDO_FD_SYNC.unpack(data)
-    return TpdoData(*fields), counter
+    statusword, torque, position, velocity, counter = _unpack_tpdo_fd_sync(data)
+    return TpdoData(statusword, torque, position, velocity), counter
 
 
 def next_sync_counter(counter: int) -> int:
@@ -295,4 +313,5 @@ def decode_tpdo_fd(data: bytes) -> TpdoData:
     # A CAN FD frame is padded to the next valid length (12 is one), so accept exactly 12.
     if len(data) != TPDO_FD_LENGTH:
         raise MalformedFrameError(f"FD TPDO has {len(data)} bytes, expected {TPDO_FD_LENGTH}")
-    return TpdoData(*_TPDO_FD.unpack(data))
+    statusword, torque, position, velocity = _unpack_tpdo_fd(data)
+    return TpdoData(statusword, torque, position, velocity)

@@ -20,6 +20,8 @@ EDS_PATH: Final = Path(__file__).parent / "data" / "hil_cst_drive.eds"
 DEVICE_TYPE: Final = 0x1000
 ERROR_REGISTER: Final = 0x1001
 SYNC_COB_ID_OBJECT: Final = 0x1005
+COMM_CYCLE_PERIOD: Final = 0x1006  # µs between SYNCs
+CONSUMER_HEARTBEAT: Final = 0x1016  # sub n: node id << 16 | consumer time (ms)
 HEARTBEAT_PRODUCER: Final = 0x1017
 SYNC_OVERFLOW: Final = 0x1019
 RPDO1_COMM: Final = 0x1400
@@ -29,6 +31,7 @@ TPDO2_COMM: Final = 0x1801
 TPDO1_MAP: Final = 0x1A00
 TPDO2_MAP: Final = 0x1A01
 ERROR_CODE: Final = 0x603F
+ABORT_CONNECTION_OPTION: Final = 0x6007  # CiA 402 reaction to losing the master (3: quick stop)
 CONTROLWORD: Final = 0x6040
 STATUSWORD: Final = 0x6041
 QUICK_STOP_OPTION: Final = 0x605A
@@ -46,6 +49,9 @@ SUPPORTED_MODES: Final = 0x6502
 # SYNC carried none). Mapped last in the CAN FD TPDO, it tags the feedback with its cycle.
 SYNC_COUNTER_ECHO: Final = 0x2100
 SYNC_COUNTER_MAX: Final = 240  # 0x1019: the SYNC counter runs 1..240 (CiA 301)
+# Manufacturer object: no SYNC for this many ms while Operation Enabled is a loss of the master
+# (0: not watched). CiA 301 defines no SYNC consumer timeout; 0x1006 only states the period.
+SYNC_TIMEOUT: Final = 0x2101
 
 MODE_CYCLIC_SYNC_TORQUE: Final = 10
 PDO_COB_ID_INVALID: Final = 0x8000_0000  # bit 31 of a PDO COB-ID: PDO disabled

@@ -85,8 +85,8 @@ def test_heartbeat_loss_is_reported_within_two_cycles_of_its_deadline_at_full_ra
         starts: list[float] = []
         error: DriveError | None = None
         for _ in range(200_000):  # bounded; the error comes after ~0.05 s of cycles
-            deadlines.append(bus._last_heartbeat[1] + bus.config.heartbeat_timeout_s)
-            starts.append(bus._last_cycle_end_s)
+            deadlines.append(bus.nodes[1].last_heartbeat_s + bus.config.heartbeat_timeout_s)
+            starts.append(bus._network.last_cycle_end_s)
             try:
                 bus.exchange(np.zeros(3))
             except DriveError as exc:
@@ -188,7 +188,7 @@ def test_tpdos_queued_before_the_sync_are_drained_as_late(fd: bool) -> None:
         bogus_counts = 123_456_789
         if fd:
             # Echoing the counter the next SYNC will carry: still queued before that SYNC.
-            counter = fr.next_sync_counter(bus._sync_counter)
+            counter = fr.next_sync_counter(bus.sync_counter)
             frames = [can.Message(arbitration_id=0x181, is_extended_id=False, is_fd=True,
                                   data=fr.encode_tpdo_fd_sync(statusword, 0, bogus_counts, 0, counter))]
         else:
@@ -215,7 +215,7 @@ def test_sync_frames_carry_the_counter_and_the_drives_echo_it() -> None:
         rig.driver.enable()
         for _ in range(3):
             rig.driver.exchange(np.zeros(1))
-        counter = rig.driver._sync_counter
+        counter = rig.driver.sync_counter
         assert 1 <= counter <= 240
         assert rig.driver.sdo_read_int(1, 0x2100) == counter  # what the drive answered last
     finally:

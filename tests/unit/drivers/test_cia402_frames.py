@@ -81,3 +81,28 @@ def test_split_cob_id() -> None:
     assert f.split_cob_id(0x185) == (f.TPDO1_BASE, 5)
     assert f.split_cob_id(0x080) == (f.SYNC_COB_ID, 0)
     assert f.split_cob_id(0x081) == (f.EMCY_BASE, 1)
+
+
+def test_rpdo_into_a_reused_buffer() -> None:
+    buffer = bytearray(f.RPDO_LENGTH)
+    f.encode_rpdo_into(buffer, 0x000F, -1000)
+    assert bytes(buffer) == bytes.fromhex("0f0018fc") == f.encode_rpdo(0x000F, -1000)
+    with pytest.raises(ValueError):
+        f.encode_rpdo_into(buffer, 0x000F, 40000)
+    with pytest.raises(ValueError):
+        f.encode_rpdo_into(bytearray(3), 0x000F, 0)
+
+
+def test_tagged_fd_tpdo_into_a_reused_buffer() -> None:
+    buffer = bytearray(b"\xaa" * f.TPDO_FD_SYNC_LENGTH)
+    f.encode_tpdo_fd_sync_into(buffer, 0x1237, -2, 5, -6, 240)
+    assert bytes(buffer) == bytes.fromhex("3712feff05000000faffffff" "f0000000")  # pad bytes zeroed
+    assert f.decode_tpdo_fd_sync(buffer) == (f.TpdoData(0x1237, -2, 5, -6), 240)
+    with pytest.raises(ValueError):
+        f.encode_tpdo_fd_sync_into(buffer, 0x1237, 0, 0, 0, 256)
+
+
+def test_communication_loss_emcy_codes() -> None:
+    # CiA 301 table 21: heartbeat consumer timeout, RPDO timeout; generic communication (SYNC loss).
+    assert (f.EMCY_HEARTBEAT, f.EMCY_RPDO_TIMEOUT, f.EMCY_COMMUNICATION) == (0x8130, 0x8250, 0x8100)
+    assert f.decode_emcy(f.encode_emcy(f.EMCY_HEARTBEAT, f.ERROR_REGISTER_COMMUNICATION)).error_code == 0x8130

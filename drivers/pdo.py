@@ -1,0 +1,207 @@
+"""PDOs: their mapping at start-up (by SDO) and the cyclic exchange (RPDOs + SYNC out, TPDOs in).
+
+Mapping follows the CiA 301 order for each PDO (invalidate, clear the count, write the entries,
+set the count, transmission type, validate) with one of the fixed layouts of
+:mod:`drivers.cia402.od`: classical (RPDO1; TPDO1 + TPDO2) or CAN FD (RPDO1; one tagged TPDO1
+echoing the SYNC counter). The RPDO's event timer (0x1400:05) is the drive's RPDO timeout: a
+drive whose RPDOs stop for that long quick-stops (0x6007).
+
+:class:`CyclicExchange` is one control cycle, on the caller's thread, holding the network's
+receive lock: drain what is already queued (a TPDO among it answers an older SYNC: late, never
+used), pack every RPDO in place, send them and the SYNC as one batch, then block in ``recv``
+until every TPDO of this cycle is in or ``feedback_timeout_s`` has passed since the SYNC. With
+CAN FD a TPDO echoing an older SYNC counter is late whenever it arrives; with classical CAN (no
+room for the echo in 8 bytes) only the drain applies. Frames are encoded and decoded with the
+codec of :mod:`drivers.cia402.frames`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import can
+import numpy as np
+
+from drivers.cia402 import frames as fr
+from drivers.cia402 import od as odx
+from drivers.cia402.state_machine import State, decode_statusword_fast
+from drivers.feedback import DriveFeedback
+from drivers.network import DriveNetwork
+from drivers.node import DriveNode
+from drivers.sdo import SdoClient
+from drivers.sync import SyncProducer
+
+_EVENT_TIMER_SUBINDEX = 5  # RPDO communication parameter: event timer = RPDO timeout (ms)
+
+
+def map_pdo(sdo: SdoClient, node_id: int, comm: int, mapping: int, cob_id: int, entries: tuple[int, ...]) -> None:
+    # CiA 301 order: invalidate the PDO, clear the count, write entries, set the count, validate.
+    sdo.write(node_id, comm, 1, cob_id | odx.PDO_COB_ID_INVALID)
+    if not entries:
+        return  # stays disabled (TPDO2 with CAN FD)
+    sdo.write(node_id, mapping, 0, 0)
+    for k, entry in enumerate(entries, start=1):
+        sdo.write(node_id, mapping, k, entry)
+    sdo.write(node_id, mapping, 0, len(entries))
+    sdo.write(node_id, comm, 2, odx.TRANSMISSION_SYNC_EVERY)
+    sdo.write(node_id, comm, 1, cob_id)
+
+
+def map_layout(sdo: SdoClient, node: DriveNode, layout: odx.PdoLayout) -> None:
+    node_id = node.node_id
+    map_pdo(sdo, node_id, odx.RPDO1_COMM, odx.RPDO1_MAP, fr.RPDO1_BASE + node_id, layout.rpdo1)
+    map_pdo(sdo, node_id, odx.TPDO1_COMM, odx.TPDO1_MAP, fr.TPDO1_BASE + node_id, layout.tpdo1)
+    map_pdo(sdo, node_id, odx.TPDO2_COMM, odx.TPDO2_MAP, fr.TPDO2_BASE + node_id, layout.tpdo2)
+
+
+def set_rpdo_timeout(sdo: SdoClient, node_id: int, timeout_ms: int) -> bool:
+    """The RPDO1 event timer (deadline monitoring, CiA 301 7.5.2.35); False when the drive's
+    EDS has no such entry (the drive then relies on its heartbeat consumer alone)."""
+    if sdo.variable(node_id, odx.RPDO1_COMM, _EVENT_TIMER_SUBINDEX) is None:
+        return False
+    sdo.write(node_id, odx.RPDO1_COMM, _EVENT_TIMER_SUBINDEX, timeout_ms)
+    return True
+
+
+class CyclicExchange:
+    """The control cycle. Not thread-safe: the caller's thread only."""
+
+    def __init__(self, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer,
+                 feedback_timeout_s: float, fd: bool) -> None:
+        self.network = network
+        self.nodes = tuple(nodes)
+        self.sync = sync
+        self.feedback_timeout_s = feedback_timeout_s
+        self.fd = fd
+        self.layout = odx.FD_SYNC_LAYOUT if fd else odx.CLASSICAL_LAYOUT
+        self.tpdos_per_drive = 1 if fd else 2
+        self.cycle = 0
+        self.late = 0  # TPDOs after their deadline, of an older SYNC, or twice in one cycle
+        self.dropped = 0  # TPDOs expected and not in by the deadline
+        self._open = False
+        self._pending = 0
+        self._frames = [*(node.rpdo for node in self.nodes), sync.msg]
+        self._counts_per_rad = np.ones(len(self.nodes))
+        self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])
+        for node in self.nodes:
+            if fd:
+                network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd, node)
+            else:
+                network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo1, node)
+                network.subscribe(fr.TPDO2_BASE + node.node_id, self.on_tpdo2, node)
+
+    def refresh_scaling(self) -> None:
+        """After start-up read each drive's encoder resolution."""
+        self._counts_per_rad = np.array([node.counts_per_rad for node in self.nodes])
+
+    # --- one cycle -------------------------------------------------------------------------------
+
+    def run(self, controlwords: Sequence[int], permille: Sequence[int], commanded_nm: np.ndarray) -> DriveFeedback:
+        network = self.network
+        nodes = self.nodes
+        encode = fr.encode_rpdo_into
+        with network.rx_lock:
+            network.drain()  # queued before this SYNC: an older cycle's TPDOs are late, not fresh
+            for node, controlword, torque in zip(nodes, controlwords, permille):
+                encode(node.rpdo.data, controlword, torque)
+            self.cycle += 1
+            cycle = self.cycle
+            self.sync.advance()
+            self._pending = len(nodes) * self.tpdos_per_drive
+            self._open = True
+            monotonic = time.monotonic
+            sync_time = monotonic()
+            try:
+                network.send_batch(self._frames)
+                deadline = sync_time + self.feedback_timeout_s
+                dispatch = network.dispatch
+                recv = network.recv
+                while self._pending > 0:
+                    remaining = deadline - monotonic()
+                    if remaining <= 0:
+                        break
+                    msg = recv(remaining)
+                    if msg is None:
+                        break
+                    dispatch(msg, monotonic())
+            finally:
+                self._open = False
+            now = monotonic()
+            if self.fd:
+                fresh = [node.tpdo1_cycle == cycle for node in nodes]
+                missing = fresh.count(False)
+            else:
+                fresh = [node.tpdo1_cycle == cycle and node.tpdo2_cycle == cycle for node in nodes]
+                missing = sum((node.tpdo1_cycle != cycle) + (node.tpdo2_cycle != cycle) for node in nodes)
+            self.dropped += missing
+            for node, is_fresh in zip(nodes, fresh):
+                if is_fresh:
+                    node.missed_cycles = 0
+                    node.state = decode_statusword_fast(node.statusword)
+                else:
+                    node.missed_cycles += 1
+            supervise = network.supervise
+            if supervise is not None:
+                supervise(now)
+            feedback = DriveFeedback(
+                cycle=cycle,
+                sync_time_s=sync_time,
+                position_rad=np.array([node.position_counts for node in nodes], dtype=np.float64) / self._counts_per_rad,
+                velocity_rad_s=np.array([node.velocity_counts_s for node in nodes], dtype=np.float64) / self._counts_per_rad,
+                torque_nm=np.array([node.torque_permille for node in nodes], dtype=np.float64) / self._permille_per_nm,
+                commanded_torque_nm=np.array(commanded_nm, dtype=np.float64),
+                fresh=np.array(fresh, dtype=bool),
+                rx_time_s=np.array([node.rx_time_s for node in nodes], dtype=np.float64),
+                states=tuple(node.state for node in nodes),
+            )
+        produce = network.produce
+        if produce is not None:
+            produce(now)  # the master's heartbeat, when due, right after the cycle
+        network.last_cycle_end_s = now
+        return feedback
+
+    # --- TPDO handlers (under the receive lock) --------------------------------------------------
+
+    def _accept_tpdo1(self, node: DriveNode) -> bool:
+        """May this TPDO count for the open cycle?"""
+        if not self._open or node.tpdo1_cycle == self.cycle:
+            self.late += 1
+            return False
+        node.tpdo1_cycle = self.cycle
+        self._pending -= 1
+        return True
+
+    def on_tpdo1(self, node: DriveNode, msg: can.Message, now: float) -> None:
+        statusword, torque, position, _ = fr.decode_tpdo1(msg.data)
+        if decode_statusword_fast(statusword) is State.UNKNOWN:
+            raise fr.MalformedFrameError("statusword")
+        if self._accept_tpdo1(node):
+            node.statusword = statusword
+            node.torque_permille = torque
+            node.position_counts = position
+            node.rx_time_s = now
+
+    def on_tpdo2(self, node: DriveNode, msg: can.Message, now: float) -> None:
+        velocity = fr.decode_tpdo2(msg.data)
+        if not self._open or node.tpdo2_cycle == self.cycle:
+            self.late += 1
+            return
+        node.tpdo2_cycle = self.cycle
+        self._pending -= 1
+        node.velocity_counts_s = velocity
+        node.rx_time_s = now
+
+    def on_tpdo_fd(self, node: DriveNode, msg: can.Message, now: float) -> None:
+        (statusword, torque, position, velocity), counter = fr.decode_tpdo_fd_sync(msg.data)
+        if decode_statusword_fast(statusword) is State.UNKNOWN:
+            raise fr.MalformedFrameError("statusword")
+        if counter != self.sync.counter:  # answers an older SYNC: stale whenever it arrives
+            self.late += 1
+            return
+        if self._accept_tpdo1(node):
+            node.statusword = statusword
+            node.torque_permille = torque
+            node.position_counts = position
+            node.velocity_counts_s = velocity
+            node.rx_time_s = now
