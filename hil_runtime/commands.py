@@ -30,7 +30,7 @@ ConfigOption = Annotated[Path | None, typer.Option("--config", help="the daemon'
 def run(
     config: Annotated[Path, typer.Option("--config", help="runtime config, YAML (deploy/*.yaml)")],
     record: Annotated[Path | None, typer.Option("--record", help="write the run's per-cycle record (.npz)")] = None,
-    record_cycles: Annotated[int, typer.Option(help="rows kept for --record")] = 600_000,
+    record_cycles: Annotated[int, typer.Option(help="rows kept for --record (preallocated, ~330 B each)")] = 60_000,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the control loop on the arm's drives until SIGTERM/SIGINT (a systemd Type=notify service)."""

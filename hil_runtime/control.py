@@ -90,7 +90,7 @@ class ControlServer:
             raise ControlError(f"control socket {self.path}: {exc.strerror or exc}") from None
         finally:
             os.umask(old_umask)
-        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.2},
+        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.02},
                                         name="hil-control", daemon=True)  # fmt: skip
         self._thread.start()
 

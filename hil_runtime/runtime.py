@@ -599,6 +599,7 @@ class Runtime:
             "bundle": str(self.config.bundle.path),
             "mode": self.config.bundle.mode,
             "reference": self.reference.name,
+            "ramp_cycles": self.reference.ramp_cycles,
             "cycles": self.total_cycles,
             "rate_hz": _finite(stats.get("rate_hz")),
             "overruns": self.pacer.overruns,

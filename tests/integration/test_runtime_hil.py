@@ -1,0 +1,195 @@
+"""The runtime (hil_runtime) drives the pybullet target (sim_target) through its CiA 402 drives.
+
+(a) one process: runtime and target composed here on python-can's ``virtual`` bus, lock-stepped;
+(b) two processes: ``hil target serve`` and ``hil run``, over the python-can-remote bridge on
+127.0.0.1 and over the ipc bus; (c) SocketCAN vcan0 when it exists.
+
+In each, the LMPC PD bundle ramps from the arm's pose onto condition C1, tracks it for 5 s with
+every sample inside the limits (position, velocity, torque), and a stop (SIGTERM for the daemon)
+leaves every drive quick-stopped, the brakes holding.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from hil_target import target_in_process, target_process, unique_channel
+
+from drivers.transport import socketcan_unavailable
+from hil_runtime.config import parse_runtime_config
+from hil_runtime.control import send_command
+from hil_runtime.lifecycle import LifecycleState
+from hil_runtime.runtime import build_runtime
+from sim_target.server import send_control
+
+ROOT = Path(__file__).resolve().parents[2]
+PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
+JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
+MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
+# Bounds on waits for frames on a loaded machine (not assertions on time): the lock-step target
+# does not care about wall time.
+SLOW_MACHINE = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
+                "state_change_timeout_s": 5.0}
+TRACK_S = 5.0
+# What the PD bundle (LMPC) achieves on C1 in lock-step (pybullet, 32 substeps): max |q - q_ref| after
+# the ramp, per joint, about 0.002-0.07 rad; bounded here with a margin, per joint.
+TRACKING_BOUND_RAD = np.array([0.02, 0.05, 0.08, 0.1, 0.2, 0.05])
+
+
+def runtime_config(transport: dict[str, Any], **sections: Any) -> dict[str, Any]:
+    return {
+        "robot": "ur5_paper",
+        "bundle": {"path": str(PD_BUNDLE), "mode": "lmpc"},
+        "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": 0.001,
+                "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
+                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **SLOW_MACHINE},  # fmt: skip
+        "reference": {"kind": "condition", "condition": "C1", "ramp_s": 2.0},
+        "loop": {"pacing": "bus"},
+        **sections,
+    }
+
+
+def check_run(rec: dict[str, np.ndarray], ramp_cycles: int, limits: dict[str, Any]) -> None:
+    """5 s on C1 after the ramp, every sample inside the limits, tracking as the bundle does."""
+    n = rec["q"].shape[0]
+    assert n >= ramp_cycles + int(TRACK_S / 0.001), f"only {n} rows, ramp {ramp_cycles}"
+    position = np.asarray(limits["position_rad"])
+    velocity = np.asarray(limits["velocity_rad_s"])
+    assert np.all(np.abs(rec["q"]) <= position), "a sample left the position limits"
+    assert np.all(np.abs(rec["qd"]) <= velocity), "a sample left the velocity limits"
+    assert np.all(np.abs(rec["tau"]) <= np.asarray(MAX_TORQUE_NM) + 1e-9)
+    np.testing.assert_allclose(np.diff(rec["t_s"]), 0.001, atol=1e-12)  # lock-step: no period skipped
+    np.testing.assert_allclose(rec["q_ref"][0], rec["q"][0], atol=1e-12)  # the ramp starts where the arm is
+    tracking = np.abs(rec["q"] - rec["q_ref"])[ramp_cycles:].max(axis=0)
+    assert np.all(tracking < TRACKING_BOUND_RAD), f"tracking error {tracking}"
+    moved = np.ptp(rec["q"][ramp_cycles:], axis=0)
+    assert np.all(moved > 0.2), f"C1 moves every joint by >= pi/6: {moved}"
+
+
+# --- (a) one process -------------------------------------------------------------------------------
+
+
+def test_runtime_tracks_c1_with_the_target_in_one_process_then_stop_quick_stops() -> None:
+    channel = unique_channel()
+    config = parse_runtime_config(runtime_config({"interface": "virtual", "channel": channel}))
+    with target_in_process(channel, 0.001) as target:
+        runtime = build_runtime(config, record_cycles=10_000)
+        try:
+            runtime.configure()
+            assert runtime.activate()
+            ramp = runtime.reference.ramp_cycles
+            result = runtime.run(max_cycles=ramp + int(TRACK_S / 0.001))
+            assert result.reason == "cycles" and result.fault is None
+            check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest["limits"])
+            assert target.stats.steps == runtime.bus.counters.cycles  # lock-step: one step per SYNC
+            stats = result.stats
+            assert (stats["bus_dropped"], stats["bus_late"], stats["bus_malformed"], stats["overruns"]) == (0, 0, 0, 0)
+            runtime.request_stop()  # what SIGTERM's handler does
+            runtime.run(shutdown_at_end=True)
+            assert runtime.state is LifecycleState.FINALIZED
+            assert not target.drives.operation_enabled().any()  # every joint braked
+            held = target.plant.state().position_rad
+            time.sleep(0.05)
+            np.testing.assert_allclose(target.plant.state().position_rad, held, atol=1e-9)
+        finally:
+            runtime.shutdown()
+
+
+# --- (b) two processes: hil target serve + hil run -------------------------------------------------
+
+
+def _hil_run(config_path: Path, record: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "hil_runtime.cli", "run", "--config", str(config_path),
+                             "--record", str(record), "--record-cycles", "20000"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+def _wait_for(process: subprocess.Popen[str], socket: Path, cycles: int, timeout_s: float) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    status: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise AssertionError(f"hil run exited {process.returncode}: {process.stderr.read() if process.stderr else ''}")
+        if socket.exists():
+            try:
+                status = send_command(socket, "status")
+            except Exception:  # noqa: BLE001 - starting up
+                status = {}
+            if status.get("state") == "FAULT":
+                raise AssertionError(f"FAULT: {status.get('fault')}")
+            if status.get("state") == "ACTIVE" and status["cycles"] >= status["ramp_cycles"] + cycles:
+                return status
+        time.sleep(0.1)
+    raise AssertionError(f"not {cycles} cycles past the ramp in {timeout_s} s: {status}")
+
+
+@pytest.mark.parametrize("transport", ["bridge", "ipc"])
+def test_hil_run_and_hil_target_serve_as_two_processes(tmp_path: Path, transport: str) -> None:
+    if transport == "ipc" and not sys.platform.startswith("linux"):
+        pytest.skip("the ipc bus is Linux only")
+    with target_process(tmp_path, 0.001, substeps=32, transport=transport) as target:
+        bus = ({"interface": "remote", "channel": target.bridge_url} if transport == "bridge"
+               else {"interface": "ipc", "channel": str(target.ipc_dir)})  # fmt: skip
+        sock = tmp_path / "runtime.sock"
+        config_path = tmp_path / "runtime.yaml"
+        config_path.write_text(yaml.safe_dump(runtime_config(bus, control_socket=str(sock))))
+        record = tmp_path / "run.npz"
+        process = _hil_run(config_path, record)
+        try:
+            status = _wait_for(process, sock, int(TRACK_S / 0.001), timeout_s=240)
+            assert status["fault"] is None and status["reference"] == "C1"
+            sent = time.monotonic()
+            process.send_signal(signal.SIGTERM)
+            _, err = process.communicate(timeout=30)
+            stop_s = time.monotonic() - sent
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        assert process.returncode == 0, err
+        assert "state FINALIZED" in err and "Traceback" not in err
+        after = send_control(target.control_socket, {"kind": "status"})
+        assert after["operation_enabled"] == [False] * 6  # every drive quick-stopped, brakes on
+        assert not sock.exists()
+        with np.load(record) as data:
+            rec = {k: data[k] for k in data.files}
+        check_run(rec, status["ramp_cycles"], {"position_rad": [np.pi, 2.5132741228718345, 2.5132741228718345,
+                                                                np.pi, np.pi, np.pi],
+                                               "velocity_rad_s": [2.5446900494077327] * 6})  # fmt: skip
+        # SIGTERM to exit, process teardown included (the loop itself leaves within a cycle).
+        assert stop_s < 5.0, f"{stop_s:.3f} s from SIGTERM to exit"
+        code, target_err = target.stop()
+    assert code == 0, target_err
+
+
+# --- (c) SocketCAN -------------------------------------------------------------------------------------
+
+
+def test_runtime_tracks_c1_over_vcan0() -> None:
+    reason = socketcan_unavailable("vcan0")
+    if reason is not None:
+        pytest.skip(f"vcan0 unavailable: {reason}")
+    config = parse_runtime_config(runtime_config({"interface": "socketcan", "channel": "vcan0"}))
+    with target_in_process("unused", 0.001, bus={"interface": "socketcan", "channel": "vcan0", "fd": True,
+                                                 "data_bitrate": 5_000_000}) as target:  # fmt: skip
+        runtime = build_runtime(config, record_cycles=10_000)
+        try:
+            runtime.configure()
+            assert runtime.activate()
+            ramp = runtime.reference.ramp_cycles
+            result = runtime.run(max_cycles=ramp + int(TRACK_S / 0.001))
+            assert result.fault is None
+            check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest["limits"])
+            runtime.request_stop()
+            runtime.run(shutdown_at_end=True)
+            assert not target.drives.operation_enabled().any()
+        finally:
+            runtime.shutdown()
