@@ -40,27 +40,52 @@ def _load_plugins() -> None:
         register(app)
 
 
-def main(argv: list[str] | None = None) -> int:
-    _load_plugins()
-    try:
-        app(args=argv, standalone_mode=False)
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    except Exception as exc:  # noqa: BLE001 - the one place user errors become exit codes
-        code = getattr(exc, "exit_code", None)
-        if isinstance(code, int):
-            print(f"error: {exc}", file=sys.stderr)
-            return code
-        import click
+INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
 
-        if isinstance(exc, click.exceptions.ClickException):
-            exc.show()
-            return exc.exit_code
-        if isinstance(exc, click.exceptions.Abort):
-            print("aborted", file=sys.stderr)
-            return 130
-        raise
-    return 0
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; return the process exit code (the console script does ``sys.exit(main())``)."""
+    try:
+        _load_plugins()
+        # Non-standalone: typer returns the code of an explicit typer.Exit (and 130 for Ctrl-C, which
+        # it turns into Exit(130)) instead of calling sys.exit, so the code must be passed on here.
+        result = app(args=argv, standalone_mode=False)
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except KeyboardInterrupt:  # outside typer's own handling (plugin import, teardown)
+        result = INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - the one place user errors become exit codes
+        return _report(exc)
+    code = result if isinstance(result, int) and not isinstance(result, bool) else 0
+    if code == INTERRUPTED:
+        print("interrupted (Ctrl-C): stopped; files already written are complete, none is half-written",
+              file=sys.stderr)
+    return code
+
+
+def _report(exc: Exception) -> int:
+    """A user-facing error as one line (or the usage message) and its exit code; a bug re-raises.
+
+    typer vendors click and no longer installs it, so its exceptions are recognised by their
+    interface (``show`` and an integer ``exit_code``) and by typer's re-exports, never by importing
+    click.
+    """
+    code = getattr(exc, "exit_code", None)
+    if isinstance(code, int) and callable(getattr(exc, "show", None)):  # a usage error: bad option, ...
+        try:
+            from typer import rich_utils
+
+            rich_utils.rich_format_error(exc)  # type: ignore[arg-type]
+        except Exception:  # noqa: BLE001 - formatting must never hide the error itself
+            exc.show()  # type: ignore[attr-defined]
+        return code
+    if isinstance(code, int):
+        print(f"error: {' '.join(str(exc).split()) or type(exc).__name__}", file=sys.stderr)
+        return code
+    if isinstance(exc, typer.Abort):
+        print("aborted", file=sys.stderr)
+        return 1
+    raise exc
 
 
 if __name__ == "__main__":
