@@ -1,0 +1,182 @@
+"""Telemetry configuration: the ``telemetry:`` section of the runtime's config (docs/telemetry.md).
+
+    telemetry:
+      enabled: true
+      listen: ["tcp/127.0.0.1:7447"]      # where subscribers connect (peer mode)
+      connect: []                         # e.g. a router: ["tcp/10.0.0.5:7447"] (allow_remote: true)
+      zenoh_config: null                  # optional json5 file (access control, TLS, routers)
+      state_decimation: 1                 # publish every k-th cycle's state
+      queue_size: 1024                    # state samples held for the publisher thread
+      stats_period_s: 1.0                 # stats and status republished at this period
+      controls_enabled: false             # the stop/reset queryables exist only when true
+
+Bad input raises :class:`TelemetryConfigError` (exit code 2) with one line naming the source and
+field. Endpoints must be loopback unless ``allow_remote`` is set: nothing leaves the machine by
+accident, and multicast and gossip scouting are always off (peers are named, never discovered).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+if TYPE_CHECKING:
+    import zenoh
+
+DEFAULT_PORT = 7447
+DEFAULT_LISTEN = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+KEY_PREFIX = "hil"
+# Zenoh key-expression chunks may not contain these (wildcards, selectors, separators).
+_FORBIDDEN_CHUNK_CHARS = frozenset("/*$?#")
+_IP_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+_LOCAL_PROTOCOLS = frozenset({"unixsock-stream", "unixpipe"})
+
+
+class TelemetryConfigError(ValueError):
+    """A telemetry config the runtime refuses; the message is one line naming source and field."""
+
+    exit_code = 2
+
+
+def _endpoint_host(endpoint: str) -> str | None:
+    """The host of an ``proto/host:port`` endpoint (None for local-only transports)."""
+    proto, sep, address = endpoint.partition("/")
+    if not sep or not address:
+        raise ValueError(f"endpoint {endpoint!r} is not 'proto/host:port' (e.g. {DEFAULT_LISTEN!r})")
+    if proto in _LOCAL_PROTOCOLS:
+        return None
+    if proto not in _IP_PROTOCOLS:
+        raise ValueError(f"endpoint {endpoint!r}: unknown protocol {proto!r}")
+    address = address.split("#", 1)[0]  # zenoh endpoint metadata/config follows '#'
+    host, colon, port = address.rpartition(":")
+    if not colon or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise ValueError(f"endpoint {endpoint!r}: missing or bad port")
+    return host.strip("[]")
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    host = _endpoint_host(endpoint)
+    if host is None:
+        return True
+    if host.lower() in {"localhost", "ip6-localhost"}:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a DNS name other than localhost: could resolve anywhere
+
+
+def check_key_chunk(name: str, what: str) -> str:
+    if not name or any(char in _FORBIDDEN_CHUNK_CHARS for char in name) or name != name.strip():
+        raise ValueError(f"{what} {name!r} cannot be a Zenoh key chunk (no '/', '*', '$', '?', '#', blanks)")
+    return name
+
+
+class TelemetryConfig(BaseModel):
+    """Zenoh telemetry of one runtime (one arm). Frozen, validated once at load."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = False
+    mode: Literal["peer", "client"] = "peer"  # client: through a Zenoh router (fleets of arms)
+    # Overrides the runtime's robot name as the key chunk: hil/<robot>/...
+    robot: str | None = None
+    listen: tuple[str, ...] = (DEFAULT_LISTEN,)
+    connect: tuple[str, ...] = ()
+    # Non-loopback endpoints are refused unless set: telemetry to another machine is a decision.
+    allow_remote: bool = False
+    # Optional Zenoh json5 file loaded first (access control, TLS, ...); the fields above win.
+    zenoh_config: Path | None = None
+    state_decimation: int = Field(1, ge=1, le=1_000_000)  # publish every k-th offered state
+    queue_size: int = Field(1024, ge=2, le=1 << 20)  # state ring capacity, samples
+    event_queue_size: int = Field(256, ge=2, le=1 << 16)
+    stats_period_s: float = Field(1.0, gt=0.0, le=3600.0)  # stats + status republish period
+    publish_period_s: float = Field(0.001, gt=0.0, le=1.0)  # how often the publisher thread drains
+    controls_enabled: bool = False  # declare hil/<robot>/stop and /reset queryables
+    close_timeout_s: float = Field(1.0, gt=0.0, le=30.0)  # close() drains at most this long
+
+    @field_validator("robot")
+    @classmethod
+    def _robot_chunk(cls, value: str | None) -> str | None:
+        return None if value is None else check_key_chunk(value, "robot")
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for endpoint in value:
+            _endpoint_host(endpoint)
+        return value
+
+    @model_validator(mode="after")
+    def _check(self) -> TelemetryConfig:
+        if not self.allow_remote:
+            for endpoint in (*self.listen, *self.connect):
+                if not is_loopback_endpoint(endpoint):
+                    raise ValueError(
+                        f"endpoint {endpoint!r} is not loopback (127.0.0.1/::1); set allow_remote: true "
+                        "to publish beyond this machine"
+                    )
+        if self.mode == "peer" and not self.listen and not self.connect:
+            raise ValueError("peer mode needs a listen or connect endpoint, or no subscriber can reach it")
+        if self.mode == "client" and not self.connect:
+            raise ValueError("client mode needs connect endpoints (the router)")
+        if self.zenoh_config is not None and not self.zenoh_config.is_file():
+            raise ValueError(f"zenoh_config {str(self.zenoh_config)!r} is not a file")
+        return self
+
+    def key_prefix(self, robot: str) -> str:
+        """``hil/<robot>``: the config's robot wins over the runtime's robot name."""
+        return f"{KEY_PREFIX}/{check_key_chunk(self.robot or robot, 'robot')}"
+
+    def summary(self) -> dict[str, Any]:
+        return json.loads(self.model_dump_json())
+
+
+def parse_telemetry_config(data: Any, source: str = "config") -> TelemetryConfig:
+    """Validate a mapping (the ``telemetry:`` section of a larger config)."""
+    from drivers.config import format_validation_error
+
+    try:
+        return TelemetryConfig.model_validate({} if data is None else data)
+    except ValidationError as exc:
+        raise TelemetryConfigError(format_validation_error(source, exc)) from None
+
+
+def zenoh_config(
+    mode: str,
+    listen: tuple[str, ...] | list[str] | None,
+    connect: tuple[str, ...] | list[str] | None,
+    base_file: Path | None = None,
+) -> zenoh.Config:
+    """A Zenoh config: no multicast or gossip scouting, only the named endpoints.
+
+    Used by the publisher and by subscribers. ``None`` endpoints keep what ``base_file`` says.
+    """
+    import zenoh
+
+    try:
+        conf = zenoh.Config.from_file(str(base_file)) if base_file is not None else zenoh.Config()
+    except zenoh.ZError as exc:
+        raise TelemetryConfigError(f"{base_file}: not a valid Zenoh json5 config ({str(exc).splitlines()[0]})") from None
+    conf.insert_json5("mode", json.dumps(mode))
+    # Peers are named, never discovered: nothing is sent to a multicast group or gossiped on.
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    if listen is not None:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect is not None:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return conf
+
+
+def publisher_zenoh_config(config: TelemetryConfig) -> zenoh.Config:
+    """The runtime's session: with a json5 file, only endpoints set explicitly override the file's."""
+    explicit = config.model_fields_set
+    from_file = config.zenoh_config is not None
+    listen = config.listen if (not from_file or "listen" in explicit) else None
+    connect = config.connect if (not from_file or "connect" in explicit) else None
+    return zenoh_config(config.mode, listen, connect, config.zenoh_config)
