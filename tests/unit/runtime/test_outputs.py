@@ -1,0 +1,94 @@
+"""hil_runtime.outputs: --out checked before any work; files complete or absent."""
+
+from __future__ import annotations
+
+import errno
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hil_runtime.outputs import (
+    OutputError,
+    OutputWriteError,
+    atomic_path,
+    prepare_output_dir,
+    write_text_atomic,
+)
+
+
+def test_creates_missing_directories_and_leaves_no_probe(tmp_path: Path) -> None:
+    out = prepare_output_dir(tmp_path / "a" / "b")
+    assert out.is_dir() and list(out.iterdir()) == []
+
+
+def test_a_file_in_the_way(tmp_path: Path) -> None:
+    (tmp_path / "results").write_text("x")
+    with pytest.raises(OutputError, match=r"--out .*results: a file is in the way") as info:
+        prepare_output_dir(tmp_path / "results")
+    assert info.value.exit_code == 2
+
+
+def test_a_parent_that_is_a_file(tmp_path: Path) -> None:
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(OutputError, match=r"f is a file, not a directory"):
+        prepare_output_dir(tmp_path / "f" / "sub" / "out")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a mode-555 directory; see the read-only-fs case")
+def test_a_read_only_directory(tmp_path: Path) -> None:
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        with pytest.raises(OutputError, match="not writable|cannot create"):
+            prepare_output_dir(ro / "out")
+    finally:
+        ro.chmod(0o755)
+
+
+def test_a_read_only_file_system() -> None:
+    # /proc refuses new entries, even for root: the probe, not os.access, must find that out.
+    with pytest.raises(OutputError, match=r"--out /proc/hil-out: cannot create the directory"):
+        prepare_output_dir("/proc/hil-out")
+    with pytest.raises(OutputError, match="not writable"):
+        prepare_output_dir("/proc/self")
+
+
+def test_atomic_write_replaces_completely(tmp_path: Path) -> None:
+    target = tmp_path / "results.json"
+    write_text_atomic(target, "old")
+    write_text_atomic(target, "new")
+    assert target.read_text() == "new" and [p.name for p in tmp_path.iterdir()] == ["results.json"]
+
+
+@pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"), KeyboardInterrupt()])
+def test_a_failure_midway_leaves_the_old_file_and_no_partial(tmp_path: Path, failure: BaseException) -> None:
+    target = tmp_path / "table.md"
+    target.write_text("previous complete table")
+    expected = OutputWriteError if isinstance(failure, OSError) else KeyboardInterrupt
+    with pytest.raises(expected) as info:
+        with atomic_path(target) as tmp:
+            tmp.write_text("half of a tab")
+            raise failure
+    assert target.read_text() == "previous complete table"
+    assert [p.name for p in tmp_path.iterdir()] == ["table.md"]
+    if expected is OutputWriteError:
+        assert str(info.value) == f"{target}: cannot write (No space left on device)"
+        assert info.value.exit_code == 1
+
+
+def test_numpy_keeps_the_temporary_suffix(tmp_path: Path) -> None:
+    np = pytest.importorskip("numpy")
+    target = tmp_path / "run.npz"
+    with atomic_path(target) as tmp:
+        np.savez_compressed(tmp, a=np.arange(3))
+    assert np.load(target)["a"].tolist() == [0, 1, 2]
+    assert [p.name for p in tmp_path.iterdir()] == ["run.npz"]
+
+
+def test_importing_it_is_light() -> None:
+    code = "import sys, hil_runtime.outputs; sys.exit(1 if 'numpy' in sys.modules or 'models' in sys.modules else 0)"
+    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
