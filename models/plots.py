@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hil_runtime.outputs import atomic_path
+
 _STYLE = {"fb": "-", "hmpc": "--", "lmpc": ":"}
 
 
@@ -45,7 +47,8 @@ def plot_tracking_errors(
             fig.suptitle(f"{law.upper()} tracking error, condition {cond}")
             fig.tight_layout()
             path = out_dir / f"{law}_{cond}.png"
-            fig.savefig(path, dpi=90)
+            with atomic_path(path) as tmp:  # a complete PNG or none, even on Ctrl-C
+                fig.savefig(tmp, dpi=90)
             plt.close(fig)
             written.append(path)
 
@@ -66,7 +69,8 @@ def plot_tracking_errors(
         ax.legend(fontsize=7, ncol=3)
         fig.tight_layout()
         path = out_dir / f"average_error_{cond}.png"
-        fig.savefig(path, dpi=90)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=90)
         plt.close(fig)
         written.append(path)
     return written
