@@ -193,3 +193,50 @@ def test_runtime_tracks_c1_over_vcan0() -> None:
             assert not target.drives.operation_enabled().any()
         finally:
             runtime.shutdown()
+
+
+# --- FAULT keeps the daemon up; hil reset clears it ---------------------------------------------------
+
+
+def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(tmp_path: Path) -> None:
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the ipc bus is Linux only")
+    with target_process(tmp_path, 0.001, substeps=8, transport="ipc") as target:
+        sock = tmp_path / "runtime.sock"
+        config_path = tmp_path / "runtime.yaml"
+        config = runtime_config({"interface": "ipc", "channel": str(target.ipc_dir)}, control_socket=str(sock))
+        config["reference"] = {"kind": "hold"}
+        config_path.write_text(yaml.safe_dump(config))
+        process = _hil_run(config_path, tmp_path / "run.npz")
+        try:
+            _wait_for(process, sock, 200, timeout_s=120)
+            assert send_control(target.control_socket, {"kind": "drive_fault", "node_id": 4,
+                                                        "error_code": 0x2310}) == {"ok": True}  # fmt: skip
+            deadline = time.monotonic() + 30
+            status = send_command(sock, "status")
+            while status["state"] != "FAULT" and time.monotonic() < deadline:
+                time.sleep(0.05)
+                status = send_command(sock, "status")
+            assert status["state"] == "FAULT" and status["fault"].startswith("drive_fault: drive 4"), status
+            time.sleep(0.5)  # the daemon stays up, the drives stay stopped
+            assert process.poll() is None
+            assert send_command(sock, "status")["state"] == "FAULT"
+            assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [False] * 6
+            reset = subprocess.run([sys.executable, "-m", "hil_runtime.cli", "reset", "--socket", str(sock)],
+                                   capture_output=True, text=True, timeout=30)  # fmt: skip
+            assert reset.returncode == 0 and "state was FAULT" in reset.stdout, reset.stderr
+            deadline = time.monotonic() + 30
+            while send_command(sock, "status")["state"] != "ACTIVE" and time.monotonic() < deadline:
+                time.sleep(0.05)
+            status = send_command(sock, "status")
+            assert status["state"] == "ACTIVE" and status["fault"] is None
+            assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [True] * 6
+            process.send_signal(signal.SIGTERM)
+            _, err = process.communicate(timeout=30)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        assert process.returncode == 0, err
+        assert "state FAULT: drive_fault" in err and "state FINALIZED" in err
+        assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [False] * 6
