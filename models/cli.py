@@ -24,7 +24,8 @@ def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
 def experiment(
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
     modes: Annotated[str, typer.Option(help="Comma-separated modes: fb, hmpc, lmpc.")] = "fb,hmpc,lmpc",
-    conditions: Annotated[Optional[Path], typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
+    conditions: Annotated[Optional[str], typer.Option(
+        help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range).")] = None,
     robot: Annotated[str, typer.Option(help="Robot name or URDF path.")] = "ur5_paper",
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/experiment"),
     mismatch: Annotated[str, typer.Option(help="'none', or 'paper': +0.5 kg payload, inertias ±20 %.")] = "none",
@@ -36,6 +37,10 @@ def experiment(
     no_trajectories: Annotated[bool, typer.Option("--no-trajectories", help="Skip the .npz files.")] = False,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the PNG plots.")] = False,
     lmpc_bundles: Annotated[Optional[Path], typer.Option(help="LMPC bundle root (default: the shipped ones).")] = None,
+    hmpc_formulation: Annotated[str, typer.Option(
+        help="HMPC torque cost: 'absolute' (W2 on tau) or 'anchored' (W2 on tau - w* tau_fb, docs/hmpc.md).")] = "absolute",
+    hmpc_dt: Annotated[Optional[float], typer.Option(help="HMPC prediction step (s); default: the control period.")] = None,
+    hmpc_anchor_scale: Annotated[float, typer.Option(help="Anchored cost: c in W2_i = c dt^2 / M_ii(0)^2.")] = 10.0,
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from rich.console import Console
@@ -54,7 +59,15 @@ def experiment(
     if gains not in GAIN_SETS:
         raise ModelInputError(f"--gains: unknown '{gains}' (known: {', '.join(GAIN_SETS)})")
     arm = load_robot(robot)
-    condition_list = load_conditions(conditions, robot=arm)
+    from models.lmpc.paper_range import paper_range_conditions, parse_random_spec
+
+    spec = parse_random_spec(conditions) if conditions is not None else None
+    if spec is not None:
+        condition_list = paper_range_conditions(arm, *spec)
+    else:
+        condition_list = load_conditions(None if conditions is None else Path(conditions), robot=arm)
+    if hmpc_formulation not in ("absolute", "anchored"):
+        raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
     if mismatch == "paper":
         condition_list = [replace(c, mismatch=PAPER_MISMATCH) for c in condition_list]
     config = ExperimentConfig(
@@ -69,7 +82,14 @@ def experiment(
             task = bar.add_task(label, total=total)
             return lambda n: bar.advance(task, n)
 
-        options = {"lmpc": {"bundle_dir": lmpc_bundles}} if lmpc_bundles is not None else None
+        options: dict = {"lmpc": {"bundle_dir": lmpc_bundles}} if lmpc_bundles is not None else {}
+        hmpc_options: dict = {}
+        if hmpc_formulation != "absolute":
+            hmpc_options.update(torque_cost=hmpc_formulation, anchor_weight_scale=hmpc_anchor_scale)
+        if hmpc_dt is not None:
+            hmpc_options["dt_s"] = hmpc_dt
+        if hmpc_options:
+            options["hmpc"] = hmpc_options
         results = run_experiment(arm, condition_list, config, out, controller_options=options, progress=progress)
     from models.experiment import format_table
 

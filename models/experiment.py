@@ -103,6 +103,7 @@ def run_experiment(
                                                 options.get(mode, {}), config.gain_set)  # fmt: skip
 
     results = _summarize(runs, timing, config, robot, conditions)
+    results["controller_options"] = {m: {k: str(v) for k, v in o.items()} for m, o in options.items()}
     (out_dir / "results.json").write_text(json.dumps(results, indent=2))
     (out_dir / "table.md").write_text(format_table(results))
     if config.save_trajectories:

@@ -12,6 +12,8 @@ from models.errors import ModelInputError
 
 PAPER_CANDIDATE_SCALES = tuple(round(0.5 + 0.1 * i, 1) for i in range(11))  # w_sel = [0.5:0.1:1.5]
 BUDGET_POLICIES = ("fallback", "best_iterate")
+#: W2's argument: "absolute" (the paper's tau' W2 tau) or "anchored" ((tau - w* tau_fb)' W2a (tau - w* tau_fb))
+TORQUE_COSTS = ("absolute", "anchored")
 KERNELS = ("auto", "numba", "numpy")
 
 Weight = float | tuple[float, ...]
@@ -25,6 +27,12 @@ class HMPCConfig:
         J = sum_j w_j [ E_j' W1 E_j + tau_j' W2 tau_j ] + state_bound_weight * |state bound violation|^2
     W1 = diag(position_error_weight (per joint), velocity_error_weight (per joint),
               extra_feature_weight for any further entries of the law's E).
+
+    torque_cost = "anchored" (docs/hmpc.md, "Formulations"): the torque term becomes
+        (tau_j - w* tau_fb)' W2a (tau_j - w* tau_fb),  W2a_i = anchor_weight_scale * dt^2 / M_ii(0)^2,
+    w* the cheapest candidate scale under the absolute cost (W2 = torque_weight), dt the prediction
+    step: a deviation of the acceleration from the law's (scaled) one costs about as much on every
+    joint, so the law keeps mattering (with W2 on tau the optimum is the same for every law).
     """
 
     horizon_steps: int = 5  # T_N
@@ -38,6 +46,8 @@ class HMPCConfig:
     # W2 on tau (N m). Small: the paper penalizes the absolute torque, which includes the gravity
     # load; a large W2 would pull the arm off the reference to save holding torque.
     torque_weight: Weight = 1.0e-6  # 1/(N m)^2
+    torque_cost: str = "absolute"  # TORQUE_COSTS
+    anchor_weight_scale: float = 10.0  # c in W2a_i = c dt^2 / M_ii(0)^2 (anchored only)
     state_bound_weight: float = 1.0e6  # quadratic penalty on |q| > limit, |qd| > limit (soft bounds)
     use_state_bounds: bool = True
     position_limit_rad: tuple[float, ...] | None = None  # None: the robot's (Sec. IV-C) limits
@@ -97,6 +107,11 @@ class HMPCConfig:
             fail("dt_s", "must be a finite number > 0", self.dt_s)
         if self.on_budget_exhausted not in BUDGET_POLICIES:
             fail("on_budget_exhausted", f"must be one of {', '.join(BUDGET_POLICIES)}", self.on_budget_exhausted)
+        if self.torque_cost not in TORQUE_COSTS:
+            fail("torque_cost", f"must be one of {', '.join(TORQUE_COSTS)}", self.torque_cost)
+        if not (isinstance(self.anchor_weight_scale, int | float) and math.isfinite(self.anchor_weight_scale)
+                and self.anchor_weight_scale > 0):
+            fail("anchor_weight_scale", "must be a finite number > 0", self.anchor_weight_scale)
         if self.kernels not in KERNELS:
             fail("kernels", f"must be one of {', '.join(KERNELS)}", self.kernels)
         if not isinstance(self.backend, str):

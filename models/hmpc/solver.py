@@ -70,6 +70,7 @@ class HMPCResult:
     cost: np.ndarray  # (B,) cost of the returned sequence (NaN when none)
     candidate_cost: np.ndarray  # (B,) cost of the best of the paper's candidates w * tau_fb
     iterations: np.ndarray  # (B,) Gauss-Newton iterations used
+    anchor_scale: np.ndarray | None = None  # (B,) w* of the anchored cost (NaN where not solved); None: absolute cost
 
 
 @dataclass
@@ -82,13 +83,21 @@ class _Rows:
     ref_qd: np.ndarray
     qdd_d: np.ndarray  # (K, N), held over the preview
     law_state: np.ndarray  # (K, S)
+    anchor: np.ndarray | None = None  # (K, T, N) torque the W2 term is measured from (anchored cost), None: 0
+
+    def _arrays(self) -> tuple:
+        return (self.q0, self.qd0, self.ref_q, self.ref_qd, self.qdd_d, self.law_state)
 
     def take(self, index: np.ndarray) -> _Rows:
-        return _Rows(*(a[index] for a in (self.q0, self.qd0, self.ref_q, self.ref_qd, self.qdd_d, self.law_state)))
+        return _Rows(*(a[index] for a in self._arrays()), None if self.anchor is None else self.anchor[index])
 
     def repeat(self, count: int) -> _Rows:
-        return _Rows(*(np.repeat(a, count, axis=0) for a in (self.q0, self.qd0, self.ref_q, self.ref_qd, self.qdd_d,
-                                                              self.law_state)))  # fmt: skip
+        anchor = None if self.anchor is None else np.repeat(self.anchor, count, axis=0)
+        return _Rows(*(np.repeat(a, count, axis=0) for a in self._arrays()), anchor)
+
+    def deviation(self, u: np.ndarray) -> np.ndarray:
+        """What W2 weighs: u itself (absolute cost) or u - anchor (anchored cost)."""
+        return u if self.anchor is None else np.ascontiguousarray(u - self.anchor)
 
 
 @dataclass
@@ -131,6 +140,17 @@ class HMPCSolver:
         self.scales = np.asarray(config.candidate_scales, float)
         self.temporal = config.temporal_weights
         self.torque_weight = per_joint("torque_weight", config.torque_weight, n)
+        self.anchored = config.torque_cost == "anchored"
+        # W2 of the optimized cost: on tau (absolute), or on tau - w* tau_fb with c dt^2 / M_ii(0)^2
+        # (anchored: equal cost per unit of acceleration deviation on every joint).
+        self.anchor_weight = None
+        self.cost_torque_weight = self.torque_weight
+        if self.anchored:
+            from models.dynamics import make_dynamics
+
+            inertia = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n)), float).reshape(n, n))
+            self.anchor_weight = config.anchor_weight_scale * self.dt_s**2 / inertia**2
+            self.cost_torque_weight = self.anchor_weight
         # A law that overrides error_features gets its own E (and its state propagated along the
         # preview); the base E = [e, e_dot] does not depend on the law's state, which saves the work.
         self.law_features = type(law).error_features is not FeedbackLaw.error_features
@@ -149,7 +169,7 @@ class HMPCSolver:
         self.kernels = _load_kernels(config.kernels)
         self.use_kernels = self.kernels is not None
         # Constant pieces of the condensed model.
-        self._stage_torque_weight = (self.temporal[:, None] * self.torque_weight).reshape(-1)  # (T N,)
+        self._stage_torque_weight = (self.temporal[:, None] * self.cost_torque_weight).reshape(-1)  # (T N,)
         self._preview_s = self.dt_s * np.arange(1, self.horizon + 1)
         self._stage_feature_weight = np.ascontiguousarray(self.temporal[:, None] * self.feature_weight)  # (T, nE)
         self._torque_box = np.tile(self.torque_limit_nm, self.horizon)
@@ -204,6 +224,7 @@ class HMPCSolver:
             sequence = np.full((batch, horizon, n), np.nan)
             cost, candidate_cost = np.full(batch, np.nan), np.full(batch, np.nan)
             iterations = np.zeros(batch, int)
+            anchor_scale = np.full(batch, np.nan) if self.anchored else None
             valid = np.flatnonzero(finite)
             if valid.size:
                 rows = _Rows(q[valid], qd[valid], ref_q[valid], ref_qd[valid], qdd_d[valid], next_state[valid])
@@ -212,8 +233,10 @@ class HMPCSolver:
                     warm = np.asarray(warm_start_nm, float)[valid]
                     warm = np.concatenate([warm[:, 1:], warm[:, -1:]], 1)
                     warm = np.where(np.isfinite(warm), warm, tau_fb[valid, None, :])
-                u, c, cc, st, it = self._optimize(rows, tau_fb[valid], warm)
+                u, c, cc, st, it, w_star = self._optimize(rows, tau_fb[valid], warm)
                 sequence[valid], cost[valid], candidate_cost[valid], status[valid], iterations[valid] = u, c, cc, st, it
+                if anchor_scale is not None:
+                    anchor_scale[valid] = w_star
 
             first = sequence[:, 0]
             bad_solution = finite & ~np.isfinite(first).all(1)
@@ -229,7 +252,8 @@ class HMPCSolver:
             keep = np.isfinite(next_state).all(1) if next_state.size else np.ones(batch, bool)
             next_state = np.where(keep[:, None], next_state, law_state) if next_state.size else next_state
             next_state = self.law.with_applied_torque(next_state, tau)
-        return HMPCResult(tau, tau_fb, next_state, sequence, status, ~use_mpc, cost, candidate_cost, iterations)
+        return HMPCResult(tau, tau_fb, next_state, sequence, status, ~use_mpc, cost, candidate_cost, iterations,
+                          anchor_scale)
 
     # ------------------------------------------------------------------------------------------
     def _optimize(self, rows: _Rows, tau_fb: np.ndarray, warm: np.ndarray | None):  # type: ignore[no-untyped-def]
@@ -241,7 +265,21 @@ class HMPCSolver:
             candidates = np.concatenate([candidates, np.clip(warm, -limit, limit)[:, None]], 1)
         n_candidates = candidates.shape[1]
         flat = np.ascontiguousarray(candidates.reshape(k * n_candidates, horizon, n))
-        rolled = self._rollout(rows.repeat(n_candidates), flat)
+        w_star = None
+        if not self.anchored:
+            rolled = self._rollout(rows.repeat(n_candidates), flat)
+        else:
+            # w* = the cheapest paper candidate under the absolute cost (W2 = torque_weight on tau); then
+            # every candidate (and the optimization) is costed with W2a on tau - w* tau_fb.
+            rolled = self._rollout(rows.repeat(n_candidates), flat, torque_weight=np.zeros(n))
+            base = rolled.cost.reshape(k, n_candidates)
+            absolute = base + np.einsum("kctn,n,t->kc", candidates * candidates, self.torque_weight, self.temporal)
+            absolute = np.where(np.isfinite(absolute), absolute, np.inf)
+            pick = np.argmin(absolute[:, : len(self.scales)], 1)
+            w_star = self.scales[pick]
+            rows.anchor = np.ascontiguousarray(candidates[np.arange(k), pick])  # (K, T, N)
+            deviation = candidates - rows.anchor[:, None]
+            rolled.cost = (base + np.einsum("kctn,n,t->kc", deviation * deviation, self.anchor_weight, self.temporal)).reshape(-1)
         costs = np.where(np.isfinite(rolled.cost), rolled.cost, np.inf).reshape(k, n_candidates)
         candidate_cost = costs[:, : len(self.scales)].min(1)
         best = np.argmin(costs, 1) + np.arange(k) * n_candidates
@@ -291,11 +329,15 @@ class HMPCSolver:
             levenberg[active[moved]] = np.maximum(1.0, levenberg[active[moved]] * 0.1)
             levenberg[active[~moved & ~done]] *= LEVENBERG_GROWTH
             active = active[~finished & ~done]
-        return u, state.cost, candidate_cost, status, iterations
+        return u, state.cost, candidate_cost, status, iterations, w_star
 
-    def _rollout(self, rows: _Rows, u: np.ndarray) -> _Rollout:
-        """Predicted states, error features and cost of torque sequences u (K, T, N)."""
+    def _rollout(self, rows: _Rows, u: np.ndarray, torque_weight: np.ndarray | None = None) -> _Rollout:
+        """Predicted states, error features and cost of torque sequences u (K, T, N).
+
+        ``torque_weight``: W2 (N,) for this call (default: the optimized cost's), on rows.deviation(u)."""
         dt, predictor = self.dt_s, self.predictor
+        weight = self.cost_torque_weight if torque_weight is None else torque_weight
+        deviation = rows.deviation(u)
         k, horizon, n = u.shape
         q_path, qd_path = np.empty((k, horizon, n)), np.empty((k, horizon, n))
         q, qd = rows.q0, rows.qd0
@@ -306,15 +348,15 @@ class HMPCSolver:
         law_states = None
         if self.use_kernels and not self.law_features:
             rho = self.config.state_bound_weight if self.config.use_state_bounds else 0.0
-            features, cost = self.kernels.stage_cost(q_path, qd_path, rows.ref_q, rows.ref_qd, u, self.feature_weight,
-                                                     self.torque_weight, self.temporal, self.state_limit, float(rho))  # fmt: skip
+            features, cost = self.kernels.stage_cost(q_path, qd_path, rows.ref_q, rows.ref_qd, deviation, self.feature_weight,
+                                                     weight, self.temporal, self.state_limit, float(rho))  # fmt: skip
             return _Rollout(q_path, qd_path, features, None, cost)
         if self.law_features:
             features, law_states = self._law_features(rows, u, q_path, qd_path)
         else:
             features = np.concatenate([rows.ref_q - q_path, rows.ref_qd - qd_path], -1)
         stage = np.einsum("ktf,f->kt", features * features, self.feature_weight)
-        stage = stage + np.einsum("ktn,n->kt", u * u, self.torque_weight)
+        stage = stage + np.einsum("ktn,n->kt", deviation * deviation, weight)
         cost = stage @ self.temporal
         if self.config.use_state_bounds:
             x = np.concatenate([q_path, qd_path], -1)
@@ -423,7 +465,7 @@ class HMPCSolver:
         if self.use_kernels and not self.law_features:
             return self.kernels.condense(np.ascontiguousarray(d_q), np.ascontiguousarray(d_qd), np.ascontiguousarray(d_tau),
                                     dt, self._stage_feature_weight, np.ascontiguousarray(state.features),
-                                    np.ascontiguousarray(u.reshape(k, -1)), self._stage_torque_weight,
+                                    np.ascontiguousarray(rows.deviation(u).reshape(k, -1)), self._stage_torque_weight,
                                     float(self.config.damping), np.ascontiguousarray(levenberg, dtype=np.float64))  # fmt: skip
         eye = np.eye(n)
         # x+ = Phi x + Gamma u (linearized semi-implicit Euler), x = (q, qd)
@@ -459,7 +501,7 @@ class HMPCSolver:
         gradient = np.einsum("kxi,kx->ki", flat_sens, residual.reshape(k, -1))
         flat_u = u.reshape(k, -1)
         hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self._stage_torque_weight
-        gradient = gradient + self._stage_torque_weight * flat_u
+        gradient = gradient + self._stage_torque_weight * rows.deviation(u).reshape(k, -1)
         diagonal = hessian[:, np.arange(horizon * n), np.arange(horizon * n)]
         damping = self.config.damping * levenberg[:, None] * diagonal.mean(1, keepdims=True)
         hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += damping + 1e-300

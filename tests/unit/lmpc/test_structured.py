@@ -1,0 +1,60 @@
+"""The torch RNE (models.dynamics.torch_rne), the structured emulator, the paper-range conditions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from models.dynamics import make_dynamics
+from models.dynamics.torch_rne import SpatialRne
+from models.errors import ModelInputError
+from models.robots import load_robot
+
+
+@pytest.mark.parametrize("name", ["ur5_paper", "ur5", "panda"])
+def test_spatial_rne_equals_rneida(name: str) -> None:
+    robot = load_robot(name)
+    rng = np.random.default_rng(1)
+    q, qd, qdd = (rng.normal(size=(7, robot.n_joints)) for _ in range(3))
+    dyn = make_dynamics(robot, "rne")
+    rne = SpatialRne(robot)
+    got = rne.inverse_dynamics(*(torch.as_tensor(a) for a in (q, qd, qdd))).numpy()
+    np.testing.assert_allclose(got, dyn.inverse_dynamics(q, qd, qdd), atol=1e-12 * max(1.0, np.abs(got).max()))
+    np.testing.assert_allclose(rne.gravity_torque(torch.as_tensor(q)).numpy(), dyn.gravity(q), atol=1e-12 * 60)
+    free = rne.inverse_dynamics(*(torch.as_tensor(a) for a in (q, qd, qdd)), gravity=False).numpy()
+    np.testing.assert_allclose(got - free, dyn.gravity(q), atol=1e-11)
+
+
+def test_spatial_rne_is_a_small_onnx_graph(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    onnx = pytest.importorskip("onnx")
+    ort = pytest.importorskip("onnxruntime")
+    robot = load_robot("ur5_paper")
+    rne = SpatialRne(robot)
+
+    class Wrap(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return rne.inverse_dynamics(x[:, :6], x[:, 6:12], x[:, 12:])
+
+    path = tmp_path / "rne.onnx"
+    torch.onnx.export(Wrap(), (torch.zeros(2, 18, dtype=torch.float64),), str(path), input_names=["x"], output_names=["y"],
+                      dynamic_axes={"x": {0: "b"}, "y": {0: "b"}}, opset_version=17, dynamo=False)  # fmt: skip
+    compute = [n for n in onnx.load(str(path)).graph.node if n.op_type != "Constant"]
+    assert len(compute) <= 80
+    x = np.random.default_rng(0).normal(size=(5, 18))
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
+    np.testing.assert_allclose(got, make_dynamics(robot, "rne").inverse_dynamics(x[:, :6], x[:, 6:12], x[:, 12:]), atol=1e-10)
+
+
+def test_paper_range_conditions_are_seeded_in_range_and_parsed() -> None:
+    from models.lmpc.paper_range import paper_range_conditions, parse_random_spec
+
+    robot = load_robot("ur5_paper")
+    a, b = paper_range_conditions(robot, 20, 5), paper_range_conditions(robot, 20, 5)
+    assert a == b and a != paper_range_conditions(robot, 20, 6)
+    assert all(max(abs(x) for x in c.amplitude_rad) <= np.pi / 2 + 1e-12 and 0.05 <= c.frequency_hz[0] <= 0.1 for c in a)
+    assert len({c.name for c in a}) == 20
+    assert parse_random_spec("random:20:7") == (20, 7) and parse_random_spec("my.yaml") is None
+    for bad in ("random:0:1", "random:x:1", "random:3", "random:3:1:2"):
+        with pytest.raises(ModelInputError, match="--conditions"):
+            parse_random_spec(bad)
