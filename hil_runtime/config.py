@@ -40,6 +40,7 @@ bundle is loaded (:func:`hil_runtime.runtime.load_bundle_for`), before the bus i
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any, Literal
 
@@ -161,7 +162,7 @@ def _resolve(path: Path | None, base: Path) -> Path | None:
     if path is None:
         return None
     path = path.expanduser()
-    return path if path.is_absolute() else (base / path)
+    return Path(os.path.normpath(path if path.is_absolute() else base / path))
 
 
 def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | None = None) -> RuntimeConfig:

@@ -185,3 +185,13 @@ def test_hil_run_with_silent_drives_exits_2_without_enabling(tmp_path: Path) -> 
 def test_hil_status_without_a_daemon(tmp_path: Path) -> None:
     result = _hil("status", "--socket", str(tmp_path / "none.sock"))
     assert result.returncode == 2 and "is hil run running" in result.stderr
+
+
+@pytest.mark.parametrize("name", ["runtime.bridge.yaml", "runtime.ipc.yaml", "runtime.can0.yaml"])
+def test_the_deployed_configs_are_valid(name: str) -> None:
+    from runtime_fixtures import ROOT
+
+    config = load_runtime_config(ROOT / "deploy" / name)
+    assert config.robot == "ur5_paper" and config.period_s == 0.001
+    if name != "runtime.can0.yaml":  # can0 names the installed bundle under /opt
+        Runtime(config, FakeJointBus(6))  # bundle, joints, period and condition all agree
