@@ -31,12 +31,9 @@ from hil_runtime.sdnotify import Notifier
 
 log = logging.getLogger("hil_runtime.daemon")
 
-EXTRA_STATS = ("tick", "skipped_periods", "exchange_median_s", "exchange_p99_s", "exchange_max_s",
-               "law_substitutions", "full_fallback_cycles", "stale_cycles", "faults")  # fmt: skip
-
-
 def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
     """The telemetry hook: ``hil_runtime.telemetry.make_sink`` with what it publishes."""
+    from hil_runtime.telemetry.codec import STATS_FIELDS
     from hil_runtime.telemetry.factory import make_sink
 
     bundle = runtime.bundle
@@ -45,7 +42,7 @@ def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
         "joints": list(config.joint_names),
         "config": config.model_dump(mode="json"),
         "bundle": {**bundle.describe(), "bundle_id": f"{bundle.law_name}:{str(digest)[:12]}"},
-        "stats_fields": list(EXTRA_STATS),
+        "stats_fields": [name for name in runtime.stats() if name not in STATS_FIELDS],  # beyond the standard
     }
     return make_sink(config.telemetry, config.robot, info, controls=runtime)
 

@@ -565,8 +565,8 @@ class Runtime:
         out: dict[str, Any] = dict(self.pacer.summary())
         counters = self.supervisor.counters()
         out["cycles"] = self.total_cycles
-        out["fallbacks"] = counters["fallback_cycles"]
-        out["saturations"] = counters["saturated_cycles"]
+        out["fallbacks"] = counters.pop("fallback_cycles")
+        out["saturations"] = counters.pop("saturated_cycles")
         out.update(counters)
         bus_counters = self.bus.counters
         if dataclasses.is_dataclass(bus_counters):
