@@ -16,6 +16,7 @@ from importlib.metadata import entry_points
 import typer
 
 from hil_runtime.commands import register as _register_runtime_commands
+from hil_runtime.telemetry.cli import register as _register_telemetry_commands
 
 app = typer.Typer(
     name="hil",
@@ -27,6 +28,8 @@ app = typer.Typer(
 
 # The runtime's own commands: run (the daemon), status, reset, stop (hil_runtime/commands.py).
 _register_runtime_commands(app)
+# hil telemetry watch | record | plot | query | control (hil_runtime/telemetry/cli.py).
+_register_telemetry_commands(app)
 
 
 def _load_plugins() -> None:

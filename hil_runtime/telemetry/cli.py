@@ -1,0 +1,319 @@
+"""``hil telemetry``: watch, record, plot and query a runtime's Zenoh telemetry (docs/telemetry.md).
+
+    hil telemetry watch [--robot R] [--connect tcp/127.0.0.1:7447]
+    hil telemetry record --seconds 10 --out run.npz
+    hil telemetry plot run.npz
+    hil telemetry query schema|config|bundle
+    hil telemetry control stop|reset          # only when the runtime enables controls
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import sys
+import threading
+import time
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from hil_runtime.telemetry.config import DEFAULT_LISTEN
+
+telemetry_app = typer.Typer(
+    name="telemetry", help="Watch, record, plot and query a runtime's Zenoh telemetry.", no_args_is_help=True
+)
+
+RobotOption = Annotated[
+    str | None, typer.Option("--robot", help="the robot's key chunk (hil/<robot>/); default: the one alive")
+]
+ConnectOption = Annotated[
+    list[str] | None,
+    typer.Option("--connect", help=f"the runtime's Zenoh endpoint (repeatable) [default: {DEFAULT_LISTEN}]"),
+]
+TimeoutOption = Annotated[float, typer.Option("--timeout", help="seconds to wait for the runtime's replies")]
+ZenohConfigOption = Annotated[
+    Path | None, typer.Option("--zenoh-config", help="a Zenoh json5 file (TLS, access control, routers)")
+]
+
+
+class Queryable(str, Enum):
+    schema = "schema"
+    config = "config"
+    bundle = "bundle"
+
+
+class Control(str, Enum):
+    stop = "stop"
+    reset = "reset"
+
+
+def _client(robot: str | None, connect: list[str] | None, timeout_s: float, zenoh_config: Path | None) -> Any:
+    from hil_runtime.telemetry.config import TelemetryConfigError, _endpoint_host
+    from hil_runtime.telemetry.subscriber import TelemetryClient
+
+    endpoints = connect or [DEFAULT_LISTEN]
+    for endpoint in endpoints:
+        try:
+            _endpoint_host(endpoint)
+        except ValueError as exc:
+            raise TelemetryConfigError(f"--connect: {exc}") from None
+    if zenoh_config is not None and not zenoh_config.is_file():
+        raise TelemetryConfigError(f"--zenoh-config: {zenoh_config} is not a file")
+    return TelemetryClient.open(endpoints, robot, timeout_s, zenoh_config)
+
+
+@telemetry_app.command()
+def query(
+    name: Annotated[Queryable, typer.Argument(help="which document")],
+    robot: RobotOption = None,
+    connect: ConnectOption = None,
+    timeout: TimeoutOption = 3.0,
+    zenoh_config: ZenohConfigOption = None,
+) -> None:
+    """Print the runtime's schema (payload layouts), config, or bundle (manifest summary, hashes) as JSON."""
+    with _client(robot, connect, timeout, zenoh_config) as client:
+        print(json.dumps(client.query_json(name.value), indent=2, sort_keys=True))
+
+
+@telemetry_app.command()
+def control(
+    name: Annotated[Control, typer.Argument(help="stop: as SIGTERM; reset: clear a FAULT")],
+    robot: RobotOption = None,
+    connect: ConnectOption = None,
+    timeout: TimeoutOption = 3.0,
+    zenoh_config: ZenohConfigOption = None,
+) -> None:
+    """Ask the runtime to stop or reset (its telemetry config must set controls_enabled: true)."""
+    from hil_runtime.telemetry.subscriber import TelemetryUnavailable
+
+    with _client(robot, connect, timeout, zenoh_config) as client:
+        try:
+            reply = client.query_json(name.value)
+        except TelemetryUnavailable as exc:
+            raise TelemetryUnavailable(f"{exc}; controls exist only with telemetry.controls_enabled: true") from None
+    if not reply.get("ok"):
+        raise TelemetryUnavailable(f"{name.value} refused by the runtime: {reply.get('error')}")
+    print(f"{name.value} requested")
+
+
+@telemetry_app.command()
+def record(
+    out: Annotated[Path, typer.Option("--out", help="the record to write (.npz)")],
+    seconds: Annotated[float, typer.Option("--seconds", min=0.01, help="how long to record")] = 10.0,
+    robot: RobotOption = None,
+    connect: ConnectOption = None,
+    timeout: TimeoutOption = 3.0,
+    zenoh_config: ZenohConfigOption = None,
+) -> None:
+    """Record the state stream for N seconds into an npz (columns per field, the schema embedded)."""
+    from hil_runtime.outputs import OutputError, prepare_output_dir
+    from hil_runtime.telemetry.subscriber import TelemetryUnavailable, missing_samples, record_state, save_record
+
+    if out.suffix != ".npz":
+        raise OutputError(f"--out {out}: the record is an .npz file")
+    prepare_output_dir(out.parent if str(out.parent) else Path("."), option="--out")
+    with _client(robot, connect, timeout, zenoh_config) as client:
+        schema = client.schema()
+        extra = {}
+        for name in ("config", "bundle"):
+            try:
+                extra[name] = client.query_json(name)
+            except TelemetryUnavailable:
+                extra[name] = None
+        print(f"recording hil/{client.robot}/state for {seconds:g} s ...", file=sys.stderr, flush=True)
+        recording = record_state(client, schema, seconds)
+    arrays = recording.arrays()
+    if len(arrays["seq"]) == 0:
+        raise TelemetryUnavailable(
+            f"no state samples from hil/{schema.robot}/state in {seconds:g} s (is the runtime ACTIVE?); nothing written"
+        )
+    decimation = int((extra.get("config") or {}).get("telemetry", {}).get("state_decimation", 1) or 1)
+    count = save_record(recording, out, extra)
+    lost = missing_samples(arrays["seq"], decimation)
+    gaps = int((arrays["flags"] & 1).astype(bool).sum())
+    refused = f", {recording.refused} refused ({recording.first_refusal})" if recording.refused else ""
+    print(f"wrote {out}: {count} state samples, seq {int(arrays['seq'][0])}..{int(arrays['seq'][-1])}, "
+          f"{lost} missing, {gaps} after publisher drops{refused}")  # fmt: skip
+
+
+@telemetry_app.command()
+def plot(
+    path: Annotated[Path, typer.Argument(help="a record from 'hil telemetry record' (or 'hil run --record')")],
+    out_dir: Annotated[Path | None, typer.Option("--out-dir", help="where the PNGs go [default: beside FILE]")] = None,
+) -> None:
+    """Per-joint tracking error and torque PNGs from a record."""
+    from hil_runtime.telemetry.plot import plot_record
+
+    for written in plot_record(path, out_dir):
+        print(f"wrote {written}")
+
+
+class _WatchState:
+    """What the callbacks saw last (assignments are atomic under the GIL; the view only reads)."""
+
+    def __init__(self, window_s: float = 1.0) -> None:
+        self.window_s = window_s
+        self.sample: Any = None
+        self.arrivals: collections.deque[tuple[float, bool]] = collections.deque(maxlen=20_000)
+        self.stats: dict[str, float] = {}
+        self.status: dict[str, Any] = {}
+        self.events: collections.deque[str] = collections.deque(maxlen=5)
+        self.alive: bool | None = None
+        self.alive_changed_s = time.monotonic()
+        self.refused = 0
+        self.last_refusal = ""
+        self.gaps = 0
+
+    def rates(self) -> tuple[float, float]:
+        """(samples per second received, share of them with any fallback) over the window."""
+        now = time.monotonic()
+        recent = [fallback for arrival, fallback in list(self.arrivals) if now - arrival <= self.window_s]
+        if not recent:
+            return 0.0, float("nan")
+        return len(recent) / self.window_s, sum(recent) / len(recent)
+
+
+def _render(state: _WatchState, robot: str, joints: tuple[str, ...]) -> Any:
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
+    rate, fallback_share = state.rates()
+    if state.alive is None:
+        alive = Text("waiting", style="yellow")
+    elif state.alive:
+        alive = Text("alive", style="green")
+    else:
+        alive = Text(f"LOST {time.monotonic() - state.alive_changed_s:.0f} s ago", style="bold red")
+    lifecycle = str(state.status.get("state", "?"))
+    fault = state.status.get("fault")
+    head = Table.grid(padding=(0, 2))
+    head.add_row(
+        Text(f"hil/{robot}", style="bold"),
+        alive,
+        Text(lifecycle, style="bold red" if lifecycle == "FAULT" else "bold"),
+        Text(f"fault: {fault}", style="red") if fault else Text(""),
+    )
+    loop_rate = state.stats.get("rate_hz", float("nan"))
+    compute_p99 = state.stats.get("compute_p99_s", float("nan"))
+    dropped = state.stats.get("telemetry_dropped", float("nan"))
+    head.add_row(
+        Text(f"received {rate:6.0f} /s"),
+        Text(f"loop {loop_rate:7.1f} Hz"),
+        Text(f"fallback {100 * fallback_share:5.1f} %" if fallback_share == fallback_share else "fallback -"),
+        Text(f"compute p99 {compute_p99 * 1e6:6.0f} µs, telemetry dropped {dropped:.0f}, gaps {state.gaps}"),
+    )
+    if state.status.get("bundle_id"):
+        head.add_row(Text(f"bundle {state.status['bundle_id']}"), Text(""), Text(""), Text(""))
+    table = Table(expand=False)
+    for column in ("joint", "q [rad]", "q_ref [rad]", "error [rad]", "tau [N m]", "tau_fb [N m]"):
+        table.add_column(column, justify="right" if column != "joint" else "left")
+    sample = state.sample
+    for j, name in enumerate(joints):
+        if sample is None or not sample.values:
+            table.add_row(name, "-", "-", "-", "-", "-")
+            continue
+        q, q_ref = float(sample["q"][j]), float(sample["q_ref"][j])
+        table.add_row(name, f"{q:+.4f}", f"{q_ref:+.4f}", f"{q_ref - q:+.2e}", f"{float(sample['tau'][j]):+8.3f}",
+                      f"{float(sample['tau_fb'][j]):+8.3f}")  # fmt: skip
+    parts: list[Any] = [head, table]
+    if sample is not None and sample.values:
+        parts.append(Text(f"cycle {sample.header.seq}, compute {float(sample['compute_s']) * 1e6:.0f} µs"))
+    for line in state.events:
+        parts.append(Text(line, style="dim"))
+    if state.refused:
+        parts.append(Text(f"{state.refused} payloads refused: {state.last_refusal}", style="red"))
+    return Group(*parts)
+
+
+@telemetry_app.command()
+def watch(
+    robot: RobotOption = None,
+    connect: ConnectOption = None,
+    timeout: TimeoutOption = 3.0,
+    zenoh_config: ZenohConfigOption = None,
+    refresh_hz: Annotated[float, typer.Option("--refresh-hz", min=0.5, max=60.0)] = 10.0,
+    seconds: Annotated[float | None, typer.Option("--seconds", min=0.1, help="exit after this long")] = None,
+) -> None:
+    """A live view: each joint's q, q_ref, error and torque; rate, fallback share, state, fault, alive/lost."""
+    from rich.console import Console
+    from rich.live import Live
+
+    from hil_runtime.telemetry.codec import TelemetryDecodeError
+
+    with _client(robot, connect, timeout, zenoh_config) as client:
+        schema = client.schema()
+        state = _WatchState()
+
+        def refused(exc: TelemetryDecodeError) -> None:
+            state.refused += 1
+            state.last_refusal = str(exc)
+
+        def on_state(payload: bytes) -> None:
+            try:
+                sample = schema.decode_state(payload)
+            except TelemetryDecodeError as exc:
+                refused(exc)
+                return
+            if sample.header.warmup:
+                return
+            state.gaps += sample.header.gap
+            state.sample = sample
+            state.arrivals.append((time.monotonic(), float(sample["fallback"]) > 0.0))
+
+        def on_stats(payload: bytes) -> None:
+            try:
+                header, values = schema.decode_stats(payload)
+            except TelemetryDecodeError as exc:
+                refused(exc)
+                return
+            if not header.warmup:
+                state.stats = values
+
+        def on_status(payload: bytes) -> None:
+            try:
+                header, body = schema.decode_status(payload)
+            except TelemetryDecodeError as exc:
+                refused(exc)
+                return
+            if not header.warmup:
+                state.status = body
+
+        def on_event(payload: bytes) -> None:
+            try:
+                header, body = schema.decode_event(payload)
+            except TelemetryDecodeError as exc:
+                refused(exc)
+                return
+            if not header.warmup:
+                state.events.append(f"{time.strftime('%H:%M:%S')} cycle {body['cycle']}: {body['kind']} {body['detail']}")
+
+        def on_alive(alive: bool) -> None:
+            if alive != state.alive:
+                state.alive = alive
+                state.alive_changed_s = time.monotonic()
+
+        client.subscribe("state", on_state)
+        client.subscribe("stats", on_stats)
+        client.subscribe("status", on_status)
+        client.subscribe("events", on_event)
+        client.watch_alive(on_alive)
+        stop = threading.Event()
+        end_s = None if seconds is None else time.monotonic() + seconds
+        console = Console()
+        try:
+            with Live(_render(state, client.robot, schema.joints), console=console, refresh_per_second=refresh_hz,
+                      transient=False) as live:  # fmt: skip
+                while not stop.wait(1.0 / refresh_hz):
+                    live.update(_render(state, client.robot, schema.joints))
+                    if end_s is not None and time.monotonic() >= end_s:
+                        break
+        except KeyboardInterrupt:
+            pass
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(telemetry_app, name="telemetry")

@@ -1,0 +1,256 @@
+"""The subscriber side: a Zenoh session to one runtime's ``hil/<robot>/`` (docs/telemetry.md).
+
+    client = TelemetryClient.open(connect=["tcp/127.0.0.1:7447"], robot=None)  # None: the one alive
+    schema = client.schema()                     # queried, then every payload decodes against it
+    client.subscribe("state", lambda payload: ...)
+    rec = record_state(client, schema, seconds=10.0)
+    save_record(rec, Path("run.npz"))
+
+Used by ``hil telemetry`` and the tests. The session is a peer that listens nowhere and connects
+only to the named endpoints (no multicast or gossip scouting): nothing leaves those addresses.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_runtime.telemetry.codec import HEADER_SIZE, Schema, TelemetryDecodeError
+from hil_runtime.telemetry.config import DEFAULT_LISTEN, KEY_PREFIX, TelemetryConfigError, check_key_chunk, zenoh_config
+
+QUERYABLES = ("schema", "config", "bundle")
+CONTROLS = ("stop", "reset")
+
+
+class TelemetryUnavailable(RuntimeError):
+    """No runtime answered (wrong endpoint or robot, telemetry disabled); one line, exit code 1."""
+
+    exit_code = 1
+
+
+class TelemetryClient:
+    """One subscriber session to one robot's telemetry."""
+
+    def __init__(self, session: Any, robot: str, timeout_s: float) -> None:
+        self.session = session
+        self.robot = robot
+        self.prefix = f"{KEY_PREFIX}/{robot}"
+        self.timeout_s = timeout_s
+        self._declared: list[Any] = []
+
+    @classmethod
+    def open(
+        cls,
+        connect: Sequence[str] = (DEFAULT_LISTEN,),
+        robot: str | None = None,
+        timeout_s: float = 3.0,
+        config_file: Path | None = None,
+    ) -> TelemetryClient:
+        import zenoh
+
+        try:
+            session = zenoh.open(zenoh_config("peer", [], list(connect), config_file))
+        except zenoh.ZError as exc:
+            raise TelemetryUnavailable(f"cannot open a Zenoh session to {', '.join(connect)}: {str(exc).splitlines()[0]}") from None
+        try:
+            if robot is None:
+                robot = _single_robot(session, connect, timeout_s)
+            else:
+                check_key_chunk(robot, "--robot")
+        except BaseException:
+            session.close()
+            raise
+        return cls(session, robot, timeout_s)
+
+    def __enter__(self) -> TelemetryClient:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for entity in self._declared:
+            try:
+                entity.undeclare()
+            except Exception:  # noqa: BLE001, S110 - closing: nothing useful to do with it
+                pass
+        self._declared.clear()
+        self.session.close()
+
+    # --- queries ---------------------------------------------------------------------------------
+
+    def query(self, name: str, timeout_s: float | None = None) -> bytes:
+        """The reply of ``hil/<robot>/<name>`` (schema, config, bundle, or a control)."""
+        key = f"{self.prefix}/{name}"
+        deadline_s = self.timeout_s if timeout_s is None else timeout_s
+        # A freshly opened session may not have its route to the runtime yet: retry until the deadline.
+        end = time.monotonic() + deadline_s
+        while True:
+            remaining = max(0.1, end - time.monotonic())
+            for reply in self.session.get(key, timeout=min(remaining, 1.0)):
+                if reply.ok is not None:
+                    return reply.ok.payload.to_bytes()
+                raise TelemetryUnavailable(f"{key}: the runtime replied with an error: {reply.err.payload.to_string()}")
+            if time.monotonic() >= end:
+                raise TelemetryUnavailable(
+                    f"no reply from {key} within {deadline_s:g} s (runtime not running, telemetry disabled, "
+                    "another --robot or --connect endpoint?)"
+                )
+            time.sleep(0.05)
+
+    def query_json(self, name: str, timeout_s: float | None = None) -> Any:
+        payload = self.query(name, timeout_s)
+        try:
+            return json.loads(payload)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            raise TelemetryUnavailable(f"{self.prefix}/{name}: the reply is not JSON") from None
+
+    def schema(self) -> Schema:
+        return Schema.from_json(self.query("schema"))
+
+    # --- subscriptions (callbacks run on Zenoh's threads) ----------------------------------------
+
+    def subscribe(self, name: str, callback: Callable[[bytes], None]) -> None:
+        """Payload bytes of ``hil/<robot>/<name>`` (state, stats, status, events)."""
+        self._declared.append(
+            self.session.declare_subscriber(f"{self.prefix}/{name}", lambda sample: callback(sample.payload.to_bytes()))
+        )
+
+    def watch_alive(self, callback: Callable[[bool], None]) -> None:
+        """``callback(True)`` when the runtime's liveliness token appears (or already exists),
+        ``callback(False)`` when it goes: a clean close, or the session's lease running out."""
+        import zenoh
+
+        def on_sample(sample: Any) -> None:
+            callback(sample.kind == zenoh.SampleKind.PUT)
+
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(f"{self.prefix}/alive", on_sample, history=True)
+        )
+
+
+def _single_robot(session: Any, connect: Sequence[str], timeout_s: float) -> str:
+    """The robot whose ``hil/*/alive`` token is seen; refuses none or several (give --robot)."""
+    end = time.monotonic() + timeout_s
+    robots: set[str] = set()
+    while not robots:
+        for reply in session.liveliness().get(f"{KEY_PREFIX}/*/alive", timeout=min(1.0, timeout_s)):
+            if reply.ok is not None:
+                robots.add(str(reply.ok.key_expr).split("/")[1])
+        if robots or time.monotonic() >= end:
+            break
+        time.sleep(0.1)
+    if not robots:
+        raise TelemetryUnavailable(
+            f"no runtime alive at {', '.join(connect)} within {timeout_s:g} s (is 'hil run' up with telemetry enabled?)"
+        )
+    if len(robots) > 1:
+        raise TelemetryConfigError(f"several robots alive ({', '.join(sorted(robots))}): choose one with --robot")
+    return robots.pop()
+
+
+# --- recording --------------------------------------------------------------------------------------
+
+
+@dataclass
+class StateRecording:
+    """Raw state payloads received, decoded once at the end (the callback only appends)."""
+
+    schema: Schema
+    payloads: list[bytes] = field(default_factory=list)
+    status: list[dict[str, Any]] = field(default_factory=list)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    refused: int = 0
+    first_refusal: str = ""
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Columns per field (q: (M, N), fallback: (M,), ...), seq, t_ns, flags, t_s from the first sample."""
+        rows: list[np.ndarray] = []
+        seq: list[int] = []
+        t_ns: list[int] = []
+        flags: list[int] = []
+        for payload in self.payloads:
+            try:
+                header, body = self.schema.decode_state_row(payload)
+            except TelemetryDecodeError as exc:
+                self.refused += 1
+                self.first_refusal = self.first_refusal or str(exc)
+                continue
+            if header.warmup:
+                continue
+            rows.append(body)
+            seq.append(header.seq)
+            t_ns.append(header.t_ns)
+            flags.append(header.flags)
+        width = (self.schema.state_size - HEADER_SIZE) // 8
+        body_rows = np.vstack(rows) if rows else np.zeros((0, width))
+        out: dict[str, np.ndarray] = {
+            "seq": np.asarray(seq, dtype=np.uint64),
+            "t_ns": np.asarray(t_ns, dtype=np.int64),
+            "flags": np.asarray(flags, dtype=np.uint8),
+        }
+        out["t_s"] = (out["t_ns"] - out["t_ns"][0]) * 1e-9 if len(t_ns) else np.zeros(0)
+        for name, start, count in self.schema.body_columns():
+            column = body_rows[:, start : start + count]
+            out[name] = column[:, 0].copy() if name in ("fallback", "compute_s") else column.copy()
+        return out
+
+
+def record_state(client: TelemetryClient, schema: Schema, seconds: float, stop: threading.Event | None = None) -> StateRecording:
+    """Collect ``hil/<robot>/state`` (and status, events) for ``seconds`` of wall time."""
+    recording = StateRecording(schema)
+    payloads = recording.payloads  # list.append is atomic under the GIL: no lock on the hot path
+
+    def on_json(target: list[dict[str, Any]], decode: Callable[[bytes], tuple[Any, dict[str, Any]]]) -> Callable[[bytes], None]:
+        def handle(payload: bytes) -> None:
+            try:
+                header, body = decode(payload)
+            except TelemetryDecodeError:
+                return
+            if not header.warmup:
+                target.append({"seq": header.seq, "t_ns": header.t_ns, **body})
+
+        return handle
+
+    client.subscribe("state", payloads.append)
+    client.subscribe("status", on_json(recording.status, schema.decode_status))
+    client.subscribe("events", on_json(recording.events, schema.decode_event))
+    waiter = stop or threading.Event()
+    waiter.wait(seconds)
+    return recording
+
+
+def save_record(recording: StateRecording, path: Path, extra: dict[str, Any] | None = None) -> int:
+    """Write an npz (atomically): the state columns, ``joints``, ``schema`` (the JSON it was decoded
+    against), ``status``/``events`` (JSON lines), and ``extra`` JSON documents (config, bundle)."""
+    from hil_runtime.outputs import atomic_path
+
+    arrays = recording.arrays()
+    documents = {
+        "joints": np.asarray(recording.schema.joints),
+        "robot": np.asarray(recording.schema.robot),
+        "schema": np.asarray(json.dumps(recording.schema.document)),
+        "status": np.asarray("\n".join(json.dumps(item) for item in recording.status)),
+        "events": np.asarray("\n".join(json.dumps(item) for item in recording.events)),
+    }
+    for name, document in (extra or {}).items():
+        documents[name] = np.asarray(json.dumps(document))
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **arrays, **documents)
+    return len(arrays["seq"])
+
+
+def missing_samples(seq: np.ndarray, stride: int = 1) -> int:
+    """Samples lost between the first and last received (by sequence number, decimation ``stride``)."""
+    if len(seq) < 2:
+        return 0
+    expected = int((int(seq.max()) - int(seq.min())) // stride) + 1
+    return expected - len(np.unique(seq))
+
