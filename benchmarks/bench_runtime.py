@@ -53,7 +53,7 @@ MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 # The benchmark measures rather than stops at the first stale cycle (as bench_hil_lockstep.py).
 BENCH_DRIVER = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
-                "state_change_timeout_s": 5.0, "max_missed_cycles": 1000}  # fmt: skip
+                "state_change_timeout_s": 5.0, "max_missed_cycles": 1000, "comm_loss_timeout_s": 1.0}  # fmt: skip
 
 
 def config_dict(transport: dict[str, Any], period_s: float, pacing: str, bundle: Path, fifo: int | None,
@@ -99,7 +99,7 @@ def measure(runtime: Runtime, cycles: int) -> dict[str, Any]:
     runtime.configure()
     if not runtime.activate():
         raise RuntimeError(f"activation failed: {runtime.lifecycle.fault}")
-    result = runtime.run(max_cycles=cycles)
+    result = runtime.run(max_cycles=cycles, stop_on_fault=True)
     pacer = runtime.pacer
     rec = runtime.record.arrays()  # row 0 is the activation (no exchange): left out
     wall = rec["wall_s"][1:]

@@ -5,8 +5,9 @@
 - :func:`set_thread_fifo` / :func:`set_thread_affinity`: SCHED_FIFO and CPU affinity for the
   *calling thread only* (``os.sched_setscheduler(0, ...)`` acts on the calling thread on Linux).
   Threads created afterwards inherit them, so the runtime starts its helper threads first.
-- :class:`GcQuiet`: ``gc.collect(); gc.freeze()`` after start-up (the survivors are never scanned
-  again) and ``gc.disable()`` while ACTIVE, so no collection pauses the loop; re-enabled after.
+- :func:`freeze_heap` / :class:`GcQuiet`: ``gc.collect(); gc.freeze()`` before the drives are
+  enabled (the survivors are never scanned again) and ``gc.disable()`` while ACTIVE, so no
+  collection pauses the loop; re-enabled after.
 
 Each returns whether it took effect; :class:`RealtimeReport` collects what happened for the logs
 and the docs' figures.
@@ -72,13 +73,19 @@ def set_thread_affinity(cpus: tuple[int, ...], report: RealtimeReport | None = N
     return report.note(f"CPU affinity {list(cpus)}", True)
 
 
+def freeze_heap() -> None:
+    """Collect once, then move every survivor to the permanent generation (never scanned again).
+    Tens of milliseconds with a large heap: call it before the drives are enabled, never between
+    two exchanges (the drives quick-stop when their set-points stop for comm_loss_timeout_s)."""
+    gc.collect()
+    gc.freeze()
+
+
 class GcQuiet:
-    """``with GcQuiet():`` no garbage collection inside; start-up garbage frozen first."""
+    """``with GcQuiet():`` no garbage collection inside (:func:`freeze_heap` first, outside)."""
 
     def __enter__(self) -> GcQuiet:
         self._was_enabled = gc.isenabled()
-        gc.collect()
-        gc.freeze()
         gc.disable()
         return self
 

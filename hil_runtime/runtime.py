@@ -47,7 +47,7 @@ from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.controller import Controller
 from hil_runtime.lifecycle import Lifecycle, LifecycleState, Transition
 from hil_runtime.pacer import Pacer
-from hil_runtime.realtime import GcQuiet, RealtimeReport, set_thread_affinity, set_thread_fifo
+from hil_runtime.realtime import GcQuiet, RealtimeReport, freeze_heap, set_thread_affinity, set_thread_fifo
 from hil_runtime.reference import Reference
 from hil_runtime.sdnotify import Notifier
 from hil_runtime.supervisor import Fault, FaultKind, SafetyLimits, Supervisor, classify_bus_error
@@ -281,6 +281,7 @@ class Runtime:
         """INACTIVE -> ACTIVE: drives enabled, the reference ramped from the measured pose.
         False (and FAULT) when the drives refuse or the measured pose is already outside the limits."""
         self._activate = False
+        freeze_heap()  # before the drives run: a collection between two exchanges could stall them
         try:
             feedback = self.bus.enable(None)  # one period at zero torque; see docs/runtime.md
         except DriveError as exc:

@@ -37,7 +37,7 @@ MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 # Bounds on waits for frames on a loaded machine (not assertions on time): the lock-step target
 # does not care about wall time.
 SLOW_MACHINE = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
-                "state_change_timeout_s": 5.0}
+                "state_change_timeout_s": 5.0, "comm_loss_timeout_s": 1.0}
 TRACK_S = 5.0
 # What the PD bundle (LMPC) achieves on C1 in lock-step (pybullet, 32 substeps): max |q - q_ref| after
 # the ramp, per joint, about 0.002-0.07 rad; bounded here with a margin, per joint.
