@@ -1,0 +1,69 @@
+"""Real-time hygiene: where the OS refuses, one warning and carry on; gc off inside the loop."""
+
+from __future__ import annotations
+
+import errno
+import gc
+import logging
+import os
+import threading
+
+import pytest
+
+from hil_runtime import realtime
+from hil_runtime.realtime import GcQuiet, RealtimeReport, set_thread_affinity, set_thread_fifo
+
+
+def _eperm(*args: object) -> None:
+    raise PermissionError(errno.EPERM, "Operation not permitted")
+
+
+def test_refusals_are_one_warning_each_and_not_errors(monkeypatch: pytest.MonkeyPatch,
+                                                      caplog: pytest.LogCaptureFixture) -> None:  # fmt: skip
+    monkeypatch.setattr(os, "sched_setscheduler", _eperm)
+    monkeypatch.setattr(os, "sched_setaffinity", _eperm)
+    report = RealtimeReport()
+    with caplog.at_level(logging.WARNING, logger="hil_runtime.realtime"):
+        assert set_thread_fifo(80, report) is False
+        assert set_thread_affinity((1,), report) is False
+    assert report.applied == [] and len(report.refused) == 2
+    assert "Operation not permitted" in report.refused[0]
+    assert len(caplog.records) == 2 and all("carrying on" in r.getMessage() for r in caplog.records)
+
+
+def test_mlockall_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    class Libc:
+        def mlockall(self, flags: int) -> int:
+            assert flags == realtime.MCL_CURRENT | realtime.MCL_FUTURE
+            return -1
+
+    monkeypatch.setattr(realtime.ctypes, "CDLL", lambda *a, **k: Libc())
+    monkeypatch.setattr(realtime.ctypes, "get_errno", lambda: errno.EPERM)
+    report = RealtimeReport()
+    assert realtime.lock_memory(report) is False
+    assert report.refused and "EPERM" in report.refused[0]
+
+
+def test_affinity_acts_on_the_calling_thread_only() -> None:
+    if not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs two CPUs")
+    before = os.sched_getaffinity(0)
+    cpu = min(before)
+    seen = {}
+
+    def worker() -> None:
+        seen["ok"] = set_thread_affinity((cpu,))
+        seen["inside"] = os.sched_getaffinity(0)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert seen["ok"] and seen["inside"] == {cpu}
+    assert os.sched_getaffinity(0) == before  # this thread untouched
+
+
+def test_gc_is_off_inside_and_restored() -> None:
+    assert gc.isenabled()
+    with GcQuiet():
+        assert not gc.isenabled()
+    assert gc.isenabled()
