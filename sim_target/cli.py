@@ -53,21 +53,25 @@ def inject(
     command: Annotated[str, typer.Argument(help='one JSON fault, e.g. \'{"kind": "payload", "mass_kg": 2}\', or {"kind": "status"}')],
     socket_path: Annotated[Path, typer.Option("--socket", help="the target's control_socket")],
 ) -> None:
-    """Send a fault (or a status request) to a running target."""
-    from sim_target.config import TargetConfigError
-    from sim_target.server import send_control
+    """Send a fault (or a status request) to a running target; exit 2 if it refuses the fault."""
+    from sim_target.config import TargetConfigError, parse_fault  # light: no pybullet for a client
+    from sim_target.control import send_control
 
     try:
         data = json.loads(command)
     except json.JSONDecodeError as exc:
         raise TargetConfigError(f"inject: not JSON ({exc.msg})") from None
+    if not (isinstance(data, dict) and data.get("kind") == "status"):
+        parse_fault(data, "inject")  # the schema here; joint count and node ids at the target
     try:
         reply = send_control(socket_path, data)
     except OSError as exc:
         raise TargetConfigError(f"{socket_path}: cannot reach the target ({exc.strerror or exc})") from None
+    except ValueError:
+        raise TargetConfigError(f"{socket_path}: the target's reply is not JSON") from None
     print(json.dumps(reply))
     if not reply.get("ok"):
-        raise typer.Exit(1)
+        raise TargetConfigError(f"{socket_path}: target refused: {reply.get('error', 'no reason given')}")
 
 
 def register(app: typer.Typer) -> None:

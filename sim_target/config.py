@@ -22,13 +22,16 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from drivers.config import TransportConfig, format_validation_error, is_loopback_host
+from drivers.busload import DEFAULT_LIMIT, TPDO_FD_SYNC_BYTES, check_bus_load
+from drivers.config import DriveBusConfig, TransportConfig, format_validation_error, is_loopback_host
+from drivers.errors import BusLoadError
 
 
 class TargetConfigError(ValueError):
@@ -38,13 +41,17 @@ class TargetConfigError(ValueError):
 
 
 class _Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # allow_inf_nan=False: NaN or infinity anywhere is "not a finite number", not a range error
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 def _finite(values: tuple[float, ...], field: str) -> tuple[float, ...]:
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"{field} must be finite")
     return values
+
+
+_NonNegative = Annotated[float, Field(ge=0)]
 
 
 # --- faults ----------------------------------------------------------------------------------------
@@ -83,8 +90,8 @@ class HeartbeatFault(_Fault):
 
 class EncoderNoiseFault(_Fault):
     kind: Literal["encoder_noise"]
-    position_rad: float = Field(ge=0)  # standard deviation
-    velocity_rad_s: float = Field(0.0, ge=0)
+    position_rad: float = Field(ge=0, le=10)  # standard deviation
+    velocity_rad_s: float = Field(0.0, ge=0, le=100)
 
 
 class PayloadFault(_Fault):
@@ -92,15 +99,15 @@ class PayloadFault(_Fault):
 
     kind: Literal["payload"]
     mass_kg: float = Field(ge=0, le=1000)
-    inertia_kg_m2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia_kg_m2: tuple[_NonNegative, _NonNegative, _NonNegative] = (0.0, 0.0, 0.0)  # principal moments
 
 
 class ImpulseFault(_Fault):
     """An external joint torque over [at_s, at_s + duration_s); the paper's disturbance by default."""
 
     kind: Literal["impulse"]
-    torque_nm: tuple[float, ...] = (1.0, 1.0, 5.0, 5.0, 10.0, 10.0)
-    duration_s: float = Field(2e-5, gt=0)  # 20 µs, as in the models simulator (docs/conditions.md)
+    torque_nm: tuple[float, ...] = Field((1.0, 1.0, 5.0, 5.0, 10.0, 10.0), min_length=1)
+    duration_s: float = Field(2e-5, gt=0, le=3600)  # 20 µs, as in the models simulator (docs/conditions.md)
 
     @model_validator(mode="after")
     def _check(self) -> ImpulseFault:
@@ -176,36 +183,171 @@ class TargetConfig(_Frozen):
 
 # --- loading ---------------------------------------------------------------------------------------
 
+MAX_CONFIG_BYTES = 1 << 20  # a target config is a few hundred bytes
+
 
 def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
+    """Validate a mapping, then check it against its URDF and the drive bus (``check_target_config``)."""
+    if data is None:
+        raise TargetConfigError(f"{source}: empty (expected a mapping of target settings)")
+    if not isinstance(data, dict):
+        raise TargetConfigError(f"{source}: expected a mapping of target settings, got {type(data).__name__}")
     try:
-        return TargetConfig.model_validate(data if data is not None else {})
+        config = TargetConfig.model_validate(data)
     except ValidationError as exc:
         raise TargetConfigError(format_validation_error(source, exc)) from None
+    check_target_config(config, source)
+    return config
+
+
+def _read_text(path: Path) -> str:
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise TargetConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise TargetConfigError(f"{path}: {len(data)} bytes, not a target config (limit {MAX_CONFIG_BYTES})")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise TargetConfigError(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
+    if "\x00" in text:
+        raise TargetConfigError(f"{path}: not a text file (contains NUL bytes)")
+    return text
 
 
 def load_target_config(path: Path | str) -> TargetConfig:
     """Read a YAML (.yaml/.yml) or TOML (.toml) target configuration."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise TargetConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    text = _read_text(path)
     try:
         data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
     except (yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
         raise TargetConfigError(f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'YAML'} "
                                 f"({str(exc).splitlines()[0]})") from None
-    config = parse_target_config(data, str(path))
-    if config.urdf is not None and not config.urdf.is_absolute():
+    if data is None or data == {}:
+        raise TargetConfigError(f"{path}: empty file (expected target settings; see deploy/target.virtual.yaml)")
+    if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
         # Relative URDF paths are relative to the config file, not the working directory.
-        config = config.model_copy(update={"urdf": (path.parent / config.urdf).resolve()})
-    return config
+        data = {**data, "urdf": str((path.parent / data["urdf"]).resolve())}
+    return parse_target_config(data, str(path))
 
 
 def parse_fault(data: Any, source: str = "fault") -> Fault:
-    """Validate one fault command (from the control socket)."""
+    """Validate one fault command's schema (from the control socket); see also ``check_fault``."""
     try:
         return _FAULT_ADAPTER.validate_python(data)
     except ValidationError as exc:
         raise TargetConfigError(format_validation_error(source, exc)) from None
+
+
+# --- checks against the robot and the bus ----------------------------------------------------------
+
+
+def target_urdf_path(config: TargetConfig) -> Path:
+    """The URDF the plant will load: ``urdf``, or the built-in robot's (through models.robots)."""
+    if config.urdf is not None:
+        return config.urdf
+    robot = config.robot or "ur5_paper"
+    try:
+        from models.robots import urdf_path
+    except ImportError:  # the file ships here even without the models package
+        if robot != "ur5_paper":
+            raise TargetConfigError(f"robot: '{robot}' needs models.robots, which is not importable") from None
+        return Path(__file__).resolve().parents[1] / "models" / "robots" / "data" / "ur5_paper.urdf"
+    try:
+        return Path(urdf_path(robot))
+    except ValueError as exc:
+        raise TargetConfigError(f"robot: {exc}") from None
+
+
+@dataclass(frozen=True)
+class TargetLayout:
+    """The drives the target will run: joint names, limits and node ids, in drive order."""
+
+    joint_names: tuple[str, ...]
+    lower_rad: tuple[float, ...]
+    upper_rad: tuple[float, ...]
+    node_ids: tuple[int, ...]
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+
+def target_layout(config: TargetConfig, source: str = "config") -> TargetLayout:
+    """Joints (as the plant picks them: ``plant.joint_names`` or every revolute joint) and node ids."""
+    from sim_target.urdf import UrdfError, read_urdf_joints
+
+    urdf = target_urdf_path(config)
+    try:
+        joints = read_urdf_joints(urdf)
+    except UrdfError as exc:
+        raise TargetConfigError(f"{source}: urdf: {exc}") from None
+    movable = {j.name: j for j in joints if j.type in ("revolute", "continuous", "prismatic")}
+    if config.plant.joint_names is not None:
+        unknown = [n for n in config.plant.joint_names if n not in movable]
+        if unknown:
+            raise TargetConfigError(f"{source}: plant.joint_names: {unknown} are not movable joints of {urdf.name}")
+        chosen = [movable[n] for n in config.plant.joint_names]
+    else:
+        chosen = [j for j in joints if j.type == "revolute"]
+    if not chosen:
+        raise TargetConfigError(f"{source}: {urdf.name}: no revolute joint to drive")
+    node_ids = config.drives.node_ids or tuple(range(1, len(chosen) + 1))
+    if len(node_ids) != len(chosen):
+        raise TargetConfigError(f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}")
+    return TargetLayout(tuple(j.name for j in chosen), tuple(j.lower_rad for j in chosen),
+                        tuple(j.upper_rad for j in chosen), tuple(node_ids))  # fmt: skip
+
+
+def check_fault(fault: Fault, layout: TargetLayout, source: str = "fault") -> None:
+    """Refuse a fault the target could not apply (wrong joint count, a node that is not a drive)."""
+    nodes = set(layout.node_ids)
+
+    def known(node_id: int, field: str) -> None:
+        if node_id not in nodes:
+            raise TargetConfigError(f"{source}: {field}: node {node_id} is not a drive of this target "
+                                    f"(drives: {', '.join(map(str, layout.node_ids))})")  # fmt: skip
+
+    if isinstance(fault, ImpulseFault) and len(fault.torque_nm) != layout.n_joints:
+        raise TargetConfigError(f"{source}: torque_nm: {len(fault.torque_nm)} values for {layout.n_joints} joints")
+    if isinstance(fault, (DriveFault, HeartbeatFault)):
+        known(fault.node_id, "node_id")
+    if isinstance(fault, FrameFault) and fault.node_ids is not None:
+        for i, node_id in enumerate(fault.node_ids):
+            known(node_id, f"node_ids[{i}]")
+
+
+def check_target_config(config: TargetConfig, source: str = "config") -> TargetLayout:
+    """What the schema alone cannot see: the URDF (limits, inertials), the initial position inside
+    the joint limits, the faults against the drives, and the bus load the runtime's DriveBus would
+    refuse (the same budget: drivers.busload with DriveBusConfig's heartbeat defaults)."""
+    layout = target_layout(config, source)
+    q0 = config.plant.initial_position_rad
+    if q0 is not None:
+        if len(q0) != layout.n_joints:
+            raise TargetConfigError(f"{source}: plant.initial_position_rad: {len(q0)} values for {layout.n_joints} joints")
+        for i, (q, lo, hi, name) in enumerate(zip(q0, layout.lower_rad, layout.upper_rad, layout.joint_names)):
+            if not lo <= q <= hi:
+                raise TargetConfigError(f"{source}: plant.initial_position_rad[{i}]: {q:g} rad is outside joint "
+                                        f"'{name}' limits [{lo:g}, {hi:g}]")  # fmt: skip
+    for field in ("brake_holding_torque_nm",):
+        values = getattr(config.plant, field)
+        if values is not None:
+            if len(values) != layout.n_joints:
+                raise TargetConfigError(f"{source}: plant.{field}: {len(values)} values for {layout.n_joints} joints")
+            if any(v < 0 for v in values):
+                raise TargetConfigError(f"{source}: plant.{field}: negative value")
+    for i, fault in enumerate(config.faults):
+        check_fault(fault, layout, f"{source}: faults[{i}]")
+    defaults = DriveBusConfig.model_fields
+    try:
+        check_bus_load(
+            layout.n_joints, 1.0 / config.period_s, config.bus.bitrate, config.bus.fd_data_bitrate,
+            defaults["heartbeat_producer_ms"].default / 1000.0, DEFAULT_LIMIT, f"{source}: bus",
+            TPDO_FD_SYNC_BYTES, defaults["master_heartbeat_ms"].default / 1000.0,
+        )  # fmt: skip
+    except BusLoadError as exc:
+        raise TargetConfigError(str(exc)) from None
+    return layout

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import queue
 import socket
 import socketserver
@@ -33,6 +34,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from stat import S_ISSOCK
 from typing import Any, Protocol
 
 import can
@@ -49,8 +51,11 @@ from sim_target.config import (
     PayloadFault,
     TargetConfig,
     TargetConfigError,
+    TargetLayout,
+    check_fault,
     parse_fault,
 )
+from sim_target.control import send_control  # noqa: F401 - re-exported: the client side lives there
 from sim_target.plant import JointState, PybulletPlant, TorqueImpulse, default_urdf_path
 
 log = logging.getLogger(__name__)
@@ -103,9 +108,14 @@ class TargetServer:
         self._stop = threading.Event()
         self._pending: queue.SimpleQueue[Fault] = queue.SimpleQueue()
         self._scheduled: list[Fault] = []
-        for fault in config.faults:
+        self.layout = TargetLayout(plant.joint_names, tuple(plant.position_limit_rad[:, 0]),
+                                   tuple(plant.position_limit_rad[:, 1]),
+                                   config.drives.node_ids or tuple(range(1, plant.n_joints + 1)))  # fmt: skip
+        for i, fault in enumerate(config.faults):
+            check_fault(fault, self.layout, f"faults[{i}]")
             if isinstance(fault, ImpulseFault):  # the plant schedules impulses to the sub-period
-                self._apply(fault, at_s=fault.at_s)
+                self.plant.add_impulse(TorqueImpulse(fault.torque_nm, fault.at_s, fault.duration_s))
+                log.info("fault scheduled at t=%.4f s: %s", fault.at_s, fault)
             else:
                 self._scheduled.append(fault)
         self._scheduled.sort(key=lambda fault: fault.at_s)
@@ -180,7 +190,11 @@ class TargetServer:
     # --- faults ---------------------------------------------------------------------------------
 
     def inject(self, fault: Fault) -> None:
-        """Apply ``fault`` before the next step (thread-safe; from the control socket)."""
+        """Apply ``fault`` before the next step (thread-safe; from the control socket).
+
+        Checked completely first (joint count, node ids): a fault accepted here cannot fail later
+        in the physics thread and take the target down; TargetConfigError otherwise."""
+        check_fault(fault, self.layout, "control")
         self._pending.put(fault)
 
     def _apply_due_faults(self) -> None:
@@ -228,12 +242,15 @@ class TargetServer:
 
 
 class _ControlServer:
-    """Line-oriented JSON over a Unix socket: local only, no network address involved."""
+    """Line-oriented JSON over a Unix socket: local only, no network address involved.
+
+    It removes only what it owns: a leftover *socket* that nobody answers on (a killed run) before
+    binding, and on close the socket it bound itself (same inode). A regular file, a directory or a
+    socket another target is serving on is never touched: the target refuses to start instead."""
 
     def __init__(self, path: Path, target: TargetServer) -> None:
         self.path = Path(path)
-        if self.path.exists():
-            self.path.unlink()  # a stale socket from a killed run
+        _claim_socket_path(self.path)
 
         class Handler(socketserver.StreamRequestHandler):
             def handle(self) -> None:
@@ -241,7 +258,12 @@ class _ControlServer:
                     reply = _control_reply(target, raw.decode(errors="replace"))
                     self.wfile.write((json.dumps(reply) + "\n").encode())
 
-        self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
+        try:
+            self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
+        except OSError as exc:
+            raise TargetConfigError(f"control_socket {self.path}: cannot bind ({exc.strerror or exc})") from None
+        stat = os.stat(self.path)
+        self._identity = (stat.st_dev, stat.st_ino)
         self._server.daemon_threads = True
         self._thread = threading.Thread(target=self._server.serve_forever, name="target-control", daemon=True)
         self._thread.start()
@@ -249,7 +271,34 @@ class _ControlServer:
     def close(self) -> None:
         self._server.shutdown()
         self._server.server_close()
-        self.path.unlink(missing_ok=True)
+        try:
+            stat = os.lstat(self.path)
+        except OSError:
+            return
+        if (stat.st_dev, stat.st_ino) == self._identity:  # still ours: not replaced by another target
+            self.path.unlink(missing_ok=True)
+
+
+def _claim_socket_path(path: Path) -> None:
+    """Make ``path`` free for bind, or refuse (TargetConfigError) without deleting anything not ours."""
+    try:
+        stat = os.lstat(path)
+    except FileNotFoundError:
+        if not path.parent.is_dir():
+            raise TargetConfigError(f"control_socket {path}: directory {path.parent} does not exist") from None
+        return
+    if not S_ISSOCK(stat.st_mode):
+        raise TargetConfigError(f"control_socket {path}: exists and is not a socket; not removed (choose another path)")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(0.5)
+        try:
+            probe.connect(str(path))
+        except (ConnectionRefusedError, FileNotFoundError):
+            path.unlink(missing_ok=True)  # a socket nobody serves: left by a killed run
+            return
+        except OSError as exc:
+            raise TargetConfigError(f"control_socket {path}: cannot check it ({exc.strerror or exc})") from None
+    raise TargetConfigError(f"control_socket {path}: in use by another running target")
 
 
 def _control_reply(target: TargetServer, line: str) -> dict[str, Any]:
@@ -263,21 +312,9 @@ def _control_reply(target: TargetServer, line: str) -> dict[str, Any]:
         return {"ok": False, "error": f"control: not JSON ({exc.msg})"}
     except TargetConfigError as exc:
         return {"ok": False, "error": str(exc)}
-
-
-def send_control(path: Path | str, command: dict[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
-    """Send one command to a running target's control socket and return its reply."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(timeout_s)
-        sock.connect(str(path))
-        sock.sendall((json.dumps(command) + "\n").encode())
-        reply = b""
-        while not reply.endswith(b"\n"):
-            chunk = sock.recv(65536)
-            if not chunk:
-                break
-            reply += chunk
-    return json.loads(reply)
+    except Exception as exc:  # noqa: BLE001 - a bad command must never take the control thread down
+        log.exception("control command failed: %s", line.strip()[:200])
+        return {"ok": False, "error": f"control: {type(exc).__name__}: {exc}"}
 
 
 # --- assembly -------------------------------------------------------------------------------------
@@ -333,12 +370,18 @@ def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]
         raise
     if bridge is not None:
         server.bridge_url = bridge.url
-    if config.control_socket is not None:
-        server.serve_control(config.control_socket)
 
     def close() -> None:
         bus.shutdown()
         if bridge is not None:
             bridge.close()
+
+    if config.control_socket is not None:
+        try:
+            server.serve_control(config.control_socket)
+        except BaseException:
+            server.shutdown()
+            close()
+            raise
 
     return server, close

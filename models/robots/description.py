@@ -190,6 +190,14 @@ def _link_inertial(path: Path, link: ET.Element) -> tuple[float, np.ndarray, np.
     if inertia_el is not None:
         i = {k: float(_floats(path, inertia_el, k, "0", 1)[0]) for k in i}
     tensor = np.array([[i["ixx"], i["ixy"], i["ixz"]], [i["ixy"], i["iyy"], i["iyz"]], [i["ixz"], i["iyz"], i["izz"]]])
+    # A physical inertia is positive semi-definite; pinocchio would stop with a RuntimeError later.
+    for k in ("ixx", "iyy", "izz"):
+        if i[k] < -1e-12:
+            raise ModelInputError(f"{path.name}: link '{link.get('name')}' <inertia> {k}: negative ({i[k]:g})")
+    smallest = float(np.linalg.eigvalsh(tensor)[0])
+    if smallest < -1e-12 * max(1.0, float(np.abs(tensor).max())):
+        raise ModelInputError(f"{path.name}: link '{link.get('name')}' <inertia>: not positive semi-definite "
+                              f"(principal moment {smallest:g})")  # fmt: skip
     return mass, com, rotation @ tensor @ rotation.T
 
 
@@ -261,6 +269,28 @@ def _chain_from_urdf(
     chain_joints = moving(ancestry(tip))
     if not chain_joints:
         raise ModelInputError(f"{path.name}: no revolute joint found")
+    # Joints off the chain (a gripper's fingers) are locked at zero. A prismatic joint before the
+    # last revolute joint, on the way to the end effector, or continuing the arm serially after it
+    # (its parent link has no other child, it mimics nothing) would silently freeze a degree of
+    # freedom of the arm, and a later joint-count error would blame another file: refuse it.
+    path_to_tip = ancestry(tip)
+    on_chain = path_to_tip[: path_to_tip.index(chain_joints[-1])]
+    if ee_link is not None and ee_link in links:
+        on_chain += ancestry(ee_link)
+    children: dict[str, list[ET.Element]] = {}
+    for j in joints:
+        children.setdefault(j.find("parent").get("link"), []).append(j)  # type: ignore[union-attr]
+    stack = [chain_joints[-1].find("child").get("link")]  # type: ignore[union-attr]
+    while stack:
+        for j in children.get(stack.pop(), []):
+            siblings = children[j.find("parent").get("link")]  # type: ignore[union-attr]
+            if len(siblings) == 1 and j.find("mimic") is None:
+                on_chain.append(j)
+            stack.append(j.find("child").get("link"))  # type: ignore[union-attr]
+    for joint in on_chain:
+        if joint.get("type") == "prismatic":
+            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' type 'prismatic' on the arm's chain: "
+                                  "only revolute and continuous joints are supported")  # fmt: skip
     for j in joints:
         if j.get("type") not in _MOVING | {"fixed", "prismatic"}:
             raise ModelInputError(f"{path.name}: joint '{j.get('name')}' type '{j.get('type')}' not supported")
@@ -302,13 +332,22 @@ def _chain_from_urdf(
             raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <axis> xyz: zero vector")
         axes.append(axis / np.linalg.norm(axis))
         limit = joint.find("limit")
-        lower = float(limit.get("lower", "-inf")) if limit is not None else -math.inf
-        upper = float(limit.get("upper", "inf")) if limit is not None else math.inf
+        if limit is None and joint.get("type") == "revolute":  # URDF requires it; NaN limits otherwise
+            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit>: missing "
+                                  "(a revolute joint needs lower, upper, effort and velocity)")  # fmt: skip
+        lower = float(_floats(path, limit, "lower", "0", 1)[0]) if limit is not None else -math.inf
+        upper = float(_floats(path, limit, "upper", "0", 1)[0]) if limit is not None else math.inf
         if joint.get("type") == "continuous":
             lower, upper = -math.inf, math.inf
+        elif lower > upper:
+            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit>: lower {lower:g} above upper {upper:g}")
         pos_range.append((lower, upper))
-        vel_lim.append(float(limit.get("velocity", "inf")) if limit is not None else math.inf)
-        tau_lim.append(float(limit.get("effort", "inf")) if limit is not None else math.inf)
+        velocity = float(_floats(path, limit, "velocity", "inf", 1)[0]) if limit is not None else math.inf
+        effort = float(_floats(path, limit, "effort", "inf", 1)[0]) if limit is not None else math.inf
+        if velocity <= 0 or effort <= 0:
+            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit>: velocity and effort must be positive")
+        vel_lim.append(velocity)
+        tau_lim.append(effort)
 
     ee_rotation, ee_translation = np.eye(3), np.zeros(3)
     if ee_link is not None:

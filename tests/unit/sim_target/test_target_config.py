@@ -29,11 +29,11 @@ def test_shipped_configs_load(name: str) -> None:
 
 def test_toml_and_yaml_give_the_same_config(tmp_path: Path) -> None:
     (tmp_path / "t.toml").write_text(
-        'period_s = 0.002\nclock = "realtime"\n[bus]\nchannel = "x"\n'
+        'period_s = 0.004\nclock = "realtime"\n[bus]\nchannel = "x"\n'
         '[[faults]]\nkind = "payload"\nat_s = 1.0\nmass_kg = 2.0\n'
     )
     (tmp_path / "t.yaml").write_text(
-        "period_s: 0.002\nclock: realtime\nbus: {channel: x}\nfaults: [{kind: payload, at_s: 1.0, mass_kg: 2.0}]\n"
+        "period_s: 0.004\nclock: realtime\nbus: {channel: x}\nfaults: [{kind: payload, at_s: 1.0, mass_kg: 2.0}]\n"
     )
     assert load_target_config(tmp_path / "t.toml") == load_target_config(tmp_path / "t.yaml")
     assert load_target_config(tmp_path / "t.toml").faults == (PayloadFault(kind="payload", at_s=1.0, mass_kg=2.0),)
