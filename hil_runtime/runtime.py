@@ -237,7 +237,8 @@ class Runtime:
         self._ready_sent = False
         self._activations = 0
         self._faults = 0
-        self.total_cycles = 0
+        self.total_cycles = 0  # exchanges in ACTIVE
+        self._seq = 0  # telemetry state samples offered (activation rows included)
         self.last_fault: Fault | None = None
         self._last_stats: dict[str, Any] = {}
 
@@ -461,7 +462,8 @@ class Runtime:
             return fault
         controller.commit(command)
         # compute_s here: this cycle's work up to the hand-off (the pacer's stats hold the full cycle's)
-        self.telemetry.offer_state(self.total_cycles, time.monotonic_ns(), q, qd, q_d, qd_d, command, tau_fb,
+        self._seq += 1
+        self.telemetry.offer_state(self._seq, time.monotonic_ns(), q, qd, q_d, qd_d, command, tau_fb,
                                    fallback, self._clock() - received_s)  # fmt: skip
         if self.record.capacity:
             self.record.add(k * self.pacer.period_s, start_s - self._t0_s, q, qd, q_d, qd_d, command, tau_fb,

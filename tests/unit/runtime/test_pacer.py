@@ -99,8 +99,9 @@ def test_rolling_stats_keep_a_window_and_the_all_time_max() -> None:
         stats.add(float(v))
     s = stats.summary()
     assert s["count"] == 1000
-    assert s["median"] == pytest.approx(949.5)  # the last 100 samples: 900..999
-    assert s["p99"] == pytest.approx(np.percentile(np.arange(900, 1000), 99))
+    window = np.arange(900, 1000)  # the last 100 samples
+    assert s["median"] == np.percentile(window, 50, method="nearest")
+    assert s["p99"] == np.percentile(window, 99, method="nearest")
     assert s["max"] == 999.0 and s["max_all"] == 999.0
     stats.add(-1.0)  # overwrites the oldest in place
     assert stats.values().shape == (100,)
@@ -109,3 +110,16 @@ def test_rolling_stats_keep_a_window_and_the_all_time_max() -> None:
 def test_invalid_period() -> None:
     with pytest.raises(ValueError):
         Pacer(0.0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 99, 100, 101, 4096])
+def test_percentiles_are_numpys_nearest_rank(n: int) -> None:
+    rng = np.random.default_rng(n)
+    data = rng.exponential(size=n)
+    stats = RollingStats(window=4096)
+    for v in data:
+        stats.add(float(v))
+    s = stats.summary()
+    assert s["median"] == np.percentile(data, 50, method="nearest")
+    assert s["p99"] == np.percentile(data, 99, method="nearest")
+    assert s["max"] == data.max()
