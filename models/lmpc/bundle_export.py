@@ -119,7 +119,7 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
                   trust_region: tuple[np.ndarray, np.ndarray] | None = None,
                   parity_inputs: np.ndarray | None = None, residual: bool = False,
                   residual_bound_nm: np.ndarray | None = None, box_margin: float = 0.1,
-                  feature_set: str | None = None) -> dict[str, Any]:  # fmt: skip
+                  feature_set: str | None = None, policy_class: type | None = None) -> dict[str, Any]:  # fmt: skip
     """Write the bundle directory (atomically: a temporary sibling renamed at the end); return the manifest.
 
     ``residual``: the emulator predicts tau* - tau_fb (its zero is the feedback law). ``trust_region``
@@ -141,7 +141,8 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
                     "tau = sat(tau_fb + alpha clip(tau_L - tau_fb, -residual_bound_nm, residual_bound_nm)); "
                     "alpha = 0: fallback to the feedback law (hil_runtime.bundle)",
             "bound_source": "per-joint percentile of |tau* - tau_fb| over the training labels (training.trust)"}  # fmt: skip
-        model = FusedPolicy(law, emulator, residual, trust, feature_set).eval()
+        # policy_class: a FusedPolicy subclass with the same inputs/outputs (models.lmpc.structured)
+        model = (policy_class or FusedPolicy)(law, emulator, residual, trust, feature_set).eval()
         example = torch.zeros(2, 5 * n + s, dtype=torch.float64)
         import warnings
 
