@@ -20,6 +20,7 @@
       ramp_s: 2.0                        # from the measured pose onto the reference start
     loop:
       pacing: clock                      # clock: absolute deadlines; bus: as fast as the bus answers
+      time_base: auto                    # reference index: wall (clock) or cycles (lock-step, bus)
       cpu_affinity: null                 # e.g. [1]: the loop thread only
       fifo_priority: null                # e.g. 50: SCHED_FIFO on the loop thread only
       lock_memory: false                 # mlockall(MCL_CURRENT | MCL_FUTURE)
@@ -96,6 +97,10 @@ class LoopSection(_Frozen):
     # bus: no sleeping; a lock-stepped target's answer paces the loop (simulated time still
     # advances one period per cycle).
     pacing: Literal["clock", "bus"] = "clock"
+    # What indexes the reference: wall (period slots, skipped ones included: a real arm moves on
+    # while the loop overruns) or cycles (one row per exchange: a lock-stepped target advances one
+    # period per SYNC whatever the wall clock does). auto: wall with clock pacing, cycles with bus.
+    time_base: Literal["auto", "wall", "cycles"] = "auto"
     cpu_affinity: tuple[int, ...] | None = None  # CPUs for the loop thread only
     fifo_priority: int | None = Field(None, ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     lock_memory: bool = False  # mlockall; needs LimitMEMLOCK (systemd) or CAP_IPC_LOCK

@@ -229,6 +229,10 @@ class Runtime:
         self._command = np.zeros(n)  # the set-points the next exchange sends
         self._ref_base = 1  # reference row of the pacer's tick 0: exchange k returns period k + 1
         self._t0_s = 0.0  # clock at activation
+        # Wall time: a skipped period moves the reference on (a real arm moved meanwhile); cycles:
+        # one reference row per exchange (a lock-stepped target advanced exactly one period).
+        base = config.loop.time_base
+        self._wall_time = (config.loop.pacing == "clock") if base == "auto" else (base == "wall")
         self._stop = False
         self._reset = False
         self._activate = False
@@ -393,6 +397,8 @@ class Runtime:
         command = self._command
         record = self.record
         base = self._ref_base
+        wall_time = self._wall_time  # reference index: period slots (skips included) or exchanges
+        k = base
         reason = "stop"
         with GcQuiet():
             pacer.start()
@@ -413,7 +419,8 @@ class Runtime:
                     break
                 received = clock()
                 try:
-                    fault = compute(feedback, base + pacer.tick, start, received)
+                    k = base + (pacer.tick if wall_time else pacer.cycles - 1)
+                    fault = compute(feedback, k, start, received)
                 except Exception as exc:  # noqa: BLE001 - a bug must still stop the arm safely
                     log.exception("loop computation failed")
                     fault = Fault(FaultKind.INTERNAL, f"{type(exc).__name__}: {exc}")
@@ -434,11 +441,11 @@ class Runtime:
                 if max_cycles is not None and pacer.cycles >= max_cycles:
                     reason = "cycles"
                     break
-                if duration_ticks is not None and base + pacer.tick >= duration_ticks:
+                if duration_ticks is not None and k >= duration_ticks:
                     reason = "duration"
                     break
         if pacer.cycles:
-            self._ref_base = base + pacer.tick + 1  # a later run() goes on along the reference
+            self._ref_base = k + 1  # a later run() goes on along the reference
         self._publish_stats()
         return reason
 

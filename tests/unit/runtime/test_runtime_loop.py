@@ -270,3 +270,33 @@ def test_status_snapshot_is_json_able() -> None:
     rt.run(max_cycles=50)
     status = json.loads(json.dumps(rt.status()))
     assert status["state"] == "ACTIVE" and status["cycles"] == 50 and status["fault"] is None
+
+
+@pytest.mark.parametrize(("time_base", "expect_jumps"), [("wall", True), ("cycles", False), ("auto", True)])
+def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: str, expect_jumps: bool) -> None:
+    """Clock pacing on a fake clock; every 10th exchange takes 2.5 periods (an overrun, two periods
+    skipped). On wall time the reference index jumps over the skipped periods; on cycles (a lock-
+    stepped target) it advances one row per exchange."""
+    now = [0.0]
+    bus = _bus()
+    exchange = bus.exchange
+    calls = [0]
+
+    def slow_exchange(torque: np.ndarray):  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        now[0] += 0.0025 if calls[0] % 10 == 0 else 0.0002
+        return exchange(torque)
+
+    bus.exchange = slow_exchange  # type: ignore[method-assign]
+    config = parse_runtime_config(config_dict(loop={"pacing": "clock", "time_base": time_base}), "rt.yaml")
+    rt = Runtime(config, bus, record_cycles=200, clock=lambda: now[0],
+                 sleep=lambda s: now.__setitem__(0, now[0] + s))  # fmt: skip
+    rt.configure()
+    rt.activate()
+    rt.run(max_cycles=101)  # the 10th slow exchange's overrun shows at the 101st cycle's start
+    steps = np.round(np.diff(rt.record.t_s[: rt.record.n]) / 0.001).astype(int)
+    assert rt.pacer.overruns == 10 and rt.pacer.skipped == 10
+    if expect_jumps:
+        assert sorted(set(steps.tolist())) == [1, 2] and (steps == 2).sum() == 10
+    else:
+        assert set(steps.tolist()) == {1}
