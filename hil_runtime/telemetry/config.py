@@ -72,7 +72,7 @@ def is_loopback_endpoint(endpoint: str) -> bool:
 
 def check_key_chunk(name: str, what: str) -> str:
     if not name or any(char in _FORBIDDEN_CHUNK_CHARS for char in name) or name != name.strip():
-        raise ValueError(f"{what} {name!r} cannot be a Zenoh key chunk (no '/', '*', '$', '?', '#', blanks)")
+        raise TelemetryConfigError(f"{what} {name!r} cannot be a Zenoh key chunk (no '/', '*', '$', '?', '#', blanks)")
     return name
 
 
@@ -130,7 +130,7 @@ class TelemetryConfig(BaseModel):
 
     def key_prefix(self, robot: str) -> str:
         """``hil/<robot>``: the config's robot wins over the runtime's robot name."""
-        return f"{KEY_PREFIX}/{check_key_chunk(self.robot or robot, 'robot')}"
+        return f"{KEY_PREFIX}/{check_key_chunk(self.robot or robot, 'telemetry: robot')}"
 
     def summary(self) -> dict[str, Any]:
         return json.loads(self.model_dump_json())

@@ -1,0 +1,122 @@
+"""A fake control loop publishing telemetry at 1 kHz: the runtime's calls, none of its work.
+
+    python tests/integration/telemetry_fake_loop.py --port 17447 --seconds 5 --timing out.npz
+
+Prints ``ready`` once the sink is started (publishers warm, token declared), then runs an absolute
+1 kHz schedule calling ``offer_state`` with values that are a known function of the sample number
+(``expected_state``), so a subscriber can check what it decoded. On exit (time up or SIGTERM) it
+writes per-cycle timing (monotonic start, lateness, offer cost) and prints the sink's counters.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
+
+
+def expected_state(seq: int, n: int = len(JOINTS)) -> dict[str, np.ndarray | float]:
+    """The values sample ``seq`` carries: smooth, distinct per field and joint."""
+    t = seq * 1e-3
+    j = np.arange(n, dtype=float)
+    q = np.sin(t + j)
+    q_ref = np.sin(t + j + 0.01)
+    return {
+        "q": q,
+        "qd": np.cos(t + j),
+        "q_ref": q_ref,
+        "qd_ref": np.cos(t + j + 0.01),
+        "tau": 10.0 * (q_ref - q) + j,
+        "tau_fb": 9.0 * (q_ref - q) + j,
+        "fallback": 1.0 if seq % 100 == 0 else 0.0,
+        "compute_s": 1e-5 + 1e-9 * (seq % 1000),
+    }
+
+
+class _Controls:
+    def __init__(self) -> None:
+        self.stop = False
+        self.resets = 0
+
+    def request_stop(self) -> None:
+        self.stop = True
+
+    def request_reset(self) -> None:
+        self.resets += 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--robot", default="fake_arm")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--rate-hz", type=float, default=1000.0)
+    parser.add_argument("--timing", type=Path, default=None)
+    parser.add_argument("--controls", action="store_true")
+    parser.add_argument("--off", action="store_true", help="telemetry disabled (NullTelemetry)")
+    args = parser.parse_args(argv)
+
+    from hil_runtime.telemetry import TelemetryConfig, make_sink
+
+    config = TelemetryConfig(
+        enabled=not args.off, listen=(f"tcp/127.0.0.1:{args.port}",), controls_enabled=args.controls
+    )
+    controls = _Controls()
+    info = {
+        "joints": list(JOINTS),
+        "config": {"robot": args.robot, "period_s": 1.0 / args.rate_hz},
+        "bundle": {"bundle_id": "fake:000000000000", "law": "pd", "files": {"policy.onnx": "0" * 64}},
+    }
+    sink = make_sink(config, args.robot, info, controls if args.controls else None)
+    stopping = {"flag": False}
+    signal.signal(signal.SIGTERM, lambda *_: stopping.__setitem__("flag", True))
+    sink.start()
+    sink.set_status("INACTIVE", None)
+    sink.set_status("ACTIVE", None)
+    print("ready", flush=True)
+
+    period_s = 1.0 / args.rate_hz
+    n_max = int(args.seconds * args.rate_hz) + 1
+    starts = np.zeros(n_max)
+    lateness = np.zeros(n_max)
+    offer_ns = np.zeros(n_max, dtype=np.int64)
+    t0 = time.monotonic()
+    deadline = t0
+    seq = 0
+    while seq < n_max and not stopping["flag"] and not controls.stop:
+        deadline += period_s
+        delay = deadline - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        now = time.monotonic()
+        if now - deadline > period_s:  # overrun: skip the missed periods, never catch up in a burst
+            deadline += period_s * int((now - deadline) / period_s)
+        s = expected_state(seq)
+        begin = time.perf_counter_ns()
+        sink.offer_state(seq, time.monotonic_ns(), s["q"], s["qd"], s["q_ref"], s["qd_ref"], s["tau"], s["tau_fb"],
+                         s["fallback"], s["compute_s"])  # fmt: skip
+        offer_ns[seq] = time.perf_counter_ns() - begin
+        starts[seq] = now
+        lateness[seq] = now - deadline
+        if seq % 1000 == 999:
+            sink.offer_stats({"rate_hz": 1000.0 / max(now - starts[seq - 999], 1e-9) * 999 / 1000, "cycles": seq + 1})
+        seq += 1
+    sink.set_status("FINALIZED", None)
+    sink.close()
+    counters = getattr(sink, "counters", {})
+    if args.timing is not None:
+        np.savez(args.timing, start_s=starts[:seq], lateness_s=lateness[:seq], offer_ns=offer_ns[:seq])
+    print(json.dumps({"cycles": seq, "resets": controls.resets, "stopped_by_control": controls.stop, **counters}),
+          flush=True)  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
