@@ -237,7 +237,7 @@ def main() -> None:
     parser.add_argument("--ipc-period", type=float, default=0.001)
     parser.add_argument("--ipc-substeps", type=int, default=32)
     parser.add_argument("--rt", action="store_true",
-                        help="SCHED_FIFO %d for the driver thread and the target process (needs CAP_SYS_NICE)" % RT_PRIORITY)
+                        help=f"SCHED_FIFO {RT_PRIORITY} for the driver thread and the target process (CAP_SYS_NICE)")
     args = parser.parse_args()
     out: dict[str, Any] = {"benchmark": "hil_lockstep", "drives": 6, "duration_s": args.duration,
                            "machine_before": machine(), "results": []}

@@ -87,7 +87,7 @@ class IpcBusStats:
 class _Peer:
     """One connection to another bus instance (or the loopback pair to ourselves)."""
 
-    __slots__ = ("sock", "fd", "dropped", "overflowed")
+    __slots__ = ("dropped", "fd", "overflowed", "sock")
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
@@ -96,7 +96,7 @@ class _Peer:
         self.overflowed = False  # frames were lost: the RX-overflow error frame goes first next time
 
 
-class IpcBus(can.BusABC):  # type: ignore[misc]  # python-can's BusABC is untyped in places
+class IpcBus(can.BusABC):
     """A python-can bus over Unix SOCK_SEQPACKET sockets in a shared directory (see module doc)."""
 
     def __init__(
@@ -197,7 +197,7 @@ class IpcBus(can.BusABC):  # type: ignore[misc]  # python-can's BusABC is untype
             except FileNotFoundError:
                 pass
             return
-        except (FileNotFoundError, socket.timeout, OSError) as exc:
+        except OSError as exc:  # FileNotFoundError: it left meanwhile; TimeoutError: a stopped peer
             sock.close()
             if not isinstance(exc, FileNotFoundError):
                 log.warning("ipc bus: peer %s not joined: %s", path, exc)
@@ -361,9 +361,9 @@ class IpcBus(can.BusABC):  # type: ignore[misc]  # python-can's BusABC is untype
                 if fd == self._listen_fd:
                     self._accept_pending()
                     continue
-                peer = self._peers.get(fd) or (self._loop if fd == self._loop.fd else None)
-                if peer is not None and peer not in ready:
-                    ready.append(peer)
+                found = self._peers.get(fd) or (self._loop if fd == self._loop.fd else None)
+                if found is not None and found not in ready:
+                    ready.append(found)
             if not ready and deadline is not None and time.monotonic() >= deadline:
                 return None, False
 
