@@ -241,6 +241,62 @@ def test_a_peer_that_leaves_removes_only_its_socket_and_the_others_go_on(bus_dir
         c.shutdown()
 
 
+def test_asyncio_notifier_reads_through_fileno(pair: tuple[IpcBus, IpcBus]) -> None:
+    import asyncio
+
+    a, b = pair
+
+    async def main() -> list[int]:
+        reader = can.AsyncBufferedReader()
+        notifier = can.Notifier(b, [reader], loop=asyncio.get_running_loop())  # add_reader(b.fileno())
+        try:
+            for i in range(5):
+                a.send(_msg(0x400 + i))
+            return [(await asyncio.wait_for(reader.get_message(), 2.0)).arbitration_id for _ in range(5)]
+        finally:
+            notifier.stop()
+
+    assert asyncio.run(main()) == [0x400 + i for i in range(5)]
+
+
+def test_shutdown_removes_its_socket_only_if_the_path_is_still_its_socket(bus_dir: Path) -> None:
+    bus = IpcBus(bus_dir)
+    (own,) = _sockets(bus_dir)
+    (bus_dir / own).unlink()
+    (bus_dir / own).write_text("someone else's file now")  # e.g. a stale-socket sweep raced us
+    bus.shutdown()
+    assert (bus_dir / own).read_text() == "someone else's file now"
+
+
+def test_send_and_receive_from_two_threads_while_peers_come_and_go(bus_dir: Path) -> None:
+    a = IpcBus(bus_dir)
+    b = IpcBus(bus_dir)
+    n = 3000
+    received: list[int] = []
+
+    def reader() -> None:
+        while len(received) < n:
+            msg = b.recv(2.0)
+            if msg is None:
+                return
+            if msg.arbitration_id == 0x123:
+                received.append(int.from_bytes(msg.data, "little"))
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    try:
+        for i in range(n):
+            a.send(_msg(0x123, i.to_bytes(2, "little")))
+            if i % 500 == 0:
+                IpcBus(bus_dir).shutdown()  # a peer joins and leaves mid-stream
+    finally:
+        thread.join(10)
+        a.shutdown()
+        b.shutdown()
+    assert received == list(range(n))
+    assert a.stats.frames_dropped == 0
+
+
 def test_shutdown_wakes_a_reader_blocked_without_timeout(pair: tuple[IpcBus, IpcBus]) -> None:
     _, b = pair
     raised: list[BaseException] = []
