@@ -9,6 +9,7 @@
       queue_size: 1024                    # state samples held for the publisher thread
       stats_period_s: 1.0                 # stats and status republished at this period
       controls_enabled: false             # the stop/reset queryables exist only when true
+      lease_s: 1.5                        # subscribers see a hung runtime lost after this long
 
 Bad input raises :class:`TelemetryConfigError` (exit code 2) with one line naming the source and
 field. Endpoints must be loopback unless ``allow_remote`` is set: nothing leaves the machine by
@@ -98,6 +99,9 @@ class TelemetryConfig(BaseModel):
     publish_period_s: float = Field(0.001, gt=0.0, le=1.0)  # how often the publisher thread drains
     controls_enabled: bool = False  # declare hil/<robot>/stop and /reset queryables
     close_timeout_s: float = Field(1.0, gt=0.0, le=30.0)  # close() drains at most this long
+    # Zenoh link lease this runtime declares: a peer that hears nothing for this long (a hung or
+    # unplugged runtime, no TCP FIN) drops its liveliness token. Zenoh's default is 10 s.
+    lease_s: float = Field(1.5, ge=0.2, le=600.0)
 
     @field_validator("robot")
     @classmethod
@@ -179,4 +183,7 @@ def publisher_zenoh_config(config: TelemetryConfig) -> zenoh.Config:
     from_file = config.zenoh_config is not None
     listen = config.listen if (not from_file or "listen" in explicit) else None
     connect = config.connect if (not from_file or "connect" in explicit) else None
-    return zenoh_config(config.mode, listen, connect, config.zenoh_config)
+    conf = zenoh_config(config.mode, listen, connect, config.zenoh_config)
+    if not from_file or "lease_s" in explicit:
+        conf.insert_json5("transport/link/tx/lease", str(round(config.lease_s * 1000)))
+    return conf
