@@ -29,8 +29,22 @@ def pipeline(
     rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 60,
     dagger_rounds: Annotated[int, typer.Option(help="DAgger rounds in the augment stage.")] = 0,
     force_dataset: Annotated[bool, typer.Option("--force-dataset", help="Regenerate raw.h5 even if present.")] = False,
+    design: Annotated[str, typer.Option(
+        help="'structured' (nominal feed-forward in the graph + bounded residual; docs/lmpc.md section 9; "
+             "its own stages: rollouts, relabel, fit, export) or 'paper' (Eq. 22 MLP, Theorem 2; the stages above).")] = "paper",
+    hmpc_formulation: Annotated[str, typer.Option(help="The HMPC imitated: 'absolute' or 'anchored' (docs/hmpc.md).")] = "absolute",
+    target: Annotated[str, typer.Option(help="Structured design: 'hmpc', or 'law' (the control row: imitate the law itself).")] = "hmpc",
+    ff_point: Annotated[str, typer.Option(help="Structured design: feed-forward at the 'measured' state or along the 'reference'.")] = "measured",
+    train_conditions: Annotated[int, typer.Option(help="Structured design: paper-range training conditions.")] = 16,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
+    if design not in ("paper", "structured"):
+        raise ModelInputError(f"--design: unknown '{design}' (known: paper, structured)")
+    if hmpc_formulation not in ("absolute", "anchored"):
+        raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
+    if design == "structured":
+        _structured(work, bundles, laws, hmpc_formulation, target, ff_point, train_conditions, dagger_rounds)
+        return
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -78,6 +92,29 @@ def pipeline(
     for law, info in summary.get("bundles", {}).items():
         console.print(f"bundle {info['path']} (onnx vs torch {info['onnx_vs_torch_max_abs_nm']:.1e} N m)")
     console.print(f"wrote {work}/pipeline.json")
+
+
+def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: str, ff_point: str, conditions: int,
+                dagger_rounds: int) -> None:  # fmt: skip
+    """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
+    import torch
+    from rich.console import Console
+
+    from models.feedback import LAW_NAMES
+    from models.lmpc.structured import PERTURBATION, StructuredConfig, run_structured
+
+    law_list = tuple(x.strip() for x in laws.split(",") if x.strip())
+    for law in law_list:
+        if law not in LAW_NAMES:
+            raise ModelInputError(f"--laws: unknown '{law}' (known: {', '.join(LAW_NAMES)})")
+    torch.set_num_threads(1)
+    options = {} if formulation == "absolute" else {"torque_cost": formulation}
+    sigma_e, sigma_rate = PERTURBATION[formulation]
+    config = StructuredConfig(laws=law_list, hmpc_options=options, target=target, ff_point=ff_point, train_conditions=conditions,
+                              perturb_error_rad=sigma_e, perturb_rate_rad_s=sigma_rate, dagger_rounds=dagger_rounds)  # fmt: skip
+    console = Console(stderr=True)
+    summary = run_structured(config, bundles, work, log=console.print)
+    console.print(f"wrote {bundles}/<robot>/<law>/ and {work}/structured.json ({summary['wall_s']:.0f} s)")
 
 
 def register(app: typer.Typer) -> None:

@@ -58,3 +58,52 @@ def test_paper_range_conditions_are_seeded_in_range_and_parsed() -> None:
     for bad in ("random:0:1", "random:x:1", "random:3", "random:3:1:2"):
         with pytest.raises(ModelInputError, match="--conditions"):
             parse_random_spec(bad)
+
+
+def _tiny(target: str, **extra):  # type: ignore[no-untyped-def]
+    from models.lmpc.structured import StructuredConfig
+
+    return StructuredConfig(laws=("pd",), target=target, train_conditions=2, duration_s=0.3, stride=10, residual_epochs=2,
+                            physics_epochs=50, perturb_error_rad=1e-4, perturb_rate_rad_s=1e-2, **extra)  # fmt: skip
+
+
+def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from hil_runtime.bundle import PolicyBundle
+    from models.lmpc.structured import run_structured
+
+    summary = run_structured(_tiny("hmpc"), tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
+    fit = summary["rounds"][0]["pd"]
+    assert fit["onnx_vs_torch_max_abs_nm"] <= 1e-5
+    bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
+    assert bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
+    assert bundle.manifest["training"]["design"].startswith("structured")
+    physics = fit["fit"]["physics"]
+    assert all(0.0 <= g <= 1.2 for g in physics["g"]) and all(-1.05 <= c <= 0.5 for c in physics["c"])
+    assert (tmp_path / "work" / "structured.json").exists()
+
+
+def test_control_row_the_law_imitated_is_the_law(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from hil_runtime.bundle import PolicyBundle
+    from models.feedback import make_law
+    from models.lmpc.structured import run_structured
+
+    run_structured(_tiny("law"), tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
+    bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd")
+    robot = load_robot("ur5_paper")
+    law = make_law("pd", robot, 1e-3, "stabilized")
+    rng = np.random.default_rng(0)
+    q_d = rng.uniform(-0.3, 0.3, (16, 6))
+    q, qd, qd_d, qdd_d = q_d + rng.normal(0, 0.01, (16, 6)), rng.normal(0, 0.05, (16, 6)), rng.normal(0, 0.05, (16, 6)), np.zeros((16, 6))
+    state = bundle.initial_state(q)
+    tau, tau_fb, _ = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, state)
+    expected = np.asarray(law.step(np, state, q, qd, q_d, qd_d, qdd_d)[0])
+    np.testing.assert_allclose(tau_fb, expected, atol=1e-9)
+    assert np.abs(tau - tau_fb).max() <= 1e-2 * np.abs(tau_fb).max()
+
+
+def test_structured_config_refuses_unknown_options() -> None:
+    from models.lmpc.structured import StructuredConfig
+
+    for bad in ({"target": "mpc"}, {"ff_point": "desired"}, {"train_conditions": 0}):
+        with pytest.raises(ModelInputError, match="structured lmpc"):
+            StructuredConfig(**bad)  # type: ignore[arg-type]
