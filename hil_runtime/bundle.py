@@ -24,9 +24,18 @@ uses, applied inside the graph and reproduced in numpy by ``trust_filter``)::
     state, so the switch itself does not excite the arm).
 
 ``PolicyBundle.load`` refuses, with a one-line ``BundleError`` (exit code 2), a bundle whose
-manifest is missing or unreadable, whose schema is unknown, whose files are missing or fail their
-sha256, whose graph does not match the declared layout, or whose joint count, joint names or
-control period differ from what the caller expects. Nothing is written.
+manifest is missing, unreadable or fails the schema (``hil_runtime.bundle_schema``, shared with the
+writer), whose files are missing or fail their sha256, whose graph does not match the declared
+layout, whose joint count, joint names, control period or URDF sha256 differ from what the caller
+expects, or whose graph does not behave as its manifest says: it must reproduce the recorded probe
+outputs (a graph of another law under a fixed-up sha256 fails here), saturate at
+``limits.torque_nm`` and keep its residual within ``trust_region.residual_bound_nm`` wherever the
+probes exercise them. Nothing is written.
+
+``step`` never returns a non-finite torque: a non-finite graph output with a finite law torque
+and state gives the law's torque, saturated (counted in ``nonfinite_fallbacks``); otherwise the
+call raises ``NonFiniteOutputError`` (counted in ``nonfinite_refusals``) and the caller stops
+safely, its law state untouched.
 
 Only numpy, onnxruntime and the standard library here (the runtime never imports models/torch).
 
@@ -46,22 +55,37 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA = "hil-policy-bundle/2"
-SUPPORTED_SCHEMAS = (SCHEMA,)
-MANIFEST = "manifest.json"
-INPUT_LAYOUT = ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state")
-OUTPUT_LAYOUT = ("tau", "tau_fb", "next_law_state", "trust")
-TRUST_SIZE = 2  # [fallback = 1 - alpha, joints_clamped]
-FEATURE_SETS = {"eq22": ("q", "e", "qd", "e_dot", "tau_fb"), "eq22+qdd_d": ("q", "e", "qd", "e_dot", "qdd_d", "tau_fb"),
-                "ref": ("q_d", "qd_d", "qdd_d")}
-GUARD_FEATURES = "eq22+qdd_d"  # what the trust box is over
-TRUST_MIN_SPAN = 1e-9
+from pydantic import ValidationError
+
+from hil_runtime.bundle_schema import (  # noqa: F401 - the contract's names, re-exported for callers
+    FEATURE_SETS,
+    GUARD_FEATURES,
+    INPUT_LAYOUT,
+    MANIFEST,
+    OUTPUT_LAYOUT,
+    SCHEMA,
+    SUPPORTED_SCHEMAS,
+    TRUST_MIN_SPAN,
+    TRUST_SIZE,
+    Manifest,
+    format_manifest_error,
+)
+
+PROBE_RTOL = 1e-6
+PROBE_SEED = 20261123
+SATURATION_TOLERANCE_NM = 1e-9
 
 
 class BundleError(ValueError):
     """A bundle the runtime refuses; the message is one line naming the file."""
 
     exit_code = 2
+
+
+class NonFiniteOutputError(ArithmeticError):
+    """The graph gave a non-finite torque and no finite law torque to fall back on: stop safely."""
+
+    exit_code = 3
 
 
 @dataclass(frozen=True)
@@ -83,16 +107,12 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _layout(raw: Any, expected: tuple[str, ...], where: str) -> tuple[Slot, ...]:
-    if not isinstance(raw, list) or [item.get("name") if isinstance(item, dict) else None for item in raw] != list(expected):
-        raise BundleError(f"{where}: layout must list {', '.join(expected)} in that order")
+def _layout(raw: list[dict[str, Any]]) -> tuple[Slot, ...]:
+    """Slots with offsets from a layout the schema already checked (names, order, sizes)."""
     slots, start = [], 0
     for item in raw:
-        size = item.get("size")
-        if not isinstance(size, int) or size < 0:
-            raise BundleError(f"{where}: layout entry '{item['name']}' needs an integer size >= 0")
-        slots.append(Slot(item["name"], start, size))
-        start += size
+        slots.append(Slot(item["name"], start, int(item["size"])))
+        start += int(item["size"])
     return tuple(slots)
 
 
@@ -110,6 +130,12 @@ class PolicyBundle:
         self.law_name = str(manifest["law"]["name"])
         self.state_size = int(manifest["law"]["state_size"])
         self.torque_limit_nm = np.asarray(manifest["limits"]["torque_nm"], float)
+        trust = manifest.get("trust_region")
+        bound = None if trust is None else trust.get("residual_bound_nm")
+        self.residual_bound_nm = None if bound is None else np.asarray(bound, float)
+        self.saturation_checked = np.zeros(self.n_joints, bool)  # joints whose graph saturation was observed
+        self.nonfinite_fallbacks = 0  # cycles whose graph torque was non-finite: the law's torque instead
+        self.nonfinite_refusals = 0  # cycles with nothing finite to apply: NonFiniteOutputError
         init = manifest["law"]["initial_state"]
         self._init_constant = np.asarray(init["constant"], float).reshape(self.state_size)
         self._init_gain = np.asarray(init["position_gain"], float).reshape(self.state_size, self.n_joints)
@@ -126,89 +152,128 @@ class PolicyBundle:
     @classmethod
     def load(cls, path: str | Path, expected_joints: int | None = None, expected_period_s: float | None = None,
              expected_joint_names: tuple[str, ...] | list[str] | None = None,
-             expected_urdf_sha256: str | None = None, intra_op_threads: int = 1) -> PolicyBundle:  # fmt: skip
-        """Verify and open the bundle at ``path``; raise BundleError (one line) on any mismatch."""
+             expected_urdf_sha256: str | None = None, intra_op_threads: int = 1,
+             check_behaviour: bool = True) -> PolicyBundle:  # fmt: skip
+        """Verify and open the bundle at ``path``; raise BundleError (one line) on any mismatch.
+
+        ``check_behaviour=False`` skips the probe checks: only for the writer while it records them.
+        """
         path = Path(path)
         manifest_path = path / MANIFEST
+        if not path.exists():
+            raise BundleError(f"bundle {path}: no such directory")
         if not path.is_dir():
             raise BundleError(f"bundle {path}: not a directory")
         if not manifest_path.is_file():
-            raise BundleError(f"bundle {manifest_path}: missing file")
+            raise BundleError(f"bundle {path}: no {MANIFEST} in this directory (missing file {manifest_path})")
         try:
-            manifest = json.loads(manifest_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raw = json.loads(manifest_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise BundleError(f"bundle {manifest_path}: unreadable JSON ({str(exc).splitlines()[0]})") from None
-        if not isinstance(manifest, dict):
+        if not isinstance(raw, dict):
             raise BundleError(f"bundle {manifest_path}: not a JSON object")
-        schema = manifest.get("schema")
+        schema = raw.get("schema")
         if schema not in SUPPORTED_SCHEMAS:
             raise BundleError(f"bundle {manifest_path}: unknown schema {schema!r} (supported: {', '.join(SUPPORTED_SCHEMAS)})")
         try:
-            files = dict(manifest["files"])
-            robot = manifest["robot"]
-            n_joints = int(robot["n_joints"])
-            joint_names = list(robot["joint_names"])
-            period_s = float(manifest["control_period_s"])
-            graph = manifest["graph"]
-            graph_file = str(graph["file"])
-            state_size = int(manifest["law"]["state_size"])
-            torque = manifest["limits"]["torque_nm"]
-            manifest["law"]["initial_state"]["constant"], manifest["law"]["initial_state"]["position_gain"]
-            feature_set = str(manifest["emulator"]["feature_set"])
-            bool(manifest["emulator"]["residual"])
-            trust = manifest["trust_region"]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise BundleError(f"bundle {manifest_path}: missing or malformed field {exc}") from None
-        if len(joint_names) != n_joints or len(torque) != n_joints:
-            raise BundleError(f"bundle {manifest_path}: n_joints {n_joints} disagrees with joint_names/limits")
-        if feature_set not in FEATURE_SETS:
-            raise BundleError(f"bundle {manifest_path}: unknown emulator feature_set {feature_set!r} (known: {', '.join(FEATURE_SETS)})")
-        if trust is not None:
-            width = len(FEATURE_SETS[GUARD_FEATURES]) * n_joints
-            try:
-                low, high = np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float)
-                bound = trust["residual_bound_nm"]
-                ok = (low.shape == high.shape == (width,) and float(trust["box_margin"]) >= 0
-                      and (bound is None or np.asarray(bound, float).shape == (n_joints,)))  # fmt: skip
-            except (KeyError, TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise BundleError(f"bundle {manifest_path}: trust_region needs feature_low/high ({width}), box_margin >= 0, "
-                                  f"residual_bound_nm ({n_joints} or null)")  # fmt: skip
-        for name, digest in sorted(files.items()):
+            parsed = Manifest.model_validate(raw)
+        except ValidationError as exc:
+            raise BundleError(format_manifest_error(f"bundle {manifest_path}", exc)) from None
+        if check_behaviour and parsed.probes is None:
+            raise BundleError(f"bundle {manifest_path}: probes: missing (a bundle records probe inputs and outputs; "
+                              "re-export it with `hil pipeline`)")  # fmt: skip
+        manifest = raw
+        n_joints, joint_names = parsed.robot.n_joints, list(parsed.robot.joint_names)
+        period_s, graph_file = parsed.control_period_s, parsed.graph.file
+        for name, digest in sorted(parsed.files.items()):
             file = path / name
             if not file.is_file():
                 raise BundleError(f"bundle {file}: missing file")
             actual = sha256_file(file)
             if actual != digest:
                 raise BundleError(f"bundle {file}: sha256 mismatch (manifest {str(digest)[:12]}…, file {actual[:12]}…)")
-        if graph_file not in files:
-            raise BundleError(f"bundle {manifest_path}: graph file '{graph_file}' is not listed with a sha256")
         if expected_joints is not None and n_joints != expected_joints:
             raise BundleError(f"bundle {manifest_path}: {n_joints} joints, the config has {expected_joints}")
         if expected_joint_names is not None and list(expected_joint_names) != joint_names:
             raise BundleError(f"bundle {manifest_path}: joint order {joint_names} differs from the config's {list(expected_joint_names)}")
         if expected_period_s is not None and not math.isclose(period_s, expected_period_s, rel_tol=1e-9, abs_tol=1e-12):
             raise BundleError(f"bundle {manifest_path}: control period {period_s} s, the config has {expected_period_s} s")
-        if expected_urdf_sha256 is not None and robot.get("urdf_sha256") != expected_urdf_sha256:
-            raise BundleError(f"bundle {manifest_path}: robot URDF sha256 differs from the config's robot")
-        n = n_joints
-        inputs = _layout(graph["input"].get("layout"), INPUT_LAYOUT, f"bundle {manifest_path} graph input")
-        outputs = _layout(graph["output"].get("layout"), OUTPUT_LAYOUT, f"bundle {manifest_path} graph output")
-        sizes = {s.name: s.size for s in (*inputs, *outputs)}
-        want = {"q": n, "qd": n, "q_d": n, "qd_d": n, "qdd_d": n, "law_state": state_size, "tau": n, "tau_fb": n,
-                "next_law_state": state_size, "trust": TRUST_SIZE}  # fmt: skip
-        if sizes != want:
-            raise BundleError(f"bundle {manifest_path}: layout sizes {sizes} do not fit {n} joints and state {state_size}")
+        if expected_urdf_sha256 is not None and parsed.robot.urdf_sha256 != expected_urdf_sha256:
+            raise BundleError(f"bundle {manifest_path}: robot.urdf_sha256 {parsed.robot.urdf_sha256[:12]}… differs from "
+                              f"the robot's URDF ({expected_urdf_sha256[:12]}…): exported for another robot description")  # fmt: skip
+        inputs = _layout(raw["graph"]["input"]["layout"])
+        outputs = _layout(raw["graph"]["output"]["layout"])
         session = _open_session(path / graph_file, intra_op_threads)
         width_in, width_out = sum(s.size for s in inputs), sum(s.size for s in outputs)
         got_in, got_out = session.get_inputs(), session.get_outputs()
-        if (len(got_in) != 1 or len(got_out) != 1 or got_in[0].name != graph["input"].get("name")
-                or got_out[0].name != graph["output"].get("name") or got_in[0].shape[-1] != width_in
+        if (len(got_in) != 1 or len(got_out) != 1 or got_in[0].name != parsed.graph.input.name
+                or got_out[0].name != parsed.graph.output.name or got_in[0].shape[-1] != width_in
                 or got_out[0].shape[-1] != width_out):  # fmt: skip
             raise BundleError(f"bundle {path / graph_file}: graph inputs/outputs do not match the manifest layout "
                               f"({width_in} -> {width_out})")  # fmt: skip
-        return cls(path, manifest, session, inputs, outputs)
+        bundle = cls(path, manifest, session, inputs, outputs)
+        if check_behaviour:
+            bundle._check_behaviour(manifest_path)
+        return bundle
+
+    # --- behavioural checks -------------------------------------------------------------------
+    def _run_rows(self, x: np.ndarray) -> np.ndarray:
+        try:
+            return self.session.run([self._output_name], {self._input_name: np.ascontiguousarray(x, np.float64)})[0]
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own untyped errors
+            raise BundleError(f"bundle {self.path}: the graph fails on probe inputs ({str(exc).splitlines()[0][:160]})") from None
+
+    def _check_behaviour(self, manifest_path: Path) -> None:
+        """The graph does what the manifest says: recorded probes, saturation, residual bound."""
+        probes = self.manifest["probes"]
+        x, expected = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
+        y = self._run_rows(x)
+        error = np.abs(y - expected) - (float(probes.get("atol", 1e-6)) + PROBE_RTOL * np.abs(expected))
+        if not np.all(np.isfinite(y)) or np.any(error > 0):
+            column = int(np.unravel_index(np.nanargmax(np.where(np.isfinite(error), error, np.inf)), error.shape)[1])
+            slot = next(x for x in self.outputs.values() if x.start <= column < x.start + x.size)
+            raise BundleError(f"bundle {manifest_path}: the graph does not reproduce the recorded probe outputs "
+                              f"({slot.name}[{column - slot.start}]): it is not the graph of this manifest's law "
+                              f"'{self.law_name}', or was changed")  # fmt: skip
+        sat_x = saturation_probe_inputs(self)
+        sat_y = self._run_rows(sat_x)
+        self._check_saturation(manifest_path, np.concatenate([y, sat_y]), sat_y)
+
+    def _check_saturation(self, manifest_path: Path, y: np.ndarray, sat_y: np.ndarray) -> None:
+        n, s = self.n_joints, self.state_size
+        limit = self.torque_limit_nm
+        tau, tau_fb, trust = y[:, :n], y[:, n : 2 * n], y[:, 2 * n + s :]
+        over = np.abs(tau) > limit + SATURATION_TOLERANCE_NM
+        if over.any():
+            j = int(np.argwhere(over)[0][1])
+            raise BundleError(f"bundle {manifest_path}: limits.torque_nm[{j}] is {limit[j]:g} but the graph gives "
+                              f"{np.abs(tau[:, j]).max():g} N m: its saturation differs")  # fmt: skip
+        magnitude = np.abs(sat_y[:, :n])
+        peak = magnitude.max(axis=0)
+        plateau = (np.sum(np.abs(magnitude - peak) <= SATURATION_TOLERANCE_NM * np.maximum(1.0, peak), axis=0) >= 2) & (peak > 0)
+        short = plateau & (np.abs(peak - limit) > SATURATION_TOLERANCE_NM * np.maximum(1.0, limit))
+        if short.any():
+            j = int(np.flatnonzero(short)[0])
+            raise BundleError(f"bundle {manifest_path}: limits.torque_nm[{j}] is {limit[j]:g} but the graph saturates "
+                              f"at {peak[j]:g} N m")  # fmt: skip
+        bound = self.residual_bound_nm
+        self.saturation_checked = plateau
+        if bound is None:
+            return
+        inside = (trust[:, 0] == 0.0)[:, None] & (np.abs(tau) < limit - SATURATION_TOLERANCE_NM)
+        residual = np.abs(tau - tau_fb)
+        tol = 1e-9 + 1e-9 * np.abs(tau_fb)
+        beyond = inside & (residual > bound + tol)
+        if beyond.any():
+            j = int(np.argwhere(beyond)[0][1])
+            raise BundleError(f"bundle {manifest_path}: trust_region.residual_bound_nm[{j}] is {bound[j]:g} but the graph "
+                              f"passes a residual of {residual[beyond[:, j], j].max():g} N m")  # fmt: skip
+        clamped_rows = inside.all(axis=1) & (trust[:, 1] > 0.5)
+        at_bound = np.abs(residual - bound) <= 1e-7 * np.maximum(1.0, bound)
+        unexplained = clamped_rows & ~at_bound.any(axis=1)
+        if unexplained.any():
+            raise BundleError(f"bundle {manifest_path}: trust_region.residual_bound_nm does not match the graph's clamp "
+                              "(the graph clamps residuals below the manifest's bound)")  # fmt: skip
 
     # --- running ------------------------------------------------------------------------------
     def _bind(self, x: np.ndarray, y: np.ndarray) -> Any:
@@ -239,7 +304,23 @@ class PolicyBundle:
         x[5 * n :] = law_state
         self.session.run_with_iobinding(self._binding)
         y = self._y[0]
+        if not np.isfinite(y).all():  # rare: one check of the row costs ~1 µs
+            self._nonfinite(y)
         return y[:n], y[n : 2 * n], y[2 * n : 2 * n + self.state_size]
+
+    def _nonfinite(self, y: np.ndarray) -> None:
+        """Replace a non-finite torque by the law's (saturated) one in place, or refuse the cycle."""
+        n, s = self.n_joints, self.state_size
+        tau, tau_fb, state = y[:n], y[n : 2 * n], y[2 * n : 2 * n + s]
+        if np.isfinite(tau_fb).all() and np.isfinite(state).all():
+            np.clip(tau_fb, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
+            y[2 * n + s :] = (1.0, 0.0)  # a full fallback to the law, as the trust region reports it
+            self.nonfinite_fallbacks += 1
+            return
+        self.nonfinite_refusals += 1
+        bad_input = not np.isfinite(self._x).all()
+        raise NonFiniteOutputError(f"bundle {self.path}: non-finite law torque or state "
+                                   f"({'non-finite input' if bad_input else 'from finite inputs'}); stop the arm")  # fmt: skip
 
     @property
     def last_trust(self) -> np.ndarray:
@@ -264,6 +345,64 @@ class PolicyBundle:
                 "robot": self.manifest["robot"]["name"], "n_joints": self.n_joints, "period_s": self.period_s,
                 "files": self.manifest["files"], "validation": self.manifest.get("validation", {}),
                 "trust_region": self.manifest.get("trust_region")}  # fmt: skip
+
+
+def _probe_state(bundle: PolicyBundle, q: np.ndarray) -> np.ndarray:
+    return np.atleast_2d(bundle.initial_state(q))
+
+
+def saturation_probe_inputs(bundle: PolicyBundle) -> np.ndarray:
+    """Rows far beyond any tracking error the arm can have (q_d and qd_d at 1e4 and 1e5, both
+    signs), generated at load: the torque runs into the graph's saturation, which then shows as a
+    plateau of |tau| that must equal limits.torque_nm."""
+    n = bundle.n_joints
+    rows = []
+    for reach in (1e4, 1e5):
+        for velocity in (0.0, reach):
+            for sign in (1.0, -1.0):
+                q = np.zeros((1, n))
+                rows.append(np.concatenate([q, np.zeros((1, n)), np.full((1, n), sign * reach),
+                                            np.full((1, n), sign * velocity), np.zeros((1, n)),
+                                            _probe_state(bundle, q)], 1))  # fmt: skip
+    return np.concatenate(rows)
+
+
+def make_probe_inputs(bundle: PolicyBundle, count: int = 12, seed: int = PROBE_SEED) -> np.ndarray:
+    """Seeded probe rows for the writer to record: states inside the joint limits with moderate
+    errors, and (with a trust region) rows sampled inside its box, where the emulator acts."""
+    rng = np.random.default_rng(seed)
+    n = bundle.n_joints
+    position = np.minimum(np.abs(np.asarray(bundle.manifest["limits"]["position_rad"], float)), np.pi)
+    velocity = np.minimum(np.abs(np.asarray(bundle.manifest["limits"]["velocity_rad_s"], float)), 10.0)
+    rows = []
+    trust = bundle.manifest.get("trust_region")
+    for k in range(count):
+        if trust is not None and k % 2:
+            low, high = np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float)
+            g = low + rng.uniform(0.1, 0.9, size=low.shape) * np.clip(high - low, 0.0, 1e6)
+            q, e, qd, e_dot, qdd_d = (g[i * n : (i + 1) * n] for i in range(5))
+            q_d, qd_d = q + e, qd + e_dot
+        else:
+            q = rng.uniform(-0.5, 0.5, n) * position
+            q_d = q + rng.normal(0.0, 0.05, n)
+            qd = rng.uniform(-0.3, 0.3, n) * velocity
+            qd_d = qd + rng.normal(0.0, 0.1, n)
+            qdd_d = rng.normal(0.0, 0.5, n)
+        state = _probe_state(bundle, q[None])[0] + rng.normal(0.0, 0.01, bundle.state_size)
+        rows.append(np.concatenate([q, qd, q_d, qd_d, qdd_d, state]))
+    return np.asarray(rows)
+
+
+def record_probes(path: str | Path, count: int = 12) -> dict[str, Any]:
+    """The ``probes`` section for the bundle at ``path`` (the writer's step; graph and files final)."""
+    bundle = PolicyBundle.load(path, check_behaviour=False)
+    x = make_probe_inputs(bundle, count)
+    y = bundle._run_rows(x)
+    if not np.isfinite(y).all():
+        raise BundleError(f"bundle {path}: the graph gives non-finite outputs on probe inputs")
+    return {"inputs": x.tolist(), "outputs": y.tolist(), "atol": 1e-6,
+            "note": "graph inputs (hil_runtime.bundle.make_probe_inputs) and the exporter's onnxruntime outputs; "
+                    "the loader reruns them (atol + 1e-6 relative)"}  # fmt: skip
 
 
 def emulator_features(feature_set: str, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,

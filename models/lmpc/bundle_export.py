@@ -11,7 +11,7 @@
     law_state'[applied_torque_slice] = tau                        (ADRC's observer input)
     y (B, 2N+S+2) = [tau, tau_fb, law_state', trust]              trust = [1 - alpha, joints_clamped]
 
-The manifest (hil_runtime.bundle documents the schema) carries everything the runtime checks, and
+The manifest (one schema with the loader: hil_runtime.bundle_schema; probes recorded for its behavioural check) carries everything the runtime checks, and
 the provenance of the training. ``verify_bundle`` checks onnxruntime against torch (<= 1e-5 N m).
 """
 
@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from hil_runtime.bundle import (FEATURE_SETS, GUARD_FEATURES, INPUT_LAYOUT, MANIFEST, OUTPUT_LAYOUT, SCHEMA, TRUST_MIN_SPAN,
-                                TRUST_SIZE, PolicyBundle,
-                                sha256_file)  # fmt: skip
+from hil_runtime.bundle import PolicyBundle, record_probes, sha256_file
+from hil_runtime.bundle_schema import (FEATURE_SETS, GUARD_FEATURES, INPUT_LAYOUT, MANIFEST, OUTPUT_LAYOUT, SCHEMA,
+                                       TRUST_MIN_SPAN, TRUST_SIZE, Manifest)  # fmt: skip
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.lmpc.dataset import jsonable
@@ -179,8 +179,12 @@ def export_bundle(out_dir: Path, law: FeedbackLaw, robot: RobotModel, emulator: 
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }  # fmt: skip
         manifest["files"] = {GRAPH_FILE: sha256_file(tmp / GRAPH_FILE)}
+        Manifest.model_validate(manifest)  # the one schema the loader reads with (hil_runtime.bundle_schema)
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        manifest["probes"] = record_probes(tmp)  # the loader's behavioural check reruns these
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
         manifest["validation"]["onnx_vs_torch_max_abs_nm"] = verify_bundle(tmp, model, parity_inputs)
+        Manifest.model_validate(manifest)
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
         if out_dir.exists():
             shutil.rmtree(out_dir)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_runtime.bundle import BundleError, PolicyBundle
+from hil_runtime.bundle import BundleError, PolicyBundle, sha256_file
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
@@ -122,8 +122,13 @@ def make_lmpc_controller(law: FeedbackLaw, robot: RobotModel, bundle_dir: str | 
     if options:
         raise ModelInputError(f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir)")
     path = bundle_path(robot.name, law.name, bundle_dir)
+    if bundle_dir is not None and not (path / "manifest.json").is_file():  # name what the user typed
+        root = Path(bundle_dir)
+        raise BundleError(f"bundle directory {bundle_dir}: no bundle for law '{law.name}' (looked for "
+                          f"{root / law.name / 'manifest.json'} and {root / robot.name / law.name / 'manifest.json'})")  # fmt: skip
     bundle = PolicyBundle.load(path, expected_joints=robot.n_joints, expected_period_s=law.dt_s,
-                               expected_joint_names=list(robot.joint_names))  # fmt: skip
+                               expected_joint_names=list(robot.joint_names),
+                               expected_urdf_sha256=sha256_file(robot.urdf_path))  # fmt: skip
     if bundle.law_name != law.name:
         raise BundleError(f"bundle {path / 'manifest.json'}: law '{bundle.law_name}', asked for '{law.name}'")
     difference = params_difference(bundle.manifest["law"]["params"], law.params)

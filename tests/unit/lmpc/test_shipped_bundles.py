@@ -75,3 +75,19 @@ def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path) -> Non
     runs = {(r["law"], r["mode"]) for r in results["runs"]}
     assert runs == {(law, "lmpc") for law in LAW_NAMES}
     assert all(r["finite"] and r["within_limits"] for r in results["runs"])
+
+
+def test_a_bundle_for_another_urdf_is_refused(tmp_path: Path) -> None:
+    import shutil
+
+    shutil.copytree(SHIPPED_BUNDLES / ROBOT.name / "pd", tmp_path / "pd")
+    manifest = json.loads((tmp_path / "pd" / "manifest.json").read_text())
+    manifest["robot"]["urdf_sha256"] = "0" * 64
+    (tmp_path / "pd" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(BundleError, match="urdf_sha256"):
+        make_lmpc_controller(make_law("pd", ROBOT, 1e-3), ROBOT, bundle_dir=tmp_path)
+
+
+def test_a_bundle_directory_without_the_law_names_the_typed_path(tmp_path: Path) -> None:
+    with pytest.raises(BundleError, match=rf"^bundle directory {tmp_path}: no bundle for law 'pd'"):
+        make_lmpc_controller(make_law("pd", ROBOT, 1e-3), ROBOT, bundle_dir=tmp_path)

@@ -1,0 +1,171 @@
+"""The policy-bundle contract as one schema: the writer (models.lmpc.bundle_export) validates the
+manifest it writes with it, the loader (hil_runtime.bundle) the manifest it reads.
+
+Light: pydantic and the standard library. The layout of the fused graph and the trust-region rule
+are documented in hil_runtime/bundle.py.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+SCHEMA = "hil-policy-bundle/2"
+SUPPORTED_SCHEMAS = (SCHEMA,)
+MANIFEST = "manifest.json"
+INPUT_LAYOUT = ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state")
+OUTPUT_LAYOUT = ("tau", "tau_fb", "next_law_state", "trust")
+TRUST_SIZE = 2  # [fallback = 1 - alpha, joints_clamped]
+FEATURE_SETS = {"eq22": ("q", "e", "qd", "e_dot", "tau_fb"), "eq22+qdd_d": ("q", "e", "qd", "e_dot", "qdd_d", "tau_fb"),
+                "ref": ("q_d", "qd_d", "qdd_d")}  # fmt: skip
+GUARD_FEATURES = "eq22+qdd_d"  # what the trust box is over
+TRUST_MIN_SPAN = 1e-9
+PROBE_ATOL_MAX = 1e-3  # a manifest cannot loosen the behavioural check beyond this (N m)
+
+FeatureSet = Literal["eq22", "eq22+qdd_d", "ref"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class _Open(BaseModel):
+    """A section that may carry descriptive extras (notes, provenance) besides the checked fields."""
+
+    model_config = ConfigDict(frozen=True, extra="allow", allow_inf_nan=False)
+
+
+class Slot(_Strict):
+    name: str
+    size: int = Field(ge=0)
+
+
+class Port(_Strict):
+    name: str
+    layout: list[Slot]
+
+
+class Graph(_Strict):
+    file: str = Field(min_length=1)
+    opset: int = Field(ge=1)
+    dtype: Literal["float64"]
+    input: Port
+    output: Port
+    fused: str = ""
+
+
+class Robot(_Strict):
+    name: str
+    urdf_file: str
+    urdf_sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    n_joints: int = Field(ge=1)
+    joint_names: list[str]
+
+
+class Limits(_Strict):
+    position_rad: list[float]
+    velocity_rad_s: list[float]
+    torque_nm: list[float]
+
+
+class InitialState(_Strict):
+    constant: list[float]  # (S,)
+    position_gain: list[list[float]]  # (S, N): initial_state(q0) = constant + gain q0
+
+
+class Law(_Strict):
+    name: str = Field(min_length=1)
+    params: dict[str, Any]
+    gain_set: str | None = None
+    state_size: int = Field(ge=0)
+    applied_torque_slice: tuple[int, int] | None = None
+    initial_state: InitialState
+
+
+class Emulator(_Open):
+    feature_set: FeatureSet
+    residual: bool
+
+
+class TrustRegion(_Open):
+    feature_low: list[float]
+    feature_high: list[float]
+    box_margin: float = Field(ge=0)
+    residual_bound_nm: list[float] | None = None
+
+
+class Probes(_Strict):
+    """Graph inputs and the outputs the exporter's onnxruntime gave for them: the loader runs the
+    graph on the inputs and compares (a graph swapped under a fixed-up sha256 fails here)."""
+
+    inputs: list[list[float]] = Field(min_length=1)
+    outputs: list[list[float]] = Field(min_length=1)
+    atol: float = Field(1e-6, gt=0, le=PROBE_ATOL_MAX)  # N m, plus rtol 1e-6: another CPU's BLAS
+    note: str = ""
+
+
+class Manifest(_Strict):
+    schema_id: Literal["hil-policy-bundle/2"] = Field(alias="schema")
+    robot: Robot
+    control_period_s: float = Field(gt=0)
+    limits: Limits
+    law: Law
+    graph: Graph
+    emulator: Emulator
+    trust_region: TrustRegion | None
+    training: dict[str, Any]
+    validation: dict[str, Any]
+    created: str
+    files: dict[str, str]
+    probes: Probes | None = None  # required by the loader; absent only while the writer records them
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, populate_by_name=True)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Manifest:
+        n, s = self.robot.n_joints, self.law.state_size
+        if len(self.robot.joint_names) != n:
+            raise ValueError(f"robot.joint_names has {len(self.robot.joint_names)} names for n_joints {n}")
+        for name in ("position_rad", "velocity_rad_s", "torque_nm"):
+            if len(getattr(self.limits, name)) != n:
+                raise ValueError(f"limits.{name} needs {n} values")
+        if any(not t > 0 for t in self.limits.torque_nm):
+            raise ValueError("limits.torque_nm must be positive")
+        init = self.law.initial_state
+        if len(init.constant) != s or len(init.position_gain) != s or any(len(row) != n for row in init.position_gain):
+            raise ValueError(f"law.initial_state needs constant ({s}) and position_gain ({s} x {n})")
+        want_in = [(k, s if k == "law_state" else n) for k in INPUT_LAYOUT]
+        want_out = [(k, {"next_law_state": s, "trust": TRUST_SIZE}.get(k, n)) for k in OUTPUT_LAYOUT]
+        if [(x.name, x.size) for x in self.graph.input.layout] != want_in:
+            raise ValueError(f"graph.input.layout must be {want_in}")
+        if [(x.name, x.size) for x in self.graph.output.layout] != want_out:
+            raise ValueError(f"graph.output.layout must be {want_out}")
+        if self.graph.file not in self.files:
+            raise ValueError(f"files: the graph file '{self.graph.file}' is not listed with a sha256")
+        if self.trust_region is not None:
+            width = len(FEATURE_SETS[GUARD_FEATURES]) * n
+            trust = self.trust_region
+            if len(trust.feature_low) != width or len(trust.feature_high) != width:
+                raise ValueError(f"trust_region.feature_low/high need {width} values")
+            if trust.residual_bound_nm is not None and (
+                len(trust.residual_bound_nm) != n or any(not b >= 0 for b in trust.residual_bound_nm)
+            ):
+                raise ValueError(f"trust_region.residual_bound_nm needs {n} values >= 0 (or null)")
+        if self.probes is not None:
+            width_in, width_out = 5 * n + s, 2 * n + s + TRUST_SIZE
+            if len(self.probes.inputs) != len(self.probes.outputs):
+                raise ValueError("probes: inputs and outputs differ in count")
+            if any(len(r) != width_in for r in self.probes.inputs) or any(len(r) != width_out for r in self.probes.outputs):
+                raise ValueError(f"probes: rows need {width_in} inputs and {width_out} outputs")
+        return self
+
+
+def format_manifest_error(where: str, exc: ValidationError) -> str:
+    """One line: the manifest path, the first failing field, pydantic's reason."""
+    errors = exc.errors()
+    first = errors[0]
+    loc = ".".join(str(part) for part in first["loc"])
+    message = str(first["msg"]).removeprefix("Value error, ")  # our own cross-field checks name the field
+    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{where}: {loc + ': ' if loc else ''}{message}{more}"

@@ -1,0 +1,111 @@
+"""The bundle's behavioural check (probes, saturation, residual bound), the shared schema, and a
+step that never returns a non-finite torque (issue 9, item 5). Runs on the shipped bundles with
+the runtime's own dependencies only (no torch)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle, sha256_file
+
+SHIPPED = Path(__file__).resolve().parents[3] / "models" / "bundles" / "ur5_paper"
+LAWS = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
+
+
+def _copy(tmp_path: Path, law: str) -> Path:
+    path = tmp_path / law
+    shutil.copytree(SHIPPED / law, path)
+    return path
+
+
+def _edit(path: Path, change) -> None:  # type: ignore[no-untyped-def]
+    manifest = json.loads((path / "manifest.json").read_text())
+    change(manifest)
+    (path / "manifest.json").write_text(json.dumps(manifest))
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_every_shipped_bundle_passes_its_behavioural_check(law: str) -> None:
+    bundle = PolicyBundle.load(SHIPPED / law, expected_joints=6, expected_period_s=1e-3)
+    assert bundle.saturation_checked.all()  # every joint's saturation was observed and matched
+
+
+def test_a_graph_of_another_law_under_a_fixed_up_hash_is_refused(tmp_path: Path) -> None:
+    path = _copy(tmp_path, "pd")
+    shutil.copy(SHIPPED / "smc" / "policy.onnx", path / "policy.onnx")
+    _edit(path, lambda m: m["files"].__setitem__("policy.onnx", sha256_file(path / "policy.onnx")))
+    with pytest.raises(BundleError, match="does not reproduce the recorded probe outputs .*law 'pd'") as info:
+        PolicyBundle.load(path)
+    assert info.value.exit_code == 2 and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda m: m["limits"].__setitem__("torque_nm", [2 * t for t in m["limits"]["torque_nm"]]),
+         r"limits.torque_nm\[0\] is 204 but the graph saturates at 102"),
+        (lambda m: m["limits"].__setitem__("torque_nm", [t / 2 for t in m["limits"]["torque_nm"]]),
+         r"limits.torque_nm\[\d\] is \d+ but the graph gives"),
+        (lambda m: m["trust_region"].__setitem__("residual_bound_nm", [b / 10 for b in m["trust_region"]["residual_bound_nm"]]),
+         r"trust_region.residual_bound_nm\[\d\] is .* but the graph passes a residual"),
+        (lambda m: m["trust_region"].__setitem__("residual_bound_nm", [b * 10 for b in m["trust_region"]["residual_bound_nm"]]),
+         "residual_bound_nm does not match the graph's clamp"),
+        (lambda m: m.pop("probes"), "probes: missing"),
+        (lambda m: m["probes"].__setitem__("atol", 1.0), r"probes.atol: Input should be less than or equal to 0.001"),
+        (lambda m: m["probes"]["outputs"][0].__setitem__(0, m["probes"]["outputs"][0][0] + 1.0), "recorded probe outputs"),
+        (lambda m: m["law"].__setitem__("state_size", 3), "law.initial_state needs"),
+        (lambda m: m["limits"].__setitem__("torque_nm", [float("nan")] * 6), r"limits.torque_nm.0: Input should be a finite number"),
+        (lambda m: m["robot"].__setitem__("urdf_sha256", "xyz"), "robot.urdf_sha256: String should match pattern"),
+        (lambda m: m.__setitem__("colour", "red"), "colour: Extra inputs are not permitted"),
+    ],
+)
+def test_a_manifest_that_does_not_describe_its_graph_is_refused(tmp_path: Path, change, message: str) -> None:  # type: ignore[no-untyped-def]
+    path = _copy(tmp_path, "pd")
+    _edit(path, change)
+    with pytest.raises(BundleError, match=message) as info:
+        PolicyBundle.load(path)
+    assert str(info.value).startswith(f"bundle {path}") and "\n" not in str(info.value)
+
+
+def test_a_wrong_urdf_sha256_is_refused_when_the_caller_passes_it(tmp_path: Path) -> None:
+    with pytest.raises(BundleError, match="urdf_sha256 .* differs from the robot's URDF"):
+        PolicyBundle.load(SHIPPED / "pd", expected_urdf_sha256="0" * 64)
+
+
+def test_a_directory_without_a_manifest_names_the_typed_path(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BundleError, match=r"^bundle .*empty: no manifest.json in this directory"):
+        PolicyBundle.load(tmp_path / "empty")
+    with pytest.raises(BundleError, match=r"^bundle .*nowhere: no such directory"):
+        PolicyBundle.load(tmp_path / "nowhere")
+
+
+def test_step_never_returns_a_non_finite_torque() -> None:
+    bundle = PolicyBundle.load(SHIPPED / "pd")
+    zeros = np.zeros(6)
+    q_d = np.full(6, 0.1)
+    # qdd_d feeds only the emulator and the trust guard: the law's torque stays finite -> used instead
+    tau, tau_fb, _ = bundle.step(zeros, zeros, q_d, zeros, np.full(6, np.nan), np.zeros(0))
+    assert np.isfinite(tau).all() and np.array_equal(tau, np.clip(tau_fb, -bundle.torque_limit_nm, bundle.torque_limit_nm))
+    assert bundle.nonfinite_fallbacks == 1 and bundle.last_trust[0] == 1.0
+    # a NaN position leaves nothing finite: refused, counted, the caller stops the arm
+    with pytest.raises(NonFiniteOutputError, match="non-finite input"):
+        bundle.step(np.full(6, np.nan), zeros, q_d, zeros, zeros, np.zeros(0))
+    assert bundle.nonfinite_refusals == 1
+    tau, _, _ = bundle.step(zeros, zeros, q_d, zeros, zeros, np.zeros(0))  # and it goes on
+    assert np.isfinite(tau).all() and bundle.nonfinite_fallbacks == 1
+
+
+def test_writer_and_loader_share_one_schema() -> None:
+    code = ("import inspect, hil_runtime.bundle as b, hil_runtime.bundle_schema as s; import models.lmpc.bundle_export as w;"
+            "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == b.SCHEMA == s.SCHEMA")  # fmt: skip
+    pytest.importorskip("torch")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-1000:]
