@@ -70,17 +70,14 @@ def _report(exc: Exception) -> int:
     """A user-facing error as one line (or the usage message) and its exit code; a bug re-raises.
 
     typer vendors click and no longer installs it, so its exceptions are recognised by their
-    interface (``show`` and an integer ``exit_code``) and by typer's re-exports, never by importing
-    click.
+    interface (``format_message`` and an integer ``exit_code``) and by typer's re-exports, never by
+    importing click. Usage errors are one line too, like every other user error.
     """
     code = getattr(exc, "exit_code", None)
-    if isinstance(code, int) and callable(getattr(exc, "show", None)):  # a usage error: bad option, ...
-        try:
-            from typer import rich_utils
-
-            rich_utils.rich_format_error(exc)  # type: ignore[arg-type]
-        except Exception:  # noqa: BLE001 - formatting must never hide the error itself
-            exc.show()  # type: ignore[attr-defined]
+    if isinstance(code, int) and callable(getattr(exc, "format_message", None)):  # usage: bad option or value
+        context = getattr(exc, "ctx", None)
+        where = f" (see '{context.command_path} --help')" if getattr(context, "command_path", None) else ""
+        print(f"error: {' '.join(str(exc.format_message()).split())}{where}", file=sys.stderr)  # type: ignore[attr-defined]
         return code
     if isinstance(code, int):
         print(f"error: {' '.join(str(exc).split()) or type(exc).__name__}", file=sys.stderr)
