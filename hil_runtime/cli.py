@@ -32,6 +32,26 @@ _register_runtime_commands(app)
 _register_telemetry_commands(app)
 
 
+def _flags_show_no_type() -> None:
+    """typer's rich help prints ``<bool>`` in the type column of an on/off flag (``--no-plots``,
+    ``--help``), which reads as if it took a value: show nothing there, as click does."""
+    try:
+        from typer.core import TyperOption
+    except ImportError:  # another typer layout: keep its help as it is
+        return
+    original = getattr(TyperOption, "display_type_rich", None)
+    if original is None or getattr(original, "_hil_flag_patch", False):
+        return
+
+    def display_type_rich(self: TyperOption, ctx: object) -> str | None:
+        if getattr(self, "is_flag", False) and not getattr(self, "count", False) and self.metavar is None:
+            return None
+        return original(self, ctx)
+
+    display_type_rich._hil_flag_patch = True  # type: ignore[attr-defined]
+    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
+
+
 def _load_plugins() -> None:
     for entry in entry_points(group="hil.commands"):
         try:
@@ -49,6 +69,7 @@ INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; return the process exit code (the console script does ``sys.exit(main())``)."""
     try:
+        _flags_show_no_type()
         _load_plugins()
         # Non-standalone: typer returns the code of an explicit typer.Exit (and 130 for Ctrl-C, which
         # it turns into Exit(130)) instead of calling sys.exit, so the code must be passed on here.
