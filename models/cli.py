@@ -11,6 +11,19 @@ import typer
 from models.errors import ModelInputError
 
 
+# The built-in robots (models.robots.robot_names(); tests/unit/models/test_cli.py keeps them equal).
+ROBOTS_HELP = "ur5_paper, ur5, panda"
+
+
+def _positive(value: float, option: str, integer: bool = False) -> None:
+    """Refuse zero, negative or non-finite values of a numeric option (one line naming it)."""
+    import math
+
+    if not (math.isfinite(value) and value > 0):
+        kind = "a positive integer" if integer else "a positive finite number"
+        raise ModelInputError(f"{option}: must be {kind}, got {value!r}")
+
+
 def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
     items = tuple(x.strip().lower() for x in text.split(",") if x.strip())
     if not items:
@@ -26,8 +39,8 @@ def experiment(
     modes: Annotated[str, typer.Option(help="Comma-separated modes: fb, hmpc, lmpc.")] = "fb,hmpc,lmpc",
     conditions: Annotated[Optional[str], typer.Option(
         help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range).")] = None,
-    robot: Annotated[str, typer.Option(help="Robot name or URDF path.")] = "ur5_paper",
-    out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/experiment"),
+    robot: Annotated[str, typer.Option(help=f"Robot: {ROBOTS_HELP}, or a URDF path.")] = "ur5_paper",
+    out: Annotated[Path, typer.Option(help="Output directory (checked writable before any work).")] = Path("results/experiment"),
     mismatch: Annotated[str, typer.Option(help="'none', or 'paper': +0.5 kg payload, inertias ±20 %.")] = "none",
     gains: Annotated[str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper' (docs/feedback_laws.md).")] = "stabilized",
     dt: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
@@ -43,14 +56,9 @@ def experiment(
     hmpc_anchor_scale: Annotated[float, typer.Option(help="Anchored cost: c in W2_i = c dt^2 / M_ii(0)^2.")] = 10.0,
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from models.conditions import load_conditions
-    from models.experiment import PAPER_MISMATCH, ExperimentConfig, run_experiment
+    from hil_runtime.outputs import prepare_output_dir, remove_if_empty
     from models.feedback import GAIN_SETS, LAW_NAMES
-    from models.robots import load_robot
-    from models.sim import MODES, SimConfig
+    from models.sim import MODES
 
     law_list = _split(laws, LAW_NAMES, "laws")
     mode_list = _split(modes, MODES, "modes")
@@ -58,6 +66,39 @@ def experiment(
         raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
     if gains not in GAIN_SETS:
         raise ModelInputError(f"--gains: unknown '{gains}' (known: {', '.join(GAIN_SETS)})")
+    _positive(dt, "--dt")
+    _positive(substeps, "--substeps", integer=True)
+    _positive(timing_cycles, "--timing-cycles", integer=True)
+    if hmpc_dt is not None:
+        _positive(hmpc_dt, "--hmpc-dt")
+    _positive(hmpc_anchor_scale, "--hmpc-anchor-scale")
+    if plant_backend not in ("pinocchio", "rne"):
+        raise ModelInputError(f"--plant-backend: unknown '{plant_backend}' (known: pinocchio, rne)")
+    if hmpc_formulation not in ("absolute", "anchored"):
+        raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
+    created = not out.exists()
+    prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
+    try:
+        _experiment(law_list, mode_list, conditions, robot, out, mismatch, gains, dt, substeps, plant_backend,
+                    timing_cycles, no_trajectories, no_plots, lmpc_bundles, hmpc_formulation, hmpc_dt, hmpc_anchor_scale)
+    except BaseException:
+        if created:
+            remove_if_empty(out)  # nothing was written: leave no empty directory behind
+        raise
+
+
+def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], conditions: Optional[str], robot: str, out: Path,
+                mismatch: str, gains: str, dt: float, substeps: int, plant_backend: str, timing_cycles: int,
+                no_trajectories: bool, no_plots: bool, lmpc_bundles: Optional[Path], hmpc_formulation: str,
+                hmpc_dt: Optional[float], hmpc_anchor_scale: float) -> None:  # fmt: skip
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from models.conditions import load_conditions
+    from models.experiment import PAPER_MISMATCH, ExperimentConfig, run_experiment
+    from models.robots import load_robot
+    from models.sim import SimConfig
+
     arm = load_robot(robot)
     from models.lmpc.paper_range import paper_range_conditions, parse_random_spec
 
@@ -66,8 +107,6 @@ def experiment(
         condition_list = paper_range_conditions(arm, *spec)
     else:
         condition_list = load_conditions(None if conditions is None else Path(conditions), robot=arm)
-    if hmpc_formulation not in ("absolute", "anchored"):
-        raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
     if mismatch == "paper":
         condition_list = [replace(c, mismatch=PAPER_MISMATCH) for c in condition_list]
     config = ExperimentConfig(
@@ -94,7 +133,8 @@ def experiment(
     from models.experiment import format_table
 
     print(format_table(results))
-    console.print(f"wrote {out}/results.json, table.md, trajectories/, plots/")
+    written = ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
+    console.print(f"wrote {out}/{', '.join(written)}")
 
 
 def register(app: typer.Typer) -> None:

@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition, Mismatch
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
 from models.robots import RobotModel
@@ -104,17 +105,20 @@ def run_experiment(
 
     results = _summarize(runs, timing, config, robot, conditions)
     results["controller_options"] = {m: {k: str(v) for k, v in o.items()} for m, o in options.items()}
-    (out_dir / "results.json").write_text(json.dumps(results, indent=2))
-    (out_dir / "table.md").write_text(format_table(results))
+    # Every file complete or absent (temporary name, then rename: Ctrl-C or a full disk leaves no
+    # half file), and results.json last: its presence means the run's outputs are all there.
     if config.save_trajectories:
         traj_dir = out_dir / "trajectories"
         traj_dir.mkdir(exist_ok=True)
         for (law, mode, cond), arrays in trajectories.items():
-            np.savez_compressed(traj_dir / f"{law}_{mode}_{cond}.npz", **arrays)
+            with atomic_path(traj_dir / f"{law}_{mode}_{cond}.npz") as tmp:
+                np.savez_compressed(tmp, **arrays)
     if config.plots:
         from models.plots import plot_tracking_errors
 
         plot_tracking_errors(trajectories, config.laws, config.modes, [c.name for c in conditions], out_dir / "plots")
+    write_text_atomic(out_dir / "table.md", format_table(results))
+    write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2))
     return results
 
 
