@@ -25,10 +25,10 @@ def serve(
 ) -> None:
     """Run the target until SIGINT/SIGTERM; the drives then go to a safe state and the bus closes."""
     from sim_target.config import load_target_config
-    from sim_target.server import build_server
 
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(message)s")
-    target_config = load_target_config(config)
+    target_config = load_target_config(config)  # before pybullet is imported: a bad config is one line
+    from sim_target.server import build_server
     server, close = build_server(target_config)
 
     def _stop(signum: int, _frame: object) -> None:
