@@ -210,7 +210,7 @@ def _render(state: _WatchState, robot: str, joints: tuple[str, ...]) -> Any:
         head.add_row(Text(f"bundle {state.status['bundle_id']}"), Text(""), Text(""), Text(""))
     table = Table(expand=False)
     for column in ("joint", "q [rad]", "q_ref [rad]", "error [rad]", "tau [N m]", "tau_fb [N m]"):
-        table.add_column(column, justify="right" if column != "joint" else "left")
+        table.add_column(Text(column), justify="right" if column != "joint" else "left")  # Text: "[rad]" is no markup
     sample = state.sample
     for j, name in enumerate(joints):
         if sample is None or not sample.values:

@@ -279,3 +279,20 @@ def test_cli_errors_are_one_line(tmp_path: Path) -> None:
     assert result.returncode == 2 and "missing.npz: no such file" in result.stderr
     result = _hil("telemetry", "query", "schema", "--connect", "127.0.0.1:7447")
     assert result.returncode == 2 and "--connect: endpoint '127.0.0.1:7447' is not 'proto/host:port'" in result.stderr
+
+
+def test_watch_shows_the_arm_live() -> None:
+    port = _free_port()
+    loop = FakeLoop(port)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--connect", loop.endpoint, "--seconds", "1.5",
+             "--refresh-hz", "4"],
+            capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "COLUMNS": "140"},
+        )  # fmt: skip
+    finally:
+        loop.kill()
+    assert result.returncode == 0, result.stderr
+    last_frame = result.stdout[result.stdout.rfind("hil/fake_arm"):]
+    for text in ("alive", "ACTIVE", "q [rad]", "error [rad]", "bundle fake:000000000000", *JOINTS):
+        assert text in last_frame, (text, last_frame)
