@@ -123,6 +123,25 @@ PLANT_FAULTS = (EncoderNoiseFault, PayloadFault, ImpulseFault)
 DRIVE_FAULTS = (FrameFault, DriveFault, HeartbeatFault)
 
 
+class RunStart(_Frozen):
+    """Start a new run (control socket ``{"kind": "start", ...}``; ``hil experiment --plant hil``).
+
+    At the first period in which every drive is in Operation Enabled, after that period's step,
+    the arm is placed at ``position_rad`` moving at ``velocity_rad_s``, simulated time restarts at
+    0 and ``faults`` are scheduled from there (their ``at_s`` in the new time; the config's faults
+    are dropped). The TPDOs of that SYNC report the placed state. A test rig's privilege (a real
+    arm cannot be placed): it lets a HIL run start exactly where a simulation starts.
+    """
+
+    kind: Literal["start"]
+    position_rad: tuple[float, ...] = Field(min_length=1)
+    velocity_rad_s: tuple[float, ...] | None = None  # None: at rest
+    faults: tuple[Fault, ...] = ()
+
+
+_RUN_START_ADAPTER: TypeAdapter[RunStart] = TypeAdapter(RunStart)
+
+
 # --- sections --------------------------------------------------------------------------------------
 
 
@@ -241,6 +260,14 @@ def parse_fault(data: Any, source: str = "fault") -> Fault:
         raise TargetConfigError(format_validation_error(source, exc)) from None
 
 
+def parse_run_start(data: Any, source: str = "start") -> RunStart:
+    """Validate a ``{"kind": "start", ...}`` command's schema; see also ``check_run_start``."""
+    try:
+        return _RUN_START_ADAPTER.validate_python(data)
+    except ValidationError as exc:
+        raise TargetConfigError(format_validation_error(source, exc)) from None
+
+
 # --- checks against the robot and the bus ----------------------------------------------------------
 
 
@@ -317,6 +344,21 @@ def check_fault(fault: Fault, layout: TargetLayout, source: str = "fault") -> No
     if isinstance(fault, FrameFault) and fault.node_ids is not None:
         for i, node_id in enumerate(fault.node_ids):
             known(node_id, f"node_ids[{i}]")
+
+
+def check_run_start(start: RunStart, layout: TargetLayout, source: str = "start") -> None:
+    """Refuse a start state the plant could not take (joint count, outside the joint limits)."""
+    n = layout.n_joints
+    for field in ("position_rad", "velocity_rad_s"):
+        values = getattr(start, field)
+        if values is not None and len(values) != n:
+            raise TargetConfigError(f"{source}: {field}: {len(values)} values for {n} joints")
+    for i, (q, lo, hi, name) in enumerate(zip(start.position_rad, layout.lower_rad, layout.upper_rad, layout.joint_names)):
+        if not lo <= q <= hi:
+            raise TargetConfigError(f"{source}: position_rad[{i}]: {q:g} rad is outside joint '{name}' limits "
+                                    f"[{lo:g}, {hi:g}]")  # fmt: skip
+    for i, fault in enumerate(start.faults):
+        check_fault(fault, layout, f"{source}: faults[{i}]")
 
 
 def check_target_config(config: TargetConfig, source: str = "config") -> TargetLayout:

@@ -265,11 +265,14 @@ class PybulletPlant:
 
     # --- the Plant protocol ---------------------------------------------------------------------
 
-    def reset(self, position_rad: np.ndarray | Sequence[float] | None = None) -> JointState:
-        """Put the arm at rest at ``position_rad`` (default: the initial position), time 0."""
+    def reset(self, position_rad: np.ndarray | Sequence[float] | None = None,
+              velocity_rad_s: np.ndarray | Sequence[float] | None = None) -> JointState:
+        """Put the arm at ``position_rad`` (default: the initial position) moving at
+        ``velocity_rad_s`` (default: at rest), time 0."""
         q0 = self._initial_position_rad if position_rad is None else self._vector(position_rad, "position_rad")
-        for index, q in zip(self._joint_indices, q0):
-            pybullet.resetJointState(self._body, index, float(q), 0.0, physicsClientId=self._client)
+        v0 = np.zeros(self.n_joints) if velocity_rad_s is None else self._vector(velocity_rad_s, "velocity_rad_s")
+        for index, q, v in zip(self._joint_indices, q0, v0):
+            pybullet.resetJointState(self._body, index, float(q), float(v), physicsClientId=self._client)
         for index in self._held_indices:
             pybullet.resetJointState(self._body, index, 0.0, 0.0, physicsClientId=self._client)
         self._time_s = 0.0

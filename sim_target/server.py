@@ -17,6 +17,7 @@ one JSON object per line, the same schema as a config fault, e.g.::
     echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/tmp/hil-target.sock
     hil target inject --socket /tmp/hil-target.sock '{"kind": "impulse", "duration_s": 0.001}'
     hil target inject --socket /tmp/hil-target.sock '{"kind": "status"}'
+    {"kind": "start", "position_rad": [...], "velocity_rad_s": [...], "faults": [...]}   # RunStart
 
 Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
 """
@@ -49,11 +50,14 @@ from sim_target.config import (
     HeartbeatFault,
     ImpulseFault,
     PayloadFault,
+    RunStart,
     TargetConfig,
     TargetConfigError,
     TargetLayout,
     check_fault,
+    check_run_start,
     parse_fault,
+    parse_run_start,
 )
 from sim_target.control import send_control  # noqa: F401 - re-exported: the client side lives there
 from sim_target.plant import JointState, PybulletPlant, TorqueImpulse, default_urdf_path
@@ -94,6 +98,7 @@ class ServerStats:
     late_ticks: int = 0  # realtime: ticks that started after their deadline
     skipped_periods: int = 0  # realtime: periods dropped to catch up, never run in a burst
     faults_applied: int = 0
+    runs_started: int = 0  # RunStart placements done (start_run)
 
 
 class TargetServer:
@@ -119,6 +124,7 @@ class TargetServer:
             else:
                 self._scheduled.append(fault)
         self._scheduled.sort(key=lambda fault: fault.at_s)
+        self._start: RunStart | None = None  # armed by start_run, placed at the first enabled step
         self._control: _ControlServer | None = None
         self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
         drives.set_sync_handler(self._on_sync)
@@ -140,6 +146,32 @@ class TargetServer:
         torque_nm = np.where(enabled, self.drives.commanded_torque_nm(), 0.0)
         state = self.plant.step(torque_nm, ~enabled)
         self.stats.steps += 1
+        if self._start is not None and enabled.all():
+            state = self._place(self._start)
+        return state
+
+    # --- runs that start where a simulation starts ------------------------------------------------
+
+    def start_run(self, start: RunStart) -> None:
+        """Arm a run start (thread-safe; checked first): see :class:`sim_target.config.RunStart`."""
+        check_run_start(start, self.layout, "start")
+        with self._lock:
+            self._start = start
+
+    def _place(self, start: RunStart) -> JointState:
+        self._start = None
+        state = self.plant.reset(start.position_rad, start.velocity_rad_s)
+        self.plant.clear_impulses()
+        self._scheduled = []
+        for fault in start.faults:
+            if isinstance(fault, ImpulseFault):
+                self.plant.add_impulse(TorqueImpulse(fault.torque_nm, fault.at_s, fault.duration_s))
+            else:
+                self._scheduled.append(fault)
+        self._scheduled.sort(key=lambda fault: fault.at_s)
+        self.stats.runs_started += 1
+        log.info("run started at %s rad (time 0), %d fault(s) scheduled", np.round(state.position_rad, 4).tolist(),
+                 len(start.faults))
         return state
 
     def run(self) -> None:
@@ -306,6 +338,9 @@ def _control_reply(target: TargetServer, line: str) -> dict[str, Any]:
         data = json.loads(line)
         if isinstance(data, dict) and data.get("kind") == "status":
             return {"ok": True, **target.status()}
+        if isinstance(data, dict) and data.get("kind") == "start":
+            target.start_run(parse_run_start(data, "control"))
+            return {"ok": True}
         target.inject(parse_fault(data, "control"))
         return {"ok": True}
     except json.JSONDecodeError as exc:
