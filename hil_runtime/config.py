@@ -18,6 +18,7 @@
       conditions_file: null              # null: the paper's five (hil_runtime/data)
       condition: C1
       ramp_s: 2.0                        # from the measured pose onto the reference start
+      start: ramp                        # ramp | condition (no ramp: a plant placed on the condition)
     loop:
       pacing: clock                      # clock: absolute deadlines; bus: as fast as the bus answers
       time_base: auto                    # reference index: wall (clock) or cycles (lock-step, bus)
@@ -82,6 +83,10 @@ class ReferenceSection(_Frozen):
     ramp_s: float = Field(2.0, ge=0.0)  # shortest ramp from the measured pose onto the reference start
     # The ramp is lengthened so its peak speed stays below this fraction of each joint's limit.
     ramp_speed_fraction: float = Field(0.25, gt=0.0, le=1.0)
+    # ramp: from the measured pose onto the condition (above). condition: the condition from its
+    # t = 0 at once, no ramp, for a plant placed on the condition's initial state (a HIL target's
+    # RunStart, hil experiment --plant hil); on a real arm the first error would be a step.
+    start: Literal["ramp", "condition"] = "ramp"
 
     @model_validator(mode="after")
     def _check(self) -> ReferenceSection:

@@ -62,6 +62,13 @@ class Reference:
         return cls(q0, np.zeros_like(q0), np.zeros_like(q0), 0, "hold")
 
     @classmethod
+    def condition_only(cls, condition: Condition, period_s: float) -> Reference:
+        """The condition from its t = 0, no ramp (the plant starts on it), then its end held."""
+        n_cond = int(math.floor(condition.duration_s / period_s + 1e-9)) + 1
+        q, qd, qdd = (np.ascontiguousarray(x, float) for x in condition.reference(np.arange(n_cond) * period_s))
+        return cls(q, qd, qdd, 0, condition.name)
+
+    @classmethod
     def ramp_then(cls, q0: np.ndarray, condition: Condition, period_s: float, ramp_s: float,
                   velocity_limit_rad_s: np.ndarray, speed_fraction: float = 0.25) -> Reference:  # fmt: skip
         q0 = np.asarray(q0, float)
@@ -70,8 +77,8 @@ class Reference:
         p1, v1, a1 = (np.asarray(x, float) for x in condition.reference(0.0))
         duration = ramp_duration_s(q0, p1, v1, a1, ramp_s, np.asarray(velocity_limit_rad_s, float) * speed_fraction,
                                    period_s)
-        n_ramp = int(round(duration / period_s))
-        n_cond = int(math.floor(condition.duration_s / period_s + 1e-9)) + 1
+        n_ramp = round(duration / period_s)
+        n_cond = math.floor(condition.duration_s / period_s + 1e-9) + 1
         t_cond = np.arange(n_cond) * period_s
         cq, cqd, cqdd = (np.asarray(x, float) for x in condition.reference(t_cond))
         if n_ramp > 0:

@@ -47,10 +47,22 @@ from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.controller import Controller
 from hil_runtime.lifecycle import Lifecycle, LifecycleState, Transition
 from hil_runtime.pacer import Pacer
-from hil_runtime.realtime import GcQuiet, RealtimeReport, freeze_heap, set_thread_affinity, set_thread_fifo
+from hil_runtime.realtime import (
+    GcQuiet,
+    RealtimeReport,
+    freeze_heap,
+    set_thread_affinity,
+    set_thread_fifo,
+)
 from hil_runtime.reference import Reference
 from hil_runtime.sdnotify import Notifier
-from hil_runtime.supervisor import Fault, FaultKind, SafetyLimits, Supervisor, classify_bus_error
+from hil_runtime.supervisor import (
+    Fault,
+    FaultKind,
+    SafetyLimits,
+    Supervisor,
+    classify_bus_error,
+)
 from hil_runtime.telemetry.sink import NullTelemetry, TelemetrySink
 
 log = logging.getLogger(__name__)
@@ -94,7 +106,7 @@ def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimi
         raise RuntimeConfigError(f"{config.source}: safety: {exc}") from None
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Limits:
     """The JointLimits view of the safety limits that a condition is checked against."""
 
@@ -173,7 +185,7 @@ class RunRecord:
         return {name: getattr(self, name)[:n] for name in names}
 
     def save_npz(self, path: Path | str) -> None:
-        np.savez_compressed(path, **self.arrays())
+        np.savez_compressed(path, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
 
 
 @dataclass
@@ -292,7 +304,7 @@ class Runtime:
         except DriveError as exc:
             self._enter_fault(classify_bus_error(exc))
             return False
-        except Exception as exc:  # noqa: BLE001 - nothing at run time may crash the loop thread
+        except Exception as exc:  # nothing at run time may crash the loop thread
             log.exception("enable failed")
             self._enter_fault(Fault(FaultKind.INTERNAL, f"enable: {exc!r}"))
             return False
@@ -348,7 +360,7 @@ class Runtime:
         self._apply_thread_settings()
         reason = "stop"
         loop = self.config.loop
-        duration_ticks = None if loop.duration_s is None else int(round(loop.duration_s / self.config.period_s))
+        duration_ticks = None if loop.duration_s is None else round(loop.duration_s / self.config.period_s)
         cycles_left = max_cycles
         try:
             while not self._stop:
@@ -421,7 +433,7 @@ class Runtime:
                 try:
                     k = base + (pacer.tick if wall_time else pacer.cycles - 1)
                     fault = compute(feedback, k, start, received)
-                except Exception as exc:  # noqa: BLE001 - a bug must still stop the arm safely
+                except Exception as exc:  # a bug must still stop the arm safely
                     log.exception("loop computation failed")
                     fault = Fault(FaultKind.INTERNAL, f"{type(exc).__name__}: {exc}")
                 self.total_cycles += 1
@@ -513,6 +525,8 @@ class Runtime:
         ref = self.config.reference
         if self.condition is None:
             return Reference.hold(q0)
+        if ref.start == "condition":  # the plant was placed on the condition's start (RunStart)
+            return Reference.condition_only(self.condition, self.config.period_s)
         return Reference.ramp_then(q0, self.condition, self.config.period_s, ref.ramp_s,
                                    self.limits.velocity_limit_rad_s, ref.ramp_speed_fraction)  # fmt: skip
 
@@ -594,7 +608,7 @@ class Runtime:
         if state is LifecycleState.ACTIVE:
             stats = stats or self._last_stats
             rate = stats.get("rate_hz", math.nan) if stats else math.nan
-            rate_text = f"{rate:.0f} Hz" if rate == rate else "starting"
+            rate_text = "starting" if math.isnan(rate) else f"{rate:.0f} Hz"
             return (f"ACTIVE {rate_text}, {self.total_cycles} cycles, overruns {self.pacer.overruns}, "
                     f"reference {self.reference.name}")  # fmt: skip
         return state.value
@@ -632,8 +646,9 @@ def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
     """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet."""
     from drivers.drive_bus import DriveBus
 
-    return Runtime(config, DriveBus(config.bus), **kwargs)
+    bus: JointBus = DriveBus(config.bus)  # type: ignore[assignment]  # DriveFeedback is frozen; JointFeedback declares settable fields
+    return Runtime(config, bus, **kwargs)
 
 
-__all__ = ["BundleError", "ConditionError", "Runtime", "RunRecord", "RunResult", "StartupError", "build_runtime",
+__all__ = ["BundleError", "ConditionError", "RunRecord", "RunResult", "Runtime", "StartupError", "build_runtime",
            "load_bundle_for"]  # fmt: skip
