@@ -51,6 +51,7 @@ def _config(args: argparse.Namespace, transport: dict[str, Any]) -> Any:
         "period_s": 1.0 / args.rate_hz,
         "feedback_timeout_s": args.feedback_timeout_s,
         "max_missed_cycles": 1_000_000,  # count, don't stop: the benchmark reports losses
+        "comm_loss_timeout_s": 5.0,  # nor may the drives stop on a stall of this loaded machine
         "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(args.drives)],
     }, "benchmark")
 

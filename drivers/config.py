@@ -149,8 +149,9 @@ class DriveBusConfig(_Frozen):
         if self.comm_loss_timeout_s is not None:
             if round(self.comm_loss_timeout_s * 1000) <= self.master_heartbeat_ms:
                 raise ValueError("comm_loss_timeout_s must exceed the master heartbeat period (master_heartbeat_ms)")
-            if self.comm_loss_timeout_s <= self.period_s:
-                raise ValueError("comm_loss_timeout_s must exceed period_s")
+            if self.comm_loss_timeout_s <= self.feedback_timeout_s + self.period_s:
+                # A cycle waiting for late feedback sends nothing meanwhile: not a lost master.
+                raise ValueError("comm_loss_timeout_s must exceed feedback_timeout_s + period_s")
         return self
 
     @property

@@ -30,5 +30,6 @@ class EmcyConsumer:
             node.last_emcy_code = 0
             return
         node.last_emcy_code = emcy.error_code
-        self.network.errors.append(
-            DriveFaultError(node.node_id, emcy.error_code, f"EMCY, error register 0x{emcy.error_register:02X}"))
+        meaning = fr.EMCY_TEXT.get(emcy.error_code)
+        detail = f"EMCY, error register 0x{emcy.error_register:02X}" + (f": {meaning}" if meaning else "")
+        self.network.errors.append(DriveFaultError(node.node_id, emcy.error_code, detail))

@@ -26,6 +26,7 @@ import numpy as np
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State, decode_statusword_fast
+from drivers.errors import TransportError
 from drivers.feedback import DriveFeedback
 from drivers.network import DriveNetwork
 from drivers.node import DriveNode
@@ -116,45 +117,58 @@ class CyclicExchange:
                 network.send_batch(self._frames)
                 deadline = sync_time + self.feedback_timeout_s
                 dispatch = network.dispatch
-                recv = network.recv
+                recv = network.bus.recv
                 while self._pending > 0:
                     remaining = deadline - monotonic()
                     if remaining <= 0:
                         break
-                    msg = recv(remaining)
+                    try:
+                        msg = recv(remaining)
+                    except TransportError:
+                        raise
+                    except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+                        raise TransportError(f"receiving failed: {exc}") from exc
                     if msg is None:
                         break
                     dispatch(msg, monotonic())
             finally:
                 self._open = False
             now = monotonic()
-            if self.fd:
-                fresh = [node.tpdo1_cycle == cycle for node in nodes]
-                missing = fresh.count(False)
-            else:
-                fresh = [node.tpdo1_cycle == cycle and node.tpdo2_cycle == cycle for node in nodes]
-                missing = sum((node.tpdo1_cycle != cycle) + (node.tpdo2_cycle != cycle) for node in nodes)
-            self.dropped += missing
-            for node, is_fresh in zip(nodes, fresh):
+            # One pass over the drives: freshness, miss count, state, and the feedback values.
+            fd = self.fd
+            fresh, position, velocity, torque, rx_time, states = [], [], [], [], [], []
+            missing = 0
+            for node in nodes:
+                got1 = node.tpdo1_cycle == cycle
+                is_fresh = got1 if fd else got1 and node.tpdo2_cycle == cycle
                 if is_fresh:
                     node.missed_cycles = 0
                     node.state = decode_statusword_fast(node.statusword)
                 else:
                     node.missed_cycles += 1
+                    missing += (not got1) + (0 if fd else node.tpdo2_cycle != cycle)
+                fresh.append(is_fresh)
+                position.append(node.position_counts)
+                velocity.append(node.velocity_counts_s)
+                torque.append(node.torque_permille)
+                rx_time.append(node.rx_time_s)
+                states.append(node.state)
+            self.dropped += missing
             supervise = network.supervise
             if supervise is not None:
                 supervise(now)
-            feedback = DriveFeedback(
-                cycle=cycle,
-                sync_time_s=sync_time,
-                position_rad=np.array([node.position_counts for node in nodes], dtype=np.float64) / self._counts_per_rad,
-                velocity_rad_s=np.array([node.velocity_counts_s for node in nodes], dtype=np.float64) / self._counts_per_rad,
-                torque_nm=np.array([node.torque_permille for node in nodes], dtype=np.float64) / self._permille_per_nm,
-                commanded_torque_nm=np.array(commanded_nm, dtype=np.float64),
-                fresh=np.array(fresh, dtype=bool),
-                rx_time_s=np.array([node.rx_time_s for node in nodes], dtype=np.float64),
-                states=tuple(node.state for node in nodes),
-            )
+        counts_per_rad = self._counts_per_rad
+        feedback = DriveFeedback(
+            cycle=cycle,
+            sync_time_s=sync_time,
+            position_rad=np.array(position, dtype=np.float64) / counts_per_rad,
+            velocity_rad_s=np.array(velocity, dtype=np.float64) / counts_per_rad,
+            torque_nm=np.array(torque, dtype=np.float64) / self._permille_per_nm,
+            commanded_torque_nm=np.array(commanded_nm, dtype=np.float64),
+            fresh=np.array(fresh, dtype=bool),
+            rx_time_s=np.array(rx_time, dtype=np.float64),
+            states=tuple(states),
+        )
         produce = network.produce
         if produce is not None:
             produce(now)  # the master's heartbeat, when due, right after the cycle

@@ -158,6 +158,18 @@ EMCY_COMMUNICATION: Final = 0x8100  # generic communication error; the drives' S
 EMCY_HEARTBEAT: Final = 0x8130  # life guard / heartbeat consumer timeout (the master's heartbeat)
 EMCY_RPDO_TIMEOUT: Final = 0x8250  # no RPDO within its event timer (0x1400:05)
 
+# What the driver's DriveFaultError says for the codes a drive of this layer sends.
+EMCY_TEXT: Final[dict[int, str]] = {
+    EMCY_GENERIC: "generic error",
+    EMCY_OVERCURRENT: "overcurrent",
+    EMCY_OVERVOLTAGE: "overvoltage",
+    EMCY_OVERTEMPERATURE: "overtemperature",
+    EMCY_FOLLOWING_ERROR: "following error",
+    EMCY_COMMUNICATION: "communication error (no SYNC from the master within 0x2101)",
+    EMCY_HEARTBEAT: "heartbeat consumer timeout (no heartbeat from the master within 0x1016)",
+    EMCY_RPDO_TIMEOUT: "RPDO timeout (no set-point from the master within 0x1400:05)",
+}
+
 ERROR_REGISTER_GENERIC: Final = 0x01
 ERROR_REGISTER_CURRENT: Final = 0x02
 ERROR_REGISTER_TEMPERATURE: Final = 0x08
@@ -201,6 +213,7 @@ _unpack_tpdo1 = _TPDO1.unpack
 _unpack_tpdo2 = _TPDO2.unpack
 _unpack_tpdo_fd = _TPDO_FD.unpack
 _unpack_tpdo_fd_sync = _TPDO_FD_SYNC.unpack
+_new_tuple = tuple.__new__  # builds a NamedTuple from a tuple without its Python-level __new__ (hot path)
 
 
 class RpdoData(NamedTuple):
@@ -234,8 +247,7 @@ def encode_rpdo_into(buffer: bytearray, controlword: int, target_torque_permille
 def decode_rpdo(data: bytes) -> RpdoData:
     if len(data) != RPDO_LENGTH:
         raise MalformedFrameError(f"RPDO1 has {len(data)} bytes, expected {RPDO_LENGTH}")
-    controlword, torque = _unpack_rpdo(data)
-    return RpdoData(controlword, torque)
+    return _new_tuple(RpdoData, _unpack_rpdo(data))
 
 
 def encode_tpdo1(statusword: int, torque_actual_permille: int, position_counts: int) -> bytes:
@@ -264,8 +276,7 @@ def encode_tpdo_fd(
 def decode_tpdo1(data: bytes) -> TpdoData:
     if len(data) != TPDO1_LENGTH:
         raise MalformedFrameError(f"TPDO1 has {len(data)} bytes, expected {TPDO1_LENGTH}")
-    statusword, torque, position = _unpack_tpdo1(data)
-    return TpdoData(statusword, torque, position, None)
+    return _new_tuple(TpdoData, (*_unpack_tpdo1(data), None))
 
 
 def decode_tpdo2(data: bytes) -> int:
@@ -300,8 +311,8 @@ def decode_tpdo_fd_sync(data: bytes) -> tuple[TpdoData, int]:
     """(feedback, SYNC counter echoed) of a tagged 16-byte FD TPDO."""
     if len(data) != TPDO_FD_SYNC_LENGTH:
         raise MalformedFrameError(f"tagged FD TPDO has {len(data)} bytes, expected {TPDO_FD_SYNC_LENGTH}")
-    statusword, torque, position, velocity, counter = _unpack_tpdo_fd_sync(data)
-    return TpdoData(statusword, torque, position, velocity), counter
+    fields = _unpack_tpdo_fd_sync(data)
+    return _new_tuple(TpdoData, fields[:4]), fields[4]
 
 
 def next_sync_counter(counter: int) -> int:
@@ -313,5 +324,4 @@ def decode_tpdo_fd(data: bytes) -> TpdoData:
     # A CAN FD frame is padded to the next valid length (12 is one), so accept exactly 12.
     if len(data) != TPDO_FD_LENGTH:
         raise MalformedFrameError(f"FD TPDO has {len(data)} bytes, expected {TPDO_FD_LENGTH}")
-    statusword, torque, position, velocity = _unpack_tpdo_fd(data)
-    return TpdoData(statusword, torque, position, velocity)
+    return _new_tuple(TpdoData, _unpack_tpdo_fd(data))

@@ -29,6 +29,8 @@ def drive_bus_config(channel: str, n: int = 6, fd: bool = False, **overrides: An
         "feedback_timeout_s": 0.5,
         "heartbeat_producer_ms": 20,
         "heartbeat_timeout_s": 0.5,
+        # The drives stop on their own past this silence of the master: beyond the slowest cycle.
+        "comm_loss_timeout_s": 2.0,
     }
     data.update(overrides)
     if "transport" in overrides:

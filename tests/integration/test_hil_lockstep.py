@@ -49,8 +49,11 @@ LOOSE_TOLERANCE_RAD = 2e-3  # pybullet (semi-implicit Euler, substeps) vs RK4, p
 # The lock-step target answers a SYNC after one physics step; these bound a cycle only if the
 # machine stalls (they are limits to wait for frames, not assertions on time). The feedback timeout
 # stays well below the heartbeat consumer's, so a silent drive is first missed by its TPDOs.
+# The drives would quick-stop on their own when the master is silent for comm_loss_timeout_s;
+# the checks below compute between exchanges with the drives enabled (seconds on a loaded
+# machine), and a lock-stepped arm does not move without SYNCs anyway: not watched here.
 SLOW_MACHINE = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
-                "state_change_timeout_s": 5.0}
+                "state_change_timeout_s": 5.0, "comm_loss_timeout_s": None}
 
 
 def _gravity_plus_sinusoid():  # type: ignore[no-untyped-def]
@@ -81,9 +84,9 @@ def _run_arm(bus: DriveBus, cycles: int, period_s: float) -> tuple[np.ndarray, n
     for node_id in bus.node_ids:  # the SDO configuration reached the drives
         assert bus.sdo_read_int(node_id, odx.MODES_DISPLAY) == odx.MODE_CYCLIC_SYNC_TORQUE
     assert bus.sdo_read_int(3, odx.RATED_TORQUE) == bus.config.joints[2].effective_rated_torque_mnm
+    law = _gravity_plus_sinusoid()  # before enable: enabled drives quick-stop when the master idles
     bus.enable()
     assert bus.states == (State.OPERATION_ENABLED,) * 6
-    law = _gravity_plus_sinusoid()
     q = np.array(Q0_RAD)
     positions, velocities, commanded = [], [], []
     for k in range(cycles):
