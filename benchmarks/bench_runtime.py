@@ -41,11 +41,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "integration"))
 
-from hil_target import target_in_process, target_process, unique_channel  # noqa: E402
+from hil_target import target_in_process, target_process, unique_channel
 
-from drivers.testing import FakeJointBus  # noqa: E402
-from hil_runtime.config import parse_runtime_config  # noqa: E402
-from hil_runtime.runtime import Runtime, build_runtime  # noqa: E402
+from drivers.testing import FakeJointBus
+from hil_runtime.config import parse_runtime_config
+from hil_runtime.runtime import Runtime, build_runtime
 
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
 JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
@@ -63,7 +63,7 @@ def config_dict(transport: dict[str, Any], period_s: float, pacing: str, bundle:
         "bundle": {"path": str(bundle), "mode": mode},
         "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": period_s,
                 "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **BENCH_DRIVER},  # fmt: skip
+                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **BENCH_DRIVER},
         "reference": {"kind": "hold"} if hold else {"kind": "condition", "condition": "C1", "ramp_s": 2.0},
         # The targets here are lock-stepped: one reference row per exchange, whatever the pacing.
         "loop": {"pacing": pacing, "time_base": "cycles", "fifo_priority": fifo,

@@ -80,7 +80,7 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
         def loop() -> None:
             try:
                 outcome["result"] = runtime.run(shutdown_at_end=True)
-            except BaseException as exc:  # noqa: BLE001 - reported below, exit code 1
+            except BaseException as exc:  # reported below, exit code 1
                 outcome["error"] = exc
                 log.exception("the loop thread failed")
                 runtime.shutdown()

@@ -46,8 +46,7 @@ class RollingStats:
         if self._i == self._window:
             self._i = 0
         self.count += 1
-        if value > self.max_all:
-            self.max_all = value
+        self.max_all = max(self.max_all, value)
 
     def reset(self) -> None:
         self._i = 0

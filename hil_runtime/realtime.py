@@ -22,6 +22,7 @@ import gc
 import logging
 import os
 from dataclasses import dataclass, field
+from typing import Self
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,7 @@ def freeze_heap() -> None:
 class GcQuiet:
     """``with GcQuiet():`` no garbage collection inside (:func:`freeze_heap` first, outside)."""
 
-    def __enter__(self) -> GcQuiet:
+    def __enter__(self) -> Self:
         self._was_enabled = gc.isenabled()
         gc.disable()
         return self

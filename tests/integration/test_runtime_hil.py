@@ -50,7 +50,7 @@ def runtime_config(transport: dict[str, Any], **sections: Any) -> dict[str, Any]
         "bundle": {"path": str(PD_BUNDLE), "mode": "lmpc"},
         "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": 0.001,
                 "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **SLOW_MACHINE},  # fmt: skip
+                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **SLOW_MACHINE},
         "reference": {"kind": "condition", "condition": "C1", "ramp_s": 2.0},
         "loop": {"pacing": "bus"},
         **sections,
@@ -223,7 +223,7 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
             assert send_command(sock, "status")["state"] == "FAULT"
             assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [False] * 6
             reset = subprocess.run([sys.executable, "-m", "hil_runtime.cli", "reset", "--socket", str(sock)],
-                                   capture_output=True, text=True, timeout=30)  # fmt: skip
+                                   capture_output=True, text=True, timeout=30, check=False)  # fmt: skip
             assert reset.returncode == 0 and "state was FAULT" in reset.stdout, reset.stderr
             deadline = time.monotonic() + 30
             while send_command(sock, "status")["state"] != "ACTIVE" and time.monotonic() < deadline:

@@ -26,7 +26,7 @@ def config_dict(**overrides: Any) -> dict[str, Any]:
             "transport": {"interface": "virtual", "channel": "unit", "fd": True, "data_bitrate": 5_000_000},
             "period_s": 0.001,
             "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                       for i, (n, t) in enumerate(zip(JOINT_NAMES, MAX_TORQUE_NM))],  # fmt: skip
+                       for i, (n, t) in enumerate(zip(JOINT_NAMES, MAX_TORQUE_NM))],
         },
         "reference": {"kind": "hold"},
         "loop": {"pacing": "bus", "warmup_cycles": 5},

@@ -11,7 +11,12 @@ from typing import Any
 
 import pytest
 
-from hil_runtime.control import ControlError, ControlServer, handle_command, send_command
+from hil_runtime.control import (
+    ControlError,
+    ControlServer,
+    handle_command,
+    send_command,
+)
 
 
 class Target:

@@ -32,7 +32,7 @@ print(json.dumps({"modules": names, "failed": failed, "loaded": loaded}))
 
 def test_no_runtime_or_driver_module_imports_the_science_side() -> None:
     code = CODE.replace("forbidden = FORBIDDEN", f"forbidden = {FORBIDDEN!r}")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout.strip().splitlines()[-1])
     assert {"hil_runtime.runtime", "hil_runtime.daemon", "hil_runtime.supervisor", "drivers.drive_bus"} <= set(

@@ -6,7 +6,13 @@ import itertools
 
 import pytest
 
-from hil_runtime.lifecycle import TRANSITIONS, Lifecycle, LifecycleError, LifecycleState, Transition
+from hil_runtime.lifecycle import (
+    TRANSITIONS,
+    Lifecycle,
+    LifecycleError,
+    LifecycleState,
+    Transition,
+)
 
 S, T = LifecycleState, Transition
 

@@ -11,7 +11,12 @@ import threading
 import pytest
 
 from hil_runtime import realtime
-from hil_runtime.realtime import GcQuiet, RealtimeReport, set_thread_affinity, set_thread_fifo
+from hil_runtime.realtime import (
+    GcQuiet,
+    RealtimeReport,
+    set_thread_affinity,
+    set_thread_fifo,
+)
 
 
 def _eperm(*args: object) -> None:

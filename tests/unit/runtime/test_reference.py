@@ -44,7 +44,7 @@ def test_ramp_then_condition_is_continuous_and_starts_at_rest_at_the_measured_po
     assert seam < 1e-2
     # Condition rows follow its own formula; past the end, its last position at rest.
     t = 1.2345
-    k = ref.ramp_cycles + int(round(t / PERIOD_S))
+    k = ref.ramp_cycles + round(t / PERIOD_S)
     np.testing.assert_allclose(ref.at(k)[0], condition.reference(round(t / PERIOD_S) * PERIOD_S)[0], atol=1e-12)
     q_end, qd_end, qdd_end = ref.at(ref.cycles + 10_000)
     np.testing.assert_allclose(q_end, ref.q[-1])

@@ -70,8 +70,8 @@ def test_environment_rules(listener: tuple) -> None:
     mine = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "100000",
                                       "WATCHDOG_PID": str(os.getpid())})  # fmt: skip
     assert mine.watchdog_interval_s == pytest.approx(0.05)
-    for n in (n, other, mine):
-        n.close()
+    for notifier in (n, other, mine):
+        notifier.close()
 
 
 def test_abstract_namespace_socket() -> None:

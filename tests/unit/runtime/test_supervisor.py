@@ -15,7 +15,13 @@ from drivers.errors import (
     HeartbeatLostError,
     TransportError,
 )
-from hil_runtime.supervisor import Fault, FaultKind, SafetyLimits, Supervisor, classify_bus_error
+from hil_runtime.supervisor import (
+    Fault,
+    FaultKind,
+    SafetyLimits,
+    Supervisor,
+    classify_bus_error,
+)
 
 NAN, INF = math.nan, math.inf
 LIMITS = SafetyLimits(
