@@ -73,9 +73,9 @@ class PlantError(ValueError):
 class TorqueImpulse:
     """An external joint torque applied over [start_s, start_s + duration_s).
 
-    The plant holds torque constant over a control period, so a pulse shorter than the period (or
-    not aligned with it) is applied as its average over each period it overlaps: the impulse
-    (N·m·s), which is what moves the arm, is preserved exactly.
+    The plant resolves it to its physics substeps: a pulse shorter than a substep (or not aligned
+    with one) is applied as its average over each substep it overlaps, so the impulse (N·m·s) is
+    preserved exactly and its timing to one substep (period / substeps).
     """
 
     torque_nm: tuple[float, ...]  # one per controlled joint
@@ -300,9 +300,7 @@ class PybulletPlant:
         if braked.shape != (self.n_joints,):
             raise PlantError(f"brake_engaged: expected {self.n_joints} values, got shape {braked.shape}")
         motor_nm = np.where(braked, 0.0, np.clip(command, -self.torque_limit_nm, self.torque_limit_nm))
-        external_nm = np.zeros(self.n_joints)
-        for impulse in self._impulses:
-            external_nm += impulse.mean_torque_nm(self._time_s, self.period_s)
+        external_nm = self._external_profile_nm()
         # A brake locks the joint where it engaged, up to its holding torque. A stiff position
         # motor rather than a velocity lock: the latter creeps by ~1e-4 rad/s under gravity.
         true_q = self.true_state().position_rad
@@ -321,20 +319,53 @@ class PybulletPlant:
             velocityGains=[1.0] * (self.n_joints + len(held)),
             physicsClientId=self._client,
         )
-        pybullet.setJointMotorControlArray(
-            self._body,
-            self._joint_indices,
-            pybullet.TORQUE_CONTROL,
-            forces=(motor_nm + external_nm).tolist(),
-            physicsClientId=self._client,
-        )
-        pybullet.stepSimulation(physicsClientId=self._client)
+        if external_nm is None:  # the common case: one call, pybullet runs the substeps
+            pybullet.setJointMotorControlArray(
+                self._body, self._joint_indices, pybullet.TORQUE_CONTROL, forces=motor_nm.tolist(),
+                physicsClientId=self._client,
+            )
+            pybullet.stepSimulation(physicsClientId=self._client)
+        else:  # an impulse touches this period: substep by substep, each with its share of it
+            self._step_substeps(motor_nm, external_nm)
         self._steps += 1
         # Counted in periods so long runs do not accumulate floating-point drift.
         self._time_s = self._steps * self.period_s
         self._applied_nm = motor_nm
         self._measured = self._measure()
         return self._measured
+
+    def _external_profile_nm(self) -> np.ndarray | None:
+        """(substeps, N) external torque per physics substep of this period; None when no impulse
+        touches it. Each substep carries the impulse's mean over that substep: a 20 µs pulse at the
+        start of a period acts in its first 31 µs substep (32 substeps), as in the models simulator
+        (which integrates the pulse exactly), not spread over the whole period."""
+        t0_s, period_s = self._time_s, self.period_s
+        active = [i for i in self._impulses if i.start_s < t0_s + period_s and i.start_s + i.duration_s > t0_s]
+        if not active:
+            return None
+        h_s = period_s / self.substeps
+        profile = np.zeros((self.substeps, self.n_joints))
+        for k in range(self.substeps):
+            for impulse in active:
+                profile[k] += impulse.mean_torque_nm(t0_s + k * h_s, h_s)
+        return profile
+
+    def _step_substeps(self, motor_nm: np.ndarray, external_nm: np.ndarray) -> None:
+        """One period as ``substeps`` single pybullet steps (the same step size as one call with
+        numSubSteps), the external torque changing between them."""
+        client = self._client
+        pybullet.setPhysicsEngineParameter(fixedTimeStep=self.period_s / self.substeps, numSubSteps=1,
+                                           physicsClientId=client)  # fmt: skip
+        try:
+            for k in range(self.substeps):
+                pybullet.setJointMotorControlArray(
+                    self._body, self._joint_indices, pybullet.TORQUE_CONTROL,
+                    forces=(motor_nm + external_nm[k]).tolist(), physicsClientId=client,
+                )
+                pybullet.stepSimulation(physicsClientId=client)
+        finally:
+            pybullet.setPhysicsEngineParameter(fixedTimeStep=self.period_s, numSubSteps=self.substeps,
+                                               physicsClientId=client)  # fmt: skip
 
     # --- plant faults -------------------------------------------------------------------------
 
