@@ -47,6 +47,27 @@ def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
     return make_sink(config.telemetry, config.robot, info, controls=runtime)
 
 
+def check(config_path: Path | str) -> str:
+    """Everything ``hil run`` checks before it touches the bus (config, bus-load budget, bundle vs
+    drives, condition vs limits), and nothing more: a summary, or the same one-line errors."""
+    config = load_runtime_config(config_path)
+    runtime = build_runtime(config)
+    bundle, limits = runtime.bundle, runtime.limits
+    reference = config.reference.condition if config.reference.kind == "condition" else "hold"
+    transport = config.bus.transport
+    return "\n".join([
+        f"{config.source}: ok",
+        f"  robot {config.robot}, {len(config.joint_names)} joints: {', '.join(config.joint_names)}",
+        f"  bundle {bundle.path} ({bundle.law_name}, mode {config.bundle.mode}), period {config.period_s * 1e3:g} ms",
+        f"  bus {transport.interface}:{transport.channel}{' CAN FD' if transport.fd else ''}, node ids "
+        f"{list(config.bus.node_ids)}, load {config.bus.bus_load().load:.0%} of the bus",
+        f"  reference {reference}, pacing {config.loop.pacing}",
+        f"  limits: position [{', '.join(f'{a:.3g}..{b:.3g}' for a, b in zip(limits.position_lower_rad, limits.position_upper_rad))}] rad, "
+        f"velocity {limits.velocity_limit_rad_s.round(3).tolist()} rad/s, torque {limits.torque_limit_nm.round(1).tolist()} N·m",
+        f"  telemetry {'on' if config.telemetry.enabled else 'off'}, control socket {config.control_socket or 'none'}",
+    ])  # fmt: skip
+
+
 def _say(text: str) -> None:
     print(f"hil run: {text}", file=sys.stderr, flush=True)
 

@@ -197,6 +197,7 @@ class RunResult:
     fault: str | None
     cycles: int
     stats: dict[str, Any]
+    fault_cycle: int | None = None  # exchanges in ACTIVE when the last fault was entered
 
 
 # --- the runtime ---------------------------------------------------------------------------------------
@@ -256,6 +257,7 @@ class Runtime:
         self.total_cycles = 0  # exchanges in ACTIVE
         self._seq = 0  # telemetry state samples offered (activation rows included)
         self.last_fault: Fault | None = None
+        self.fault_cycle: int | None = None  # total_cycles when the last fault was entered
         self._last_stats: dict[str, Any] = {}
 
     # --- requests from any thread -------------------------------------------------------------
@@ -385,7 +387,7 @@ class Runtime:
                     raise RuntimeError(f"run() needs a configured runtime, it is {state.value}")
                 self._idle()
             result = RunResult(reason if not self._stop else "stop", self.lifecycle.state, self.lifecycle.fault,
-                               self.total_cycles, self.stats())  # fmt: skip
+                               self.total_cycles, self.stats(), self.fault_cycle)  # fmt: skip
         finally:
             if shutdown_at_end:
                 self.shutdown()
@@ -419,6 +421,7 @@ class Runtime:
                 start = pacer.wait()
                 if self._stop:
                     break
+                self.total_cycles += 1  # an exchange that raises still happened (frames went out)
                 try:
                     feedback = bus.exchange(command)
                 except DriveError as exc:  # the driver has quick-stopped the drives already
@@ -436,7 +439,6 @@ class Runtime:
                 except Exception as exc:  # a bug must still stop the arm safely
                     log.exception("loop computation failed")
                     fault = Fault(FaultKind.INTERNAL, f"{type(exc).__name__}: {exc}")
-                self.total_cycles += 1
                 if fault is not None:
                     self._enter_fault(fault)
                     reason = "fault"
@@ -494,6 +496,7 @@ class Runtime:
         """Quick-stop the drives (best effort), FAULT with the reason; the loop thread stays up."""
         self._quick_stop(fault.kind.value)
         self.last_fault = fault
+        self.fault_cycle = self.total_cycles
         self._faults += 1
         log.error("FAULT: %s", fault)
         self.lifecycle.apply(Transition.FAULT, str(fault))
@@ -619,6 +622,7 @@ class Runtime:
         return {
             "state": self.lifecycle.state.value,
             "fault": self.lifecycle.fault,
+            "fault_cycle": self.fault_cycle,
             "robot": self.config.robot,
             "bundle": str(self.config.bundle.path),
             "mode": self.config.bundle.mode,

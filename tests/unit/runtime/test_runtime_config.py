@@ -200,3 +200,15 @@ def test_the_deployed_configs_are_valid(name: str) -> None:
     assert config.robot == "ur5_paper" and config.period_s == 0.001
     if name != "runtime.can0.yaml":  # can0 names the installed bundle under /opt
         Runtime(config, FakeJointBus(6))  # bundle, joints, period and condition all agree
+
+
+def test_hil_run_check_validates_without_touching_the_bus(tmp_path: Path) -> None:
+    from runtime_fixtures import ROOT
+
+    result = _hil("run", "--config", str(ROOT / "deploy" / "runtime.ipc.yaml"), "--check")
+    assert result.returncode == 0, result.stderr
+    assert "runtime.ipc.yaml: ok" in result.stdout and "reference C1" in result.stdout
+    data = config_dict()
+    data["bus"]["period_s"] = 0.002
+    result = _hil("run", "--config", str(_write(tmp_path, data)), "--check")
+    assert result.returncode == 2 and "control period" in result.stderr

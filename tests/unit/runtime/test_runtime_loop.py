@@ -120,8 +120,9 @@ def test_a_driver_error_is_a_fault_drives_stopped_daemon_up_until_reset(error: E
     assert result.reason == "fault" and result.state is LifecycleState.FAULT
     assert result.fault is not None and result.fault.startswith(kind)
     assert rt.last_fault is not None and rt.last_fault.kind.value == kind
+    assert result.fault_cycle == 21  # the 21st exchange raised: acted on in that very cycle
     assert not bus.enabled and bus.fail_safe_count == 1 and bus.quick_stop_calls >= 1
-    assert ("fault", 20, result.fault) in rt.telemetry.events  # type: ignore[attr-defined]
+    assert ("fault", 21, result.fault) in rt.telemetry.events  # type: ignore[attr-defined]
     # FAULT: the loop thread waits for a reset; then ACTIVE again from the measured pose.
     done = threading.Event()
     outcome = {}
