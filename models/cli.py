@@ -134,7 +134,7 @@ def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], condition
 
     print(format_table(results))
     written = ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
-    console.print(f"wrote {out}/{', '.join(written)}")
+    console.print(f"wrote {out}/{', '.join(written)}", soft_wrap=True, highlight=False)  # one line, even piped
 
 
 def register(app: typer.Typer) -> None:

@@ -112,3 +112,11 @@ def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(tmp_pat
     leftovers = [p.name for p in out.rglob("*") if ".partial-" in p.name] if out.exists() else []
     assert leftovers == []
     assert not (out / "results.json").exists()  # results.json is written last: absent means incomplete
+
+
+def test_help_shows_flags_without_a_bool_type_and_lists_the_robots() -> None:
+    done = subprocess.run([*hil_command(), "experiment", "--help"], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "COLUMNS": "200"})  # fmt: skip
+    assert done.returncode == 0
+    assert "--no-plots" in done.stdout and "<bool>" not in done.stdout
+    assert "ur5_paper, ur5, panda" in done.stdout

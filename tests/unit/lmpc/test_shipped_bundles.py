@@ -71,6 +71,8 @@ def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path) -> Non
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
+    assert f"wrote {out}/results.json, table.md" in done.stderr and "plots/" not in done.stderr  # only what it wrote
+    assert sorted(p.name for p in out.iterdir()) == ["results.json", "table.md"]
     results = json.loads((out / "results.json").read_text())
     runs = {(r["law"], r["mode"]) for r in results["runs"]}
     assert runs == {(law, "lmpc") for law in LAW_NAMES}
