@@ -14,6 +14,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from hil_runtime.config import parse_runtime_config
 from hil_runtime.control import send_command
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import build_runtime
+from sim_target.config import parse_fault
 from sim_target.server import send_control
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -240,3 +242,43 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
         assert process.returncode == 0, err
         assert "state FAULT: drive_fault" in err and "state FINALIZED" in err
         assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [False] * 6
+
+
+# --- faults injected at the target: FAULT within two cycles, drives stopped, reset brings it back --
+
+
+@pytest.mark.parametrize(
+    ("fault", "kind"),
+    [
+        ({"kind": "frames", "drop_probability": 1.0, "node_ids": [3]}, "feedback_timeout"),
+        ({"kind": "drive_fault", "node_id": 4, "error_code": 0x2310}, "drive_fault"),
+    ],
+    ids=["dropped-tpdos", "drive-fault"],
+)
+def test_an_injected_fault_is_a_fault_within_two_cycles_in_one_process(fault: dict[str, Any], kind: str) -> None:
+    channel = unique_channel()
+    config = parse_runtime_config(runtime_config({"interface": "virtual", "channel": channel},
+                                                 reference={"kind": "hold"}))  # fmt: skip
+    with target_in_process(channel, 0.001, substeps=8) as target:
+        runtime = build_runtime(config)
+        try:
+            runtime.configure()
+            assert runtime.activate()
+            assert runtime.run(max_cycles=50).fault is None
+            injected_at = runtime.total_cycles
+            target.inject(parse_fault(fault))  # applied at the next SYNC
+            result = runtime.run(max_cycles=50, stop_on_fault=True)
+            assert result.fault is not None and result.fault.startswith(kind), result.fault
+            assert result.fault_cycle is not None and result.fault_cycle - injected_at <= 2
+            assert not target.drives.operation_enabled().any()  # every drive stopped
+            if kind == "drive_fault":  # the drive's fault is reset, the loop goes on from where the arm is
+                target.inject(parse_fault({"kind": "frames", "drop_probability": 0.0}))
+                runtime.request_reset()
+                thread_result: dict[str, Any] = {}
+                loop = threading.Thread(target=lambda: thread_result.setdefault("r", runtime.run(max_cycles=50)))
+                loop.start()
+                loop.join(30)
+                assert thread_result["r"].reason == "cycles" and runtime.state is LifecycleState.ACTIVE
+                assert target.drives.operation_enabled().all()
+        finally:
+            runtime.shutdown()
