@@ -45,7 +45,7 @@ from hil_runtime.bundle import BundleError, PolicyBundle
 from hil_runtime.conditions import Condition, ConditionError, load_conditions
 from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.controller import Controller
-from hil_runtime.lifecycle import Lifecycle, LifecycleState, Transition
+from hil_runtime.lifecycle import Lifecycle, LifecycleError, LifecycleState, Transition
 from hil_runtime.pacer import Pacer
 from hil_runtime.realtime import (
     GcQuiet,
@@ -284,6 +284,8 @@ class Runtime:
     def configure(self) -> None:
         """UNCONFIGURED -> INACTIVE: the bus connected (drives configured, no torque), the policy
         warm, telemetry started. A bus that does not come up raises :class:`StartupError`."""
+        if not self.lifecycle.can(Transition.CONFIGURE):
+            raise LifecycleError(f"cannot configure from {self.lifecycle.state.value}")
         try:
             self.bus.connect()
         except DriveError as exc:
@@ -300,6 +302,8 @@ class Runtime:
         """INACTIVE -> ACTIVE: drives enabled, the reference ramped from the measured pose.
         False (and FAULT) when the drives refuse or the measured pose is already outside the limits."""
         self._activate = False
+        if not self.lifecycle.can(Transition.ACTIVATE):  # never enable the drives from FAULT etc.
+            raise LifecycleError(f"cannot activate from {self.lifecycle.state.value}")
         freeze_heap()  # before the drives run: a collection between two exchanges could stall them
         try:
             feedback = self.bus.enable(None)  # one period at zero torque; see docs/runtime.md

@@ -301,3 +301,23 @@ def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: s
         assert sorted(set(steps.tolist())) == [1, 2] and (steps == 2).sum() == 10
     else:
         assert set(steps.tolist()) == {1}
+
+
+def test_activate_outside_inactive_never_touches_the_drives() -> None:
+    from hil_runtime.lifecycle import LifecycleError
+
+    bus = _bus()
+    rt = _runtime(bus)
+    with pytest.raises(LifecycleError, match="cannot activate from UNCONFIGURED"):
+        rt.activate()
+    assert bus.events == []
+    rt.configure()
+    with pytest.raises(LifecycleError, match="cannot configure from INACTIVE"):
+        rt.configure()
+    rt.activate()
+    bus.fail_next_exchange(DriveFaultError(2, 0x2310, "EMCY"))
+    rt.run(max_cycles=5, stop_on_fault=True)
+    enables = bus.events.count("enable")
+    with pytest.raises(LifecycleError, match="cannot activate from FAULT"):
+        rt.activate()
+    assert bus.events.count("enable") == enables
