@@ -76,6 +76,8 @@ __all__ = ["DriveCounters", "EmulatedDrives", "EmulatedDrivesConfig", "FrameFaul
 log = logging.getLogger(__name__)
 
 _POLL_S = 0.01  # longest receive wait: heartbeats and delayed frames are serviced at least this often
+_CHECK_PERIOD_S = 0.005  # the master watches are checked at least this often while frames flow
+_DRAIN_MAX = 1000  # frames handled before a check gives up waiting for an empty queue
 
 
 class JointStateLike(Protocol):
@@ -250,7 +252,7 @@ class EmulatedDrives:
     def _run(self) -> None:
         bus = self._bus
         monotonic = time.monotonic
-        watch = self._watch
+        next_check = monotonic()
         while not self._stop.is_set():
             now = monotonic()
             due = self._next_due()
@@ -259,21 +261,37 @@ class EmulatedDrives:
                 self._link.release_due(now)
                 due = self._next_due()
             try:
+                if now >= next_check:
+                    # Judge the master's silence only with nothing of it still queued: a stall of
+                    # this thread must not pass for a silent master.
+                    next_check = now + _CHECK_PERIOD_S
+                    if self._drain():
+                        self._watch.check(monotonic())
                 msg = bus.recv(min(_POLL_S, max(0.0, due - now)))
             except Exception:  # noqa: BLE001 - the bus went away: nothing left to emulate
                 if not self._stop.is_set():
                     log.exception("emulated drives: receive failed")
                 return
             if msg is None:
-                # Nothing queued: every frame the master sent so far has been seen, so a silence
-                # is real (after a stall of this thread, queued frames are handled first).
-                watch.check(monotonic())
+                self._watch.check(monotonic())  # nothing queued: the silence is real
                 continue
-            self._received += 1
-            try:
-                self._dispatch(msg)
-            except Exception:  # noqa: BLE001 - an emulator bug must not silence the drives
-                log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
+            self._handle(msg)
+
+    def _drain(self) -> bool:
+        """Handle every frame already queued; False if they kept coming (no empty queue seen)."""
+        for _ in range(_DRAIN_MAX):
+            msg = self._bus.recv(0.0)
+            if msg is None:
+                return True
+            self._handle(msg)
+        return False
+
+    def _handle(self, msg: can.Message) -> None:
+        self._received += 1
+        try:
+            self._dispatch(msg)
+        except Exception:  # noqa: BLE001 - an emulator bug must not silence the drives
+            log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
 
     def _dispatch(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:

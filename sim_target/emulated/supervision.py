@@ -11,9 +11,9 @@ A watch that expires while the drive is Operation Enabled makes it react per 0x6
 stop: torque off, brake on) and send the EMCY, once: from then on the arm is held without the
 master. An expiry in any other state changes nothing (a master idle between runs, its drives
 disabled, must not be told on its return that it was gone). The bank's receive thread checks the
-watches whenever its queue is empty (a receive timed out, at least every 10 ms of silence): never
-with frames of the master still queued, so a stall of the drives' own thread is not taken for a
-silent master. A drive reacts within its timeout plus 10 ms.
+watches only with its queue empty (after a receive timed out, or every 5 ms after draining what is
+queued), never with frames of the master still waiting, so a stall of the drives' own thread is
+not taken for a silent master. A drive reacts within its timeout plus 10 ms.
 """
 
 from __future__ import annotations
