@@ -20,6 +20,7 @@ from drive_rig import drive_bus_config
 from drivers.cia402.state_machine import State
 from drivers.config import parse_drive_bus_config
 from drivers.drive_bus import DriveBus
+from drivers.errors import FeedbackTimeoutError, TransportError
 from drivers.transport import socketcan_unavailable
 from fake_plant import FakePlant, lockstep
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
@@ -122,3 +123,27 @@ def test_vcan0_when_the_kernel_has_it() -> None:
         driver.close()
         drives.close()
         side.shutdown()
+
+
+def test_a_dead_bridge_peer_is_named_and_close_does_not_mask_it(
+        target_process: tuple[int, subprocess.Popen[str]]) -> None:
+    """The target process dies mid-run: the next exchange says the peer closed (not a feedback
+    timeout), the drives' fail-safe cannot reach them, and close() raises nothing of its own."""
+    port, proc = target_process
+    transport = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port, "channel": ""}
+    driver = DriveBus(drive_bus_config("unused", fd=True, transport=transport, period_s=0.004))
+    try:
+        driver.connect()
+        driver.enable()
+        for _ in range(20):
+            driver.exchange(np.zeros(6))
+        proc.kill()
+        proc.wait(timeout=10)
+        with pytest.raises(TransportError, match="^peer closed: the bridge at ws://127.0.0.1:") as info:
+            for _ in range(1000):  # bounded: the first exchange after the kill normally raises
+                driver.exchange(np.zeros(6))
+        assert not isinstance(info.value, FeedbackTimeoutError)
+        assert not driver.enabled
+    finally:
+        driver.close()  # the peer is gone: must neither raise nor hang
+    driver.close()  # idempotent
