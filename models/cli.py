@@ -36,7 +36,8 @@ def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
 
 def experiment(
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
-    modes: Annotated[str, typer.Option(help="Comma-separated modes: fb, hmpc, lmpc.")] = "fb,hmpc,lmpc",
+    modes: Annotated[Optional[str], typer.Option(
+        help="Comma-separated modes: fb, hmpc, lmpc (default: fb,hmpc,lmpc; with --plant hil: fb,lmpc).")] = None,
     conditions: Annotated[Optional[str], typer.Option(
         help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range).")] = None,
     robot: Annotated[str, typer.Option(help=f"Robot: {ROBOTS_HELP}, or a URDF path.")] = "ur5_paper",
@@ -54,6 +55,13 @@ def experiment(
         help="HMPC torque cost: 'absolute' (W2 on tau) or 'anchored' (W2 on tau - w* tau_fb, docs/hmpc.md).")] = "absolute",
     hmpc_dt: Annotated[Optional[float], typer.Option(help="HMPC prediction step (s); default: the control period.")] = None,
     hmpc_anchor_scale: Annotated[float, typer.Option(help="Anchored cost: c in W2_i = c dt^2 / M_ii(0)^2.")] = 10.0,
+    plant: Annotated[str, typer.Option(
+        help="sim: the models simulator; hil: the runtime drives the pybullet target over CAN (docs/hil.md).")] = "sim",
+    transport: Annotated[str, typer.Option(
+        help="--plant hil: virtual (one process), ipc or bridge (the target in its own process).")] = "virtual",
+    target_substeps: Annotated[int, typer.Option(help="--plant hil: pybullet steps per control period.")] = 32,
+    no_parity: Annotated[bool, typer.Option(
+        "--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison.")] = False,
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
@@ -61,7 +69,16 @@ def experiment(
     from models.sim import MODES
 
     law_list = _split(laws, LAW_NAMES, "laws")
-    mode_list = _split(modes, MODES, "modes")
+    if plant not in ("sim", "hil"):
+        raise ModelInputError(f"--plant: unknown '{plant}' (known: sim, hil)")
+    mode_list = _split(modes if modes is not None else ("fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"), MODES, "modes")
+    hil = None
+    if plant == "hil":
+        from models.hil_experiment import HilOptions
+
+        _positive(target_substeps, "--target-substeps", integer=True)
+        hil = HilOptions(transport=transport, target_substeps=target_substeps, parity=not no_parity,
+                         bundle_dir=lmpc_bundles)  # fmt: skip
     if mismatch not in ("none", "paper"):
         raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
     if gains not in GAIN_SETS:
@@ -80,7 +97,8 @@ def experiment(
     prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
     try:
         _experiment(law_list, mode_list, conditions, robot, out, mismatch, gains, dt, substeps, plant_backend,
-                    timing_cycles, no_trajectories, no_plots, lmpc_bundles, hmpc_formulation, hmpc_dt, hmpc_anchor_scale)
+                    timing_cycles, no_trajectories, no_plots, lmpc_bundles, hmpc_formulation, hmpc_dt, hmpc_anchor_scale,
+                    hil)
     except BaseException:
         if created:
             remove_if_empty(out)  # nothing was written: leave no empty directory behind
@@ -90,7 +108,7 @@ def experiment(
 def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], conditions: Optional[str], robot: str, out: Path,
                 mismatch: str, gains: str, dt: float, substeps: int, plant_backend: str, timing_cycles: int,
                 no_trajectories: bool, no_plots: bool, lmpc_bundles: Optional[Path], hmpc_formulation: str,
-                hmpc_dt: Optional[float], hmpc_anchor_scale: float) -> None:  # fmt: skip
+                hmpc_dt: Optional[float], hmpc_anchor_scale: float, hil: object = None) -> None:  # fmt: skip
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -129,10 +147,15 @@ def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], condition
             hmpc_options["dt_s"] = hmpc_dt
         if hmpc_options:
             options["hmpc"] = hmpc_options
-        results = run_experiment(arm, condition_list, config, out, controller_options=options, progress=progress)
+        if hil is not None:  # --plant hil: models/hil_experiment.py
+            from models.hil_experiment import format_hil_table, run_hil_experiment
+
+            results = run_hil_experiment(arm, condition_list, config, out, hil, progress=progress)  # type: ignore[arg-type]
+        else:
+            results = run_experiment(arm, condition_list, config, out, controller_options=options, progress=progress)
     from models.experiment import format_table
 
-    print(format_table(results))
+    print(format_hil_table(results) if hil is not None else format_table(results))
     written = ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
     console.print(f"wrote {out}/{', '.join(written)}", soft_wrap=True, highlight=False)  # one line, even piped
 
