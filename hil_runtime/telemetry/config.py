@@ -31,6 +31,8 @@ if TYPE_CHECKING:
 DEFAULT_PORT = 7447
 DEFAULT_LISTEN = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 KEY_PREFIX = "hil"
+DROP_WAIT_US = 50  # zenoh's default is 1000 µs
+TX_QUEUE_BATCHES = 16  # data_high queue, batches (zenoh's default 2, its maximum 16)
 # Zenoh key-expression chunks may not contain these (wildcards, selectors, separators).
 _FORBIDDEN_CHUNK_CHARS = frozenset("/*$?#")
 _IP_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
@@ -186,4 +188,9 @@ def publisher_zenoh_config(config: TelemetryConfig) -> zenoh.Config:
     conf = zenoh_config(config.mode, listen, connect, config.zenoh_config)
     if not from_file or "lease_s" in explicit:
         conf.insert_json5("transport/link/tx/lease", str(round(config.lease_s * 1000)))
+    # A congested link (a stalled subscriber, a slow network): zenoh-python's put waits up to
+    # wait_before_drop holding the GIL, which delays the loop thread's wake-up. Drop at once
+    # instead, with a deeper queue to ride out short scheduling hiccups (docs/telemetry.md).
+    conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_WAIT_US))
+    conf.insert_json5("transport/link/tx/queue/size/data_high", str(TX_QUEUE_BATCHES))
     return conf

@@ -155,7 +155,11 @@ def test_liveliness_reports_a_lost_publisher_within_2s(how: str) -> None:
     assert delay_s <= 2.0
 
 
-def test_killing_a_subscriber_leaves_the_loop_timing_unchanged(tmp_path: Path) -> None:
+@pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
+def test_a_dead_or_stalled_subscriber_leaves_the_loop_timing_unchanged(tmp_path: Path, how: str) -> None:
+    """SIGKILL: the peer's socket closes. SIGSTOP: it stays open and stops reading, so the TCP
+    window fills and every put meets a congested link (Zenoh's default 1 ms wait-before-drop,
+    spent holding the GIL, raised the loop's p99 lateness from ~150 to ~900 µs here)."""
     port = _free_port()
     timing = tmp_path / "timing.npz"
     loop = FakeLoop(port, seconds=60.0, timing=timing)
@@ -174,26 +178,29 @@ def test_killing_a_subscriber_leaves_the_loop_timing_unchanged(tmp_path: Path) -
     try:
         assert subscriber.stdout is not None and subscriber.stdout.readline().strip() == "receiving"
         time.sleep(1.0)
-        killed_s = time.monotonic()  # CLOCK_MONOTONIC: the same clock in both processes
-        subscriber.kill()
-        subscriber.wait(10)
-        time.sleep(1.5)  # the loop runs on past the kill
+        stopped_s = time.monotonic()  # CLOCK_MONOTONIC: the same clock in both processes
+        os.kill(subscriber.pid, getattr(signal, how))
+        time.sleep(3.0)  # the loop runs on past it
         counters = loop.finish()
     finally:
         subscriber.kill()
+        subscriber.wait(10)
         loop.kill()
     with np.load(timing) as data:
-        start_s, offer_us = data["start_s"], data["offer_ns"] / 1e3
-    before = (start_s > killed_s - 1.0) & (start_s <= killed_s)
-    after = (start_s > killed_s) & (start_s <= killed_s + 1.0)
-    assert before.sum() > 300 and after.sum() > 300
+        start_s, offer_us, late_us = data["start_s"], data["offer_ns"] / 1e3, data["lateness_s"] * 1e6
+    before = (start_s > stopped_s - 1.0) & (start_s <= stopped_s)
+    after = (start_s > stopped_s) & (start_s <= stopped_s + 3.0)
+    assert before.sum() > 300 and after.sum() > 900
     med_before, med_after = np.median(offer_us[before]), np.median(offer_us[after])
-    print(f"offer_state median {med_before:.1f} -> {med_after:.1f} µs, max after {offer_us[after].max():.0f} µs; "
-          f"cycles {before.sum()} -> {after.sum()} per s; {counters}")  # fmt: skip
-    # The loop never waits on the dead peer: the hand-off stays a copy, the rate holds.
+    late_before, late_after = np.percentile(late_us[before], 99), np.percentile(late_us[after], 99)
+    print(f"{how}: offer_state median {med_before:.1f} -> {med_after:.1f} µs, max after {offer_us[after].max():.0f} µs; "
+          f"lateness p99 {late_before:.0f} -> {late_after:.0f} µs; cycles/s {before.sum()} -> {after.sum() / 3:.0f}; "
+          f"{counters}")  # fmt: skip
+    # The loop never waits on the peer: the hand-off stays a copy, wake-ups stay on time, the rate holds.
     assert med_after <= 2.0 * med_before + 10.0
     assert offer_us[after].max() < 5_000.0
-    assert after.sum() >= 0.9 * before.sum()
+    assert late_after <= 2.0 * late_before + 600.0  # loose: a loaded 2-core machine is noisy
+    assert after.sum() / 3 >= 0.9 * before.sum()
     assert counters["publish_errors"] == 0 and counters["dropped"] == 0
 
 

@@ -65,6 +65,13 @@ def test_zenoh_config_never_scouts() -> None:
     assert json.loads(conf.get_json("mode")) == "peer"
 
 
+def test_publisher_session_drops_at_once_and_declares_a_short_lease() -> None:
+    conf = publisher_zenoh_config(TelemetryConfig(enabled=True, lease_s=0.8))
+    assert json.loads(conf.get_json("transport/link/tx/lease")) == 800
+    assert json.loads(conf.get_json("transport/link/tx/queue/congestion_control/drop/wait_before_drop")) == 50
+    assert json.loads(conf.get_json("transport/link/tx/queue/size/data_high")) == 16
+
+
 def test_json5_file_keeps_its_endpoints_unless_set(tmp_path: Path) -> None:
     path = tmp_path / "zenoh.json5"
     path.write_text('{ // a comment: json5\n listen: { endpoints: ["tcp/127.0.0.1:17000"] },'
