@@ -1,0 +1,93 @@
+"""models/hil_experiment.py without the target: conditions handed to the runtime exactly, the
+target's run start, padding of a faulted record, parity arithmetic, the Table II layout."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from hil_runtime.conditions import parse_conditions
+from models.conditions import load_conditions, random_conditions
+from models.hil_experiment import (
+    PAPER_TABLE_II,
+    HilRun,
+    _pad,
+    _per_run_scores,
+    conditions_yaml,
+    initial_state,
+    run_start,
+)
+from models.robots import load_robot
+from sim_target.config import RunStart, TargetConfigError, TargetLayout, check_run_start, parse_run_start
+
+LAYOUT = TargetLayout(tuple(f"j{i}" for i in range(6)), (-3.14,) * 6, (3.14,) * 6, (1, 2, 3, 4, 5, 6))
+
+
+def test_conditions_reach_the_runtime_exactly() -> None:
+    robot = load_robot("ur5_paper")
+    conditions = load_conditions() + random_conditions(robot, 3, seed=7)
+    again = parse_conditions(yaml.safe_load(conditions_yaml(conditions)), "round trip")
+    assert again == conditions  # every float, the disturbance, the mismatch, the initial state
+
+
+def test_run_start_is_the_simulators_initial_state_and_disturbance() -> None:
+    c4 = {c.name: c for c in load_conditions()}["C4"]
+    start = parse_run_start(run_start(c4))
+    q0, qd0 = initial_state(c4)
+    np.testing.assert_allclose(start.position_rad, c4.reference(0.0)[0])
+    np.testing.assert_allclose(start.velocity_rad_s, c4.reference(0.0)[1])  # C4 starts moving
+    assert np.abs(qd0).max() > 0.1 and np.allclose(q0, start.position_rad)
+    (impulse,) = start.faults
+    assert (impulse.at_s, impulse.duration_s, impulse.torque_nm) == (2.0, 2e-5, (1.0, 1.0, 5.0, 5.0, 10.0, 10.0))
+    check_run_start(start, LAYOUT)
+
+
+@pytest.mark.parametrize(
+    ("start", "message"),
+    [
+        ({"position_rad": [0.0] * 5}, "position_rad: 5 values for 6 joints"),
+        ({"position_rad": [0.0] * 6, "velocity_rad_s": [0.0] * 7}, "velocity_rad_s: 7 values for 6 joints"),
+        ({"position_rad": [0.0] * 5 + [4.0]}, "position_rad[5]: 4 rad is outside joint 'j5'"),
+        ({"position_rad": [0.0] * 6, "faults": [{"kind": "impulse", "torque_nm": [1.0]}]}, "torque_nm: 1 values"),
+    ],
+)
+def test_run_start_refusals(start: dict, message: str) -> None:
+    with pytest.raises(TargetConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        check_run_start(parse_run_start({"kind": "start", **start}), LAYOUT)
+
+
+def test_run_start_schema_refuses_nan() -> None:
+    with pytest.raises(TargetConfigError, match="position_rad"):
+        parse_run_start({"kind": "start", "position_rad": [math.nan] * 6})
+    assert isinstance(parse_run_start({"kind": "start", "position_rad": [0.0] * 6}), RunStart)
+
+
+def test_a_faulted_record_is_held_at_its_last_position() -> None:
+    rows, steps = 3, 6
+    record = {"t_s": np.arange(rows) * 1e-3, "q": np.arange(rows * 2, dtype=float).reshape(rows, 2),
+              "qd": np.ones((rows, 2)), "tau": np.ones((rows, 2)), "compute_s": np.ones(rows)}  # fmt: skip
+    out = _pad(record, steps, 1e-3)
+    np.testing.assert_allclose(out["t"], np.arange(steps) * 1e-3)
+    np.testing.assert_allclose(out["q"][rows:], np.repeat(record["q"][-1:], steps - rows, axis=0))
+    np.testing.assert_allclose(out["qd"][rows:], 0.0)  # braked
+    np.testing.assert_allclose(out["tau"][rows:], 0.0)
+    assert HilRun(out, rows, "feedback_timeout: x", {}).rig_fault
+    assert not HilRun(out, rows, "position_limit: x", {}).rig_fault
+
+
+def test_per_run_scores_normalize_within_a_condition() -> None:
+    metrics = {"rmse": 1.0, "mae": 1.0, "p95": 1.0, "peak": 1.0, "settle_s": 1.0, "dedt_rms": 1.0}
+    half = {k: v / 2 for k, v in metrics.items()}
+    runs = [{"law": "pd", "mode": m, "condition": "C1", "metrics": x, "finite": True, "within_limits": True}
+            for m, x in (("fb", metrics), ("lmpc", half))]  # fmt: skip
+    scores = _per_run_scores(runs)
+    assert scores[("pd", "fb", "C1")] == pytest.approx(1.0)
+    assert scores[("pd", "lmpc", "C1")] == pytest.approx(0.5)
+
+
+def test_paper_table_ii_values() -> None:  # PAPER_NOTES: Table II (hardware), FB -> LMPC
+    assert PAPER_TABLE_II["pd"] == (0.997, 0.661) and PAPER_TABLE_II["smc"] == (0.245, 0.007)
+    assert set(PAPER_TABLE_II) == {"pd", "pid", "adrc", "hinf", "smc", "mrac"}
