@@ -54,7 +54,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from pydantic import ValidationError
 
 from hil_runtime.bundle_schema import (  # noqa: F401 - the contract's names, re-exported for callers

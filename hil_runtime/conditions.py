@@ -233,7 +233,7 @@ def _section(raw: dict, key: str, where: str, fields: dict[str, str], n: int) ->
         raise ConditionError(f"{where}.{key}: expected a mapping, got {_short(value)}")
     unknown = set(value) - set(fields)
     if unknown:
-        raise ConditionError(f"{where}.{key}: unknown field '{sorted(map(str, unknown))[0]}' (known: {', '.join(fields)})")
+        raise ConditionError(f"{where}.{key}: unknown field '{min(map(str, unknown))}' (known: {', '.join(fields)})")
     out: dict[str, Any] = {}
     for name, kind in fields.items():
         if name not in value:
@@ -265,7 +265,7 @@ def _parse_condition(raw: Any, defaults: dict, where: str) -> Condition:
     merged = {**defaults, **raw}
     unknown = set(merged) - _CONDITION_FIELDS
     if unknown:
-        raise ConditionError(f"{where}: unknown field '{sorted(map(str, unknown))[0]}'")
+        raise ConditionError(f"{where}: unknown field '{min(map(str, unknown))}'")
     if "amplitude_rad" not in merged:
         raise ConditionError(f"{where}.amplitude_rad: missing")
     amplitude = _vector(merged["amplitude_rad"], f"{where}.amplitude_rad", None)
@@ -355,7 +355,7 @@ def parse_conditions(raw: Any, source: str) -> list[Condition]:
         raise ConditionError(f"{source}: conditions: expected a non-empty list")
     unknown = set(raw) - {"defaults", "conditions"}
     if unknown:
-        raise ConditionError(f"{source}: unknown top-level field '{sorted(map(str, unknown))[0]}' (known: defaults, conditions)")
+        raise ConditionError(f"{source}: unknown top-level field '{min(map(str, unknown))}' (known: defaults, conditions)")
     defaults = raw.get("defaults") or {}
     if not isinstance(defaults, dict):
         raise ConditionError(f"{source}: defaults: expected a mapping")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from hil_runtime import conditions as _runtime
-from hil_runtime.conditions import (  # noqa: F401 - re-exported: every existing import keeps working
+from hil_runtime.conditions import (
     INITIAL_STATES,
     PAPER_CONDITIONS,
     SHAPES,

@@ -54,7 +54,10 @@ def inject(
     socket_path: Annotated[Path, typer.Option("--socket", help="the target's control_socket")],
 ) -> None:
     """Send a fault (or a status request) to a running target; exit 2 if it refuses the fault."""
-    from sim_target.config import TargetConfigError, parse_fault  # light: no pybullet for a client
+    from sim_target.config import (  # light: no pybullet for a client
+        TargetConfigError,
+        parse_fault,
+    )
     from sim_target.control import send_control
 
     try:

@@ -24,13 +24,25 @@ import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+    model_validator,
+)
 
 from drivers.busload import DEFAULT_LIMIT, TPDO_FD_SYNC_BYTES, check_bus_load
-from drivers.config import DriveBusConfig, TransportConfig, format_validation_error, is_loopback_host
+from drivers.config import (
+    DriveBusConfig,
+    TransportConfig,
+    format_validation_error,
+    is_loopback_host,
+)
 from drivers.errors import BusLoadError
 
 
@@ -116,7 +128,7 @@ class ImpulseFault(_Fault):
 
 
 Fault = Annotated[
-    Union[FrameFault, DriveFault, HeartbeatFault, EncoderNoiseFault, PayloadFault, ImpulseFault], Field(discriminator="kind")
+    FrameFault | DriveFault | HeartbeatFault | EncoderNoiseFault | PayloadFault | ImpulseFault, Field(discriminator="kind")
 ]
 _FAULT_ADAPTER: TypeAdapter[Fault] = TypeAdapter(Fault)
 PLANT_FAULTS = (EncoderNoiseFault, PayloadFault, ImpulseFault)

@@ -347,7 +347,7 @@ def _control_reply(target: TargetServer, line: str) -> dict[str, Any]:
         return {"ok": False, "error": f"control: not JSON ({exc.msg})"}
     except TargetConfigError as exc:
         return {"ok": False, "error": str(exc)}
-    except Exception as exc:  # noqa: BLE001 - a bad command must never take the control thread down
+    except Exception as exc:
         log.exception("control command failed: %s", line.strip()[:200])
         return {"ok": False, "error": f"control: {type(exc).__name__}: {exc}"}
 

@@ -17,7 +17,7 @@ import typer
 from hil_runtime import cli
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_cli_bad_inputs import hil_command  # noqa: E402
+from test_cli_bad_inputs import hil_command
 
 
 def _app(monkeypatch: pytest.MonkeyPatch) -> typer.Typer:
@@ -115,7 +115,7 @@ def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(tmp_pat
 
 
 def test_help_shows_flags_without_a_bool_type_and_lists_the_robots() -> None:
-    done = subprocess.run([*hil_command(), "experiment", "--help"], capture_output=True, text=True, timeout=120,
+    done = subprocess.run([*hil_command(), "experiment", "--help"], check=False, capture_output=True, text=True, timeout=120,
                           env={**os.environ, "COLUMNS": "200"})  # fmt: skip
     assert done.returncode == 0
     assert "--no-plots" in done.stdout and "<bool>" not in done.stdout

@@ -15,7 +15,7 @@ UR5_PAPER = urdf_path("ur5_paper").read_text()
 
 
 def _variant(tmp_path: Path, pattern: str, replacement: str) -> Path:
-    text, count = re.subn(pattern, replacement, UR5_PAPER, count=1, flags=re.S)
+    text, count = re.subn(pattern, replacement, UR5_PAPER, count=1, flags=re.DOTALL)
     assert count == 1, pattern
     path = tmp_path / "variant.urdf"
     path.write_text(text)

@@ -235,4 +235,4 @@ def test_build_server_releases_everything_when_the_socket_is_refused(tmp_path: P
 
 def test_inject_client_imports_no_pybullet() -> None:
     code = "import sys, sim_target.cli, sim_target.control, sim_target.config; sys.exit(1 if 'pybullet' in sys.modules else 0)"
-    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
+    assert subprocess.run([sys.executable, "-c", code], check=False, timeout=60).returncode == 0
