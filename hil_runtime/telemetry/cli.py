@@ -229,6 +229,73 @@ def _render(state: _WatchState, robot: str, joints: tuple[str, ...]) -> Any:
     return Group(*parts)
 
 
+def attach_watch(client: Any, schema: Any) -> _WatchState:
+    """Subscribe a watch state to ``client``'s state, stats, status, events and liveliness; the
+    callbacks (Zenoh's threads) only assign. ``render_watch(state, client.robot, schema.joints)``
+    draws it: ``hil telemetry watch`` and ``hil demo`` share this view."""
+    from hil_runtime.telemetry.codec import TelemetryDecodeError
+
+    state = _WatchState()
+
+    def refused(exc: TelemetryDecodeError) -> None:
+        state.refused += 1
+        state.last_refusal = str(exc)
+
+    def on_state(payload: bytes) -> None:
+        try:
+            sample = schema.decode_state(payload)
+        except TelemetryDecodeError as exc:
+            refused(exc)
+            return
+        if sample.header.warmup:
+            return
+        state.gaps += sample.header.gap
+        state.sample = sample
+        state.arrivals.append((time.monotonic(), float(sample["fallback"]) > 0.0))
+
+    def on_stats(payload: bytes) -> None:
+        try:
+            header, values = schema.decode_stats(payload)
+        except TelemetryDecodeError as exc:
+            refused(exc)
+            return
+        if not header.warmup:
+            state.stats = values
+
+    def on_status(payload: bytes) -> None:
+        try:
+            header, body = schema.decode_status(payload)
+        except TelemetryDecodeError as exc:
+            refused(exc)
+            return
+        if not header.warmup:
+            state.status = body
+
+    def on_event(payload: bytes) -> None:
+        try:
+            header, body = schema.decode_event(payload)
+        except TelemetryDecodeError as exc:
+            refused(exc)
+            return
+        if not header.warmup:
+            state.events.append(f"{time.strftime('%H:%M:%S')} cycle {body['cycle']}: {body['kind']} {body['detail']}")
+
+    def on_alive(alive: bool) -> None:
+        if alive != state.alive:
+            state.alive = alive
+            state.alive_changed_s = time.monotonic()
+
+    client.subscribe("state", on_state)
+    client.subscribe("stats", on_stats)
+    client.subscribe("status", on_status)
+    client.subscribe("events", on_event)
+    client.watch_alive(on_alive)
+    return state
+
+
+render_watch = _render
+
+
 @telemetry_app.command()
 def watch(
     robot: RobotOption = None,
@@ -242,65 +309,9 @@ def watch(
     from rich.console import Console
     from rich.live import Live
 
-    from hil_runtime.telemetry.codec import TelemetryDecodeError
-
     with _client(robot, connect, timeout, zenoh_config) as client:
         schema = client.schema()
-        state = _WatchState()
-
-        def refused(exc: TelemetryDecodeError) -> None:
-            state.refused += 1
-            state.last_refusal = str(exc)
-
-        def on_state(payload: bytes) -> None:
-            try:
-                sample = schema.decode_state(payload)
-            except TelemetryDecodeError as exc:
-                refused(exc)
-                return
-            if sample.header.warmup:
-                return
-            state.gaps += sample.header.gap
-            state.sample = sample
-            state.arrivals.append((time.monotonic(), float(sample["fallback"]) > 0.0))
-
-        def on_stats(payload: bytes) -> None:
-            try:
-                header, values = schema.decode_stats(payload)
-            except TelemetryDecodeError as exc:
-                refused(exc)
-                return
-            if not header.warmup:
-                state.stats = values
-
-        def on_status(payload: bytes) -> None:
-            try:
-                header, body = schema.decode_status(payload)
-            except TelemetryDecodeError as exc:
-                refused(exc)
-                return
-            if not header.warmup:
-                state.status = body
-
-        def on_event(payload: bytes) -> None:
-            try:
-                header, body = schema.decode_event(payload)
-            except TelemetryDecodeError as exc:
-                refused(exc)
-                return
-            if not header.warmup:
-                state.events.append(f"{time.strftime('%H:%M:%S')} cycle {body['cycle']}: {body['kind']} {body['detail']}")
-
-        def on_alive(alive: bool) -> None:
-            if alive != state.alive:
-                state.alive = alive
-                state.alive_changed_s = time.monotonic()
-
-        client.subscribe("state", on_state)
-        client.subscribe("stats", on_stats)
-        client.subscribe("status", on_status)
-        client.subscribe("events", on_event)
-        client.watch_alive(on_alive)
+        state = attach_watch(client, schema)
         stop = threading.Event()
         end_s = None if seconds is None else time.monotonic() + seconds
         console = Console()
