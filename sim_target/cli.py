@@ -50,13 +50,14 @@ def serve(
 
 @target_app.command()
 def inject(
-    command: Annotated[str, typer.Argument(help='one JSON fault, e.g. \'{"kind": "payload", "mass_kg": 2}\', or {"kind": "status"}')],
+    command: Annotated[str, typer.Argument(help='one JSON fault, e.g. \'{"kind": "payload", "mass_kg": 2}\', {"kind": "status"}, or a run start {"kind": "start", ...}')],
     socket_path: Annotated[Path, typer.Option("--socket", help="the target's control_socket")],
 ) -> None:
     """Send a fault (or a status request) to a running target; exit 2 if it refuses the fault."""
     from sim_target.config import (  # light: no pybullet for a client
         TargetConfigError,
         parse_fault,
+        parse_run_start,
     )
     from sim_target.control import send_control
 
@@ -64,7 +65,9 @@ def inject(
         data = json.loads(command)
     except json.JSONDecodeError as exc:
         raise TargetConfigError(f"inject: not JSON ({exc.msg})") from None
-    if not (isinstance(data, dict) and data.get("kind") == "status"):
+    if isinstance(data, dict) and data.get("kind") == "start":
+        parse_run_start(data, "inject")  # a run start (sim_target.config.RunStart)
+    elif not (isinstance(data, dict) and data.get("kind") == "status"):
         parse_fault(data, "inject")  # the schema here; joint count and node ids at the target
     try:
         reply = send_control(socket_path, data)
