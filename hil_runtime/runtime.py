@@ -499,6 +499,10 @@ class Runtime:
     def _enter_fault(self, fault: Fault) -> None:
         """Quick-stop the drives (best effort), FAULT with the reason; the loop thread stays up."""
         self._quick_stop(fault.kind.value)
+        # Only a reset (or activation) asked for after this fault may clear it: a stale request
+        # from before would otherwise re-enable the drives without anyone having seen the fault.
+        self._reset = False
+        self._activate = False
         self.last_fault = fault
         self.fault_cycle = self.total_cycles
         self._faults += 1

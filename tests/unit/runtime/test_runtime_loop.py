@@ -321,3 +321,19 @@ def test_activate_outside_inactive_never_touches_the_drives() -> None:
     with pytest.raises(LifecycleError, match="cannot activate from FAULT"):
         rt.activate()
     assert bus.events.count("enable") == enables
+
+
+def test_a_reset_requested_before_a_fault_does_not_clear_it() -> None:
+    bus = _bus()
+    rt = _runtime(bus, loop={"pacing": "bus", "idle_poll_s": 0.001})
+    rt.configure()
+    rt.activate()
+    rt.request_reset()  # while healthy: meaningless, and must not linger
+    rt.request_activate()
+    rt.run(max_cycles=5)
+    bus.fail_next_exchange(DriveFaultError(2, 0x2310, "EMCY"))
+    rt.run(max_cycles=5, stop_on_fault=True)
+    timer = threading.Timer(0.1, rt.request_stop)
+    timer.start()
+    result = rt.run()  # waits in FAULT until stopped: nothing resets it
+    assert result.state is LifecycleState.FAULT and "fault_reset" not in bus.events
