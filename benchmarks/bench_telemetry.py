@@ -77,12 +77,15 @@ def _work(state: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return state
 
 
-def run(seconds: float, block: int, subscriber: bool, rate_hz: float, publish_period_s: float = 0.001) -> dict[str, Any]:
+def run(seconds: float, block: int, subscriber: bool, rate_hz: float, publish_period_s: float = 0.001,
+        express: bool | None = None) -> dict[str, Any]:
     from hil_runtime.telemetry import NullTelemetry, TelemetryConfig, make_sink
 
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     config = TelemetryConfig(enabled=True, listen=(endpoint,), publish_period_s=publish_period_s)
+    if express is not None:
+        config = config.model_copy(update={"express": express})
     sink = make_sink(config, "bench_arm", {"joints": list(JOINTS)})
     null = NullTelemetry()
     sink.start()
@@ -148,7 +151,7 @@ def run(seconds: float, block: int, subscriber: bool, rate_hz: float, publish_pe
     mask_off = ~on
     mask_off[:skip] = False
     result: dict[str, Any] = {"benchmark": "telemetry", "rate_hz": rate_hz, "seconds": seconds, "block_cycles": block,
-                              "publish_period_s": publish_period_s}
+                              "publish_period_s": publish_period_s, "express": config.express}
     for name, mask in (("off", mask_off), ("on", mask_on)):
         result[name] = {
             "offer_us": _summary(offer_ns[mask] / 1e3),
@@ -175,13 +178,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--block", type=int, default=250, help="cycles per off/on block")
     parser.add_argument("--rate-hz", type=float, default=1000.0)
     parser.add_argument("--no-subscriber", action="store_true")
+    parser.add_argument("--express", choices=["on", "off"], default=None, help="override the config's express")
     parser.add_argument("--publish-period-s", type=float, default=None,
                         help="the sink's publish_period_s [default: TelemetryConfig's]")
     args = parser.parse_args(argv)
     from hil_runtime.telemetry import TelemetryConfig
 
     period_s = args.publish_period_s if args.publish_period_s is not None else TelemetryConfig().publish_period_s
-    print(json.dumps(run(args.seconds, args.block, not args.no_subscriber, args.rate_hz, period_s), indent=2))
+    express = None if args.express is None else args.express == "on"
+    print(json.dumps(run(args.seconds, args.block, not args.no_subscriber, args.rate_hz, period_s, express), indent=2))
     return 0
 
 

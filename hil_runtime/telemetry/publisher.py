@@ -13,7 +13,8 @@ The loop thread only ever copies into a bounded deque:
   swap one reference.
 
 One publisher thread wakes every ``publish_period_s``, sends what is pending with congestion
-control DROP and express (a slow subscriber loses samples, the runtime never waits for it), and
+control DROP (a slow subscriber loses samples, the runtime never waits for it; Zenoh batches
+them unless ``express``, see the config), and
 republishes stats and status every ``stats_period_s``. The session, publishers (warmed up with
 one WARMUP-flagged put each), liveliness token and queryables are all made in ``start()``, before
 the loop goes ACTIVE.
@@ -152,7 +153,7 @@ class ZenohTelemetry:
                 f"{self.prefix}/{name}",
                 congestion_control=zenoh.CongestionControl.DROP,
                 priority=zenoh.Priority.DATA_HIGH if name == "state" else zenoh.Priority.DATA,
-                express=True,
+                express=self.config.express,
             )
         for name, payload in self._replies.items():
             self._declared.append(session.declare_queryable(f"{self.prefix}/{name}", self._replier(name, payload)))

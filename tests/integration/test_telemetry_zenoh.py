@@ -198,7 +198,8 @@ def test_a_dead_or_stalled_subscriber_leaves_the_loop_timing_unchanged(tmp_path:
           f"{counters}")  # fmt: skip
     # The loop never waits on the peer: the hand-off stays a copy, wake-ups stay on time, the rate holds.
     assert med_after <= 2.0 * med_before + 10.0
-    assert offer_us[after].max() < 5_000.0
+    assert np.percentile(offer_us[after], 99) <= 2.0 * np.percentile(offer_us[before], 99) + 50.0
+    assert offer_us[after].max() < 20_000.0  # one OS preemption on a loaded box, never a wait on the peer
     assert late_after <= 2.0 * late_before + 600.0  # loose: a loaded 2-core machine is noisy
     assert after.sum() / 3 >= 0.9 * before.sum()
     assert counters["publish_errors"] == 0 and counters["dropped"] == 0
