@@ -10,7 +10,7 @@
       stats_period_s: 1.0                 # stats and status republished at this period
       controls_enabled: false             # the stop/reset queryables exist only when true
       express: false                      # true: no batching (lower latency, loses samples under load)
-      lease_s: 1.5                        # subscribers see a hung runtime lost after this long
+      lease_s: 1.0                        # subscribers see a hung runtime lost after this long
 
 Bad input raises :class:`TelemetryConfigError` (exit code 2) with one line naming the source and
 field. Endpoints must be loopback unless ``allow_remote`` is set: nothing leaves the machine by
@@ -109,7 +109,7 @@ class TelemetryConfig(BaseModel):
     close_timeout_s: float = Field(1.0, gt=0.0, le=30.0)  # close() drains at most this long
     # Zenoh link lease this runtime declares: a peer that hears nothing for this long (a hung or
     # unplugged runtime, no TCP FIN) drops its liveliness token. Zenoh's default is 10 s.
-    lease_s: float = Field(1.5, ge=0.2, le=600.0)
+    lease_s: float = Field(1.0, ge=0.2, le=600.0)
 
     @field_validator("robot")
     @classmethod

@@ -130,7 +130,7 @@ def test_subscriber_process_receives_state_10s(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
 def test_liveliness_reports_a_lost_publisher_within_2s(how: str) -> None:
-    """SIGKILL: the kernel closes the socket. SIGSTOP: a hung runtime, socket open: the lease runs out."""
+    """SIGKILL: the kernel closes the socket. SIGSTOP: a hung runtime, socket open: its 1 s lease runs out."""
     port = _free_port()
     loop = FakeLoop(port)
     changes: list[tuple[float, bool]] = []
