@@ -304,10 +304,10 @@ class PolicyBundle:
         self.session.run_with_iobinding(self._binding)
         y = self._y[0]
         if not np.isfinite(y).all():  # rare: one check of the row costs ~1 µs
-            self._nonfinite(y)
+            self._nonfinite(y, x)
         return y[:n], y[n : 2 * n], y[2 * n : 2 * n + self.state_size]
 
-    def _nonfinite(self, y: np.ndarray) -> None:
+    def _nonfinite(self, y: np.ndarray, x: np.ndarray, refuse: bool = True) -> None:
         """Replace a non-finite torque by the law's (saturated) one in place, or refuse the cycle."""
         n, s = self.n_joints, self.state_size
         tau, tau_fb, state = y[:n], y[n : 2 * n], y[2 * n : 2 * n + s]
@@ -317,7 +317,9 @@ class PolicyBundle:
             self.nonfinite_fallbacks += 1
             return
         self.nonfinite_refusals += 1
-        bad_input = not np.isfinite(self._x).all()
+        if not refuse:
+            return
+        bad_input = not np.isfinite(x).all()
         raise NonFiniteOutputError(f"bundle {self.path}: non-finite law torque or state "
                                    f"({'non-finite input' if bad_input else 'from finite inputs'}); stop the arm")  # fmt: skip
 
@@ -335,6 +337,9 @@ class PolicyBundle:
         x = np.concatenate([np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1)
         y = self.session.run([self._output_name], {self._input_name: x})[0]
         n, s = self.n_joints, self.state_size
+        if not np.isfinite(y).all():  # step's fallback per arm; an arm with nothing finite stays
+            for row in np.flatnonzero(~np.isfinite(y).all(axis=1)):  # non-finite: offline runs record a divergence
+                self._nonfinite(y[row], x[row], refuse=False)
         self.last_trust_batch = y[:, 2 * n + s :]
         return y[:, :n], y[:, n : 2 * n], y[:, 2 * n : 2 * n + s]
 

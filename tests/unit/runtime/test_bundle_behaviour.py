@@ -114,3 +114,16 @@ def test_writer_and_loader_share_one_schema() -> None:
     pytest.importorskip("torch")
     done = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-1000:]
+
+
+def test_step_batch_falls_back_per_arm_and_keeps_a_diverged_arm_visible() -> None:
+    bundle = PolicyBundle.load(SHIPPED / "pd")
+    q = np.zeros((3, 6))
+    q_d = np.full((3, 6), 0.1)
+    qdd_d = np.zeros((3, 6))
+    qdd_d[1] = np.nan  # arm 1: emulator input broken, law fine -> law torque
+    q[2, 0] = np.nan  # arm 2: diverged -> stays non-finite for the offline record, no exception
+    tau, tau_fb, _ = bundle.step_batch(q, np.zeros((3, 6)), q_d, np.zeros((3, 6)), qdd_d, np.zeros((3, 0)))
+    assert np.isfinite(tau[:2]).all() and not np.isfinite(tau[2]).all()
+    assert np.array_equal(tau[1], np.clip(tau_fb[1], -bundle.torque_limit_nm, bundle.torque_limit_nm))
+    assert (bundle.nonfinite_fallbacks, bundle.nonfinite_refusals) == (1, 1)
