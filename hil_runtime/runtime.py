@@ -41,7 +41,7 @@ import numpy as np
 
 from drivers.errors import DriveError
 from drivers.joint_bus import JointBus, JointFeedback
-from hil_runtime.bundle import BundleError, PolicyBundle
+from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle
 from hil_runtime.conditions import Condition, ConditionError, load_conditions
 from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.controller import Controller
@@ -185,7 +185,11 @@ class RunRecord:
         return {name: getattr(self, name)[:n] for name in names}
 
     def save_npz(self, path: Path | str) -> None:
-        np.savez_compressed(path, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+        """Written whole or not at all (a temporary name, then a rename): never half a file."""
+        from hil_runtime.outputs import atomic_path
+
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
 
 
 @dataclass
@@ -198,6 +202,11 @@ class RunResult:
     cycles: int
     stats: dict[str, Any]
     fault_cycle: int | None = None  # exchanges in ACTIVE when the last fault was entered
+
+
+# Counters of anomalies the loop rides through; a rise is reported as a ``warning`` telemetry event.
+WARNING_COUNTERS = ("overruns", "skipped_periods", "law_substitutions", "nonfinite_fallbacks", "saturations",
+                    "stale_cycles", "bus_dropped", "bus_late", "bus_malformed", "bus_unknown_cob_id", "bus_emcy")  # fmt: skip
 
 
 # --- the runtime ---------------------------------------------------------------------------------------
@@ -259,6 +268,7 @@ class Runtime:
         self.last_fault: Fault | None = None
         self.fault_cycle: int | None = None  # total_cycles when the last fault was entered
         self._last_stats: dict[str, Any] = {}
+        self._warned: dict[str, Any] = {}  # WARNING_COUNTERS at the last stats
 
     # --- requests from any thread -------------------------------------------------------------
     def request_stop(self) -> None:
@@ -478,9 +488,16 @@ class Runtime:
         fault = supervisor.check_feedback(q, qd, feedback.fresh)
         if fault is not None:
             return fault
+        if supervisor.stale_run == 1:  # the first stale cycle: said at once (FAULT past max_stale_cycles)
+            stale = [self.config.joint_names[i] for i in np.flatnonzero(~np.asarray(feedback.fresh, bool))]
+            self.telemetry.event("stale_feedback", self.total_cycles, f"no fresh feedback from {', '.join(stale)}; "
+                                 f"last values held")  # fmt: skip
         q_d, qd_d, qdd_d = self.reference.at(k)
         controller = self.controller
-        tau, tau_fb, fallback = controller.step(q, qd, q_d, qd_d, qdd_d)
+        try:
+            tau, tau_fb, fallback = controller.step(q, qd, q_d, qd_d, qdd_d)
+        except NonFiniteOutputError as exc:  # nothing finite to command: its own FAULT, not a bug
+            return Fault(FaultKind.POLICY_NONFINITE, str(exc))
         command = self._command
         fault = supervisor.select_torque(tau, tau_fb, fallback, command)
         if fault is not None:
@@ -593,6 +610,13 @@ class Runtime:
         self._last_stats = stats
         self.telemetry.offer_stats(stats)
         self.notifier.status(self.status_line(stats))
+        # Anomalies the loop rides through (a late or malformed frame, an overrun, a substituted
+        # torque) are counted where they happen and reported here, one event per stats interval.
+        rose = [f"{name} +{stats[name] - self._warned.get(name, 0)}" for name in WARNING_COUNTERS
+                if stats.get(name, 0) > self._warned.get(name, 0)]  # fmt: skip
+        self._warned = {name: stats.get(name, 0) for name in WARNING_COUNTERS}
+        if rose:
+            self.telemetry.event("warning", self.total_cycles, ", ".join(rose))
 
     # --- reporting (any thread) ----------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
@@ -607,6 +631,7 @@ class Runtime:
         if dataclasses.is_dataclass(bus_counters):
             for field in dataclasses.fields(bus_counters):
                 out[f"bus_{field.name}"] = getattr(bus_counters, field.name)
+        out["nonfinite_fallbacks"] = getattr(self.bundle, "nonfinite_fallbacks", 0)
         out["activations"] = self._activations
         out["faults"] = self._faults
         out["record_overflow"] = self.record.overflow
@@ -642,6 +667,8 @@ class Runtime:
             "compute_median_s": _finite(stats.get("compute_median_s")),
             "compute_p99_s": _finite(stats.get("compute_p99_s")),
             "supervisor": self.supervisor.counters(),
+            "nonfinite_fallbacks": getattr(self.bundle, "nonfinite_fallbacks", 0),
+            "bus": dataclasses.asdict(self.bus.counters) if dataclasses.is_dataclass(self.bus.counters) else {},  # type: ignore[arg-type]
             "realtime": {"applied": self.realtime.applied, "refused": self.realtime.refused},
         }
 
