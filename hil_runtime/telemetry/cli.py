@@ -130,7 +130,11 @@ def record(
         raise TelemetryUnavailable(
             f"no state samples from hil/{schema.robot}/state in {seconds:g} s (is the runtime ACTIVE?); nothing written"
         )
-    decimation = int((extra.get("config") or {}).get("telemetry", {}).get("state_decimation", 1) or 1)
+    config = extra.get("config") or {}
+    decimation = int(config.get("telemetry", {}).get("state_decimation", 1) or 1)
+    period_s = config.get("period_s") or (config.get("bus") or {}).get("period_s")
+    if isinstance(period_s, (int, float)) and period_s > 0:
+        extra["period_s"] = float(period_s)  # plot: time = cycle x period (lock-step runs are not wall time)
     count = save_record(recording, out, extra)
     lost = missing_samples(arrays["seq"], decimation)
     gaps = int((arrays["flags"] & 1).astype(bool).sum())

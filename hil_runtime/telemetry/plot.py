@@ -37,10 +37,15 @@ def load_record(path: Path) -> dict[str, Any]:
     return record
 
 
-def _time_axis(record: dict[str, Any]) -> np.ndarray:
-    if "t_s" in record and len(record["t_s"]) == len(record["q"]):
-        return np.asarray(record["t_s"], dtype=float)
-    return np.arange(len(record["q"]), dtype=float)
+def _time_axis(record: dict[str, Any]) -> tuple[np.ndarray, str]:
+    """Cycle x period when both are known (a lock-stepped run is not wall time), else the record's t_s."""
+    n = len(record["q"])
+    if "seq" in record and "period_s" in record and record["period_s"].ndim == 0 and len(record["seq"]) == n:
+        seq = record["seq"].astype(np.int64)
+        return (seq - seq[0]) * float(record["period_s"]), "time [s] (cycles x period)"
+    if "t_s" in record and len(record["t_s"]) == n:
+        return np.asarray(record["t_s"], dtype=float), "time [s]"
+    return np.arange(n, dtype=float), "sample"
 
 
 def _joint_names(record: dict[str, Any]) -> list[str]:
@@ -64,7 +69,7 @@ def plot_record(path: Path, out_dir: Path | None = None) -> list[Path]:
 
     record = load_record(path)
     out = prepare_output_dir(out_dir if out_dir is not None else path.parent, option="--out-dir")
-    t_s = _time_axis(record)
+    t_s, t_label = _time_axis(record)
     names = _joint_names(record)
     n = len(names)
     error_rad = record["q_ref"] - record["q"]
@@ -78,7 +83,7 @@ def plot_record(path: Path, out_dir: Path | None = None) -> list[Path]:
         ax.set_ylabel(f"{names[j]}\n[rad]", fontsize=8)
         ax.text(0.99, 0.9, f"RMS {rms:.2e} rad", transform=ax.transAxes, ha="right", va="top", fontsize=7)
         ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("time [s]")
+    axes[-1, 0].set_xlabel(t_label)
     figure.suptitle(f"tracking error q_ref - q ({path.name})", fontsize=10)
     figure.tight_layout()
     target = out / f"{path.stem}_tracking_error.png"
@@ -95,7 +100,7 @@ def plot_record(path: Path, out_dir: Path | None = None) -> list[Path]:
         ax.set_ylabel(f"{names[j]}\n[N m]", fontsize=8)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("time [s]")
+    axes[-1, 0].set_xlabel(t_label)
     figure.suptitle(f"joint torque ({path.name})", fontsize=10)
     figure.tight_layout()
     target = out / f"{path.stem}_torque.png"

@@ -241,7 +241,7 @@ def save_record(recording: StateRecording, path: Path, extra: dict[str, Any] | N
         "events": np.asarray("\n".join(json.dumps(item) for item in recording.events)),
     }
     for name, document in (extra or {}).items():
-        documents[name] = np.asarray(json.dumps(document))
+        documents[name] = np.asarray(document if isinstance(document, float) else json.dumps(document))
     with atomic_path(path) as tmp:
         np.savez_compressed(tmp, **arrays, **documents)
     return len(arrays["seq"])

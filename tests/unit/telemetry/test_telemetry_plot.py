@@ -50,3 +50,18 @@ def test_missing_matplotlib_is_one_clear_line(tmp_path: Path, monkeypatch: pytes
         "hil telemetry plot needs matplotlib: pip install 'hil-runtime[models]' (or pip install matplotlib)"
     )
     assert info.value.exit_code == 2
+
+
+def test_time_axis_is_cycles_times_period_when_known() -> None:
+    from hil_runtime.telemetry.plot import _time_axis
+
+    q = np.zeros((3, 2))
+    record = {"q": q, "seq": np.array([10, 11, 13], dtype=np.uint64), "period_s": np.asarray(0.001),
+              "t_s": np.array([0.0, 0.5, 0.9])}  # fmt: skip
+    t_s, label = _time_axis(record)
+    np.testing.assert_allclose(t_s, [0.0, 0.001, 0.003])
+    assert label == "time [s] (cycles x period)"
+    del record["period_s"]
+    t_s, label = _time_axis(record)
+    np.testing.assert_allclose(t_s, [0.0, 0.5, 0.9])
+    assert label == "time [s]"
