@@ -166,6 +166,9 @@ def register(app: typer.Typer) -> None:
     from models.lmpc.cli import register as register_lmpc
 
     register_lmpc(app)
+    from models.demo.cli import register as register_demo
+
+    register_demo(app)  # hil demo: models/demo/
     try:
         from models.stability_cli import stability
     except ImportError:  # not written yet on this branch

@@ -1,0 +1,112 @@
+"""Child processes of ``hil demo`` that cannot outlive it.
+
+Each child (the pybullet target, the runtime daemon) runs in its own session, so the terminal's
+Ctrl-C reaches the demo alone and the demo stops the children in the order that keeps the arm
+safe: the daemon first (it quick-stops the drives through the target), then the target. Each child
+also gets ``PR_SET_PDEATHSIG`` = SIGTERM: should the demo itself be killed (SIGKILL, a crash), the
+kernel sends the children SIGTERM, the stop path they handle. Their stderr goes to a log file
+(never a pipe that nobody reads).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+class DemoError(RuntimeError):
+    """A demo that cannot go on (a child failed to start, a fault): one line, exit code 1."""
+
+    exit_code = 1
+
+
+def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
+    # The demo holds SIGINT/SIGTERM blocked while it creates a child, and exec keeps the mask:
+    # unblock them, or the child would never see its SIGTERM.
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux: the demo's own finally still stops the child
+        pass
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class Child:
+    """One ``python -m hil_runtime.cli ...`` process in its own session, stderr to ``log_path``."""
+
+    def __init__(self, name: str, args: list[str], log_path: Path) -> None:
+        self.name = name
+        self.log_path = log_path
+        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and module
+            [sys.executable, "-m", "hil_runtime.cli", *args],
+            stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, env=env,
+            start_new_session=True, preexec_fn=_child_setup,
+        )  # fmt: skip
+        self.pid = self.process.pid
+        self.signalled_s: float | None = None  # when stop() sent SIGTERM
+        self.exit_s: float | None = None  # how long from SIGTERM to exit
+
+    def log_text(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def last_lines(self, count: int = 3) -> str:
+        lines = [line.strip() for line in self.log_text().splitlines() if line.strip()]
+        return " | ".join(lines[-count:]) or "no output"
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def wait_for_line(self, marker: str, timeout_s: float) -> None:
+        """Wait until the child's log holds ``marker``; DemoError if it exits or times out first."""
+        end = time.monotonic() + timeout_s
+        while marker not in self.log_text():
+            if not self.alive():
+                raise DemoError(f"{self.name} exited ({self.process.returncode}) before it was ready: {self.last_lines()}")
+            if time.monotonic() > end:
+                raise DemoError(f"{self.name} not ready within {timeout_s:g} s: {self.last_lines()}")
+            time.sleep(0.05)
+
+    def stop(self, timeout_s: float) -> int:
+        """SIGTERM (the child's clean stop), SIGKILL to its whole group after ``timeout_s``; the exit code."""
+        if self.alive():
+            self.signalled_s = time.monotonic()
+            self._signal_group(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self._signal_group(signal.SIGKILL)
+                self.process.wait(timeout=10)
+            self.exit_s = time.monotonic() - self.signalled_s
+        # Anything it started itself goes too (its session is its own process group).
+        self._signal_group(signal.SIGKILL)
+        with contextlib.suppress(OSError):
+            self._log.close()
+        return int(self.process.returncode)
+
+    def _signal_group(self, sig: signal.Signals) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.pid, sig)
+
+
+__all__ = ["Child", "DemoError", "free_loopback_port"]

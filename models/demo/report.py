@@ -1,0 +1,290 @@
+"""``hil demo``'s outputs: the recorded run, its scores beside the simulation's, the loop's timing.
+
+    run.npz              the telemetry as the demo received it (``hil telemetry record``'s format:
+                         one column per field, the schema, the runtime's config and bundle embedded)
+    runtime_record.npz   the daemon's own per-cycle record (``hil run --record``): scored, complete
+    tracking_error.png   per joint e = q_ref - q, HIL (the runtime on the target) and simulation
+    summary.md           scores side by side, timing, the clean-stop checks
+    results.json         everything above as numbers; written last (its presence: outputs complete)
+    logs/                the target's and the daemon's own output
+
+The simulation twin is the models simulator (RK4 plant, pinocchio) running the same bundle on the
+same condition in this process, as ``hil experiment`` does; both runs are scored by
+models.scoring, the composite normalized between the two (docs/scoring.md).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_runtime.outputs import atomic_path, write_text_atomic
+from models.scoring import METRICS, composite_scores, run_metrics
+
+_LAW_TITLE = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
+_METRIC_TITLE = {"rmse": "RMSE (deg)", "mae": "MAE (deg)", "p95": "95th percentile of abs(e) (deg)", "peak": "peak abs(e) (deg)",
+                 "settle_s": "settling after the disturbance (s)", "dedt_rms": "RMS de/dt (deg/s)"}  # fmt: skip
+
+
+def hil_trajectory(record: dict[str, np.ndarray], steps: int, period_s: float) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The runtime's record on the simulator's grid t = k * period, k < steps.
+
+    Lock-step: one row per period, taken as is. Real time: overrun periods were skipped (no row),
+    so each column is interpolated onto the grid (the count is reported); a run cut short (a fault)
+    is held at its last row, as hil experiment does."""
+    t = np.asarray(record["t_s"], float)
+    grid = np.arange(steps) * period_s
+    info: dict[str, Any] = {"rows": int(t.size)}
+    columns = ("q", "qd", "q_ref", "qd_ref", "tau", "tau_fb", "fallback", "compute_s", "exchange_s")
+    inside = t < grid[-1] + 0.5 * period_s
+    rows = int(inside.sum())
+    uniform = rows >= 1 and np.allclose(t[:rows], grid[:rows], atol=1e-9)
+    out: dict[str, np.ndarray] = {"t": grid}
+    if uniform:
+        for name in columns:
+            value = np.asarray(record[name])[:rows]
+            if rows < steps:
+                value = np.concatenate([value, np.repeat(value[-1:], steps - rows, axis=0)])
+            out[name] = value
+        info["skipped_periods"] = 0
+    else:
+        info["skipped_periods"] = int(steps - rows)
+        for name in columns:
+            value = np.asarray(record[name], float)[:rows]
+            if value.ndim == 1:
+                out[name] = np.interp(grid, t[:rows], value)
+            else:
+                out[name] = np.stack([np.interp(grid, t[:rows], value[:, j]) for j in range(value.shape[1])], axis=1)
+    info["covered_s"] = float(t[rows - 1] + period_s) if rows else 0.0
+    info["complete"] = rows >= steps or (not uniform and info["covered_s"] >= grid[-1])
+    return out, info
+
+
+def simulate_twin(robot: Any, law: str, mode: str, condition: Any, gain_set: str) -> tuple[dict[str, np.ndarray], float]:
+    """The models simulator on the same bundle and condition; (trajectory, wall seconds)."""
+    from models.feedback import make_law
+    from models.sim import SimConfig, make_controller, simulate
+
+    sim = SimConfig()
+    started = time.monotonic()
+    controller = make_controller(mode, make_law(law, robot, sim.dt_s, gain_set), robot)
+    traj = simulate(robot, controller, [condition], sim)
+    run = traj.run(0)
+    run["within_limits"] = np.asarray(bool(traj.finite[0] and traj.within_limits[0]))
+    return run, time.monotonic() - started
+
+
+def compare(robot: Any, condition: Any, hil: dict[str, np.ndarray], sim: dict[str, np.ndarray],
+            hil_fault: str | None) -> dict[str, Any]:  # fmt: skip
+    """The six metrics of both runs, the composite normalized between the two, and their difference."""
+    dist = None if condition.disturbance is None else condition.disturbance.time_s
+    m_hil = run_metrics(hil["t"], hil["q"], hil["q_ref"], dist)
+    m_sim = run_metrics(sim["t"], sim["q"], sim["q_ref"], dist)
+    hil_ok = bool(hil_fault is None and np.isfinite(hil["q"]).all()
+                  and float(np.max(robot.position_limit_ratio(hil["q"]))) <= 1.0
+                  and float(np.max(np.abs(hil["qd"]) / robot.velocity_limit_rad_s)) <= 1.0)  # fmt: skip
+    sim_ok = bool(sim["within_limits"])
+    failed = {(name, condition.name) for name, ok in (("hil", hil_ok), ("sim", sim_ok)) if not ok}
+    composite = composite_scores({("hil", condition.name): m_hil, ("sim", condition.name): m_sim}, failed)
+    diff_deg = np.degrees(hil["q"] - sim["q"])
+    return {
+        "metrics": {"hil": m_hil, "sim": m_sim},
+        "relative": {m: (m_hil[m] - m_sim[m]) / abs(m_sim[m]) if m_sim[m] else (0.0 if m_hil[m] == 0 else math.inf)
+                     for m in METRICS},  # fmt: skip
+        "composite": composite,
+        "within_limits": {"hil": hil_ok, "sim": sim_ok},
+        "trajectory_rms_diff_deg": float(np.sqrt(np.mean(diff_deg**2))),
+        "trajectory_max_diff_deg": float(np.abs(diff_deg).max()),
+        "fallback_cycles": {"hil": int((hil["fallback"] > 0).sum())},
+    }
+
+
+def timing_figures(stats: dict[str, float], record: dict[str, np.ndarray], period_s: float) -> dict[str, Any]:
+    """The loop's figures from the runtime's own stats (its last telemetry ``stats``, which covers
+    the whole run: the demo sets loop.stats_window above the run's length); the exchange (waiting
+    on the bus) from its record."""
+
+    def us(name: str) -> float | None:
+        value = stats.get(name)
+        return None if value is None or not math.isfinite(float(value)) else round(float(value) * 1e6, 1)
+
+    exchange = np.asarray(record.get("exchange_s", np.zeros(0)), float)[1:] * 1e6
+    figures: dict[str, Any] = {
+        "period_target_us": period_s * 1e6,
+        "rate_hz": None if not math.isfinite(float(stats.get("rate_hz", math.nan))) else round(float(stats["rate_hz"]), 1),
+        "cycles": int(stats.get("cycles", 0) or 0),
+        "overruns": int(stats.get("overruns", 0) or 0),
+        "skipped_periods": int(stats.get("skipped_periods", 0) or 0) if math.isfinite(float(stats.get("skipped_periods", 0) or 0)) else None,
+        "period_us": {"median": us("period_median_s"), "p99": us("period_p99_s"), "max": us("period_max_s")},
+        "compute_us": {"median": us("compute_median_s"), "p99": us("compute_p99_s"), "max": us("compute_max_s")},
+        "exchange_us": ({"median": round(float(np.median(exchange)), 1), "p99": round(float(np.percentile(exchange, 99)), 1),
+                         "max": round(float(exchange.max()), 1)} if exchange.size else None),
+        "fallbacks": int(stats.get("fallbacks", 0) or 0),
+        "saturations": int(stats.get("saturations", 0) or 0),
+        "telemetry_sent": int(stats.get("telemetry_sent", 0) or 0),
+        "telemetry_dropped": int(stats.get("telemetry_dropped", 0) or 0),
+        "bus": {k[4:]: int(v) for k, v in stats.items() if k.startswith("bus_") and math.isfinite(float(v))},
+    }  # fmt: skip
+    return figures
+
+
+def plot_tracking_error(hil: dict[str, np.ndarray], sim: dict[str, np.ndarray], joints: list[str], title: str,
+                        disturbance_s: float | None, path: Path) -> Path:  # fmt: skip
+    """Per joint e = q_ref - q (deg): the runtime on the target, and the simulator."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = hil["q"].shape[1]
+    fig, axes = plt.subplots(n, 1, figsize=(9, 1.35 * n + 0.9), sharex=True, squeeze=False)
+    e_hil = np.degrees(hil["q_ref"] - hil["q"])
+    e_sim = np.degrees(sim["q_ref"] - sim["q"])
+    for j, ax in enumerate(axes[:, 0]):
+        ax.plot(hil["t"], e_hil[:, j], lw=1.1, color="C0", label="HIL: hil run on the pybullet target")
+        ax.plot(sim["t"], e_sim[:, j], lw=0.8, color="k", ls="--", label="simulation")
+        if disturbance_s is not None and disturbance_s <= hil["t"][-1]:
+            ax.axvline(disturbance_s, color="C3", lw=0.8, ls=":", label="disturbance")
+        ax.set_ylabel(f"{joints[j] if j < len(joints) else j}\n(deg)", fontsize=7)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+    axes[0, 0].legend(fontsize=7, ncol=3, loc="upper right")
+    axes[-1, 0].set_xlabel("t (s)")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def telemetry_recording(outcome: Any) -> Any:
+    """The payloads the demo received, as ``hil telemetry record`` keeps them (decoded at the end)."""
+    from hil_runtime.telemetry.codec import TelemetryDecodeError
+    from hil_runtime.telemetry.subscriber import StateRecording
+
+    recording = StateRecording(outcome.schema, payloads=list(outcome.state_payloads))
+    for payloads, decode, target in ((outcome.status_payloads, outcome.schema.decode_status, recording.status),
+                                     (outcome.event_payloads, outcome.schema.decode_event, recording.events)):  # fmt: skip
+        for payload in payloads:
+            try:
+                header, body = decode(payload)
+            except TelemetryDecodeError:
+                continue
+            if not header.warmup:
+                target.append({"seq": header.seq, "t_ns": header.t_ns, **body})
+    return recording
+
+
+def final_stats(outcome: Any) -> dict[str, float]:
+    """The runtime's last ``stats`` sample (published as the loop left ACTIVE)."""
+    from hil_runtime.telemetry.codec import TelemetryDecodeError
+
+    for payload in reversed(outcome.stats_payloads):
+        try:
+            header, values = outcome.schema.decode_stats(payload)
+        except TelemetryDecodeError:
+            continue
+        if not header.warmup:
+            return {k: float(v) for k, v in values.items()}
+    return {}
+
+
+def telemetry_check(arrays: dict[str, np.ndarray], record: dict[str, np.ndarray]) -> dict[str, Any]:
+    """What the subscriber received against the runtime's own record, cycle by cycle."""
+    from hil_runtime.telemetry.subscriber import missing_samples
+
+    seq = arrays["seq"].astype(np.int64)
+    out: dict[str, Any] = {"samples": int(seq.size), "missing": missing_samples(arrays["seq"]),
+                           "gaps": int((arrays["flags"] & 1).astype(bool).sum()) if seq.size else 0}  # fmt: skip
+    if seq.size:
+        # seq counts the runtime's offered states from 1; the record's row i is the i-th cycle.
+        rows = seq - 1
+        ok = (rows >= 0) & (rows < record["q"].shape[0])
+        if ok.any():
+            out["max_abs_q_diff_vs_record_rad"] = float(np.abs(arrays["q"][ok] - record["q"][rows[ok]]).max())
+    return out
+
+
+def format_summary(results: dict[str, Any]) -> str:
+    demo, scores, timing, stop = results["demo"], results["scores"], results["timing"], results["shutdown"]
+    law = _LAW_TITLE.get(demo["law"], demo["law"])
+    m_hil, m_sim = scores["metrics"]["hil"], scores["metrics"]["sim"]
+    lines = [
+        f"# hil demo: {law} {demo['mode'].upper()} on {demo['condition']}",
+        "",
+        f"The runtime (`hil run`, bundle `{demo['bundle']}`) drove the pybullet UR5 (`hil target serve`) over the "
+        f"ipc CAN bus, {'free-running in real time' if demo['realtime'] else 'lock-stepped'} at "
+        f"{demo['period_s'] * 1e3:g} ms, for {demo['duration_s']:g} s of condition {demo['condition']}"
+        + (f" (disturbance at {demo['disturbance_s']:g} s)." if demo.get("disturbance_s") is not None else "."),
+        "",
+        "## Scores (smaller is better), beside the simulation of the same bundle and condition",
+        "",
+        "| metric | HIL | simulation | Δ (%) |",
+        "|---|---|---|---|",
+    ]
+    for name in METRICS:
+        rel = scores["relative"][name]
+        lines.append(f"| {_METRIC_TITLE[name]} | {m_hil[name]:.4g} | {m_sim[name]:.4g} | "
+                     f"{'—' if not math.isfinite(rel) else f'{100 * rel:+.1f}'} |")  # fmt: skip
+    comp = scores["composite"]
+    lines += [
+        f"| composite (normalized between the two) | {comp['hil']:.3f} | {comp['sim']:.3f} | "
+        f"{100 * (comp['hil'] - comp['sim']) / comp['sim']:+.1f} |" if comp["sim"] else "| composite | — | — | — |",
+        "",
+        f"Trajectory difference HIL − simulation: RMS {scores['trajectory_rms_diff_deg']:.4f} deg, max "
+        f"{scores['trajectory_max_diff_deg']:.4f} deg. Inside the joint limits: HIL "
+        f"{'yes' if scores['within_limits']['hil'] else 'NO'}, simulation {'yes' if scores['within_limits']['sim'] else 'NO'}. "
+        f"Cycles with the trust region's fallback: {scores['fallback_cycles']['hil']}.",
+        "",
+        "## The loop (the runtime's own stats over the run)",
+        "",
+        "| figure | median | p99 | max |",
+        "|---|---|---|---|",
+    ]
+    for name, key in (("period (µs)", "period_us"), ("compute (µs)", "compute_us"), ("exchange on the bus (µs)", "exchange_us")):
+        value = timing.get(key) or {}
+        lines.append(f"| {name} | {value.get('median', '—')} | {value.get('p99', '—')} | {value.get('max', '—')} |")
+    lines += [
+        "",
+        f"Rate {timing['rate_hz']} Hz over {timing['cycles']} cycles, overruns {timing['overruns']}, telemetry "
+        f"{timing['telemetry_sent']} sent / {timing['telemetry_dropped']} dropped; received by the demo: "
+        f"{results['telemetry']['samples']} states, {results['telemetry']['missing']} missing. Machine load average "
+        f"{results['load_average']}.",
+        "",
+        "## Stop",
+        "",
+        f"hil run: SIGTERM → exit {stop['runtime_exit_code']} in {results['processes'].get('runtime', {}).get('stop_s')} s; "
+        f"drives afterwards: {'all quick-stopped (Operation Enabled off)' if stop.get('drives_stopped') else stop.get('drives_operation_enabled_after_stop')}; "
+        f"target exit {stop['target_exit_code']}; processes left {stop['processes_alive'] or 'none'}; ipc sockets left "
+        f"{stop['ipc_sockets_left'] or 'none'}; private directory removed: {'yes' if stop['work_dir_removed'] else 'NO'}.",
+        "",
+    ]  # fmt: skip
+    return "\n".join(lines)
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(float(value)) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def write_json(path: Path, results: dict[str, Any]) -> None:
+    write_text_atomic(path, json.dumps(_json_safe(results), indent=2))
+
+
+__all__ = ["compare", "final_stats", "format_summary", "hil_trajectory", "plot_tracking_error", "simulate_twin",
+           "telemetry_check", "telemetry_recording", "timing_figures", "write_json"]  # fmt: skip

@@ -1,0 +1,84 @@
+"""The demo's live view: ``hil telemetry watch``'s view (one view, models/../telemetry/cli.py), under
+a line of the demo's own (phase, the run's time against the condition, the disturbance), and
+optionally pybullet's own viewer mirroring the arm from the telemetry (``--gui``)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from models.demo.processes import DemoError
+from models.demo.session import DemoPhase
+
+
+class NoDisplayError(ValueError):
+    """``--gui`` without a display: one line, exit code 2, before anything starts."""
+
+    exit_code = 2
+
+
+def check_display() -> None:
+    if not os.environ.get("DISPLAY"):
+        raise NoDisplayError("--gui: no display (DISPLAY is not set), so pybullet cannot open its viewer; "
+                             "run without --gui (or with --headless)")  # fmt: skip
+
+
+def render(phase: DemoPhase, disturbance_s: float | None) -> Any:
+    from rich.console import Group
+    from rich.progress_bar import ProgressBar
+    from rich.table import Table
+    from rich.text import Text
+
+    from hil_runtime.telemetry.cli import render_watch
+
+    head = Table.grid(padding=(0, 1))
+    bar = ProgressBar(total=max(phase.duration_s, 1e-9), completed=min(phase.t_s, phase.duration_s), width=40)
+    marker = "" if disturbance_s is None else f"  disturbance at {disturbance_s:g} s" + (" ✓" if phase.t_s >= disturbance_s else "")
+    head.add_row(Text("hil demo", style="bold cyan"), Text(phase.text),)
+    head.add_row(Text(""), Text.assemble(f"t {phase.t_s:6.3f} / {phase.duration_s:g} s ", marker))
+    parts: list[Any] = [head, bar]
+    if phase.watch is not None:
+        parts.append(render_watch(phase.watch, phase.robot, phase.joints))
+    for note in phase.notes[-3:]:
+        parts.append(Text(note, style="dim"))
+    return Group(*parts)
+
+
+class ArmMirror:
+    """pybullet's GUI showing the arm at the positions the telemetry reports (not the plant itself:
+    the target steps physics headless, so drawing never slows the loop it serves)."""
+
+    def __init__(self, robot_name: str) -> None:
+        import pybullet
+
+        from models.robots import urdf_path
+
+        self._pb = pybullet
+        try:
+            self._client = pybullet.connect(pybullet.GUI)
+        except pybullet.error as exc:
+            raise DemoError(f"--gui: pybullet could not open its viewer ({exc})") from None
+        if self._client < 0:
+            raise DemoError("--gui: pybullet could not open its viewer (no OpenGL on this display?)")
+        self._body = pybullet.loadURDF(str(urdf_path(robot_name)), useFixedBase=True, physicsClientId=self._client)
+        self._joints: list[int] = []
+        for index in range(pybullet.getNumJoints(self._body, physicsClientId=self._client)):
+            if pybullet.getJointInfo(self._body, index, physicsClientId=self._client)[2] == pybullet.JOINT_REVOLUTE:
+                self._joints.append(index)
+        pybullet.resetDebugVisualizerCamera(1.6, 45, -25, [0, 0, 0.4], physicsClientId=self._client)
+
+    def show(self, watch: Any) -> None:
+        sample = getattr(watch, "sample", None)
+        if sample is None or not sample.values:
+            return
+        for j, index in enumerate(self._joints):
+            self._pb.resetJointState(self._body, index, float(sample["q"][j]), physicsClientId=self._client)
+
+    def close(self) -> None:
+        try:
+            self._pb.disconnect(self._client)
+        except self._pb.error:
+            pass
+
+
+__all__ = ["ArmMirror", "NoDisplayError", "check_display", "render"]
