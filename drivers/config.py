@@ -122,18 +122,21 @@ class DriveBusConfig(_Frozen):
     joints: tuple[JointDriveConfig, ...] = Field(min_length=1)
     period_s: float = Field(gt=0)  # control period: one SYNC per period
     heartbeat_producer_ms: int = Field(50, ge=1, le=65535)  # written to every drive's 0x1017
-    heartbeat_timeout_s: float = Field(0.2, gt=0)  # no heartbeat for this long: HeartbeatLostError
-    feedback_timeout_s: float = Field(0.005, gt=0)  # wait for TPDOs after SYNC, per cycle
-    max_missed_cycles: int = Field(1, ge=0)  # consecutive cycles a drive may miss before raising
+    # Defaults that hold on a loaded 2-core machine with the drives in another Python process
+    # (docs/drivers.md, "Timeouts and what they trade"); a real bus can be much tighter
+    # (deploy/runtime.can0.yaml).
+    heartbeat_timeout_s: float = Field(1.0, gt=0)  # no heartbeat for this long: HeartbeatLostError
+    feedback_timeout_s: float = Field(0.02, gt=0)  # wait for TPDOs after SYNC, per cycle
+    max_missed_cycles: int = Field(25, ge=0)  # consecutive cycles a drive may miss before raising
     sdo_timeout_s: float = Field(0.3, gt=0)
-    state_change_timeout_s: float = Field(1.0, gt=0)  # NMT / CiA 402 transitions at start-up
+    state_change_timeout_s: float = Field(2.0, gt=0)  # NMT / CiA 402 transitions at start-up
     quick_stop_option: int = Field(2, ge=0, le=8)  # written to 0x605A
     # The master's own heartbeat (NMT node id, period): the drives consume it (0x1016).
     master_node_id: int = Field(127, ge=1, le=127)
     master_heartbeat_ms: int = Field(20, ge=1, le=65535)
     # Loss of the master: a drive that misses its heartbeat, its RPDOs or the SYNC for this long
     # quick-stops on its own (0x1016, 0x1400:05, 0x2101; 0x6007 = quick stop). None: not set up.
-    comm_loss_timeout_s: float | None = Field(0.1, gt=0, le=65.535)
+    comm_loss_timeout_s: float | None = Field(0.5, gt=0, le=65.535)
     bus_load_limit: float = Field(DEFAULT_LIMIT, gt=0, le=1)
     eds_path: Path | None = None  # None: the EDS shipped in drivers/cia402/data
 

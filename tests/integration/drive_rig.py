@@ -31,6 +31,9 @@ def drive_bus_config(channel: str, n: int = 6, fd: bool = False, **overrides: An
         "heartbeat_timeout_s": 0.5,
         # The drives stop on their own past this silence of the master: beyond the slowest cycle.
         "comm_loss_timeout_s": 2.0,
+        # The fault tests count cycles against a budget of one tolerated miss (the default, 25,
+        # rides out a loaded machine's stalls: docs/drivers.md).
+        "max_missed_cycles": 1,
     }
     data.update(overrides)
     if "transport" in overrides:

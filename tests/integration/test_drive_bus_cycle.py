@@ -237,7 +237,10 @@ def test_sync_counter_wraps_after_240() -> None:
 def test_documented_defaults() -> None:
     config = DriveBusConfig.model_validate({"period_s": 0.001,
                                             "joints": [{"name": "a", "node_id": 1, "max_torque_nm": 1.0}]})
-    assert (config.feedback_timeout_s, config.max_missed_cycles) == (0.005, 1)
+    # What docs/drivers.md documents ("Timeouts and what they trade").
+    assert (config.feedback_timeout_s, config.max_missed_cycles) == (0.02, 25)
+    assert (config.heartbeat_timeout_s, config.comm_loss_timeout_s, config.state_change_timeout_s) == (1.0, 0.5, 2.0)
+    assert (config.master_heartbeat_ms, config.master_node_id) == (20, 127)
 
 
 @pytest.mark.parametrize("max_missed", [0, 3])
