@@ -238,6 +238,16 @@ class EmulatedDrives:
     def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
         self._drive(node_id).policy.silent_heartbeat = silent
 
+    def abort_sdo_writes(self, node_id: int, index: int, abort_code: int = 0x06090030) -> None:
+        """The drive answers every SDO write to ``index`` with an abort (CiA 301 ``abort_code``;
+        default 0x06090030, value range exceeded), as a real drive refuses a value it cannot take."""
+
+        def refuse(index: int, subindex: int, od: object, data: bytes, _target: int = index) -> None:
+            if index == _target:
+                raise canopen.sdo.SdoAbortedError(abort_code)
+
+        self._drive(node_id).node.add_write_callback(refuse)
+
     @property
     def counters(self) -> DriveCounters:
         link = self._link

@@ -1,0 +1,12 @@
+"""``hil faults``: the fault-injection campaign (issue 15; docs/faults.md).
+
+The campaign composes the pybullet target with the runtime (:class:`hil_runtime.runtime.Runtime`,
+or ``hil run`` as its own process), injects every fault the rig can make, and writes a table of
+what the runtime did. It is the one part of sim_target that imports hil_runtime (lazily, as
+``models.hil_experiment`` does): the target itself never does.
+
+- :mod:`sim_target.faults.rig`: the compositions (in process, or two processes) and what observes them
+- :mod:`sim_target.faults.cases`: each fault's injection and the checks of its row
+- :mod:`sim_target.faults.crafted`: misbehaving bundles, built at run time from a shipped one
+- :mod:`sim_target.faults.campaign`: the list of faults, repeats, results.json and the table
+"""

@@ -1,0 +1,309 @@
+"""``hil faults``: every fault the rig can inject, against the live runtime, with a table of figures.
+
+    run_campaign(out_dir, quick=False, repeats=3, seed=0) -> results (also results.json + table.md)
+
+Each fault (:data:`FAULTS`) runs ``repeats`` times on a fresh rig, seeded (the warm-up length, the
+drive hit, the delay, the moment of the signal vary with the seed). A case that the rig spoils
+before its fault is injected is run again, at most :data:`RIG_RETRIES` times, and counted. The
+table has the issue's columns; docs/faults.md explains each fault and bound.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim_target.faults import cases as c
+from sim_target.faults.cases import Expect
+
+RIG_RETRIES = 2
+TOLERATED_DROP = ("supervisor.stale_cycles", "bus.dropped", "bus.late", "bus.malformed")
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    name: str
+    label: str  # the table's fault column
+    bound: str  # the detection bound the row is held to
+    quick: bool  # part of ``hil faults --quick`` (the test suite)
+    run: Callable[[str, int, int, Path], c.CaseResult]
+
+
+def _ip(inject: Callable[..., Any], expect: Expect, **kwargs: Any) -> Callable[[str, int, int, Path], c.CaseResult]:
+    return lambda name, repeat, seed, work: c.run_in_process(name, repeat, seed, inject, expect, **kwargs)
+
+
+def _crafted(kind: str, expect: Expect, **kwargs: Any) -> Callable[[str, int, int, Path], c.CaseResult]:
+    def run(name: str, repeat: int, seed: int, work: Path) -> c.CaseResult:
+        from sim_target.faults.crafted import craft_bundle
+        from sim_target.faults.rig import Q0_RAD
+
+        trigger = craft_bundle(c.rigs.PD_BUNDLE, work / f"bundle-{kind}", kind)  # type: ignore[arg-type]
+        q0 = (trigger, *Q0_RAD[1:])  # the arm starts where the crafted graph misbehaves
+        result = c.run_in_process(name, repeat, seed, lambda rig, rng: None, expect, q0_rad=q0,
+                                  bundle_path=work / f"bundle-{kind}", fault_at_activation=True, **kwargs)  # fmt: skip
+        result.detail["trigger_q0_rad"] = trigger
+        return result
+
+    return run
+
+
+def _startup(prepare: Callable[..., dict[str, Any]], text: str) -> Callable[[str, int, int, Path], c.CaseResult]:
+    return lambda name, repeat, seed, work: c.startup_case(name, repeat, seed, work, prepare, text)
+
+
+def _states_flow(rig: Any, result: c.CaseResult) -> None:
+    """After the subscriber process is killed, the runtime's stream still reaches ours."""
+    before = rig.watch.states
+    time.sleep(0.3)
+    flowing = rig.watch.states > before
+    result.detail["state_samples_after_kill"] = rig.watch.states - before
+    result.telemetry_event = None
+    if not flowing:
+        result.failures.append("no state sample reached the remaining subscriber after the kill")
+
+
+def _telemetry_sent(rig: Any, result: c.CaseResult) -> None:
+    counters = getattr(rig.runtime.telemetry, "counters", None)
+    sent = counters().get("sent", 0) if callable(counters) else getattr(rig.runtime.telemetry, "sent", 0)
+    result.detail["telemetry_sent_without_peer"] = sent
+
+
+TWO = "2 cycles"
+F = ("feedback_timeout", "stale_feedback")
+FAULTS: tuple[FaultSpec, ...] = (
+    FaultSpec("tpdo_drop_1_one", "TPDO dropped, 1 cycle, one drive", "tolerated (max_missed_cycles 1), counted", True,
+              _ip(c.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None))),
+    FaultSpec("tpdo_drop_1_all", "TPDOs dropped, 1 cycle, all drives", "tolerated, counted", False,
+              _ip(c.drop_tpdos(1, True), Expect(counters=TOLERATED_DROP, max_cycles=None))),
+    FaultSpec("tpdo_drop_3_one", "TPDO dropped, 3 cycles, one drive", TWO, False, _ip(c.drop_tpdos(3, False), Expect(F))),
+    FaultSpec("tpdo_drop_3_all", "TPDOs dropped, 3 cycles, all drives", TWO, True, _ip(c.drop_tpdos(3, True), Expect(F))),
+    FaultSpec("tpdo_drop_50_one", "TPDO dropped, 50 cycles, one drive", TWO, False, _ip(c.drop_tpdos(50, False), Expect(F))),
+    FaultSpec("tpdo_drop_50_all", "TPDOs dropped, 50 cycles, all drives", TWO, False, _ip(c.drop_tpdos(50, True), Expect(F))),
+    FaultSpec("tpdo_delay_1_one", "TPDO delayed past the cycle, once, one drive", "tolerated, counted late", False,
+              _ip(c.delay_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None))),
+    FaultSpec("tpdo_delay_3_all", "TPDOs delayed past the cycle, 3 cycles, all drives", TWO, True,
+              _ip(c.delay_tpdos(3, True), Expect(F))),
+    FaultSpec("tpdo_corrupt_1_one", "TPDO corrupted (wrong length), once, one drive", "tolerated, counted malformed", True,
+              _ip(c.corrupt_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None))),
+    FaultSpec("tpdo_corrupt_3_all", "TPDOs corrupted (wrong length), 3 cycles, all drives", TWO, False,
+              _ip(c.corrupt_tpdos(3, True), Expect(F))),
+    FaultSpec("wrong_length_flood", "wrong-length TPDO/heartbeat/EMCY frames on our drives' COB-IDs, 0.3 s",
+              "tolerated, counted malformed", False,
+              _ip(c.flood("wrong_length"), Expect(counters=("bus.malformed",), max_cycles=None))),
+    FaultSpec("unknown_cob_flood", "unknown COB-IDs flooding the bus, 0.3 s", "tolerated, counted", True,
+              _ip(c.flood("unknown"), Expect(counters=("bus.unknown_cob_id",), max_cycles=None))),
+    FaultSpec("heartbeat_lost", "a drive's heartbeat lost", "heartbeat_timeout_s (0.5 s)", True,
+              _ip(c.target_fault({"kind": "heartbeat", "node_id": "random", "silent": True}),
+                  Expect(("heartbeat_lost",), max_cycles=None), observe_cycles=5000)),
+    FaultSpec("drive_fault_emcy", "a drive enters FAULT (EMCY 0x2310)", TWO, True,
+              _ip(c.target_fault({"kind": "drive_fault", "node_id": "random", "error_code": 0x2310}),
+                  Expect(("drive_fault",)))),
+    FaultSpec("sdo_abort_startup", "SDO abort at start-up (drive 2 refuses 0x6072)", "at start-up, before any enable", False,
+              _startup(c.prepare_sdo_abort, "0x06090030")),
+    FaultSpec("bus_closed", "the bus closed under the driver", TWO, True,
+              _ip(c.close_bus_under_driver, Expect(("transport",)), settle_s=1.6)),
+    FaultSpec("target_killed", "the target process killed (SIGKILL), ipc bus", TWO, False,
+              _ip(c.kill_target_process, Expect(("feedback_timeout", "transport", "stale_feedback")), transport="ipc")),
+    FaultSpec("emulator_nan", "emulator output NaN (crafted bundle)", "substituted in the cycle; reported at the next stats",
+              True, _crafted("nan", Expect(counters=("nonfinite_fallbacks",), max_cycles=None))),
+    FaultSpec("emulator_inf", "emulator output +inf (crafted bundle)", "substituted in the cycle; reported at the next stats",
+              False, _crafted("inf", Expect(counters=("nonfinite_fallbacks",), max_cycles=None))),
+    FaultSpec("policy_nan_both", "law and emulator output NaN (crafted bundle)", TWO, False,
+              _crafted("nan_both", Expect(("policy_nonfinite",)))),
+    FaultSpec("saturating_bundle", "a bundle that saturates every joint (crafted, +1e6 N·m)", "clipped in the cycle",
+              True, _crafted("saturate", Expect(may_fault=c.LIMIT_FAULTS, counters=("supervisor.saturated_cycles",),
+                                                max_cycles=None), observe_cycles=3000)),
+    FaultSpec("tampered_bundle", "bundle tampered on disk before start", "at start-up, before the bus", True,
+              _startup(c.prepare_tampered, "sha256 mismatch")),
+    FaultSpec("subscriber_killed", "the telemetry subscriber killed (SIGKILL)", "not a runtime fault", False,
+              _ip(c.kill_subscriber, Expect(event=False, max_cycles=None), post_check=_states_flow)),
+    FaultSpec("no_zenoh_peer", "no Zenoh peer at all (telemetry on)", "not a runtime fault", False,
+              _ip(lambda rig, rng: None, Expect(event=False, max_cycles=None), watch_telemetry=False,
+                  post_check=_telemetry_sent)),
+    FaultSpec("cpu_starvation", "CPU starvation: busy processes on every CPU, clock pacing", "overruns counted",
+              False, _ip(c.starve_cpu, Expect(may_fault=("feedback_timeout", "stale_feedback"), counters=("overruns",),
+                                             max_cycles=None), observe_cycles=2500,
+                         config_extra={"loop": {"pacing": "clock", "time_base": "cycles"}})),
+    FaultSpec("loop_stall", "the loop stalled (daemon SIGSTOPped past the watchdog)", "WatchdogSec (0.2 s here)", False,
+              c.loop_stall),
+    FaultSpec("sigterm_during_enable", "SIGTERM during enable (daemon)", "a request: exit 0", False,
+              c.sigterm_during_enable),
+    FaultSpec("payload_jump", "payload jump, +5 kg at the flange", "not a fault: rejected, or a limit FAULT", False,
+              _ip(c.target_fault({"kind": "payload", "mass_kg": 5.0}),
+                  Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None), observe_cycles=1500)),
+    FaultSpec("disturbance_10x", "10x the paper's disturbance on the plant", "not a fault: rejected, or a limit FAULT",
+              True, _ip(c.target_fault({"kind": "impulse", "torque_nm": [10, 10, 50, 50, 100, 100]}),
+                        Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None), observe_cycles=1500)),
+    FaultSpec("reference_out_of_limits", "a reference that would leave the limits", "at start-up, before the bus", False,
+              _startup(c.prepare_reference_out, "WIDE")),
+)
+QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
+
+
+def _machine() -> dict[str, Any]:
+    return {"cpu": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+            "python": platform.python_version(), "load_average": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip
+
+
+def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseResult:
+    """One case, run again when the rig spoils it before the injection (counted)."""
+    retries = 0
+    while True:
+        work = scratch / f"{spec.name}-{repeat}-{retries}"
+        work.mkdir(parents=True, exist_ok=True)
+        started = time.monotonic()
+        try:
+            result = spec.run(spec.name, repeat, seed, work)
+        except c.RigFault as exc:
+            if retries < RIG_RETRIES:
+                retries += 1
+                continue
+            result = c.CaseResult(spec.name, repeat, seed, action=f"rig failed: {exc}", failures=[f"rig: {exc}"])
+        except Exception as exc:  # noqa: BLE001 - a campaign bug or a crash: the row fails, the campaign goes on
+            result = c.CaseResult(spec.name, repeat, seed, action=f"case raised {type(exc).__name__}",
+                                  failures=[f"{type(exc).__name__}: {exc}"])  # fmt: skip
+        result.rig_retries = retries
+        result.wall_s = round(time.monotonic() - started, 2)
+        shutil.rmtree(work, ignore_errors=True)
+        return result
+
+
+def select(quick: bool, only: tuple[str, ...] | None = None) -> tuple[FaultSpec, ...]:
+    specs = tuple(spec for spec in FAULTS if (not quick or spec.quick))
+    if only:
+        known = {spec.name for spec in FAULTS}
+        unknown = [name for name in only if name not in known]
+        if unknown:
+            raise CampaignError(f"--only: unknown fault(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+        specs = tuple(spec for spec in FAULTS if spec.name in only)
+    return specs
+
+
+class CampaignError(ValueError):
+    exit_code = 2
+
+
+def run_campaign(out_dir: Path | None, *, quick: bool = False, repeats: int = 3, seed: int = 0,
+                 only: tuple[str, ...] | None = None,
+                 progress: Callable[[c.CaseResult], None] | None = None) -> dict[str, Any]:  # fmt: skip
+    """Run the faults; write ``results.json`` and ``table.md`` to ``out_dir`` (atomically)."""
+    specs = select(quick, only)
+    if repeats < 1:
+        raise CampaignError(f"--repeats: must be at least 1, got {repeats}")
+    load_before = _machine()["load_average"]
+    started = time.monotonic()
+    rows: list[dict[str, Any]] = []
+    cases: list[c.CaseResult] = []
+    scratch = Path(tempfile.mkdtemp(prefix="hil-faults-"))
+    try:
+        for index, spec in enumerate(specs):
+            results = []
+            for repeat in range(repeats):
+                case_seed = seed * 1000 + index * 10 + repeat
+                result = run_case(spec, repeat, case_seed, scratch)
+                results.append(result)
+                if progress is not None:
+                    progress(result)
+            cases.extend(results)
+            rows.append(summarize(spec, results))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    document = {
+        "command": "hil faults" + (" --quick" if quick else "") + (f" --repeats {repeats}" if repeats != 3 else "")
+                   + (f" --seed {seed}" if seed else "") + (f" --only {','.join(only)}" if only else ""),
+        "machine": {**_machine(), "load_average_before": load_before},
+        "wall_s": round(time.monotonic() - started, 1),
+        "repeats": repeats,
+        "passed": all(row["pass"] for row in rows),
+        "rows": rows,
+        "cases": [case.to_json() for case in cases],
+    }  # fmt: skip
+    if out_dir is not None:
+        write_outputs(out_dir, document)
+    return document
+
+
+def _fmt_cycles(values: list[int]) -> str:
+    if not values:
+        return "—"
+    return f"{int(np.median(values))}, {max(values)}"
+
+
+def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
+    """One table row from the repeats of one fault."""
+    cycles = [r.detected_cycles for r in results if r.detected_cycles is not None]
+    seconds = [r.detected_s for r in results if r.detected_s is not None]
+    ratios = [r.max_torque_ratio for r in results if r.max_torque_ratio is not None]
+    actions = sorted({r.action for r in results})
+    finals = sorted({", ".join(sorted(set(r.drives_final))) if isinstance(r.drives_final, list) else r.drives_final
+                     for r in results})  # fmt: skip
+
+    def tri(values: list[bool | None]) -> str:
+        known = [v for v in values if v is not None]
+        if not known:
+            return "n/a"
+        return "yes" if all(known) else f"no ({known.count(False)}/{len(known)})"
+
+    return {
+        "fault": spec.name,
+        "label": spec.label,
+        "bound": spec.bound,
+        "repeats": len(results),
+        "detected_cycles": cycles,
+        "detected_cycles_median": float(np.median(cycles)) if cycles else None,
+        "detected_cycles_max": max(cycles) if cycles else None,
+        "detected_s_max": max(seconds) if seconds else None,
+        "action": "; ".join(actions),
+        "max_torque_ratio": max(ratios) if ratios else None,
+        "nonfinite": any(r.nonfinite_commanded for r in results),
+        "drives_final": "; ".join(finals),
+        "daemon_alive": tri([r.daemon_alive for r in results]),
+        "daemon_note": "; ".join(sorted({r.daemon_note for r in results})),
+        "telemetry_event": tri([r.telemetry_event for r in results]),
+        "arm_in_limits": tri([r.arm_in_limits for r in results]),
+        "rig_retries": sum(r.rig_retries for r in results),
+        "pass": all(r.passed for r in results),
+        "failures": sorted({f for r in results for f in r.failures}),
+    }
+
+
+def format_table(document: dict[str, Any]) -> str:
+    head = ("| fault | detected after (cycles: median, max) | bound | action taken | max \\|τ\\| after the fault "
+            "/ limit | non-finite commanded | drives' final state | daemon alive | telemetry event | arm inside "
+            "the position limits | pass |")  # fmt: skip
+    lines = [head, "|" + "---|" * 11]
+    for row in document["rows"]:
+        cycles = (_fmt_cycles(row["detected_cycles"]) if row["detected_cycles"] else "—")
+        if row["detected_s_max"] is not None and "s" in row["bound"] and "(" in row["bound"]:
+            cycles += f" (≤ {row['detected_s_max']:.3f} s)"
+        ratio = "—" if row["max_torque_ratio"] is None else f"{row['max_torque_ratio']:.3f} (≤ 1)"
+        lines.append(" | ".join([
+            f"| {row['label']}", cycles, row["bound"], row["action"].replace("|", "\\|"), ratio,
+            "yes" if row["nonfinite"] else "no", row["drives_final"], row["daemon_alive"], row["telemetry_event"],
+            row["arm_in_limits"], ("**pass**" if row["pass"] else "**FAIL**: " + "; ".join(row["failures"])) + " |",
+        ]))  # fmt: skip
+    machine = document["machine"]
+    lines += ["", f"`{document['command']}`: {len(document['rows'])} faults × {document['repeats']} repeats, "
+                  f"{document['wall_s']} s, {machine['cpus']} CPUs ({machine['cpu']}), load average "
+                  f"{machine['load_average_before']} before, {machine['load_average']} after; "
+                  f"{'every row passes' if document['passed'] else 'SOME ROWS FAIL'}."]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def write_outputs(out_dir: Path, document: dict[str, Any]) -> None:
+    from hil_runtime.outputs import write_text_atomic
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out_dir / "table.md", format_table(document))
+    write_text_atomic(out_dir / "results.json", json.dumps(document, indent=1) + "\n")  # last: the run's seal

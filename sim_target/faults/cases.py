@@ -1,0 +1,606 @@
+"""The faults of the campaign (issue 15), each a function of (scratch directory, seed) -> CaseResult.
+
+Every case runs on a fresh rig (sim_target/faults/rig.py) so no case inherits another's state. A
+case that FAULTs before its fault is injected (the rig, not the runtime: a loaded machine) raises
+:class:`RigFault` and is run again (counted in results.json as ``rig_retries``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim_target.faults import rig as rigs
+from sim_target.faults.rig import Q0_RAD, InProcessRig, in_process_rig
+
+QUICK_STOPPED = ("quick stop active", "switch on disabled", "fault", "fault reaction active", "not enabled")
+LIMIT_FAULTS = ("position_limit", "velocity_limit")
+
+
+class RigFault(RuntimeError):
+    """The rig failed before the fault was injected: the case is run again."""
+
+
+@dataclass
+class CaseResult:
+    fault: str
+    repeat: int
+    seed: int
+    detected_cycles: int | None = None  # cycles from injection to the runtime's reaction
+    detected_s: float | None = None  # wall time of the same, where cycles are not the measure
+    action: str = ""
+    max_torque_ratio: float | None = None  # max |tau| / limit commanded after the fault (bus and record)
+    nonfinite_commanded: bool = False
+    drives_final: list[str] | str = ""
+    daemon_alive: bool = False
+    daemon_note: str = ""
+    telemetry_event: bool | None = None  # None: not applicable (stated in the note)
+    status_shows: bool | None = None
+    arm_in_limits: bool | None = None
+    passed: bool = False
+    failures: list[str] = field(default_factory=list)
+    rig_retries: int = 0
+    wall_s: float = 0.0
+    detail: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return rigs.json_safe(asdict(self))
+
+
+@dataclass(frozen=True)
+class Expect:
+    """What the runtime must do about one fault."""
+
+    faults: tuple[str, ...] = ()  # FAULT kinds accepted; () = no FAULT allowed (tolerated)
+    may_fault: tuple[str, ...] = ()  # tolerated, but these FAULT kinds are acceptable too (plant faults)
+    max_cycles: int | None = 2  # detection bound in cycles; None: not measured in cycles
+    event: bool = True  # a telemetry event must be seen
+    counters: tuple[str, ...] = ()  # for tolerated faults: one of these status counters must rise
+
+
+# --- the in-process driver ----------------------------------------------------------------------------
+
+
+def _counters(runtime: Any) -> dict[str, int]:
+    status = runtime.status()
+    out = {f"supervisor.{k}": int(v) for k, v in status.get("supervisor", {}).items()}
+    out.update({f"bus.{k}": int(v) for k, v in (status.get("bus") or {}).items()})
+    out["overruns"] = int(status.get("overruns") or 0)
+    out["nonfinite_fallbacks"] = int(status.get("nonfinite_fallbacks") or 0)
+    return out
+
+
+def run_in_process(
+    name: str,
+    repeat: int,
+    seed: int,
+    inject: Callable[[InProcessRig, np.random.Generator], Any],
+    expect: Expect,
+    *,
+    transport: str = "virtual",
+    q0_rad: tuple[float, ...] = Q0_RAD,
+    bundle_path: Path | None = None,
+    config_extra: dict[str, Any] | None = None,
+    observe_cycles: int = 400,
+    fault_at_activation: bool = False,
+    settle_s: float = 0.3,
+    watch_telemetry: bool = True,
+    post_check: Callable[[InProcessRig, CaseResult], None] | None = None,
+) -> CaseResult:
+    """Run the loop, inject at a cycle boundary, watch the runtime react; the row's figures."""
+    from hil_runtime.lifecycle import LifecycleState
+
+    rng = np.random.default_rng(seed)
+    result = CaseResult(name, repeat, seed)
+    kwargs: dict[str, Any] = {"q0_rad": q0_rad, "config_extra": config_extra}
+    if bundle_path is not None:
+        kwargs["bundle_path"] = bundle_path
+    with in_process_rig(transport, **kwargs) as rig:
+        runtime = rig.runtime
+        rig.start(watch=watch_telemetry)
+        watch = rig.watch
+        t_inject = time.monotonic()
+        injected_cycle = 0
+        if fault_at_activation:
+            if rig.tap is not None:
+                rig.tap.mark_s = t_inject
+            activated = runtime.activate()
+            result.detail["activated"] = activated
+        else:
+            if not runtime.activate():
+                raise RigFault(f"activation failed: {runtime.lifecycle.fault}")
+            warm = int(rng.integers(150, 300))
+            first = runtime.run(max_cycles=warm)
+            if first.fault is not None:
+                raise RigFault(f"FAULT before the injection: {first.fault}")
+            before = _counters(runtime)
+            injected_cycle = runtime.total_cycles
+            t_inject = time.monotonic()
+            if rig.tap is not None:
+                rig.tap.mark_s = t_inject
+            info = inject(rig, rng)
+            if info:
+                result.detail["injection"] = info
+        if fault_at_activation:
+            before = {}
+        if runtime.state is LifecycleState.ACTIVE or runtime.state is LifecycleState.FAULT:
+            rig.loop.start(observe_cycles)
+        deadline = time.monotonic() + 60.0
+        fault_seen_s: float | None = None
+        while rig.loop.alive and time.monotonic() < deadline:
+            if runtime.state is LifecycleState.FAULT:
+                fault_seen_s = fault_seen_s or time.monotonic()
+                if time.monotonic() - fault_seen_s > settle_s:  # the daemon stays up in FAULT
+                    break
+            time.sleep(0.005)
+        state = runtime.state
+        result.daemon_alive = rig.loop.error is None and state is not LifecycleState.FINALIZED and (
+            rig.loop.alive or rig.loop.result is not None or not rig.loop.thread)
+        result.daemon_note = "loop thread up" if rig.loop.alive else (
+            f"loop returned ({rig.loop.result.reason})" if rig.loop.result is not None else
+            (f"loop raised {rig.loop.error!r}" if rig.loop.error else "not started (FAULT at activation)"))
+        result.drives_final = rig.drive_states()
+        arm = rig.arm_position()
+        lower, upper = rig.position_limits()
+        status = runtime.status()
+        fault_kind = runtime.last_fault.kind.value if runtime.last_fault is not None and state is LifecycleState.FAULT else None
+        # the telemetry event (the publisher thread sends within a millisecond or so)
+        event = None
+        if watch is not None:
+            kinds = ("fault",) if fault_kind else ("warning", "stale_feedback")
+            event = watch.wait_event(kinds, t_inject - 0.001, 2.0)
+            result.detail["events"] = [{k: v for k, v in e.items() if k != "t"} for e in watch.events[-6:]]
+        after = _counters(runtime)
+        rose = {k: after[k] - before.get(k, 0) for k in after if after[k] > before.get(k, 0)}
+        result.detail["counters_rose"] = rose
+        result.detail["status"] = {k: status.get(k) for k in ("state", "fault", "fault_cycle", "cycles", "overruns")}
+        if post_check is not None:
+            post_check(rig, result)
+        if fault_seen_s is not None:
+            result.detail["fault_after_s"] = round(fault_seen_s - t_inject, 4)
+        rig.loop.stop()
+        record = {k: v.copy() for k, v in runtime.record.arrays().items()}
+        runtime.shutdown()
+
+    # figures ------------------------------------------------------------------------------------
+    limit = runtime.limits.torque_limit_nm
+    tau = record["tau"][injected_cycle:]
+    q = record["q"][injected_cycle:]
+    result.nonfinite_commanded = bool(tau.size and not np.isfinite(tau).all())
+    ratio = float(np.max(np.abs(tau) / limit)) if tau.size else 0.0
+    if rig.tap is not None:
+        ratio = max(ratio, rig.tap.max_ratio_after)
+        result.detail["rpdo_frames_after"] = rig.tap.frames_after
+    result.max_torque_ratio = ratio
+    inside = True if arm is None else bool(np.all((arm >= lower) & (arm <= upper)))
+    if q.size:
+        inside = inside and bool(np.all((q >= lower) & (q <= upper)))
+    result.arm_in_limits = inside
+    result.detail["arm_final_rad"] = None if arm is None else arm.round(4).tolist()
+    if fault_kind is not None:
+        cycles = (runtime.fault_cycle or 0) - injected_cycle
+        result.detected_cycles = cycles
+        result.detected_s = result.detail.get("fault_after_s")
+        result.action = f"FAULT {fault_kind}, quick stop"
+        result.status_shows = bool(status.get("fault")) and status.get("state") == "FAULT"
+        result.detail["fault"] = status.get("fault")
+    else:
+        result.action = "tolerated: " + (", ".join(f"{k.split('.')[-1]} +{v}" for k, v in sorted(rose.items())
+                                                   if k != "supervisor.saturated_cycles" or "saturate" in name) or "nothing counted")
+        result.status_shows = any(k in rose for k in expect.counters) if expect.counters else None
+        if event is not None and event.get("cycle") is not None:
+            result.detected_cycles = int(event["cycle"]) - injected_cycle
+    result.telemetry_event = (event is not None) if watch is not None else None
+
+    # judgement ------------------------------------------------------------------------------------
+    fails = result.failures
+    if fault_kind is None and expect.faults:
+        fails.append(f"no FAULT (expected {'/'.join(expect.faults)})")
+    if fault_kind is not None and fault_kind not in expect.faults + expect.may_fault:
+        fails.append(f"FAULT {fault_kind} (expected {'/'.join(expect.faults + expect.may_fault) or 'none'})")
+    if fault_kind is not None:
+        if isinstance(result.drives_final, list) and any(s == "operation enabled" for s in result.drives_final):
+            fails.append("a drive is still enabled after the FAULT")
+        if expect.faults and expect.max_cycles is not None and fault_kind in expect.faults and \
+                (result.detected_cycles is None or result.detected_cycles > expect.max_cycles):
+            fails.append(f"detected after {result.detected_cycles} cycles (bound {expect.max_cycles})")
+        if not result.status_shows:
+            fails.append("the status does not show the FAULT")
+    elif expect.counters and not result.status_shows:
+        fails.append(f"no counter rose ({', '.join(expect.counters)})")
+    if ratio > 1.0 + 1e-9:
+        fails.append(f"|tau| reached {ratio:.3f} x the limit")
+    if result.nonfinite_commanded:
+        fails.append("a non-finite torque was commanded")
+    if not result.daemon_alive:
+        fails.append(f"daemon not alive: {result.daemon_note}")
+    if (expect.event or fault_kind is not None) and watch is not None and not result.telemetry_event:
+        fails.append("no telemetry event")
+    if not result.arm_in_limits:
+        fails.append("the arm left the position limits")
+    result.passed = not fails
+    return result
+
+
+# --- injections at the target (in process) ------------------------------------------------------------
+
+
+def _server(rig: InProcessRig) -> Any:
+    return rig.target.server
+
+
+def _nodes(rng: np.random.Generator, all_drives: bool) -> list[int]:
+    return list(range(1, 7)) if all_drives else [int(rng.integers(1, 7))]
+
+
+def drop_tpdos(cycles: int, all_drives: bool) -> Callable[[InProcessRig, np.random.Generator], Any]:
+    def inject(rig: InProcessRig, rng: np.random.Generator) -> Any:
+        nodes = _nodes(rng, all_drives)
+        for node in nodes:
+            _server(rig).drives.drop_tpdos(node, cycles)
+        return {"nodes": nodes, "cycles": cycles}
+
+    return inject
+
+
+def delay_tpdos(cycles: int, all_drives: bool) -> Callable[[InProcessRig, np.random.Generator], Any]:
+    def inject(rig: InProcessRig, rng: np.random.Generator) -> Any:
+        nodes = _nodes(rng, all_drives)
+        delay_s = rigs.FEEDBACK_TIMEOUT_S * float(rng.uniform(1.5, 2.5))  # past the cycle's wait
+        for node in nodes:
+            _server(rig).drives.delay_tpdos(node, delay_s, cycles)
+        return {"nodes": nodes, "cycles": cycles, "delay_s": round(delay_s, 4)}
+
+    return inject
+
+
+def corrupt_tpdos(cycles: int, all_drives: bool) -> Callable[[InProcessRig, np.random.Generator], Any]:
+    def inject(rig: InProcessRig, rng: np.random.Generator) -> Any:
+        nodes = _nodes(rng, all_drives)
+        for node in nodes:
+            _server(rig).drives.corrupt_tpdos(node, cycles)  # one byte short: wrong length
+        return {"nodes": nodes, "cycles": cycles}
+
+    return inject
+
+
+class _Flood:
+    """A rogue node on the channel: frames from a thread until stopped."""
+
+    def __init__(self, channel: str, frames: list[tuple[int, bytes]], duration_s: float) -> None:
+        import can
+
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.frames = frames
+        self.sent = 0
+        self.until = time.monotonic() + duration_s
+        self.thread = threading.Thread(target=self._run, name="rogue", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        import can
+
+        messages = [can.Message(arbitration_id=cob, data=data, is_extended_id=False, is_fd=True, bitrate_switch=True)
+                    for cob, data in self.frames]  # fmt: skip
+        while time.monotonic() < self.until:
+            for msg in messages:
+                self.bus.send(msg)
+                self.sent += 1
+            time.sleep(0.0002)
+
+    def close(self) -> None:
+        self.thread.join(timeout=10)
+        self.bus.shutdown()
+
+
+def flood(kind: str) -> Callable[[InProcessRig, np.random.Generator], Any]:
+    def inject(rig: InProcessRig, rng: np.random.Generator) -> Any:
+        from drivers.cia402 import frames as fr
+
+        if kind == "unknown":  # a node that is not ours (100), every service of it
+            node = 100
+            frames = [(fr.TPDO1_BASE + node, bytes(8)), (0x700 + node, b"\x05"), (0x080 + node, bytes(8)),
+                      (0x580 + node, bytes(8)), (0x7E4, bytes(rng.integers(0, 256, 8).tolist()))]  # fmt: skip
+        else:  # wrong lengths on the COB-IDs of our own drives: TPDO, heartbeat, EMCY
+            node = int(rng.integers(1, 7))
+            frames = [(fr.TPDO1_BASE + node, b"\x01\x02\x03"), (0x700 + node, b""), (0x700 + node, b"\x05\x00\x00"),
+                      (0x080 + node, b"\x00\x10")]  # fmt: skip
+        rogue = _Flood(rig.config.bus.transport.channel, frames, 0.3)
+        rig.cleanups.append(rogue.close)
+        return {"kind": kind, "node": node, "cob_ids": sorted({hex(c) for c, _ in frames})}
+
+    return inject
+
+
+def target_fault(fault: dict[str, Any]) -> Callable[[InProcessRig, np.random.Generator], Any]:
+    def inject(rig: InProcessRig, rng: np.random.Generator) -> Any:
+        from sim_target.config import parse_fault
+
+        data = dict(fault)
+        if data.get("node_id") == "random":
+            data["node_id"] = int(rng.integers(1, 7))
+        _server(rig).inject(parse_fault(data, "campaign"))
+        return data
+
+    return inject
+
+
+def close_bus_under_driver(rig: InProcessRig, rng: np.random.Generator) -> Any:
+    delay_s = float(rng.uniform(0.005, 0.05))
+
+    def close() -> None:
+        time.sleep(delay_s)
+        rig.can_bus.shutdown()
+
+    threading.Thread(target=close, daemon=True).start()
+    return {"after_s": round(delay_s, 4)}
+
+
+def kill_target_process(rig: InProcessRig, rng: np.random.Generator) -> Any:
+    process = rig.target.process
+    process.send_signal(signal.SIGKILL)
+    return {"pid": process.pid, "signal": "SIGKILL"}
+
+
+def starve_cpu(rig: InProcessRig, rng: np.random.Generator) -> Any:
+    """Busy processes, one more than the CPUs: the loop (clock pacing) must count its overruns."""
+    count = (os.cpu_count() or 2) + 1
+    busy = [subprocess.Popen([sys.executable, "-c", "import time\nend = time.monotonic() + 3.0\nwhile time.monotonic() < end: pass"])
+            for _ in range(count)]  # fmt: skip
+
+    def reap() -> None:
+        for process in busy:
+            with contextlib.suppress(Exception):
+                process.kill()
+                process.wait(5)
+
+    rig.cleanups.append(reap)
+    return {"busy_processes": count, "for_s": 3.0}
+
+
+def kill_subscriber(rig: InProcessRig, rng: np.random.Generator) -> Any:
+    """A second subscriber process on state, SIGKILLed while the loop publishes to it."""
+    code = ("import sys, time\nfrom hil_runtime.telemetry.subscriber import TelemetryClient\n"
+            f"c = TelemetryClient.open(connect=['tcp/127.0.0.1:{rig.telemetry_port}'], robot='ur5_paper', timeout_s=20)\n"
+            "n = [0]\nc.subscribe('state', lambda p: n.__setitem__(0, n[0] + 1))\n"
+            "print('subscribed', flush=True)\ntime.sleep(60)\n")  # fmt: skip
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert process.stdout is not None
+    ready = process.stdout.readline().strip() == "subscribed"
+    time.sleep(0.2)
+    process.kill()
+    process.wait(10)
+    return {"subscriber_ready": ready, "killed": "SIGKILL"}
+
+
+# --- start-up refusals (the daemon exits 2 with one line, drives never enabled) ----------------------
+
+
+def run_cli_in_process(argv: list[str]) -> tuple[int, str]:
+    """``hil`` in this process (signal handlers need the main thread); exit code and stderr."""
+    from hil_runtime.cli import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = main(argv)
+    return code, err.getvalue()
+
+
+def startup_case(name: str, repeat: int, seed: int, work: Path, prepare: Callable[[Path, dict[str, Any], Any], dict[str, Any]],
+                 expect_text: str) -> CaseResult:  # fmt: skip
+    """Write a runtime config (changed by ``prepare``), run ``hil run`` on it against a live target."""
+    import yaml
+
+    from sim_target.launch import launch_target
+
+    result = CaseResult(name, repeat, seed)
+    work.mkdir(parents=True, exist_ok=True)
+    with launch_target(rigs.target_config(), "virtual") as target:
+        data = rigs.runtime_config_dict(dict(target.transport), telemetry_port=None)
+        data = prepare(work, data, target)
+        path = work / "runtime.yaml"
+        path.write_text(yaml.safe_dump(data))
+        t0 = time.monotonic()
+        code, err = run_cli_in_process(["run", "--config", str(path)])
+        result.detected_s = round(time.monotonic() - t0, 3)
+        enabled = [s.value for s in target.server.drives.states()]
+        steps = target.server.stats.steps
+        arm = np.asarray(target.server.plant.state().position_rad)
+    lines = [line for line in err.splitlines() if line.strip()]
+    result.detail.update({"exit_code": code, "stderr": lines[-3:], "target_steps": steps})
+    result.action = f"refused at start-up: exit {code}, one line"
+    result.drives_final = enabled
+    result.daemon_alive = code == 2
+    result.daemon_note = "exit 2: unrecoverable start-up error (allowed)"
+    result.telemetry_event = None  # no session before start-up succeeds: the line and exit code say it
+    result.status_shows = None
+    result.max_torque_ratio = 0.0
+    result.arm_in_limits = bool(np.all(np.abs(arm) <= np.pi))
+    fails = result.failures
+    if code != 2:
+        fails.append(f"exit {code}, expected 2")
+    if len(lines) != 1 or "Traceback" in err:
+        fails.append(f"{len(lines)} lines on stderr, expected one")
+    if expect_text not in err:
+        fails.append(f"'{expect_text}' not in the message")
+    if any(s == "operation enabled" for s in enabled):
+        fails.append("a drive was enabled")
+    result.passed = not fails
+    return result
+
+
+def prepare_sdo_abort(work: Path, data: dict[str, Any], target: Any) -> dict[str, Any]:
+    # Drive 2 refuses its torque limit (0x6072) as a real drive refuses a value out of its range.
+    target.server.drives.abort_sdo_writes(2, 0x6072, 0x06090030)
+    return data
+
+
+def prepare_tampered(work: Path, data: dict[str, Any], target: Any) -> dict[str, Any]:
+    from sim_target.faults.crafted import tamper_bundle
+
+    tamper_bundle(rigs.PD_BUNDLE, work / "tampered")
+    data["bundle"]["path"] = str(work / "tampered")
+    return data
+
+
+def prepare_reference_out(work: Path, data: dict[str, Any], target: Any) -> dict[str, Any]:
+    # C1's shape with joint 2 asked to swing 4 rad: past its ±2.513 rad limit.
+    (work / "conditions.yaml").write_text(
+        "defaults: {duration_s: 5.0, shape: raised_sine, frequency_hz: 0.1, phase_s: 2.5, initial_state: reference}\n"
+        "conditions:\n  - name: WIDE\n    amplitude_rad: [-pi/4, 4.0, -pi/6, -pi/4, pi/2, pi/2]\n")
+    data["reference"] = {"kind": "condition", "condition": "WIDE", "conditions_file": str(work / "conditions.yaml")}
+    return data
+
+
+# --- the daemon as its own process ------------------------------------------------------------------------
+
+
+def _stderr_ok(lines: list[str]) -> bool:
+    return not any("Traceback" in line for line in lines)
+
+
+def sigterm_during_enable(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
+    """SIGTERM as the daemon activates (drives being enabled): quick stop, disable, exit 0."""
+    rng = np.random.default_rng(seed)
+    result = CaseResult(name, repeat, seed)
+    delay_s = float(rng.uniform(0.0, 0.03))
+    with rigs.daemon_rig(work, telemetry=False) as rig:
+        deadline = time.monotonic() + 90
+        while rig.configured_at is None and rig.process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.0005)
+        if rig.configured_at is None:
+            raise RigFault(f"the daemon did not configure: {rig.stderr_lines[-3:]}")
+        time.sleep(delay_s)
+        sent = time.monotonic()
+        rig.process.send_signal(signal.SIGTERM)
+        code = rig.wait_exit(30)
+        result.detected_s = round(time.monotonic() - sent, 3)
+        enabled = rigs.target_drives_enabled(rig.target)
+        notify_stopping = rig.notify.saw("STOPPING=1")
+        lines = list(rig.stderr_lines)
+        record_ok = (not rig.record.exists()) or _npz_ok(rig.record)
+        leftovers = [p.name for p in work.iterdir() if ".partial" in p.name]
+    states = [line.split("state ", 1)[1] for line in lines if "hil run: state " in line]
+    result.detail.update({"exit_code": code, "signal_after_configured_s": round(delay_s, 4), "states": states,
+                          "stderr_tail": lines[-2:], "record_complete": record_ok, "partial_files": leftovers})  # fmt: skip
+    reached = "ACTIVE" if "ACTIVE" in states else "before ACTIVE"
+    result.action = f"stop ({reached}): quick stop, disable, exit {code}"
+    result.drives_final = ["operation enabled" if x else "not enabled" for x in enabled]
+    result.daemon_alive = code == 0
+    result.daemon_note = f"exit {code} on SIGTERM (allowed)"
+    result.telemetry_event = None  # a requested stop, not a fault: STOPPING=1 reaches systemd
+    result.status_shows = notify_stopping
+    result.max_torque_ratio = _record_ratio(rig.record) if record_ok and rig.record.exists() else 0.0
+    result.nonfinite_commanded = False
+    result.arm_in_limits = True
+    fails = result.failures
+    if code != 0:
+        fails.append(f"exit {code}")
+    if not _stderr_ok(lines):
+        fails.append("a traceback on stderr")
+    if any(enabled):
+        fails.append("a drive is still enabled")
+    if not notify_stopping:
+        fails.append("no STOPPING=1")
+    if not record_ok or leftovers:
+        fails.append("a half-written file")
+    if (result.max_torque_ratio or 0) > 1 + 1e-9:
+        fails.append("torque over the limit")
+    result.passed = not fails
+    return result
+
+
+def _npz_ok(path: Path) -> bool:
+    try:
+        with np.load(path) as data:
+            return "tau" in data.files
+    except Exception:  # noqa: BLE001 - a half-written file is exactly what this detects
+        return False
+
+
+def _record_ratio(path: Path) -> float:
+    with np.load(path) as data:
+        tau = data["tau"]
+    return float(np.max(np.abs(tau) / np.asarray(rigs.MAX_TORQUE_NM))) if tau.size else 0.0
+
+
+def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
+    """The daemon's whole process stopped (SIGSTOP) for longer than the watchdog and the drives'
+    master-loss timeout: the watchdog pings stop (systemd would restart it), the drives quick-stop
+    on their own, and on SIGCONT the daemon finds them stopped: FAULT, alive."""
+    rng = np.random.default_rng(seed)
+    result = CaseResult(name, repeat, seed)
+    watchdog_usec = 200_000
+    comm_loss_s = 0.3
+    stall_s = comm_loss_s + 0.7 + float(rng.uniform(0.0, 0.3))
+    with rigs.daemon_rig(work, watchdog_usec=watchdog_usec, bus={"comm_loss_timeout_s": comm_loss_s}) as rig:
+        status = rig.wait_status(lambda s: s.get("state") == "ACTIVE" and s.get("cycles", 0) > 300, 120)
+        if status.get("state") != "ACTIVE":
+            raise RigFault(f"the daemon did not reach ACTIVE: {status} {rig.stderr_lines[-3:]}")
+        watch = rigs.TelemetryWatch(rig.telemetry_port)
+        try:
+            time.sleep(0.3)
+            stopped_at = time.monotonic()
+            rig.process.send_signal(signal.SIGSTOP)
+            time.sleep(stall_s)
+            during = rigs.target_drives_enabled(rig.target)
+            rig.process.send_signal(signal.SIGCONT)
+            resumed = time.monotonic()
+            after = rig.wait_status(lambda s: s.get("state") == "FAULT", 30)
+            time.sleep(0.5)
+            alive = rig.process.poll() is None
+            final = rigs.target_drives_enabled(rig.target)
+            event = watch.wait_event(("fault",), stopped_at, 3.0)
+        finally:
+            watch.close()
+        pings = rig.notify.watchdog_times()
+        gaps = np.diff([t for t in pings if stopped_at - 1.0 <= t <= resumed + 1.0])
+        max_gap = float(gaps.max()) if gaps.size else math.inf
+        rig.process.send_signal(signal.SIGTERM)
+        code = rig.wait_exit(30)
+        lines = list(rig.stderr_lines)
+        ratio = _record_ratio(rig.record) if _npz_ok(rig.record) else None
+    result.detected_s = round(max_gap, 3)
+    result.detail.update({"stall_s": round(stall_s, 3), "watchdog_usec": watchdog_usec, "max_ping_gap_s": round(max_gap, 3),
+                          "drives_enabled_during_stall": during, "status_after": {k: after.get(k) for k in ("state", "fault")},
+                          "exit_code": code, "stderr_tail": lines[-2:]})  # fmt: skip
+    kind = str(after.get("fault") or "").split(":")[0]
+    result.action = (f"watchdog silent {max_gap:.2f} s (> {watchdog_usec / 1e6:g} s: systemd restarts); drives "
+                     f"quick-stopped on their own; on resume FAULT {kind}")  # fmt: skip
+    result.drives_final = ["operation enabled" if x else "not enabled" for x in final]
+    result.daemon_alive = alive
+    result.daemon_note = "up in FAULT after SIGCONT; exit 0 on SIGTERM" if alive and code == 0 else f"exit {code}"
+    result.telemetry_event = event is not None
+    result.status_shows = after.get("state") == "FAULT"
+    result.max_torque_ratio = ratio
+    result.arm_in_limits = True
+    fails = result.failures
+    if not max_gap > watchdog_usec / 1e6:
+        fails.append(f"watchdog pings went on during the stall (max gap {max_gap:.3f} s)")
+    if any(during):
+        fails.append("drives stayed enabled during the stall")
+    if any(final):
+        fails.append("drives enabled after the stall")
+    if not result.status_shows:
+        fails.append(f"no FAULT after resume: {after}")
+    if not alive or code != 0 or not _stderr_ok(lines):
+        fails.append(f"daemon: alive {alive}, exit {code}")
+    if not result.telemetry_event:
+        fails.append("no telemetry event")
+    if ratio is None or ratio > 1 + 1e-9:
+        fails.append(f"record: {ratio}")
+    result.passed = not fails
+    return result

@@ -1,0 +1,471 @@
+"""The rig a fault case runs on: the pybullet target, the runtime, a telemetry subscriber, a bus tap.
+
+Two compositions (sim_target.launch has the target's side of both):
+
+- :class:`InProcessRig`: the target (lock-step, python-can ``virtual`` channel, or the ipc bus with
+  the target in its own process) and :class:`hil_runtime.runtime.Runtime` in this process, the
+  loop on its own thread as ``hil run`` runs it; telemetry on (Zenoh on 127.0.0.1, a free port) with
+  a subscriber collecting ``events`` and ``status``; on the virtual channel a tap receiving every
+  RPDO the driver sends (the torque actually put on the bus).
+- :class:`DaemonRig`: ``hil run`` as its own process against ``hil target serve`` on the ipc bus,
+  with a Unix datagram socket as ``$NOTIFY_SOCKET`` (sd_notify: READY, STATUS, WATCHDOG,
+  STOPPING) and the daemon's control socket.
+
+This module and its package are the one place in sim_target that imports hil_runtime: the
+campaign composes the runtime with the target; the target itself (server, drives, plant) never
+imports the runtime.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[2]
+PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
+JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
+MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
+Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
+PERIOD_S = 0.001
+TARGET_SUBSTEPS = 8  # docs/target.md: parity 1.7e-3 rad over 2 s; faults need no more
+# Driver timeouts of the campaign: tight enough that each protocol bound is what is measured
+# (heartbeat, feedback), loose enough that a loaded 2-core machine does not trip them on its own.
+FEEDBACK_TIMEOUT_S = 0.1
+HEARTBEAT_PRODUCER_MS = 50
+HEARTBEAT_TIMEOUT_S = 0.5
+COMM_LOSS_TIMEOUT_S = 1.0
+STATS_INTERVAL_S = 0.1
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def runtime_config_dict(transport: dict[str, Any], bundle: Path = PD_BUNDLE, telemetry_port: int | None = None,
+                        bus: dict[str, Any] | None = None, loop: dict[str, Any] | None = None,
+                        **sections: Any) -> dict[str, Any]:  # fmt: skip
+    """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing."""
+    data: dict[str, Any] = {
+        "robot": "ur5_paper",
+        "bundle": {"path": str(bundle), "mode": "lmpc"},
+        "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": PERIOD_S,
+                "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
+                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))],
+                "feedback_timeout_s": FEEDBACK_TIMEOUT_S, "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
+                "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S, "sdo_timeout_s": 2.0, "state_change_timeout_s": 5.0,
+                "comm_loss_timeout_s": COMM_LOSS_TIMEOUT_S, **(bus or {})},
+        "reference": {"kind": "hold"},
+        "loop": {"pacing": "bus", "stats_interval_s": STATS_INTERVAL_S, "warmup_cycles": 50, **(loop or {})},
+        **sections,
+    }  # fmt: skip
+    if telemetry_port is not None:
+        data["telemetry"] = {"enabled": True, "listen": [f"tcp/127.0.0.1:{telemetry_port}"],
+                             "stats_period_s": STATS_INTERVAL_S, "close_timeout_s": 0.5}  # fmt: skip
+    return data
+
+
+def target_config(q0_rad: tuple[float, ...] = Q0_RAD, **extra: Any) -> dict[str, Any]:
+    from sim_target.launch import target_config_dict
+
+    return target_config_dict("ur5_paper", PERIOD_S, TARGET_SUBSTEPS,
+                              plant={"substeps": TARGET_SUBSTEPS, "initial_position_rad": list(q0_rad)}, **extra)  # fmt: skip
+
+
+# --- telemetry, as a subscriber sees it -----------------------------------------------------------
+
+
+class TelemetryWatch:
+    """A subscriber on the runtime's ``events``, ``status`` and ``state`` (counts only)."""
+
+    def __init__(self, port: int, robot: str = "ur5_paper") -> None:
+        from hil_runtime.telemetry.subscriber import TelemetryClient
+
+        self.client = TelemetryClient.open(connect=[f"tcp/127.0.0.1:{port}"], robot=robot, timeout_s=10.0)
+        self.schema = self.client.schema()
+        self.events: list[dict[str, Any]] = []
+        self.statuses: list[dict[str, Any]] = []
+        self.states = 0
+        self._lock = threading.Lock()
+        self.client.subscribe("events", self._on_event)
+        self.client.subscribe("status", self._on_status)
+        self.client.subscribe("state", self._on_state)
+
+    def _on_event(self, payload: bytes) -> None:
+        _, body = self.schema.decode_event(payload)
+        with self._lock:
+            self.events.append({**body, "t": time.monotonic()})
+
+    def _on_status(self, payload: bytes) -> None:
+        _, body = self.schema.decode_status(payload)
+        with self._lock:
+            self.statuses.append(body)
+
+    def _on_state(self, _payload: bytes) -> None:
+        self.states += 1
+
+    def find_event(self, kinds: tuple[str, ...], since_s: float, text: str = "") -> dict[str, Any] | None:
+        with self._lock:
+            for event in self.events:
+                if event["t"] >= since_s and event.get("kind") in kinds and text in str(event.get("detail", "")):
+                    return event
+        return None
+
+    def wait_event(self, kinds: tuple[str, ...], since_s: float, timeout_s: float, text: str = "") -> dict[str, Any] | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            found = self.find_event(kinds, since_s, text)
+            if found is not None or time.monotonic() >= deadline:
+                return found
+            time.sleep(0.02)
+
+    def saw_status(self, state: str) -> bool:
+        with self._lock:
+            return any(s.get("state") == state for s in self.statuses)
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.client.close()
+
+
+# --- the torque on the bus ---------------------------------------------------------------------------
+
+
+class RpdoTap:
+    """Every RPDO on a python-can virtual channel: the largest |torque| / limit after a mark."""
+
+    def __init__(self, channel: str, permille_per_nm: np.ndarray, limit_nm: np.ndarray) -> None:
+        import can
+
+        self._bus = can.Bus(interface="virtual", channel=channel)
+        self._permille_per_nm = permille_per_nm
+        self._limit = limit_nm
+        self.mark_s = float("inf")
+        self.frames_after = 0
+        self.max_ratio_after = 0.0
+        self.max_nm_after = np.zeros(len(limit_nm))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rpdo-tap", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from drivers.cia402 import frames as fr
+
+        n = len(self._limit)
+        while not self._stop.is_set():
+            try:
+                msg = self._bus.recv(0.05)
+            except Exception:  # noqa: BLE001 - the channel closed under us: nothing more to see
+                return
+            if msg is None:
+                continue
+            node = msg.arbitration_id - fr.RPDO1_BASE
+            if not 1 <= node <= n:
+                continue
+            if time.monotonic() < self.mark_s:
+                continue
+            try:
+                permille = fr.decode_rpdo(bytes(msg.data)).target_torque_permille
+            except Exception:  # noqa: BLE001 - a wrong-length frame of a fault case
+                continue
+            torque = abs(permille / self._permille_per_nm[node - 1])
+            self.frames_after += 1
+            self.max_nm_after[node - 1] = max(self.max_nm_after[node - 1], torque)
+            self.max_ratio_after = max(self.max_ratio_after, torque / self._limit[node - 1])
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        with contextlib.suppress(Exception):
+            self._bus.shutdown()
+
+
+# --- in process -----------------------------------------------------------------------------------
+
+
+@dataclass
+class LoopThread:
+    """The runtime's loop on its own thread, as ``hil run`` runs it (``daemon.serve``)."""
+
+    runtime: Any
+    thread: threading.Thread | None = None
+    result: Any = None
+    error: BaseException | None = None
+
+    def start(self, max_cycles: int | None) -> None:
+        def body() -> None:
+            try:
+                self.result = self.runtime.run(max_cycles=max_cycles)
+            except BaseException as exc:  # noqa: BLE001 - reported as "daemon crashed"
+                self.error = exc
+
+        self.thread = threading.Thread(target=body, name="hil-loop", daemon=True)
+        self.thread.start()
+
+    @property
+    def alive(self) -> bool:
+        return self.thread is not None and self.thread.is_alive()
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        self.runtime.request_stop()
+        if self.thread is not None:
+            self.thread.join(timeout_s)
+
+
+class InProcessRig:
+    """Target + runtime + telemetry watch (+ RPDO tap on a virtual channel), one case's life."""
+
+    def __init__(self, target: Any, config: Any, *, telemetry_port: int | None, record_cycles: int = 20_000,
+                 tap: bool = True, bundle: Any = None) -> None:  # fmt: skip
+        from drivers.drive_bus import DriveBus
+        from drivers.transport import open_bus
+        from hil_runtime.daemon import make_telemetry
+        from hil_runtime.runtime import Runtime
+
+        self.target = target
+        self.config = config
+        # The campaign opens the python-can bus itself, so that a case can close it under the driver.
+        self.can_bus = open_bus(config.bus.transport)
+        self.drive_bus = DriveBus(config.bus, bus=self.can_bus)
+        self.runtime = Runtime(config, self.drive_bus, record_cycles=record_cycles, bundle=bundle)
+        if telemetry_port is not None:
+            self.runtime.telemetry = make_telemetry(config, self.runtime)
+        self.telemetry_port = telemetry_port
+        self.watch: TelemetryWatch | None = None
+        self.tap: RpdoTap | None = None
+        if tap and config.bus.transport.interface == "virtual":
+            per_nm = np.array([node.permille_per_nm for node in self.drive_bus.nodes])
+            self.tap = RpdoTap(config.bus.transport.channel, per_nm, self.runtime.limits.torque_limit_nm)
+        self.loop = LoopThread(self.runtime)
+        self.cleanups: list[Callable[[], None]] = []  # a case's own helpers (rogue senders, busy processes)
+
+    def start(self, watch: bool = True) -> None:
+        """configure (bus up, telemetry up), the subscriber, activate."""
+        self.runtime.configure()
+        if watch and self.telemetry_port is not None:
+            self.watch = TelemetryWatch(self.telemetry_port)
+
+    def close(self) -> None:
+        for cleanup in self.cleanups:
+            with contextlib.suppress(Exception):
+                cleanup()
+        with contextlib.suppress(Exception):
+            if self.loop.alive:
+                self.loop.stop()
+        with contextlib.suppress(Exception):
+            self.runtime.shutdown()
+        if self.watch is not None:
+            self.watch.close()
+        if self.tap is not None:
+            self.tap.close()
+        with contextlib.suppress(Exception):
+            self.can_bus.shutdown()
+
+    # what the target says about its drives and the arm
+    def drive_states(self) -> list[str] | str:
+        server = getattr(self.target, "server", None)
+        if server is not None:
+            return [state.value for state in server.drives.states()]
+        try:
+            status = self.target.status()
+        except Exception:  # noqa: BLE001 - the target process is gone (a case killed it)
+            return "target process gone"
+        return ["operation enabled" if on else "not enabled" for on in status["operation_enabled"]]
+
+    def arm_position(self) -> np.ndarray | None:
+        server = getattr(self.target, "server", None)
+        if server is not None:
+            return np.asarray(server.plant.state().position_rad, float)
+        try:
+            return np.asarray(self.target.status()["position_rad"], float)
+        except Exception:  # noqa: BLE001 - the target process is gone
+            return None
+
+    def position_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        limits = self.runtime.limits
+        return limits.position_lower_rad, limits.position_upper_rad
+
+
+@contextlib.contextmanager
+def in_process_rig(transport: str = "virtual", *, telemetry: bool = True, q0_rad: tuple[float, ...] = Q0_RAD,
+                   bundle_path: Path = PD_BUNDLE, config_extra: dict[str, Any] | None = None,
+                   target_extra: dict[str, Any] | None = None, tap: bool = True) -> Iterator[InProcessRig]:  # fmt: skip
+    from hil_runtime.config import parse_runtime_config
+    from sim_target.launch import launch_target
+
+    with launch_target(target_config(q0_rad, **(target_extra or {})), transport) as target:  # type: ignore[arg-type]
+        port = free_port() if telemetry else None
+        data = runtime_config_dict(dict(target.transport), bundle_path, port, **(config_extra or {}))
+        config = parse_runtime_config(data, "fault-campaign")
+        rig = InProcessRig(target, config, telemetry_port=port, tap=tap)
+        try:
+            yield rig
+        finally:
+            rig.close()
+
+
+# --- hil run as its own process ---------------------------------------------------------------------
+
+
+class NotifyListener:
+    """A Unix datagram socket standing in for systemd's ``$NOTIFY_SOCKET``; messages timestamped."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.1)
+        self.messages: list[tuple[float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="notify", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.messages.append((time.monotonic(), data.decode(errors="replace")))
+
+    def watchdog_times(self) -> list[float]:
+        return [t for t, text in list(self.messages) if "WATCHDOG=1" in text.split("\n")]
+
+    def saw(self, item: str) -> bool:
+        return any(item in text.split("\n") for _, text in list(self.messages))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.sock.close()
+
+
+@dataclass
+class DaemonRig:
+    process: subprocess.Popen[str]
+    control_socket: Path
+    record: Path
+    notify: NotifyListener
+    telemetry_port: int
+    target: Any
+    stderr_lines: list[str] = field(default_factory=list)
+    _reader: threading.Thread | None = None
+    configured_at: float | None = None
+
+    def start_reader(self) -> None:
+        def read() -> None:
+            assert self.process.stderr is not None
+            for line in self.process.stderr:
+                self.stderr_lines.append(line.rstrip("\n"))
+                if self.configured_at is None and "hil run: configured" in line:
+                    self.configured_at = time.monotonic()
+
+        self._reader = threading.Thread(target=read, name="daemon-stderr", daemon=True)
+        self._reader.start()
+
+    def status(self) -> dict[str, Any]:
+        from hil_runtime.control import send_command
+
+        return send_command(self.control_socket, "status")
+
+    def wait_status(self, predicate: Any, timeout_s: float) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        last: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                return {"exited": self.process.returncode, **last}
+            with contextlib.suppress(Exception):
+                last = self.status()
+                if predicate(last):
+                    return last
+            time.sleep(0.02)
+        return {"timeout": True, **last}
+
+    def wait_exit(self, timeout_s: float = 30.0) -> int:
+        try:
+            code = self.process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            code = self.process.wait()
+        if self._reader is not None:
+            self._reader.join(timeout=5)
+        return code
+
+
+@contextlib.contextmanager
+def daemon_rig(work: Path, *, watchdog_usec: int = 200_000, bus: dict[str, Any] | None = None,
+               telemetry: bool = True) -> Iterator[DaemonRig]:  # fmt: skip
+    """``hil target serve`` (ipc bus) and ``hil run`` as two processes, sd_notify to a socket of ours."""
+    from sim_target.launch import launch_target
+
+    work.mkdir(parents=True, exist_ok=True)
+    with launch_target(target_config(), "ipc", work_dir=work / "t") as target:
+        port = free_port()
+        sock = work / "runtime.sock"
+        data = runtime_config_dict(dict(target.transport), PD_BUNDLE, port if telemetry else None, bus=bus,
+                                   control_socket=str(sock))  # fmt: skip
+        config_path = work / "runtime.yaml"
+        config_path.write_text(yaml.safe_dump(data))
+        notify = NotifyListener(work / "notify.sock")
+        record = work / "run.npz"
+        env = {**os.environ, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": str(watchdog_usec),
+               "PYTHONUNBUFFERED": "1"}  # fmt: skip
+        env.pop("WATCHDOG_PID", None)
+        process = subprocess.Popen(
+            [sys.executable, "-m", "hil_runtime.cli", "run", "--config", str(config_path), "--record", str(record),
+             "--record-cycles", "20000"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+        )  # fmt: skip
+        rig = DaemonRig(process, sock, record, notify, port, target)
+        rig.start_reader()
+        try:
+            yield rig
+        finally:
+            if process.poll() is None:
+                process.send_signal(signal.SIGCONT)
+                process.send_signal(signal.SIGTERM)
+                rig.wait_exit(30)
+            notify.close()
+
+
+def target_drives_enabled(target: Any) -> list[bool]:
+    status = target.status()
+    return [bool(x) for x in status["operation_enabled"]]
+
+
+def json_safe(value: Any) -> Any:
+    """numpy scalars and arrays to plain JSON values; non-finite floats as strings."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, (np.bool_,)):
+        return bool(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if np.isfinite(value) else str(value)
+    return value
+
+
+__all__ = ["DaemonRig", "InProcessRig", "LoopThread", "NotifyListener", "RpdoTap", "TelemetryWatch", "daemon_rig",
+           "free_port", "in_process_rig", "json_safe", "runtime_config_dict", "target_config"]
