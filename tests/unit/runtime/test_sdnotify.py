@@ -170,4 +170,4 @@ def test_fault_reason_goes_to_status_and_the_idle_thread_keeps_pinging(listener:
     statuses = [f["STATUS"] for _, f in lst.with_key("STATUS")]
     assert any(s.startswith("FAULT: policy_nonfinite") for s in statuses), statuses
     fault_t = next(t for t, f in lst.with_key("STATUS") if f["STATUS"].startswith("FAULT"))
-    assert sum(1 for t, _ in lst.with_key("WATCHDOG") if t > fault_t) >= 5  # alive, waiting for a reset
+    assert sum(1 for t, _ in lst.with_key("WATCHDOG") if t > fault_t) >= 3  # alive, waiting for a reset
