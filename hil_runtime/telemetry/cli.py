@@ -110,21 +110,24 @@ def record(
 ) -> None:
     """Record the state stream for N seconds into an npz (columns per field, the schema embedded)."""
     from hil_runtime.outputs import OutputError, prepare_output_dir
-    from hil_runtime.telemetry.subscriber import TelemetryUnavailable, missing_samples, record_state, save_record
+    from hil_runtime.telemetry.subscriber import TelemetryUnavailable, missing_samples, save_record, start_recording
 
     if out.suffix != ".npz":
         raise OutputError(f"--out {out}: the record is an .npz file")
     prepare_output_dir(out.parent if str(out.parent) else Path("."), option="--out")
     with _client(robot, connect, timeout, zenoh_config) as client:
+        started_s = time.monotonic()
+        recording = start_recording(client)  # before the queries: nothing is missed meanwhile
         schema = client.schema()
-        extra = {}
+        recording.schema = schema
+        extra: dict[str, Any] = {}
         for name in ("config", "bundle"):
             try:
                 extra[name] = client.query_json(name)
             except TelemetryUnavailable:
                 extra[name] = None
         print(f"recording hil/{client.robot}/state for {seconds:g} s ...", file=sys.stderr, flush=True)
-        recording = record_state(client, schema, seconds)
+        time.sleep(max(0.0, started_s + seconds - time.monotonic()))
     arrays = recording.arrays()
     if len(arrays["seq"]) == 0:
         raise TelemetryUnavailable(

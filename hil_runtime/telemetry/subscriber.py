@@ -55,8 +55,12 @@ class TelemetryClient:
     ) -> TelemetryClient:
         import zenoh
 
+        conf = zenoh_config("peer", [], list(connect), config_file)
+        # Zenoh retries a refused connect after 1 s, then 2, 4 s: a subscriber started just before
+        # the runtime would miss its first seconds. Retry every 100-500 ms instead.
+        conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 1.5}')
         try:
-            session = zenoh.open(zenoh_config("peer", [], list(connect), config_file))
+            session = zenoh.open(conf)
         except zenoh.ZError as exc:
             raise TelemetryUnavailable(f"cannot open a Zenoh session to {', '.join(connect)}: {str(exc).splitlines()[0]}") from None
         try:
@@ -161,24 +165,52 @@ def _single_robot(session: Any, connect: Sequence[str], timeout_s: float) -> str
 
 @dataclass
 class StateRecording:
-    """Raw state payloads received, decoded once at the end (the callback only appends)."""
+    """Raw payloads received, decoded once at the end against ``schema`` (the callbacks only
+    append, and can start before the schema is known, so nothing is missed while it is queried)."""
 
-    schema: Schema
+    schema: Schema | None = None
     payloads: list[bytes] = field(default_factory=list)
-    status: list[dict[str, Any]] = field(default_factory=list)
-    events: list[dict[str, Any]] = field(default_factory=list)
+    status_payloads: list[bytes] = field(default_factory=list)
+    event_payloads: list[bytes] = field(default_factory=list)
     refused: int = 0
     first_refusal: str = ""
 
+    def _schema(self) -> Schema:
+        if self.schema is None:
+            raise TelemetryUnavailable("the recording has no schema to decode against")
+        return self.schema
+
+    def _json(self, payloads: list[bytes], decode: Callable[[bytes], tuple[Any, dict[str, Any]]]) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        for payload in list(payloads):
+            try:
+                header, body = decode(payload)
+            except TelemetryDecodeError as exc:
+                self.refused += 1
+                self.first_refusal = self.first_refusal or str(exc)
+                continue
+            if not header.warmup:
+                out.append({"seq": header.seq, "t_ns": header.t_ns, **body})
+        return out
+
+    @property
+    def status(self) -> list[dict[str, Any]]:
+        return self._json(self.status_payloads, self._schema().decode_status)
+
+    @property
+    def events(self) -> list[dict[str, Any]]:
+        return self._json(self.event_payloads, self._schema().decode_event)
+
     def arrays(self) -> dict[str, np.ndarray]:
         """Columns per field (q: (M, N), fallback: (M,), ...), seq, t_ns, flags, t_s from the first sample."""
+        schema = self._schema()
         rows: list[np.ndarray] = []
         seq: list[int] = []
         t_ns: list[int] = []
         flags: list[int] = []
-        for payload in self.payloads:
+        for payload in list(self.payloads):
             try:
-                header, body = self.schema.decode_state_row(payload)
+                header, body = schema.decode_state_row(payload)
             except TelemetryDecodeError as exc:
                 self.refused += 1
                 self.first_refusal = self.first_refusal or str(exc)
@@ -189,7 +221,7 @@ class StateRecording:
             seq.append(header.seq)
             t_ns.append(header.t_ns)
             flags.append(header.flags)
-        width = (self.schema.state_size - HEADER_SIZE) // 8
+        width = (schema.state_size - HEADER_SIZE) // 8
         body_rows = np.vstack(rows) if rows else np.zeros((0, width))
         out: dict[str, np.ndarray] = {
             "seq": np.asarray(seq, dtype=np.uint64),
@@ -197,33 +229,27 @@ class StateRecording:
             "flags": np.asarray(flags, dtype=np.uint8),
         }
         out["t_s"] = (out["t_ns"] - out["t_ns"][0]) * 1e-9 if len(t_ns) else np.zeros(0)
-        for name, start, count in self.schema.body_columns():
+        for name, start, count in schema.body_columns():
             column = body_rows[:, start : start + count]
             out[name] = column[:, 0].copy() if name in ("fallback", "compute_s") else column.copy()
         return out
 
 
+def start_recording(client: TelemetryClient) -> StateRecording:
+    """Subscribe to state, status and events now; set ``schema`` before decoding."""
+    recording = StateRecording()
+    # list.append is atomic under the GIL: no lock on Zenoh's receive thread.
+    client.subscribe("state", recording.payloads.append)
+    client.subscribe("status", recording.status_payloads.append)
+    client.subscribe("events", recording.event_payloads.append)
+    return recording
+
+
 def record_state(client: TelemetryClient, schema: Schema, seconds: float, stop: threading.Event | None = None) -> StateRecording:
     """Collect ``hil/<robot>/state`` (and status, events) for ``seconds`` of wall time."""
-    recording = StateRecording(schema)
-    payloads = recording.payloads  # list.append is atomic under the GIL: no lock on the hot path
-
-    def on_json(target: list[dict[str, Any]], decode: Callable[[bytes], tuple[Any, dict[str, Any]]]) -> Callable[[bytes], None]:
-        def handle(payload: bytes) -> None:
-            try:
-                header, body = decode(payload)
-            except TelemetryDecodeError:
-                return
-            if not header.warmup:
-                target.append({"seq": header.seq, "t_ns": header.t_ns, **body})
-
-        return handle
-
-    client.subscribe("state", payloads.append)
-    client.subscribe("status", on_json(recording.status, schema.decode_status))
-    client.subscribe("events", on_json(recording.events, schema.decode_event))
-    waiter = stop or threading.Event()
-    waiter.wait(seconds)
+    recording = start_recording(client)
+    recording.schema = schema
+    (stop or threading.Event()).wait(seconds)
     return recording
 
 
@@ -233,10 +259,11 @@ def save_record(recording: StateRecording, path: Path, extra: dict[str, Any] | N
     from hil_runtime.outputs import atomic_path
 
     arrays = recording.arrays()
+    schema = recording._schema()
     documents = {
-        "joints": np.asarray(recording.schema.joints),
-        "robot": np.asarray(recording.schema.robot),
-        "schema": np.asarray(json.dumps(recording.schema.document)),
+        "joints": np.asarray(schema.joints),
+        "robot": np.asarray(schema.robot),
+        "schema": np.asarray(json.dumps(schema.document)),
         "status": np.asarray("\n".join(json.dumps(item) for item in recording.status)),
         "events": np.asarray("\n".join(json.dumps(item) for item in recording.events)),
     }
