@@ -1,10 +1,10 @@
 """Bus-load budget: how much of the bus one control cycle of N drives takes.
 
 Per cycle the master sends one SYNC and one RPDO per drive, and every drive answers with its
-TPDO(s): classical CAN needs two TPDOs (8 + 4 bytes), CAN FD carries all 12 bytes and the SYNC counter echo in one 16-byte frame.
-Heartbeats add N one-byte frames per heartbeat period (and the master's own, one frame per its
-period). Frame lengths are worst case: every
-stuffable bit sequence stuffed (one stuff bit per four bits), 11-bit identifiers, 3-bit
+TPDO(s): classical CAN needs two TPDOs (8 + 4 bytes), CAN FD carries all 12 bytes and the SYNC
+counter echo in one 16-byte frame. Heartbeats add N one-byte frames per heartbeat period (and the
+master's own, one frame per its period). Frame lengths are worst case: every stuffable bit
+sequence stuffed (one stuff bit per four bits), 11-bit identifiers, 3-bit
 interframe space.
 
 Classical base frame with n data bytes (Davis et al., 2007):

@@ -63,7 +63,7 @@ def _check_counters(bus: JointBus, where: str) -> dict[str, int]:
     counters = bus.counters
     _require(dataclasses.is_dataclass(counters) and not isinstance(counters, type),
              f"{where}: counters is not a dataclass instance")
-    values = dataclasses.asdict(counters)  # type: ignore[call-overload]  # checked just above
+    values: dict[str, int] = dataclasses.asdict(counters)  # type: ignore[call-overload]  # checked just above
     _require(all(isinstance(v, int) and v >= 0 for v in values.values()),
              f"{where}: counters are not all non-negative integers: {values}")
     try:

@@ -104,7 +104,7 @@ class CyclicExchange:
         encode = fr.encode_rpdo_into
         with network.rx_lock:
             network.drain()  # queued before this SYNC: an older cycle's TPDOs are late, not fresh
-            for node, controlword, torque in zip(nodes, controlwords, permille):
+            for node, controlword, torque in zip(nodes, controlwords, permille, strict=True):
                 encode(node.rpdo.data, controlword, torque)
             self.cycle += 1
             cycle = self.cycle
@@ -136,7 +136,12 @@ class CyclicExchange:
             now = monotonic()
             # One pass over the drives: freshness, miss count, state, and the feedback values.
             fd = self.fd
-            fresh, position, velocity, torque, rx_time, states = [], [], [], [], [], []
+            fresh: list[bool] = []
+            position: list[int] = []
+            velocity: list[int] = []
+            torque_pm: list[int] = []
+            rx_time: list[float] = []
+            states: list[State] = []
             missing = 0
             for node in nodes:
                 got1 = node.tpdo1_cycle == cycle
@@ -150,7 +155,7 @@ class CyclicExchange:
                 fresh.append(is_fresh)
                 position.append(node.position_counts)
                 velocity.append(node.velocity_counts_s)
-                torque.append(node.torque_permille)
+                torque_pm.append(node.torque_permille)
                 rx_time.append(node.rx_time_s)
                 states.append(node.state)
             self.dropped += missing
@@ -163,7 +168,7 @@ class CyclicExchange:
             sync_time_s=sync_time,
             position_rad=np.array(position, dtype=np.float64) / counts_per_rad,
             velocity_rad_s=np.array(velocity, dtype=np.float64) / counts_per_rad,
-            torque_nm=np.array(torque, dtype=np.float64) / self._permille_per_nm,
+            torque_nm=np.array(torque_pm, dtype=np.float64) / self._permille_per_nm,
             commanded_torque_nm=np.array(commanded_nm, dtype=np.float64),
             fresh=np.array(fresh, dtype=bool),
             rx_time_s=np.array(rx_time, dtype=np.float64),
@@ -217,5 +222,5 @@ class CyclicExchange:
             node.statusword = statusword
             node.torque_permille = torque
             node.position_counts = position
-            node.velocity_counts_s = velocity
+            node.velocity_counts_s = velocity if velocity is not None else 0  # always set in this layout
             node.rx_time_s = now

@@ -63,7 +63,7 @@ def check_cycle(nodes: Sequence[DriveNode], feedback: DriveFeedback, max_missed_
     timed_out = tuple(node.node_id for node in nodes if node.missed_cycles > max_missed_cycles)
     if timed_out:
         raise FeedbackTimeoutError(timed_out, max_missed_cycles + 1)
-    for node, fresh, state in zip(nodes, feedback.fresh, feedback.states):
+    for node, fresh, state in zip(nodes, feedback.fresh, feedback.states, strict=True):
         if not fresh or state is State.OPERATION_ENABLED:
             continue
         if state in p402.FAULT_STATES:
@@ -82,5 +82,5 @@ def fail_safe(cycle: p402.Cycle, nodes: Sequence[DriveNode]) -> None:
             log.warning("quick stop after an error failed: %s", exc)
             return
         if all(not fresh or s in p402.QUICK_STOP_STATES or s in p402.FAULT_STATES
-               for fresh, s in zip(feedback.fresh, feedback.states)):
+               for fresh, s in zip(feedback.fresh, feedback.states, strict=True)):
             return

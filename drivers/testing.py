@@ -222,7 +222,8 @@ class FakeJointBus:
         if torque.shape != (self._n,):
             raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self._n},)")
         if not np.isfinite(torque).all():
-            raise DriveCommandError(f"non-finite torque set-point for joint(s) {np.flatnonzero(~np.isfinite(torque)).tolist()}")
+            bad = np.flatnonzero(~np.isfinite(torque)).tolist()
+            raise DriveCommandError(f"non-finite torque set-point for joint(s) {bad}")
         return np.clip(torque, -self.max_torque_nm, self.max_torque_nm)
 
     def _step(self, commanded: np.ndarray) -> DriveFeedback:

@@ -90,7 +90,7 @@ def encode_nmt(command: NmtCommand, node_id: int) -> bytes:
     return bytes((int(command), node_id))
 
 
-def decode_nmt(data: bytes) -> tuple[NmtCommand, int]:
+def decode_nmt(data: bytes | bytearray) -> tuple[NmtCommand, int]:
     if len(data) != 2:
         raise MalformedFrameError(f"NMT frame has {len(data)} bytes, expected 2")
     if data[0] not in _NMT_COMMAND_VALUES:
@@ -112,7 +112,7 @@ def encode_sync(counter: int | None = None) -> bytes:
     return bytes((counter,))
 
 
-def decode_sync(data: bytes) -> int | None:
+def decode_sync(data: bytes | bytearray) -> int | None:
     if len(data) == 0:
         return None
     if len(data) == 1 and 1 <= data[0] <= 240:
@@ -127,7 +127,7 @@ def encode_heartbeat(state: NmtState) -> bytes:
     return bytes((int(state),))
 
 
-def decode_heartbeat(data: bytes) -> NmtState:
+def decode_heartbeat(data: bytes | bytearray) -> NmtState:
     if len(data) != 1:
         raise MalformedFrameError(f"heartbeat has {len(data)} bytes, expected 1")
     value = data[0] & 0x7F  # bit 7 is the node-guarding toggle bit
@@ -182,7 +182,7 @@ def encode_emcy(error_code: int, error_register: int, manufacturer: bytes = b"")
     return _EMCY.pack(error_code, error_register, manufacturer.ljust(5, b"\0"))
 
 
-def decode_emcy(data: bytes) -> Emcy:
+def decode_emcy(data: bytes | bytearray) -> Emcy:
     if len(data) != 8:
         raise MalformedFrameError(f"EMCY has {len(data)} bytes, expected 8")
     code, register, manufacturer = _EMCY.unpack(data)
@@ -244,7 +244,7 @@ def encode_rpdo_into(buffer: bytearray, controlword: int, target_torque_permille
         raise ValueError(f"RPDO field out of range: {exc}") from None
 
 
-def decode_rpdo(data: bytes) -> RpdoData:
+def decode_rpdo(data: bytes | bytearray) -> RpdoData:
     if len(data) != RPDO_LENGTH:
         raise MalformedFrameError(f"RPDO1 has {len(data)} bytes, expected {RPDO_LENGTH}")
     return _new_tuple(RpdoData, _unpack_rpdo(data))
@@ -273,13 +273,13 @@ def encode_tpdo_fd(
         raise ValueError(f"FD TPDO field out of range: {exc}") from None
 
 
-def decode_tpdo1(data: bytes) -> TpdoData:
+def decode_tpdo1(data: bytes | bytearray) -> TpdoData:
     if len(data) != TPDO1_LENGTH:
         raise MalformedFrameError(f"TPDO1 has {len(data)} bytes, expected {TPDO1_LENGTH}")
     return _new_tuple(TpdoData, (*_unpack_tpdo1(data), None))
 
 
-def decode_tpdo2(data: bytes) -> int:
+def decode_tpdo2(data: bytes | bytearray) -> int:
     if len(data) != TPDO2_LENGTH:
         raise MalformedFrameError(f"TPDO2 has {len(data)} bytes, expected {TPDO2_LENGTH}")
     return int(_unpack_tpdo2(data)[0])
@@ -307,7 +307,7 @@ def encode_tpdo_fd_sync_into(
         raise ValueError(f"tagged FD TPDO field out of range: {exc}") from None
 
 
-def decode_tpdo_fd_sync(data: bytes) -> tuple[TpdoData, int]:
+def decode_tpdo_fd_sync(data: bytes | bytearray) -> tuple[TpdoData, int]:
     """(feedback, SYNC counter echoed) of a tagged 16-byte FD TPDO."""
     if len(data) != TPDO_FD_SYNC_LENGTH:
         raise MalformedFrameError(f"tagged FD TPDO has {len(data)} bytes, expected {TPDO_FD_SYNC_LENGTH}")
@@ -320,7 +320,7 @@ def next_sync_counter(counter: int) -> int:
     return 1 if counter >= 240 else counter + 1
 
 
-def decode_tpdo_fd(data: bytes) -> TpdoData:
+def decode_tpdo_fd(data: bytes | bytearray) -> TpdoData:
     # A CAN FD frame is padded to the next valid length (12 is one), so accept exactly 12.
     if len(data) != TPDO_FD_LENGTH:
         raise MalformedFrameError(f"FD TPDO has {len(data)} bytes, expected {TPDO_FD_LENGTH}")

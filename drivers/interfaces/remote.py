@@ -44,7 +44,7 @@ def _remote_bus_class() -> type[can.BusABC]:
     from can_remote.protocol import RemoteError
     from can_remote.websocket import WebsocketClosed
 
-    class BatchingRemoteBus(RemoteBus):  # type: ignore[misc, valid-type]  # untyped package
+    class BatchingRemoteBus(RemoteBus):  # type: ignore[misc]  # untyped package
         """python-can-remote's client with ``send_batch``, a typed peer-closed error and a
         shutdown that cannot raise."""
 
@@ -65,7 +65,8 @@ def _remote_bus_class() -> type[can.BusABC]:
         def recv(self, timeout: float | None = None) -> can.Message | None:
             self._check_peer()
             try:
-                return super().recv(timeout)
+                msg: can.Message | None = super().recv(timeout)
+                return msg
             except (WebsocketClosed, OSError, ValueError) as exc:  # ValueError: select on a closed fd
                 raise self._closed(exc) from exc
 
@@ -168,7 +169,7 @@ def start_bridge_server(host: str = "127.0.0.1", port: int = 0, channel: str = "
     except ImportError as exc:
         raise TransportError("python-can-remote is not installed (pip install python-can-remote)") from exc
 
-    class _Server(RemoteServer):  # type: ignore[misc, valid-type]  # untyped package
+    class _Server(RemoteServer):  # type: ignore[misc]  # untyped package
         address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
 
     try:

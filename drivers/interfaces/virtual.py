@@ -22,7 +22,7 @@ from drivers.config import TransportConfig
 PYTHON_CAN_VERSION = "4.6"
 
 
-class FastVirtualBus(VirtualBus):  # type: ignore[misc]  # python-can ships no type for VirtualBus' base
+class FastVirtualBus(VirtualBus):
     """python-can's ``virtual`` bus whose send copies each frame with one ``can.Message`` call."""
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
