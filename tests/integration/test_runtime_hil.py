@@ -38,7 +38,7 @@ JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_j
 MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 # Bounds on waits for frames on a loaded machine (not assertions on time): the lock-step target
 # does not care about wall time.
-SLOW_MACHINE = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
+SLOW_MACHINE = {"feedback_timeout_s": 0.2, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
                 "state_change_timeout_s": 5.0, "comm_loss_timeout_s": 1.0}
 TRACK_S = 5.0
 # What the PD bundle (LMPC) achieves on C1 in lock-step (pybullet, 32 substeps): max |q - q_ref| after
@@ -250,12 +250,15 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
 @pytest.mark.parametrize(
     ("fault", "kind"),
     [
-        ({"kind": "frames", "drop_probability": 1.0, "node_ids": [3]}, "feedback_timeout"),
-        ({"kind": "drive_fault", "node_id": 4, "error_code": 0x2310}, "drive_fault"),
+        # The driver's missed-TPDO budget and the supervisor's stale rule both allow one stale
+        # cycle; whichever sees the second one first names the fault.
+        ({"kind": "frames", "drop_probability": 1.0, "node_ids": [3]}, ("feedback_timeout", "stale_feedback")),
+        ({"kind": "drive_fault", "node_id": 4, "error_code": 0x2310}, ("drive_fault",)),
     ],
     ids=["dropped-tpdos", "drive-fault"],
 )
-def test_an_injected_fault_is_a_fault_within_two_cycles_in_one_process(fault: dict[str, Any], kind: str) -> None:
+def test_an_injected_fault_is_a_fault_within_two_cycles_in_one_process(fault: dict[str, Any],
+                                                                      kind: tuple[str, ...]) -> None:  # fmt: skip
     channel = unique_channel()
     config = parse_runtime_config(runtime_config({"interface": "virtual", "channel": channel},
                                                  reference={"kind": "hold"}))  # fmt: skip
@@ -271,7 +274,7 @@ def test_an_injected_fault_is_a_fault_within_two_cycles_in_one_process(fault: di
             assert result.fault is not None and result.fault.startswith(kind), result.fault
             assert result.fault_cycle is not None and result.fault_cycle - injected_at <= 2
             assert not target.drives.operation_enabled().any()  # every drive stopped
-            if kind == "drive_fault":  # the drive's fault is reset, the loop goes on from where the arm is
+            if kind == ("drive_fault",):  # the drive's fault is reset, the loop goes on from where the arm is
                 target.inject(parse_fault({"kind": "frames", "drop_probability": 0.0}))
                 runtime.request_reset()
                 thread_result: dict[str, Any] = {}
