@@ -304,3 +304,40 @@ def test_watch_shows_the_arm_live() -> None:
     last_frame = result.stdout[result.stdout.rfind("hil/fake_arm"):]
     for text in ("alive", "ACTIVE", "q [rad]", "error [rad]", "bundle fake:000000000000", *JOINTS):
         assert text in last_frame, (text, last_frame)
+
+
+def _acl_example(interfaces: str | None = None) -> str:
+    """The access-control json5 block of docs/telemetry.md (the one after <!-- acl-example -->)."""
+    text = (REPO / "docs" / "telemetry.md").read_text()
+    block = text.split("<!-- acl-example -->", 1)[1].split("```json5\n", 1)[1].split("```", 1)[0]
+    if interfaces is not None:
+        assert 'interfaces: ["eth0", "wlan0"]' in block
+        block = block.replace('interfaces: ["eth0", "wlan0"]', f"interfaces: {interfaces}")
+    return block
+
+
+@pytest.mark.parametrize(("interfaces", "stop_allowed"), [('["lo"]', False), (None, True)])
+def test_the_documented_access_control_restricts_the_controls(tmp_path: Path, interfaces: str | None,
+                                                               stop_allowed: bool) -> None:  # fmt: skip
+    """With the docs' rule applied to loopback, stop is refused and schema still answers; as
+    documented (network interfaces only), a stop from this machine goes through."""
+    acl = tmp_path / "acl.json5"
+    acl.write_text(_acl_example(interfaces))
+    port = _free_port()
+    controls = _Controls()
+    config = TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), controls_enabled=True, zenoh_config=acl)
+    sink = make_sink(config, "arm_q", {"joints": list(JOINTS)}, controls)
+    sink.start()
+    try:
+        with TelemetryClient.open([f"tcp/127.0.0.1:{port}"], "arm_q", timeout_s=5.0) as client:
+            assert client.schema().joints == JOINTS
+            if stop_allowed:
+                assert client.query_json("stop") == {"ok": True, "request": "stop"}
+            else:
+                with pytest.raises(TelemetryUnavailable, match="no reply from hil/arm_q/stop"):
+                    client.query("stop", timeout_s=1.5)
+                with pytest.raises(TelemetryUnavailable, match="no reply from hil/arm_q/reset"):
+                    client.query("reset", timeout_s=1.5)
+    finally:
+        sink.close()
+    assert controls.stops == (1 if stop_allowed else 0) and controls.resets == 0
