@@ -77,8 +77,14 @@ def _work(state: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return state
 
 
-def run(seconds: float, block: int, subscriber: bool, rate_hz: float, publish_period_s: float = 0.001,
-        express: bool | None = None) -> dict[str, Any]:
+def run(
+    seconds: float,
+    block: int,
+    subscriber: bool,
+    rate_hz: float,
+    publish_period_s: float = 0.001,
+    express: bool | None = None,
+) -> dict[str, Any]:
     from hil_runtime.telemetry import NullTelemetry, TelemetryConfig, make_sink
 
     port = _free_port()
@@ -150,8 +156,14 @@ def run(seconds: float, block: int, subscriber: bool, rate_hz: float, publish_pe
     mask_on[:skip] = False
     mask_off = ~on
     mask_off[:skip] = False
-    result: dict[str, Any] = {"benchmark": "telemetry", "rate_hz": rate_hz, "seconds": seconds, "block_cycles": block,
-                              "publish_period_s": publish_period_s, "express": config.express}
+    result: dict[str, Any] = {
+        "benchmark": "telemetry",
+        "rate_hz": rate_hz,
+        "seconds": seconds,
+        "block_cycles": block,
+        "publish_period_s": publish_period_s,
+        "express": config.express,
+    }
     for name, mask in (("off", mask_off), ("on", mask_on)):
         result[name] = {
             "offer_us": _summary(offer_ns[mask] / 1e3),
@@ -163,7 +175,9 @@ def run(seconds: float, block: int, subscriber: bool, rate_hz: float, publish_pe
         "p99": round(result["on"]["cycle_us"]["p99"] - result["off"]["cycle_us"]["p99"], 2),
     }
     result["budget_us"] = {"median": 15.0, "p99": 50.0}
-    result["within_budget"] = bool(result["added_cycle_us"]["median"] <= 15.0 and result["added_cycle_us"]["p99"] <= 50.0)
+    result["within_budget"] = bool(
+        result["added_cycle_us"]["median"] <= 15.0 and result["added_cycle_us"]["p99"] <= 50.0
+    )
     result["sink"] = counters
     result["subscriber_received"] = received
     result["offered_on"] = offered_on
@@ -179,8 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate-hz", type=float, default=1000.0)
     parser.add_argument("--no-subscriber", action="store_true")
     parser.add_argument("--express", choices=["on", "off"], default=None, help="override the config's express")
-    parser.add_argument("--publish-period-s", type=float, default=None,
-                        help="the sink's publish_period_s [default: TelemetryConfig's]")
+    parser.add_argument(
+        "--publish-period-s", type=float, default=None, help="the sink's publish_period_s [default: TelemetryConfig's]"
+    )
     args = parser.parse_args(argv)
     from hil_runtime.telemetry import TelemetryConfig
 

@@ -1,16 +1,17 @@
 """``hil telemetry``: watch, record, plot and query a runtime's Zenoh telemetry (docs/telemetry.md).
 
-    hil telemetry watch [--robot R] [--connect tcp/127.0.0.1:7447]
-    hil telemetry record --seconds 10 --out run.npz
-    hil telemetry plot run.npz
-    hil telemetry query schema|config|bundle
-    hil telemetry control stop|reset          # only when the runtime enables controls
+hil telemetry watch [--robot R] [--connect tcp/127.0.0.1:7447]
+hil telemetry record --seconds 10 --out run.npz
+hil telemetry plot run.npz
+hil telemetry query schema|config|bundle
+hil telemetry control stop|reset          # only when the runtime enables controls
 """
 
 from __future__ import annotations
 
 import collections
 import json
+import math
 import sys
 import threading
 import time
@@ -210,7 +211,7 @@ def _render(state: _WatchState, robot: str, joints: tuple[str, ...]) -> Any:
     head.add_row(
         Text(f"received {rate:6.0f} /s"),
         Text(f"loop {loop_rate:7.1f} Hz"),
-        Text(f"fallback {100 * fallback_share:5.1f} %" if fallback_share == fallback_share else "fallback -"),
+        Text("fallback -" if math.isnan(fallback_share) else f"fallback {100 * fallback_share:5.1f} %"),
         Text(f"compute p99 {compute_p99 * 1e6:6.0f} µs, telemetry dropped {dropped:.0f}, gaps {state.gaps}"),
     )
     if state.status.get("bundle_id"):

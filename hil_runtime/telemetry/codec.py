@@ -176,7 +176,9 @@ class Header:
 def decode_header(payload: bytes | bytearray | memoryview) -> Header:
     """The header of any payload; refuses short payloads, a wrong magic and unknown versions."""
     if len(payload) < HEADER_SIZE:
-        raise TelemetryDecodeError(f"payload refused: truncated ({len(payload)} bytes, the header alone is {HEADER_SIZE})")
+        raise TelemetryDecodeError(
+            f"payload refused: truncated ({len(payload)} bytes, the header alone is {HEADER_SIZE})"
+        )
     magic, version, kind, flags, seq, t_ns = HEADER.unpack_from(payload, 0)
     if magic != MAGIC:
         raise TelemetryDecodeError(f"payload refused: magic {magic!r} is not {MAGIC!r}")
@@ -253,7 +255,9 @@ class Schema:
     def _check(self, payload: bytes | bytearray | memoryview, kind: Kind, size: int | None) -> Header:
         header = decode_header(payload)
         if header.kind is not kind:
-            raise TelemetryDecodeError(f"payload refused: kind {header.kind.name.lower()}, expected {kind.name.lower()}")
+            raise TelemetryDecodeError(
+                f"payload refused: kind {header.kind.name.lower()}, expected {kind.name.lower()}"
+            )
         if header.warmup:
             return header
         if size is not None and len(payload) != size:
@@ -303,7 +307,9 @@ class Schema:
 _SCALAR_NAMES = frozenset(name for name, _ in STATE_SCALARS)
 
 
-def _decode_json(payload: bytes | bytearray | memoryview, header: Header, fields: tuple[str, ...]) -> tuple[Header, dict[str, Any]]:
+def _decode_json(
+    payload: bytes | bytearray | memoryview, header: Header, fields: tuple[str, ...]
+) -> tuple[Header, dict[str, Any]]:
     if header.warmup:
         return header, {}
     try:
@@ -332,7 +338,9 @@ def encode_state(
 ) -> bytes:
     """One state payload (q, qd, q_ref, qd_ref, tau, tau_fb in ``blocks``); the ring writes the same bytes."""
     body = np.concatenate([np.asarray(block, dtype="<f8") for block in blocks])
-    return STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, int(Kind.STATE), flags, seq, t_ns, fallback, compute_s) + body.tobytes()
+    return (
+        STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, int(Kind.STATE), flags, seq, t_ns, fallback, compute_s) + body.tobytes()
+    )
 
 
 def encode_stats(seq: int, t_ns: int, values: Mapping[str, float], fields: Sequence[str] = STATS_FIELDS) -> bytes:

@@ -173,7 +173,9 @@ def zenoh_config(
     try:
         conf = zenoh.Config.from_file(str(base_file)) if base_file is not None else zenoh.Config()
     except zenoh.ZError as exc:
-        raise TelemetryConfigError(f"{base_file}: not a valid Zenoh json5 config ({str(exc).splitlines()[0]})") from None
+        raise TelemetryConfigError(
+            f"{base_file}: not a valid Zenoh json5 config ({str(exc).splitlines()[0]})"
+        ) from None
     conf.insert_json5("mode", json.dumps(mode))
     # Peers are named, never discovered: nothing is sent to a multicast group or gossiped on.
     conf.insert_json5("scouting/multicast/enabled", "false")

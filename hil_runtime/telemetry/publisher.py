@@ -238,8 +238,9 @@ class ZenohTelemetry:
         if self._thread is not None:
             self._thread.join(self.config.close_timeout_s)
             if self._thread.is_alive():
-                log.warning("telemetry: publisher thread still busy after %.1f s; closing anyway",
-                            self.config.close_timeout_s)
+                log.warning(
+                    "telemetry: publisher thread still busy after %.1f s; closing anyway", self.config.close_timeout_s
+                )
         # Undeclare the token first: subscribers see the runtime leave at once, not by timeout.
         for entity in (self._token, *self._declared, *self._publishers.values()):
             try:

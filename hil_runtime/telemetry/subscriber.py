@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -58,11 +58,15 @@ class TelemetryClient:
         conf = zenoh_config("peer", [], list(connect), config_file)
         # Zenoh retries a refused connect after 1 s, then 2, 4 s: a subscriber started just before
         # the runtime would miss its first seconds. Retry every 100-500 ms instead.
-        conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 1.5}')
+        conf.insert_json5(
+            "connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 1.5}'
+        )
         try:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            raise TelemetryUnavailable(f"cannot open a Zenoh session to {', '.join(connect)}: {str(exc).splitlines()[0]}") from None
+            raise TelemetryUnavailable(
+                f"cannot open a Zenoh session to {', '.join(connect)}: {str(exc).splitlines()[0]}"
+            ) from None
         try:
             if robot is None:
                 robot = _single_robot(session, connect, timeout_s)
@@ -73,7 +77,7 @@ class TelemetryClient:
             raise
         return cls(session, robot, timeout_s)
 
-    def __enter__(self) -> TelemetryClient:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *_exc: object) -> None:
@@ -180,7 +184,9 @@ class StateRecording:
             raise TelemetryUnavailable("the recording has no schema to decode against")
         return self.schema
 
-    def _json(self, payloads: list[bytes], decode: Callable[[bytes], tuple[Any, dict[str, Any]]]) -> list[dict[str, Any]]:
+    def _json(
+        self, payloads: list[bytes], decode: Callable[[bytes], tuple[Any, dict[str, Any]]]
+    ) -> list[dict[str, Any]]:
         out: list[dict[str, Any]] = []
         for payload in list(payloads):
             try:
@@ -245,7 +251,9 @@ def start_recording(client: TelemetryClient) -> StateRecording:
     return recording
 
 
-def record_state(client: TelemetryClient, schema: Schema, seconds: float, stop: threading.Event | None = None) -> StateRecording:
+def record_state(
+    client: TelemetryClient, schema: Schema, seconds: float, stop: threading.Event | None = None
+) -> StateRecording:
     """Collect ``hil/<robot>/state`` (and status, events) for ``seconds`` of wall time."""
     recording = start_recording(client)
     recording.schema = schema
@@ -270,7 +278,7 @@ def save_record(recording: StateRecording, path: Path, extra: dict[str, Any] | N
     for name, document in (extra or {}).items():
         documents[name] = np.asarray(document if isinstance(document, float) else json.dumps(document))
     with atomic_path(path) as tmp:
-        np.savez_compressed(tmp, **arrays, **documents)
+        np.savez_compressed(tmp, **arrays, **documents)  # type: ignore[arg-type]  # numpy's stub types **kwds poorly
     return len(arrays["seq"])
 
 
@@ -280,4 +288,3 @@ def missing_samples(seq: np.ndarray, stride: int = 1) -> int:
         return 0
     expected = int((int(seq.max()) - int(seq.min())) // stride) + 1
     return expected - len(np.unique(seq))
-

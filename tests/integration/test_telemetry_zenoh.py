@@ -26,11 +26,11 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from telemetry_fake_loop import JOINTS, expected_state  # noqa: E402
+from telemetry_fake_loop import JOINTS, expected_state
 
-from hil_runtime.telemetry import TelemetryConfig, make_sink  # noqa: E402
-from hil_runtime.telemetry.codec import Schema  # noqa: E402
-from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples  # noqa: E402
+from hil_runtime.telemetry import TelemetryConfig, make_sink
+from hil_runtime.telemetry.codec import Schema
+from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
 
 FAKE_LOOP = Path(__file__).with_name("telemetry_fake_loop.py")
 REPO = Path(__file__).resolve().parents[2]
@@ -44,7 +44,7 @@ def _free_port() -> int:
 
 def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True,
-                          timeout=timeout_s, cwd=REPO)  # fmt: skip
+                          timeout=timeout_s, cwd=REPO, check=False)  # fmt: skip
 
 
 class FakeLoop:
@@ -296,12 +296,12 @@ def test_watch_shows_the_arm_live() -> None:
         result = subprocess.run(
             [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--connect", loop.endpoint, "--seconds", "1.5",
              "--refresh-hz", "4"],
-            capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "COLUMNS": "140"},
+            capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "COLUMNS": "140"}, check=False,
         )  # fmt: skip
     finally:
         loop.kill()
     assert result.returncode == 0, result.stderr
-    last_frame = result.stdout[result.stdout.rfind("hil/fake_arm"):]
+    last_frame = result.stdout[result.stdout.rfind("hil/fake_arm") :]
     for text in ("alive", "ACTIVE", "q [rad]", "error [rad]", "bundle fake:000000000000", *JOINTS):
         assert text in last_frame, (text, last_frame)
 

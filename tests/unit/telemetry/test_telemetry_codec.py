@@ -83,7 +83,9 @@ def test_stats_status_event_round_trip(schema: Schema) -> None:
     header, stats = schema.decode_stats(encode_stats(3, 9, {"rate_hz": 999.5, "overruns": 2}))
     assert header.seq == 3 and stats["rate_hz"] == 999.5 and stats["overruns"] == 2.0
     assert np.isnan(stats["compute_p99_s"])  # not reported -> NaN, never a made-up zero
-    header, body = schema.decode_status(encode_json(Kind.STATUS, 1, 2, {"state": "FAULT", "fault": "x", "bundle_id": "b"}))
+    header, body = schema.decode_status(
+        encode_json(Kind.STATUS, 1, 2, {"state": "FAULT", "fault": "x", "bundle_id": "b"})
+    )
     assert body == {"state": "FAULT", "fault": "x", "bundle_id": "b"}
     header, body = schema.decode_event(encode_json(Kind.EVENT, 1, 2, {"kind": "fault", "cycle": 7, "detail": "emcy"}))
     assert body["cycle"] == 7
@@ -101,8 +103,10 @@ def test_warmup_payloads_decode_empty(schema: Schema) -> None:
         (lambda p: p[:-8], "payload refused: state truncated (320 bytes, the schema says 328)"),
         (lambda p: p[:10], "payload refused: truncated (10 bytes, the header alone is 24)"),
         (lambda p: p + b"\0" * 8, "payload refused: state too long (336 bytes, the schema says 328)"),
-        (lambda p: p[:4] + (SCHEMA_VERSION + 1).to_bytes(2, "little") + p[6:],
-         f"payload refused: schema version {SCHEMA_VERSION + 1} unknown (this decoder reads {SCHEMA_VERSION})"),
+        (
+            lambda p: p[:4] + (SCHEMA_VERSION + 1).to_bytes(2, "little") + p[6:],
+            f"payload refused: schema version {SCHEMA_VERSION + 1} unknown (this decoder reads {SCHEMA_VERSION})",
+        ),
         (lambda p: b"XXXX" + p[4:], "payload refused: magic b'XXXX' is not b'HILT'"),
         (lambda p: p[:6] + bytes([9]) + p[7:], "payload refused: unknown kind 9"),
         (lambda p: p[:6] + bytes([2]) + p[7:], "payload refused: kind stats, expected state"),

@@ -7,7 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from hil_runtime.telemetry import NullTelemetry, TelemetryConfig, TelemetryConfigError, make_sink, parse_telemetry_config
+from hil_runtime.telemetry import (
+    NullTelemetry,
+    TelemetryConfig,
+    TelemetryConfigError,
+    make_sink,
+    parse_telemetry_config,
+)
 from hil_runtime.telemetry.config import publisher_zenoh_config, zenoh_config
 from hil_runtime.telemetry.publisher import ZenohTelemetry
 
