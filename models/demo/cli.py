@@ -42,7 +42,7 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     def on_phase(phase: DemoPhase) -> None:
         shown["phase"] = phase
         if headless:
-            console.print(f"hil demo: {phase.text}")
+            console.print(f"hil demo: {phase.text}", soft_wrap=True)
 
     def tick() -> None:
         if mirror is not None and shown["phase"].watch is not None:
@@ -147,10 +147,14 @@ def demo(
         raise
     s, t = results["scores"], results["timing"]
     m_hil, m_sim = s["metrics"]["hil"], s["metrics"]["sim"]
-    print(f"{_LAW_TITLE.get(options.law, options.law)} {options.mode.upper()} on {options.condition}, "
-          f"{results['demo']['duration_s']:g} s: RMSE {m_hil['rmse']:.3f} deg (simulation {m_sim['rmse']:.3f}), "
-          f"peak {m_hil['peak']:.3f} deg ({m_sim['peak']:.3f}), composite {s['composite']['hil']:.3f} "
-          f"({s['composite']['sim']:.3f})")  # fmt: skip
+    title = f"{_LAW_TITLE.get(options.law, options.law)} {options.mode.upper()} on {options.condition}"
+    if results["fault"]:
+        print(f"{title}: the runtime FAULTED after {t['cycles']} cycles ({results['fault']}); the drives were "
+              f"quick-stopped, the scores are not comparable with the simulation's")  # fmt: skip
+    else:
+        print(f"{title}, {results['demo']['duration_s']:g} s: RMSE {m_hil['rmse']:.3f} deg (simulation "
+              f"{m_sim['rmse']:.3f}), peak {m_hil['peak']:.3f} deg ({m_sim['peak']:.3f}), composite "
+              f"{s['composite']['hil']:.3f} ({s['composite']['sim']:.3f})")  # fmt: skip
     print(f"loop: {t['rate_hz']} Hz, {t['cycles']} cycles, overruns {t['overruns']}, period median/p99/max "
           f"{t['period_us']['median']}/{t['period_us']['p99']}/{t['period_us']['max']} µs, compute "
           f"{t['compute_us']['median']}/{t['compute_us']['p99']}/{t['compute_us']['max']} µs")  # fmt: skip

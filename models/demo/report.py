@@ -223,6 +223,9 @@ def format_summary(results: dict[str, Any]) -> str:
         f"{demo['period_s'] * 1e3:g} ms, for {demo['duration_s']:g} s of condition {demo['condition']}"
         + (f" (disturbance at {demo['disturbance_s']:g} s)." if demo.get("disturbance_s") is not None else "."),
         "",
+        *([f"**The runtime FAULTED** after {timing['cycles']} cycles: {results['fault']}. The drives were "
+           "quick-stopped; the HIL scores below are of a run held at its last pose from there, not comparable.", ""]
+          if results.get("fault") else []),
         "## Scores (smaller is better), beside the simulation of the same bundle and condition",
         "",
         "| metric | HIL | simulation | Δ (%) |",

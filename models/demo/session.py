@@ -46,6 +46,8 @@ DEFAULT_CONDITION = "C1"
 MODES = ("lmpc", "fb")
 START_TIMEOUT_S = 180.0  # a fresh machine imports pybullet, onnxruntime, zenoh for the first time
 STOP_TIMEOUT_S = 20.0  # SIGTERM -> exit; the quick stop waits at most the bus's state_change_timeout_s
+WORK_PREFIX = "hil-demo-"
+OWNER_FILE = "demo.pid"  # the demo that owns a private directory (a SIGKILLed demo cannot remove its own)
 POLL_S = 0.1  # the control socket's status: progress, FAULT
 
 
@@ -234,8 +236,10 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
     phase = DemoPhase(duration_s=condition.duration_s, robot=robot.name)
     started = time.monotonic()
     wall: dict[str, float] = {}
+    remove_stale_work_dirs()
     # A short private directory: Unix socket paths are limited to ~107 bytes.
-    work = Path(tempfile.mkdtemp(prefix="hil-demo-"))
+    work = Path(tempfile.mkdtemp(prefix=WORK_PREFIX))
+    (work / OWNER_FILE).write_text(str(os.getpid()))
     bus_dir, target_sock, runtime_sock = work / "bus", work / "target.sock", work / "runtime.sock"
     children: dict[str, Child] = {}
     processes: dict[str, Any] = {}
@@ -354,12 +358,36 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                         record = {k: data[k] for k in data.files}
                 shutil.rmtree(work, ignore_errors=True)
                 shutdown["work_dir_removed"] = not work.exists()
+                say(_stop_line(processes, shutdown))
     shutdown["runtime_exit_code"] = processes.get("runtime", {}).get("exit_code")
     shutdown["target_exit_code"] = processes.get("target", {}).get("exit_code")
     if not record:
         raise DemoError(f"hil run wrote no record; its log: {_tail(logs.get('runtime', ''))}")
     return HilOutcome(record, schema, payloads["state"], payloads["status"], payloads["events"], payloads["stats"],
                       documents, endpoint, fault, shutdown, processes, wall, logs, str(work), period_s)  # fmt: skip
+
+
+def remove_stale_work_dirs() -> list[Path]:
+    """Private directories of earlier demos that were killed (SIGKILL leaves no chance to clean up):
+    removed when their owner is gone. Their children are gone too (PR_SET_PDEATHSIG)."""
+    removed = []
+    for directory in Path(tempfile.gettempdir()).glob(f"{WORK_PREFIX}*"):
+        try:
+            if directory.stat().st_uid != os.getuid():
+                continue
+            owner = int((directory / OWNER_FILE).read_text())
+        except (OSError, ValueError):
+            continue
+        try:
+            os.kill(owner, 0)
+            continue  # still running
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        shutil.rmtree(directory, ignore_errors=True)
+        removed.append(directory)
+    return removed
 
 
 def _wait_for_schema(client: Any, runtime: Child) -> Any:
@@ -376,6 +404,20 @@ def _wait_for_schema(client: Any, runtime: Child) -> Any:
         except TelemetryUnavailable:
             if time.monotonic() > end:
                 raise DemoError(f"hil run: no telemetry within {START_TIMEOUT_S:g} s: {runtime.last_lines()}") from None
+
+
+def _stop_line(processes: dict[str, Any], shutdown: dict[str, Any]) -> str:
+    parts = []
+    if "runtime" in processes:
+        parts.append(f"hil run exit {processes['runtime']['exit_code']}")
+    if "drives_stopped" in shutdown:
+        parts.append("drives stopped (Operation Enabled off)" if shutdown["drives_stopped"] else "drives NOT confirmed stopped")
+    if "target" in processes:
+        parts.append(f"target exit {processes['target']['exit_code']}")
+    leftovers = shutdown["processes_alive"] + shutdown["ipc_sockets_left"] + shutdown["control_sockets_left"]
+    parts.append(f"left behind: {', '.join(leftovers)}" if leftovers or not shutdown["work_dir_removed"]
+                 else "no process, socket or directory left")  # fmt: skip
+    return "stopped: " + ", ".join(parts)
 
 
 def _tail(text: str, count: int = 3) -> str:

@@ -34,9 +34,10 @@ def render(phase: DemoPhase, disturbance_s: float | None) -> Any:
     head = Table.grid(padding=(0, 1))
     bar = ProgressBar(total=max(phase.duration_s, 1e-9), completed=min(phase.t_s, phase.duration_s), width=40)
     marker = "" if disturbance_s is None else f"  disturbance at {disturbance_s:g} s" + (" ✓" if phase.t_s >= disturbance_s else "")
-    head.add_row(Text("hil demo", style="bold cyan"), Text(phase.text),)
+    head.add_row(Text("hil demo", style="bold cyan"), Text(phase.text))
     head.add_row(Text(""), Text.assemble(f"t {phase.t_s:6.3f} / {phase.duration_s:g} s ", marker))
-    parts: list[Any] = [head, bar]
+    head.add_row(Text(""), bar)
+    parts: list[Any] = [head]
     if phase.watch is not None:
         parts.append(render_watch(phase.watch, phase.robot, phase.joints))
     for note in phase.notes[-3:]:
