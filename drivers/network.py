@@ -129,11 +129,18 @@ class DriveNetwork:
     def drain(self) -> None:
         """Under rx_lock: handle every frame already queued, without waiting."""
         monotonic = time.monotonic
+        recv = self.bus.recv
+        dispatch = self.dispatch
         while True:
-            msg = self.recv(0.0)
+            try:
+                msg = recv(0.0)
+            except TransportError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+                raise TransportError(f"receiving failed: {exc}") from exc
             if msg is None:
                 return
-            self.dispatch(msg, monotonic())
+            dispatch(msg, monotonic())
 
     # --- background thread -----------------------------------------------------------------------
 

@@ -134,30 +134,25 @@ class CyclicExchange:
             finally:
                 self._open = False
             now = monotonic()
-            # One pass over the drives: freshness, miss count, state, and the feedback values.
+            # Freshness and miss counts; the values are read from the records below.
             fd = self.fd
-            fresh: list[bool] = []
-            position: list[int] = []
-            velocity: list[int] = []
-            torque_pm: list[int] = []
-            rx_time: list[float] = []
-            states: list[State] = []
-            missing = 0
-            for node in nodes:
-                got1 = node.tpdo1_cycle == cycle
-                is_fresh = got1 if fd else got1 and node.tpdo2_cycle == cycle
+            if fd:
+                fresh = [node.tpdo1_cycle == cycle for node in nodes]
+                missing = fresh.count(False)
+            else:
+                fresh = [node.tpdo1_cycle == cycle and node.tpdo2_cycle == cycle for node in nodes]
+                missing = sum((node.tpdo1_cycle != cycle) + (node.tpdo2_cycle != cycle) for node in nodes)
+            for node, is_fresh in zip(nodes, fresh, strict=True):
                 if is_fresh:
                     node.missed_cycles = 0
                     node.state = decode_statusword_fast(node.statusword)
                 else:
                     node.missed_cycles += 1
-                    missing += (not got1) + (0 if fd else node.tpdo2_cycle != cycle)
-                fresh.append(is_fresh)
-                position.append(node.position_counts)
-                velocity.append(node.velocity_counts_s)
-                torque_pm.append(node.torque_permille)
-                rx_time.append(node.rx_time_s)
-                states.append(node.state)
+            position = [node.position_counts for node in nodes]
+            velocity = [node.velocity_counts_s for node in nodes]
+            torque_pm = [node.torque_permille for node in nodes]
+            rx_time = [node.rx_time_s for node in nodes]
+            states = [node.state for node in nodes]
             self.dropped += missing
             supervise = network.supervise
             if supervise is not None:

@@ -129,9 +129,10 @@ class EmulatedDrives:
             self._objects.attach(drive)
             self._drives.append(drive)
             self._objects.reset(drive, communication_only=False)
-        self._by_cob: dict[int, tuple[Callable[[EmulatedDrive, bytearray], None], EmulatedDrive]] = {}
+        # cob-id -> (handler, drive); a handler returns False for a malformed frame.
+        self._by_cob: dict[int, tuple[Callable[[EmulatedDrive, bytearray], bool | None], EmulatedDrive]] = {}
         for drive in self._drives:
-            self._by_cob[fr.RPDO1_BASE + drive.node_id] = (self._on_rpdo, drive)
+            self._by_cob[fr.RPDO1_BASE + drive.node_id] = (pdo.on_rpdo, drive)
             self._by_cob[fr.SDO_RX_BASE + drive.node_id] = (self._on_sdo, drive)
         self._counts = np.array([d.counts_per_rad for d in self._drives])
         self._stop = threading.Event()
@@ -332,13 +333,8 @@ class EmulatedDrives:
                 self._unknown += 1  # other nodes' frames (TPDOs, heartbeats) land here too
             return
         handler, drive = entry
-        handler(drive, data)
-
-    def _on_rpdo(self, drive: EmulatedDrive, data: bytearray) -> None:
-        if not pdo.on_rpdo(drive, data):
+        if handler(drive, data) is False:
             self._malformed += 1
-        elif drive.rpdo_timeout_ms:
-            drive.last_rpdo_s = time.monotonic()
 
     def _on_sdo(self, drive: EmulatedDrive, data: bytearray) -> None:
         if drive.nmt is fr.NmtState.STOPPED:

@@ -7,6 +7,8 @@ The TPDOs are encoded with :mod:`drivers.cia402.frames`, the codec the master de
 
 from __future__ import annotations
 
+from time import monotonic as _monotonic
+
 import can
 from canopen.sdo.exceptions import SdoAbortedError
 
@@ -30,12 +32,14 @@ LAYOUTS = {
 
 def on_rpdo(drive: EmulatedDrive, data: bytearray) -> bool:
     """Latch controlword and target torque (applied at the next SYNC); False when malformed.
-    PDOs are ignored outside NMT operational (CiA 301)."""
+    PDOs are ignored outside NMT operational (CiA 301). Feeds the RPDO watch (supervision)."""
     if drive.nmt is not fr.NmtState.OPERATIONAL or not drive.rpdo_valid:
         return True
     if len(data) != fr.RPDO_LENGTH:
         return False
     drive.controlword, drive.target_permille = fr.decode_rpdo(data)
+    if drive.rpdo_timeout_ms:
+        drive.last_rpdo_s = _monotonic()
     return True
 
 
