@@ -6,6 +6,7 @@ the bare ``PolicyBundle.step`` time. Prints JSON.
 
     python benchmarks/bench_lmpc.py [--cycles 3000] [--bundles models/bundles]
     python benchmarks/bench_lmpc.py --fallbacks      # + trust-region counters on the paper's 5 conditions
+    python benchmarks/bench_lmpc.py --session-sweep  # + each graph under onnxruntime's optimization levels
 
 ``--fallbacks``: every law's LMPC on the paper's five conditions (5 s, nominal plant, the
 experiment's settings); per law and condition the cycles outside the trust box (torque = the
@@ -31,6 +32,8 @@ def main() -> None:
     parser.add_argument("--laws", default="pd,pid,adrc,hinf,smc,mrac")
     parser.add_argument("--fallbacks", action="store_true", help="also count trust-region fallbacks on the paper's conditions")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument("--session-sweep", action="store_true",
+                        help="also time each graph under onnxruntime's optimization levels / execution modes")
     args = parser.parse_args()
 
     from hil_runtime.bundle import PolicyBundle
@@ -66,11 +69,16 @@ def main() -> None:
             "controller_call_us": {"median": float(np.median(closed)), "p99": float(np.percentile(closed, 99)), "max": float(closed.max())},
             "bundle_step_us": {"median": float(np.median(bare_us)), "p99": float(np.percentile(bare_us, 99))},
             "graph_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"]),
+            "compute_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"], compute_only=True),
+            "design": bundle.manifest.get("training", {}).get("design", "mlp"),
         }  # fmt: skip
+        if args.session_sweep:
+            out["laws"][law_name]["session_sweep_us"] = session_sweep(bundle, args.cycles)
     if args.fallbacks:
         out["trust_region"] = trust_counts(args.laws.split(","), args.bundles)
     import onnxruntime
 
+    out["load_average"] = os.getloadavg()
     out["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "python": platform.python_version(), "onnxruntime": onnxruntime.__version__}  # fmt: skip
     print(json.dumps(out, indent=2))
@@ -103,10 +111,43 @@ def trust_counts(laws: list[str], bundles: Path | None) -> dict:
     return out
 
 
-def _nodes(path: Path) -> int:
+def _nodes(path: Path, compute_only: bool = False) -> int:
     import onnx
 
-    return len(onnx.load(str(path)).graph.node)
+    nodes = onnx.load(str(path)).graph.node
+    return sum(1 for n in nodes if not compute_only or n.op_type != "Constant")
+
+
+def session_sweep(bundle, cycles: int) -> dict:  # type: ignore[no-untyped-def]
+    """Bare single-row run time (us, median / p99) of the bundle's graph per onnxruntime session option."""
+    import time
+
+    import onnxruntime as ort
+
+    levels = {"disable_all": ort.GraphOptimizationLevel.ORT_DISABLE_ALL, "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+              "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED, "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL}  # fmt: skip
+    path = str(bundle.path / bundle.manifest["graph"]["file"])
+    x = np.zeros((1, bundle.input_width))
+    x[0, : 5 * bundle.n_joints] = 0.1
+    out = {}
+    for name, level in levels.items():
+        for mode_name, mode in (("sequential", ort.ExecutionMode.ORT_SEQUENTIAL), ("parallel", ort.ExecutionMode.ORT_PARALLEL)):
+            options = ort.SessionOptions()
+            options.intra_op_num_threads, options.inter_op_num_threads = 1, 1
+            options.execution_mode, options.graph_optimization_level, options.log_severity_level = mode, level, 3
+            session = ort.InferenceSession(path, sess_options=options, providers=["CPUExecutionProvider"])
+            y = np.zeros((1, session.get_outputs()[0].shape[-1]))
+            binding = session.io_binding()
+            binding.bind_ortvalue_input("x", ort.OrtValue.ortvalue_from_numpy(x))
+            binding.bind_ortvalue_output("y", ort.OrtValue.ortvalue_from_numpy(y))
+            times = []
+            for _ in range(cycles):
+                start = time.perf_counter()
+                session.run_with_iobinding(binding)
+                times.append(time.perf_counter() - start)
+            us = np.asarray(times[100:]) * 1e6
+            out[f"{name}/{mode_name}"] = [round(float(np.median(us)), 1), round(float(np.percentile(us, 99)), 1)]
+    return out
 
 
 if __name__ == "__main__":

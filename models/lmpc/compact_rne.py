@@ -19,20 +19,41 @@ class CompactNominal:
     def __init__(self, original: Any) -> None:
         self.original = original
         self.rne = SpatialRne(original.robot)
+        # A caller that needs its own ID(p_q, p_qd, p_a) in the same graph (models.lmpc.structured) sets
+        # ``pending``; the law's next call then runs both as one batched RNE (one graph instead of two)
+        # and leaves the caller's rows in ``pending_result``.
+        self.pending: tuple[Any, Any, Any] | None = None
+        self.pending_result: Any = None
+
+    def _torch(self, q: Any, qd: Any, qdd: Any) -> Any:
+        if self.pending is None:
+            return self.rne.inverse_dynamics(q, qd, qdd)
+        import torch
+
+        (pq, pqd, pa), self.pending = self.pending, None
+        n = q.shape[1]
+
+        def rows(a: Any, b: Any) -> Any:  # interleaved (law, caller) rows: (2B, N)
+            return torch.stack([a, b], 1).reshape(-1, n)
+
+        out = self.rne.inverse_dynamics(rows(q, pq), rows(qd, pqd), rows(qdd, pa)).reshape(-1, 2, n)
+        self.pending_result = out[:, 1]
+        return out[:, 0]
 
     def inverse_dynamics(self, xp: Any, q: Any, qd: Any, qdd: Any) -> Any:
         import numpy as np
 
         if xp is np:
             return self.original.inverse_dynamics(xp, q, qd, qdd)
-        return self.rne.inverse_dynamics(q, qd, qdd)
+        return self._torch(q, qd, qdd)
 
     def gravity(self, xp: Any, q: Any) -> Any:
         import numpy as np
 
         if xp is np:
             return self.original.gravity(xp, q)
-        return self.rne.gravity_torque(q)
+        zero = q * 0.0
+        return self._torch(q, zero, zero)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.original, name)

@@ -81,8 +81,8 @@ class StructuredConfig:
     # expert's own closed loop has errors of ~0, and the structure is exact in e: a box of the expert's
     # errors would hand every cycle back to the law).
     error_envelope_rad: float = 0.1
-    rate_envelope_rad_s: float = 1.0
-    bound_scale: float = 1.5  # trust region residual bound: 1.5 x max |tau* - tau_fb| over the training labels
+    rate_envelope_rad_s: float = 3.0  # the 2 s impulse alone moves the wrist by ~1.6 rad/s
+    bound_scale: float = 3.0  # trust region residual bound: 3 x max |tau* - tau_fb| over the training labels
     # DART-style excitation of the expert rollouts: the plant gets tau* + noise (the label stays tau*),
     # noise = accel_noise * M_ii(0) * a standard normal held for noise_hold_steps periods, seeded; a
     # fraction noise_fraction of the training conditions run with it. Without it the expert's own
@@ -305,16 +305,23 @@ class StructuredEmulator(nn.Module):
             tau_id = self.rne.inverse_dynamics(q + e, qd + e_dot, accel)
         return c * tau_fb + g * tau_id
 
-    def from_parts(self, q: torch.Tensor, e: torch.Tensor, qd: torch.Tensor, e_dot: torch.Tensor, qdd_d: torch.Tensor,
-                   tau_fb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:  # fmt: skip
-        """forward() from the named parts (s their concatenation): fewer graph nodes than slicing s again."""
-        c, g, kp, kd = self.coefficients()
+    def feedforward_point(self, q: torch.Tensor, e: torch.Tensor, qd: torch.Tensor, e_dot: torch.Tensor,
+                          qdd_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+        """(position, velocity, acceleration) the feed-forward's ID is evaluated at."""
+        _, _, kp, kd = self.coefficients()
         gains = torch.cat([kp.T, kd.T], 0)  # (2N, N): one MatMul for Kp e + Kd e_dot (constant-folded)
         accel = qdd_d + torch.cat([e, e_dot], 1) @ gains
         if self.ff_point == "measured":
-            tau_id = self.rne.inverse_dynamics(q, qd, accel)
-        else:
-            tau_id = self.rne.inverse_dynamics(q + e, qd + e_dot, accel)
+            return q, qd, accel
+        return q + e, qd + e_dot, accel
+
+    def from_parts(self, q: torch.Tensor, e: torch.Tensor, qd: torch.Tensor, e_dot: torch.Tensor, qdd_d: torch.Tensor,
+                   tau_fb: torch.Tensor, s: torch.Tensor, tau_id: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+        """forward() from the named parts (s their concatenation): fewer graph nodes than slicing s again.
+        ``tau_id``: the feed-forward's ID when already computed (batched with the law's own RNE)."""
+        c, g, _, _ = self.coefficients()
+        if tau_id is None:
+            tau_id = self.rne.inverse_dynamics(*self.feedforward_point(q, e, qd, e_dot, qdd_d))
         r = c * tau_fb + g * tau_id
         if self.use_residual:
             r = r + self.bound * torch.tanh(self.net((s - self.in_mean) / self.in_std) / self.bound)
@@ -338,10 +345,17 @@ def _structured_policy_class() -> type:
             parts = torch.split(x, [n] * 5 + ([size] if size else []), 1)
             q, qd, q_d, qd_d, qdd_d = parts[:5]
             state = parts[5] if size else x[:, 5 * n : 5 * n]
-            tau_fb, next_state = self.law.step(torch, state, q, qd, q_d, qd_d, qdd_d)
             e, e_dot = q_d - q, qd_d - qd
+            # a law with a nominal model (H-infinity, SMC) runs its RNE and the feed-forward's as one batch
+            nominal = getattr(self.law, "nominal", None)
+            if nominal is not None and hasattr(nominal, "pending"):
+                nominal.pending, nominal.pending_result = self.emulator.feedforward_point(q, e, qd, e_dot, qdd_d), None
+            tau_fb, next_state = self.law.step(torch, state, q, qd, q_d, qd_d, qdd_d)
+            tau_id = None
+            if nominal is not None and hasattr(nominal, "pending"):
+                tau_id, nominal.pending, nominal.pending_result = nominal.pending_result, None, None
             guard = torch.cat([q, e, qd, e_dot, qdd_d, tau_fb], 1)  # GUARD_FEATURES order = the emulator's s
-            r = self.emulator.from_parts(q, e, qd, e_dot, qdd_d, tau_fb, guard)
+            r = self.emulator.from_parts(q, e, qd, e_dot, qdd_d, tau_fb, guard, tau_id)
             # the trust region, as FusedPolicy.forward (hil_runtime.bundle.trust_filter is the reference)
             excess = torch.clamp(torch.maximum(self.box_low - guard, guard - self.box_high), min=0.0) * self.box_inv_span
             alpha = torch.clamp(1.0 - torch.amax(excess, 1, keepdim=True) * self.inv_margin, 0.0, 1.0)
@@ -402,7 +416,8 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
         return c * tau_fb + g * tau_id
 
     params = [model.theta_c, model.theta_g, model.theta_kp, model.theta_kd]
-    denom = float(torch.mean((yt * scale) ** 2)) + 1e-30
+    # relative to the label's size; for the control row (y = 0) relative to 1e-6 of the law's torque
+    denom = float(torch.mean((yt * scale) ** 2)) + 1e-6 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
     started = time.perf_counter()
     optimizer = torch.optim.LBFGS(params, lr=1.0, max_iter=config.physics_epochs, tolerance_grad=1e-12,
                                   tolerance_change=1e-14, history_size=50, line_search_fn="strong_wolfe")  # fmt: skip
@@ -522,6 +537,46 @@ def jsonable_config(config: StructuredConfig) -> dict[str, Any]:
 
 
 # --- the whole stage ---------------------------------------------------------------------------
+_DATA_FIELDS = ("robot", "gain_set", "hmpc_options", "target", "train_conditions", "train_seed", "duration_s", "stride",
+                "dt_s", "substeps", "accel_noise_rad_s2", "noise_hold_steps", "noise_fraction", "perturbed_copies",
+                "perturb_error_rad", "perturb_rate_rad_s", "seed")  # fmt: skip
+
+
+def _data_key(config: StructuredConfig) -> str:
+    """What the rollouts depend on (a cache made with other settings is not reused)."""
+    return json.dumps({k: jsonable_config(config)[k] for k in _DATA_FIELDS}, sort_keys=True)
+
+
+def _cached_rollouts(work: Path, config: StructuredConfig, conditions: list[Any], log: Callable[[str], None]) -> dict[str, Any]:
+    """Per law, <work>/rollouts_<law>.pkl when made with the same settings; the missing laws are run
+    (side by side in one plant) and cached."""
+    import pickle
+
+    key = _data_key(config)
+    data: dict[str, Any] = {}
+    for name in config.laws:
+        path = work / f"rollouts_{name}.pkl"
+        if path.exists():
+            try:
+                stored_key, value = pickle.loads(path.read_bytes())
+                if stored_key == key:
+                    data[name] = value
+            except Exception:  # noqa: BLE001 - an unreadable cache is regenerated, never trusted
+                pass
+    if data:
+        log(f"rollouts: reusing {', '.join(sorted(data))} from {work}")
+    missing = tuple(name for name in config.laws if name not in data)
+    if missing:
+        fresh = collect(config, conditions, law_names=missing)
+        for name in missing:
+            path = work / f"rollouts_{name}.pkl"
+            tmp = path.with_suffix(".tmp")
+            tmp.write_bytes(pickle.dumps((key, fresh[name])))
+            tmp.replace(path)
+            data[name] = fresh[name]
+    return {name: data[name] for name in config.laws}
+
+
 def run_structured(config: StructuredConfig, bundles: Path, work: Path, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Rollouts -> fit -> export (-> DAgger rounds); returns a summary (also written to work/structured.json)."""
     from models.lmpc.paper_range import paper_range_conditions
@@ -531,7 +586,7 @@ def run_structured(config: StructuredConfig, bundles: Path, work: Path, log: Cal
     started = time.perf_counter()
     conditions = paper_range_conditions(robot, config.train_conditions, config.train_seed, prefix="T")
     conditions = [replace(c, duration_s=config.duration_s) for c in conditions]
-    data = collect(config, conditions)
+    data = _cached_rollouts(work, config, conditions, log)
     counts = ", ".join(f"{k} {len(v['q'])}" for k, v in data.items())
     log(f"rollouts: {counts} states ({time.perf_counter() - started:.0f} s)")
     summary: dict[str, Any] = {"config": jsonable_config(config), "rounds": []}

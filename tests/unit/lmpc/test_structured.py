@@ -63,7 +63,8 @@ def test_paper_range_conditions_are_seeded_in_range_and_parsed() -> None:
 def _tiny(target: str, **extra):  # type: ignore[no-untyped-def]
     from models.lmpc.structured import StructuredConfig
 
-    return StructuredConfig(laws=("pd",), target=target, train_conditions=2, duration_s=0.3, stride=10, residual_epochs=2,
+    extra.setdefault("laws", ("pd",))
+    return StructuredConfig(target=target, train_conditions=2, duration_s=0.3, stride=10, residual_epochs=2,
                             physics_epochs=50, perturb_error_rad=1e-4, perturb_rate_rad_s=1e-2, **extra)  # fmt: skip
 
 
@@ -71,9 +72,10 @@ def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.structured import run_structured
 
-    summary = run_structured(_tiny("hmpc"), tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
+    summary = run_structured(_tiny("hmpc", laws=("pd", "smc")), tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
     fit = summary["rounds"][0]["pd"]
     assert fit["onnx_vs_torch_max_abs_nm"] <= 1e-5
+    assert summary["rounds"][0]["smc"]["onnx_vs_torch_max_abs_nm"] <= 1e-5  # the law's RNE batched with the feed-forward's
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
     assert bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
     assert bundle.manifest["training"]["design"].startswith("structured")
@@ -107,3 +109,22 @@ def test_structured_config_refuses_unknown_options() -> None:
     for bad in ({"target": "mpc"}, {"ff_point": "desired"}, {"train_conditions": 0}):
         with pytest.raises(ModelInputError, match="structured lmpc"):
             StructuredConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
+    from models.feedback._common import NominalModel
+    from models.lmpc.compact_rne import CompactNominal
+
+    robot = load_robot("ur5_paper")
+    nominal = CompactNominal(NominalModel(robot))
+    rng = np.random.default_rng(2)
+    q, qd, qdd, pq, pqd, pa = (torch.as_tensor(rng.normal(size=(4, 6))) for _ in range(6))
+    alone_law, alone_caller = nominal.inverse_dynamics(torch, q, qd, qdd), nominal.rne.inverse_dynamics(pq, pqd, pa)
+    nominal.pending = (pq, pqd, pa)
+    both = nominal.inverse_dynamics(torch, q, qd, qdd)
+    assert nominal.pending is None
+    torch.testing.assert_close(both, alone_law, rtol=0, atol=1e-12)
+    torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
+    nominal.pending = (pq, pqd, pa)
+    torch.testing.assert_close(nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11)
+    torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
