@@ -78,7 +78,14 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
     notifier = Notifier.from_environment()
     runtime = build_runtime(config, notifier=notifier, record_cycles=record_cycles)
     runtime.telemetry = make_telemetry(config, runtime)
-    runtime.lifecycle.subscribe(lambda state, fault: _say(f"state {state.value}" + (f": {fault}" if fault else "")))
+    configured = threading.Event()
+
+    def say_state(state: LifecycleState, fault: str | None) -> None:
+        # A refused start-up is one line (the error, printed by the CLI): no "state FINALIZED" before it.
+        if configured.is_set() or state is not LifecycleState.FINALIZED:
+            _say(f"state {state.value}" + (f": {fault}" if fault else ""))
+
+    runtime.lifecycle.subscribe(say_state)
     if config.loop.lock_memory:
         lock_memory(runtime.realtime)
     control = ControlServer(config.control_socket, runtime) if config.control_socket else None
@@ -94,6 +101,7 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
     outcome: dict[str, Any] = {}
     try:
         runtime.configure()  # StartupError (exit 2): drives never enabled
+        configured.set()
         _say(f"configured {len(config.joint_names)} joints, bundle {runtime.bundle.law_name} "
              f"({config.bundle.mode}), period {config.period_s * 1e3:g} ms, pacing {config.loop.pacing}"
              + (f", control socket {config.control_socket}" if control else ""))  # fmt: skip
