@@ -15,13 +15,18 @@ def faults(
     repeats: Annotated[int | None, typer.Option(help="runs of each fault (default 3; 1 with --quick)")] = None,
     seed: Annotated[int, typer.Option(help="base seed of the repeats")] = 0,
     only: Annotated[str | None, typer.Option(help="comma-separated fault names (see docs/faults.md)")] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="the runtime's and target's logs too")] = False,
 ) -> None:
     """Inject every fault into a live runtime + pybullet target; exit 1 if any row fails."""
+    import logging
+
     from hil_runtime.outputs import prepare_output_dir
     from sim_target.faults.campaign import run_campaign, select
 
     names = tuple(x.strip() for x in only.split(",") if x.strip()) if only else None
     select(quick, names)  # unknown names: one line, exit 2, before any work
+    # The runtime logs every FAULT it enters; here they are the expected outcome, in the table.
+    logging.basicConfig(level=logging.INFO if verbose else logging.CRITICAL, format="%(asctime)s %(name)s %(message)s")
     out_dir = prepare_output_dir(out)
     count = repeats if repeats is not None else (1 if quick else 3)
 

@@ -367,6 +367,7 @@ class DaemonRig:
     stderr_lines: list[str] = field(default_factory=list)
     _reader: threading.Thread | None = None
     configured_at: float | None = None
+    active_at: float | None = None  # when the daemon said it reached ACTIVE
 
     def start_reader(self) -> None:
         def read() -> None:
@@ -375,6 +376,8 @@ class DaemonRig:
                 self.stderr_lines.append(line.rstrip("\n"))
                 if self.configured_at is None and "hil run: configured" in line:
                     self.configured_at = time.monotonic()
+                if self.active_at is None and "hil run: state ACTIVE" in line:
+                    self.active_at = time.monotonic()
 
         self._reader = threading.Thread(target=read, name="daemon-stderr", daemon=True)
         self._reader.start()
@@ -414,7 +417,7 @@ def daemon_rig(work: Path, *, watchdog_usec: int = 200_000, bus: dict[str, Any] 
     """``hil target serve`` (ipc bus) and ``hil run`` as two processes, sd_notify to a socket of ours."""
     from sim_target.launch import launch_target
 
-    work.mkdir(parents=True, exist_ok=True)
+    (work / "t").mkdir(parents=True, exist_ok=True)
     with launch_target(target_config(), "ipc", work_dir=work / "t") as target:
         port = free_port()
         sock = work / "runtime.sock"
