@@ -251,11 +251,19 @@ class ZenohTelemetry:
         self._token = None
         self._declared.clear()
         self._publishers.clear()
-        try:
-            self._session.close()
-        except Exception as exc:  # noqa: BLE001
-            log.debug("telemetry: session close failed: %s", exc)
-        self._session = None
+        # Zenoh's close flushes every link and waits up to 10 s for a peer that stopped reading (a
+        # stalled subscriber, until its lease runs out); the runtime's shutdown must not. Close on a
+        # helper thread, wait at most close_timeout_s, and go on. Not a daemon thread: the
+        # interpreter waits for it at exit (a daemon thread still inside Zenoh aborts the process).
+        session, self._session = self._session, None
+        closer = threading.Thread(target=_close_quietly, args=(session,), name="telemetry-close", daemon=False)
+        closer.start()
+        closer.join(self.config.close_timeout_s)
+        if closer.is_alive():
+            log.warning(
+                "telemetry: Zenoh session still closing after %.1f s (a stalled peer); not waiting",
+                self.config.close_timeout_s,
+            )
 
     # --- counters -------------------------------------------------------------------------------
 
@@ -369,6 +377,13 @@ class ZenohTelemetry:
             query.reply(key, _json_bytes({"ok": True, "request": name}))
 
         return control
+
+
+def _close_quietly(session: Any) -> None:
+    try:
+        session.close()
+    except Exception as exc:  # noqa: BLE001 - nothing to do about it at shutdown
+        log.debug("telemetry: session close: %s", exc)
 
 
 _KIND_OF = {"state": Kind.STATE, "stats": Kind.STATS, "status": Kind.STATUS, "events": Kind.EVENT}
