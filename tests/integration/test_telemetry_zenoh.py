@@ -343,3 +343,52 @@ def test_the_documented_access_control_restricts_the_controls(tmp_path: Path, in
     finally:
         sink.close()
     assert controls.stops == (1 if stop_allowed else 0) and controls.resets == 0
+
+
+def test_close_is_bounded_with_a_stalled_subscriber() -> None:
+    port = _free_port()
+    sink = make_sink(TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), close_timeout_s=0.5), "arm_q",
+                     {"joints": list(JOINTS)})  # fmt: skip
+    sink.start()
+    code = (
+        "import time\n"
+        "from hil_runtime.telemetry.subscriber import TelemetryClient\n"
+        f"c = TelemetryClient.open(['tcp/127.0.0.1:{port}'], 'arm_q')\n"
+        "n = [0]\n"
+        "def got(p):\n"
+        "    n[0] += 1\n"
+        "    if n[0] == 100: print('receiving', flush=True)\n"
+        "c.subscribe('state', got)\n"
+        "time.sleep(60)\n"
+    )
+    subscriber = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    stop = threading.Event()
+    zeros = np.zeros(len(JOINTS))
+
+    def feed() -> None:
+        seq = 0
+        while not stop.is_set():
+            sink.offer_state(seq, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0)
+            seq += 1
+            time.sleep(0.001)
+
+    feeder = threading.Thread(target=feed)
+    feeder.start()
+    try:
+        assert subscriber.stdout is not None and subscriber.stdout.readline().strip() == "receiving"
+        os.kill(subscriber.pid, signal.SIGSTOP)
+        time.sleep(1.5)  # its TCP window fills: the link cannot be flushed
+        stop.set()
+        feeder.join()
+        begin = time.monotonic()
+        sink.close()
+        took_s = time.monotonic() - begin
+    finally:
+        stop.set()
+        subscriber.kill()
+        subscriber.wait(10)
+    for thread in threading.enumerate():  # Zenoh finishes once the peer is gone
+        if thread.name == "telemetry-close":
+            thread.join(15)
+    print(f"close took {took_s:.2f} s with a stalled subscriber")
+    assert took_s < 0.5 + 0.5
