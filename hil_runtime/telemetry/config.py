@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -44,6 +45,12 @@ class TelemetryConfigError(ValueError):
     """A telemetry config the runtime refuses; the message is one line naming source and field."""
 
     exit_code = 2
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """Zenoh's error text in one line, without its Rust source locations."""
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", text).strip()
 
 
 def _endpoint_host(endpoint: str) -> str | None:
@@ -174,7 +181,7 @@ def zenoh_config(
         conf = zenoh.Config.from_file(str(base_file)) if base_file is not None else zenoh.Config()
     except zenoh.ZError as exc:
         raise TelemetryConfigError(
-            f"{base_file}: not a valid Zenoh json5 config ({str(exc).splitlines()[0]})"
+            f"{base_file}: not a valid Zenoh json5 config ({zenoh_reason(exc)})"
         ) from None
     conf.insert_json5("mode", json.dumps(mode))
     # Peers are named, never discovered: nothing is sent to a multicast group or gossiped on.

@@ -47,7 +47,7 @@ from hil_runtime.telemetry.codec import (
     encode_stats,
     state_size,
 )
-from hil_runtime.telemetry.config import TelemetryConfig, TelemetryConfigError, publisher_zenoh_config
+from hil_runtime.telemetry.config import TelemetryConfig, TelemetryConfigError, publisher_zenoh_config, zenoh_reason
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ class ZenohTelemetry:
         except zenoh.ZError as exc:
             endpoints = ", ".join(self.config.listen) or "-"
             raise TelemetryStartError(
-                f"telemetry: cannot open the Zenoh session (listen {endpoints}): {str(exc).splitlines()[0]}"
+                f"telemetry: cannot open the Zenoh session (listen {endpoints}): {zenoh_reason(exc)}"
             ) from None
         session = self._session
         for name in ("state", "stats", "status", "events"):

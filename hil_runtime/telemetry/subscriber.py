@@ -23,7 +23,14 @@ from typing import Any, Self
 import numpy as np
 
 from hil_runtime.telemetry.codec import HEADER_SIZE, Schema, TelemetryDecodeError
-from hil_runtime.telemetry.config import DEFAULT_LISTEN, KEY_PREFIX, TelemetryConfigError, check_key_chunk, zenoh_config
+from hil_runtime.telemetry.config import (
+    DEFAULT_LISTEN,
+    KEY_PREFIX,
+    TelemetryConfigError,
+    check_key_chunk,
+    zenoh_config,
+    zenoh_reason,
+)
 
 QUERYABLES = ("schema", "config", "bundle")
 CONTROLS = ("stop", "reset")
@@ -65,7 +72,7 @@ class TelemetryClient:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:
             raise TelemetryUnavailable(
-                f"cannot open a Zenoh session to {', '.join(connect)}: {str(exc).splitlines()[0]}"
+                f"cannot open a Zenoh session to {', '.join(connect)}: {zenoh_reason(exc)}"
             ) from None
         try:
             if robot is None:

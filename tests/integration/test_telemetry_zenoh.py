@@ -392,3 +392,21 @@ def test_close_is_bounded_with_a_stalled_subscriber() -> None:
             thread.join(15)
     print(f"close took {took_s:.2f} s with a stalled subscriber")
     assert took_s < 0.5 + 0.5
+
+
+def test_a_port_in_use_is_one_line() -> None:
+    from hil_runtime.telemetry.publisher import TelemetryStartError
+
+    port = _free_port()
+    config = TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",))
+    first = make_sink(config, "arm_q", {"joints": list(JOINTS)})
+    first.start()
+    try:
+        with pytest.raises(TelemetryStartError) as info:
+            make_sink(config, "arm_q", {"joints": list(JOINTS)}).start()
+    finally:
+        first.close()
+    text = str(info.value)
+    assert text.startswith(f"telemetry: cannot open the Zenoh session (listen tcp/127.0.0.1:{port}): ")
+    assert "Address already in use" in text and ".rs:" not in text and "\n" not in text
+    assert info.value.exit_code == 2
