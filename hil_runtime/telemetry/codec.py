@@ -344,9 +344,17 @@ def encode_state(
 
 
 def encode_stats(seq: int, t_ns: int, values: Mapping[str, float], fields: Sequence[str] = STATS_FIELDS) -> bytes:
-    body = np.array([float(values.get(name, np.nan)) for name in fields], dtype="<f8")
+    body = np.array([_as_float(values.get(name)) for name in fields], dtype="<f8")
     return encode_header(Kind.STATS, seq, t_ns) + body.tobytes()
 
 
 def encode_json(kind: Kind, seq: int, t_ns: int, body: Mapping[str, Any]) -> bytes:
-    return encode_header(kind, seq, t_ns) + json.dumps(dict(body), separators=(",", ":")).encode("utf-8")
+    return encode_header(kind, seq, t_ns) + json.dumps(dict(body), separators=(",", ":"), default=str).encode("utf-8")
+
+
+def _as_float(value: Any) -> float:
+    """A stat as float64; missing or not a number (None, text) is NaN, never an exception."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -149,3 +150,10 @@ def test_decode_header_on_any_payload() -> None:
     header = decode_header(encode_json(Kind.EVENT, 5, 6, {"kind": "k", "cycle": 1, "detail": ""}))
     assert header.kind is Kind.EVENT and header.seq == 5
     assert MAGIC == b"HILT"
+
+
+def test_stats_that_are_not_numbers_become_nan(schema: Schema) -> None:
+    _, stats = schema.decode_stats(encode_stats(1, 1, {"rate_hz": None, "overruns": "x", "cycles": True}))
+    assert np.isnan(stats["rate_hz"]) and np.isnan(stats["overruns"]) and stats["cycles"] == 1.0
+    _, body = schema.decode_event(encode_json(Kind.EVENT, 1, 1, {"kind": "k", "cycle": 1, "detail": Path("/x")}))
+    assert body["detail"] == "/x"
