@@ -104,6 +104,12 @@ class TelemetryWatch:
         self.client.subscribe("events", self._on_event)
         self.client.subscribe("status", self._on_status)
         self.client.subscribe("state", self._on_state)
+        # Zenoh routes a new subscription within milliseconds, not at once: an event published
+        # before then would not reach it. The status is republished every stats period: once one
+        # has arrived, so will everything after it.
+        deadline = time.monotonic() + 5.0
+        while not self.statuses and time.monotonic() < deadline:
+            time.sleep(0.01)
 
     def _on_event(self, payload: bytes) -> None:
         _, body = self.schema.decode_event(payload)
