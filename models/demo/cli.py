@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -63,7 +62,7 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
 
     # --- the report: the simulation twin, the scores, the figures, the files -----------------------
     console.print("hil demo: simulating the same bundle on the same condition (models simulator) ...")
-    steps = int(round(condition.duration_s / outcome.period_s))
+    steps = round(condition.duration_s / outcome.period_s)
     hil, coverage = report.hil_trajectory(outcome.record, steps, outcome.period_s)
     sim, sim_wall_s = report.simulate_twin(robot, options.law, options.mode, condition, _bundle_gain_set(options))
     scores = report.compare(robot, condition, hil, sim, outcome.fault)
@@ -73,7 +72,7 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     bundle_dir = _bundle_dir(options)
     results: dict[str, Any] = {
         "demo": {**asdict(options), "duration_s": condition.duration_s, "disturbance_s": disturbance_s,
-                 "period_s": outcome.period_s, "bundle": str(bundle_dir), "steps": steps},  # fmt: skip
+                 "period_s": outcome.period_s, "bundle": str(bundle_dir), "steps": steps},
         "fault": outcome.fault,
         "coverage": coverage,
         "scores": scores,
@@ -83,7 +82,7 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
         "shutdown": outcome.shutdown,
         "processes": outcome.processes,
         "wall_s": {**{k: round(v, 2) for k, v in outcome.wall_s.items()}, "hil_total_s": round(hil_wall_s, 2),
-                   "simulation_s": round(sim_wall_s, 2)},  # fmt: skip
+                   "simulation_s": round(sim_wall_s, 2)},
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "work_dir": outcome.work_dir,
     }
@@ -93,9 +92,9 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
         write_text_atomic(logs / f"{name}.log", text)
     save_record(recording, out_dir / "run.npz", outcome.documents)
     with atomic_path(out_dir / "runtime_record.npz") as tmp:
-        np.savez_compressed(tmp, **outcome.record)
+        np.savez_compressed(tmp, **outcome.record)  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
     with atomic_path(out_dir / "simulation.npz") as tmp:
-        np.savez_compressed(tmp, **{k: v for k, v in sim.items() if k != "within_limits"})
+        np.savez_compressed(tmp, **{k: v for k, v in sim.items() if k != "within_limits"})  # type: ignore[arg-type]  # as above
     title = (f"{options.law.upper()} {options.mode.upper()} on {condition.name}: tracking error, HIL (hil run + "
              f"pybullet target over the ipc bus) and simulation")  # fmt: skip
     report.plot_tracking_error(hil, sim, list(outcome.schema.joints), title, disturbance_s, out_dir / "tracking_error.png")
@@ -124,7 +123,7 @@ def demo(
     law: Annotated[str, typer.Option(help=f"The bundle's law (default: the best LMPC law of Table I, {BEST_LMPC_LAW}).")] = BEST_LMPC_LAW,
     mode: Annotated[str, typer.Option(help="lmpc: law + emulator (the bundle); fb: the law alone.")] = "lmpc",
     condition: Annotated[str, typer.Option(help="One of the paper's conditions, C1..C5 (each with its disturbance).")] = DEFAULT_CONDITION,
-    duration: Annotated[Optional[float], typer.Option(help="Seconds of the condition to run (default: all of it, 5 s).")] = None,
+    duration: Annotated[float | None, typer.Option(help="Seconds of the condition to run (default: all of it, 5 s).")] = None,
     realtime: Annotated[bool, typer.Option("--realtime", help="Free-running: the target on its own clock, the runtime on absolute deadlines (default: lock-step).")] = False,
     headless: Annotated[bool, typer.Option("--headless", help="No live view (CI): the same run and outputs.")] = False,
     gui: Annotated[bool, typer.Option("--gui", help="Also open pybullet's viewer on the arm (needs a display).")] = False,

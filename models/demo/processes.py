@@ -11,7 +11,6 @@ kernel sends the children SIGTERM, the stop path they handle. Their stderr goes 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
 import signal
 import socket
@@ -20,8 +19,6 @@ import sys
 import time
 from pathlib import Path
 
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
-
 
 class DemoError(RuntimeError):
     """A demo that cannot go on (a child failed to start, a fault): one line, exit code 1."""
@@ -29,15 +26,21 @@ class DemoError(RuntimeError):
     exit_code = 1
 
 
-def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
-    # The demo holds SIGINT/SIGTERM blocked while it creates a child, and exec keeps the mask:
-    # unblock them, or the child would never see its SIGTERM.
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-    except (OSError, AttributeError):  # not Linux: the demo's own finally still stops the child
-        pass
+# Runs first in each child, then the CLI. Not a preexec_fn: forking a process that has threads
+# (Zenoh's) and running Python before exec can deadlock. The demo holds SIGINT/SIGTERM blocked while
+# it creates a child (exec keeps the mask): unblock them, or the child never sees its SIGTERM. Then
+# ask the kernel for SIGTERM when the demo dies, and leave at once if it already has.
+_CHILD_SHIM = """\
+import ctypes, os, runpy, signal, sys
+signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+try:
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+except (OSError, AttributeError):
+    pass
+if os.getppid() != int(os.environ["HIL_DEMO_PARENT_PID"]):
+    sys.exit(1)
+runpy.run_module("hil_runtime.cli", run_name="__main__", alter_sys=True)
+"""
 
 
 def free_loopback_port() -> int:
@@ -48,17 +51,16 @@ def free_loopback_port() -> int:
 
 
 class Child:
-    """One ``python -m hil_runtime.cli ...`` process in its own session, stderr to ``log_path``."""
+    """One ``hil ...`` process (this interpreter) in its own session, stderr to ``log_path``."""
 
     def __init__(self, name: str, args: list[str], log_path: Path) -> None:
         self.name = name
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and module
-            [sys.executable, "-m", "hil_runtime.cli", *args],
-            stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, env=env,
-            start_new_session=True, preexec_fn=_child_setup,
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HIL_DEMO_PARENT_PID": str(os.getpid())}
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", _CHILD_SHIM, *args],
+            stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
         )  # fmt: skip
         self.pid = self.process.pid
         self.signalled_s: float | None = None  # when stop() sent SIGTERM

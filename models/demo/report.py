@@ -95,7 +95,7 @@ def compare(robot: Any, condition: Any, hil: dict[str, np.ndarray], sim: dict[st
     return {
         "metrics": {"hil": m_hil, "sim": m_sim},
         "relative": {m: (m_hil[m] - m_sim[m]) / abs(m_sim[m]) if m_sim[m] else (0.0 if m_hil[m] == 0 else math.inf)
-                     for m in METRICS},  # fmt: skip
+                     for m in METRICS},
         "composite": composite,
         "within_limits": {"hil": hil_ok, "sim": sim_ok},
         "trajectory_rms_diff_deg": float(np.sqrt(np.mean(diff_deg**2))),
@@ -215,17 +215,21 @@ def format_summary(results: dict[str, Any]) -> str:
     demo, scores, timing, stop = results["demo"], results["scores"], results["timing"], results["shutdown"]
     law = _LAW_TITLE.get(demo["law"], demo["law"])
     m_hil, m_sim = scores["metrics"]["hil"], scores["metrics"]["sim"]
+    clock = "free-running in real time" if demo["realtime"] else "lock-stepped"
+    disturbance = f" (disturbance at {demo['disturbance_s']:g} s)" if demo.get("disturbance_s") is not None else ""
     lines = [
         f"# hil demo: {law} {demo['mode'].upper()} on {demo['condition']}",
         "",
-        f"The runtime (`hil run`, bundle `{demo['bundle']}`) drove the pybullet UR5 (`hil target serve`) over the "
-        f"ipc CAN bus, {'free-running in real time' if demo['realtime'] else 'lock-stepped'} at "
-        f"{demo['period_s'] * 1e3:g} ms, for {demo['duration_s']:g} s of condition {demo['condition']}"
-        + (f" (disturbance at {demo['disturbance_s']:g} s)." if demo.get("disturbance_s") is not None else "."),
+        (f"The runtime (`hil run`, bundle `{demo['bundle']}`) drove the pybullet UR5 (`hil target serve`) over "
+         f"the ipc CAN bus, {clock} at {demo['period_s'] * 1e3:g} ms, for {demo['duration_s']:g} s of condition "
+         f"{demo['condition']}{disturbance}."),
         "",
-        *([f"**The runtime FAULTED** after {timing['cycles']} cycles: {results['fault']}. The drives were "
-           "quick-stopped; the HIL scores below are of a run held at its last pose from there, not comparable.", ""]
-          if results.get("fault") else []),
+    ]
+    if results.get("fault"):
+        lines += [(f"**The runtime FAULTED** after {timing['cycles']} cycles: {results['fault']}. The drives were "
+                   "quick-stopped; the HIL scores below are of a run held at its last pose from there, not comparable."),
+                  ""]  # fmt: skip
+    lines += [
         "## Scores (smaller is better), beside the simulation of the same bundle and condition",
         "",
         "| metric | HIL | simulation | Δ (%) |",
@@ -233,41 +237,44 @@ def format_summary(results: dict[str, Any]) -> str:
     ]
     for name in METRICS:
         rel = scores["relative"][name]
-        lines.append(f"| {_METRIC_TITLE[name]} | {m_hil[name]:.4g} | {m_sim[name]:.4g} | "
-                     f"{'—' if not math.isfinite(rel) else f'{100 * rel:+.1f}'} |")  # fmt: skip
+        shown = "—" if not math.isfinite(rel) else f"{100 * rel:+.1f}"
+        lines.append(f"| {_METRIC_TITLE[name]} | {m_hil[name]:.4g} | {m_sim[name]:.4g} | {shown} |")
     comp = scores["composite"]
+    shown = f"{100 * (comp['hil'] - comp['sim']) / comp['sim']:+.1f}" if comp["sim"] else "—"
+    inside = {k: "yes" if v else "NO" for k, v in scores["within_limits"].items()}
     lines += [
-        f"| composite (normalized between the two) | {comp['hil']:.3f} | {comp['sim']:.3f} | "
-        f"{100 * (comp['hil'] - comp['sim']) / comp['sim']:+.1f} |" if comp["sim"] else "| composite | — | — | — |",
+        f"| composite (normalized between the two) | {comp['hil']:.3f} | {comp['sim']:.3f} | {shown} |",
         "",
-        f"Trajectory difference HIL − simulation: RMS {scores['trajectory_rms_diff_deg']:.4f} deg, max "
-        f"{scores['trajectory_max_diff_deg']:.4f} deg. Inside the joint limits: HIL "
-        f"{'yes' if scores['within_limits']['hil'] else 'NO'}, simulation {'yes' if scores['within_limits']['sim'] else 'NO'}. "
-        f"Cycles with the trust region's fallback: {scores['fallback_cycles']['hil']}.",
+        (f"Trajectory difference HIL − simulation: RMS {scores['trajectory_rms_diff_deg']:.4f} deg, max "
+         f"{scores['trajectory_max_diff_deg']:.4f} deg. Inside the joint limits: HIL {inside['hil']}, simulation "
+         f"{inside['sim']}. Cycles with the trust region's fallback: {scores['fallback_cycles']['hil']}."),
         "",
         "## The loop (the runtime's own stats over the run)",
         "",
         "| figure | median | p99 | max |",
         "|---|---|---|---|",
     ]
-    for name, key in (("period (µs)", "period_us"), ("compute (µs)", "compute_us"), ("exchange on the bus (µs)", "exchange_us")):
+    for name, key in (("period (µs)", "period_us"), ("compute (µs)", "compute_us"),
+                      ("exchange on the bus (µs)", "exchange_us")):  # fmt: skip
         value = timing.get(key) or {}
         lines.append(f"| {name} | {value.get('median', '—')} | {value.get('p99', '—')} | {value.get('max', '—')} |")
+    drives = ("all quick-stopped (Operation Enabled off)" if stop.get("drives_stopped")
+              else str(stop.get("drives_operation_enabled_after_stop")))  # fmt: skip
     lines += [
         "",
-        f"Rate {timing['rate_hz']} Hz over {timing['cycles']} cycles, overruns {timing['overruns']}, telemetry "
-        f"{timing['telemetry_sent']} sent / {timing['telemetry_dropped']} dropped; received by the demo: "
-        f"{results['telemetry']['samples']} states, {results['telemetry']['missing']} missing. Machine load average "
-        f"{results['load_average']}.",
+        (f"Rate {timing['rate_hz']} Hz over {timing['cycles']} cycles, overruns {timing['overruns']}, telemetry "
+         f"{timing['telemetry_sent']} sent / {timing['telemetry_dropped']} dropped; received by the demo: "
+         f"{results['telemetry']['samples']} states, {results['telemetry']['missing']} missing. Machine load "
+         f"average {results['load_average']}."),
         "",
         "## Stop",
         "",
-        f"hil run: SIGTERM → exit {stop['runtime_exit_code']} in {results['processes'].get('runtime', {}).get('stop_s')} s; "
-        f"drives afterwards: {'all quick-stopped (Operation Enabled off)' if stop.get('drives_stopped') else stop.get('drives_operation_enabled_after_stop')}; "
-        f"target exit {stop['target_exit_code']}; processes left {stop['processes_alive'] or 'none'}; ipc sockets left "
-        f"{stop['ipc_sockets_left'] or 'none'}; private directory removed: {'yes' if stop['work_dir_removed'] else 'NO'}.",
+        (f"hil run: SIGTERM → exit {stop['runtime_exit_code']} in "
+         f"{results['processes'].get('runtime', {}).get('stop_s')} s; drives afterwards: {drives}; target exit "
+         f"{stop['target_exit_code']}; processes left {stop['processes_alive'] or 'none'}; ipc sockets left "
+         f"{stop['ipc_sockets_left'] or 'none'}; private directory removed: {'yes' if stop['work_dir_removed'] else 'NO'}."),
         "",
-    ]  # fmt: skip
+    ]
     return "\n".join(lines)
 
 

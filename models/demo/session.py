@@ -20,7 +20,6 @@ run in their own sessions and die with the demo: models/demo/processes.py).
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import shutil
@@ -125,6 +124,9 @@ def demo_condition(options: DemoOptions, robot: Any) -> Any:
         if condition.name == options.condition:
             if options.duration_s is not None:
                 condition = replace(condition, duration_s=float(options.duration_s))
+                d = condition.disturbance
+                if d is not None and d.time_s >= condition.duration_s:
+                    condition = replace(condition, disturbance=None)  # the run ends before it
             return condition
     names = ", ".join(c.name for c in conditions)
     raise ModelInputError(f"--condition: unknown '{options.condition}' (the paper's: {names})")
@@ -155,7 +157,7 @@ def runtime_config(options: DemoOptions, robot: Any, condition: Any, period_s: f
     transport = {"interface": "ipc", "channel": str(bus_dir), **CAN_FD}
     data = runtime_config_dict(robot, bundle_path(robot.name, options.law, None), options.mode, transport, period_s,
                                conditions_file, condition.name)  # fmt: skip
-    steps = int(round(condition.duration_s / period_s))
+    steps = round(condition.duration_s / period_s)
     data["loop"] = {
         "pacing": "clock" if options.realtime else "bus",
         "time_base": "wall" if options.realtime else "cycles",
@@ -232,7 +234,7 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
     from sim_target.control import send_control
 
     period_s = 1e-3  # the paper's, and the shipped bundles'
-    steps = int(round(condition.duration_s / period_s))
+    steps = round(condition.duration_s / period_s)
     phase = DemoPhase(duration_s=condition.duration_s, robot=robot.name)
     started = time.monotonic()
     wall: dict[str, float] = {}
@@ -264,6 +266,12 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
             (work / "target.yaml").write_text(yaml.safe_dump(target_config(options, period_s, bus_dir, target_sock)))
             (work / "runtime.yaml").write_text(yaml.safe_dump(runtime_config(
                 options, robot, condition, period_s, bus_dir, conditions_file, runtime_sock, endpoint)))  # fmt: skip
+            # Every check that needs no bus, here and now, before any process starts (one line, exit 2).
+            from hil_runtime.daemon import check as check_runtime_config
+            from sim_target.config import load_target_config
+
+            load_target_config(work / "target.yaml")
+            check_runtime_config(work / "runtime.yaml")
             # Listen first: the daemon connects at start-up, so no sample is published before the
             # demo's subscriptions exist.
             client = _open_listener(endpoint, robot.name)

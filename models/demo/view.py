@@ -49,24 +49,26 @@ class ArmMirror:
     """pybullet's GUI showing the arm at the positions the telemetry reports (not the plant itself:
     the target steps physics headless, so drawing never slows the loop it serves)."""
 
-    def __init__(self, robot_name: str) -> None:
+    def __init__(self, robot_name: str, connection: int | None = None) -> None:
         import pybullet
 
         from models.robots import urdf_path
+        from sim_target.plant import load_arm
 
         self._pb = pybullet
         try:
-            self._client = pybullet.connect(pybullet.GUI)
+            self._client = pybullet.connect(pybullet.GUI if connection is None else connection)
         except pybullet.error as exc:
             raise DemoError(f"--gui: pybullet could not open its viewer ({exc})") from None
         if self._client < 0:
             raise DemoError("--gui: pybullet could not open its viewer (no OpenGL on this display?)")
-        self._body = pybullet.loadURDF(str(urdf_path(robot_name)), useFixedBase=True, physicsClientId=self._client)
+        self._body = load_arm(self._client, urdf_path(robot_name))  # the target's own loader (quiet)
         self._joints: list[int] = []
         for index in range(pybullet.getNumJoints(self._body, physicsClientId=self._client)):
             if pybullet.getJointInfo(self._body, index, physicsClientId=self._client)[2] == pybullet.JOINT_REVOLUTE:
                 self._joints.append(index)
-        pybullet.resetDebugVisualizerCamera(1.6, 45, -25, [0, 0, 0.4], physicsClientId=self._client)
+        if connection is None:
+            pybullet.resetDebugVisualizerCamera(1.6, 45, -25, [0, 0, 0.4], physicsClientId=self._client)
 
     def show(self, watch: Any) -> None:
         sample = getattr(watch, "sample", None)

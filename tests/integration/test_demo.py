@@ -77,7 +77,7 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None
     started = time.monotonic()
     run = subprocess.run(
         [_hil(), "demo", "--headless", "--duration", str(DURATION_S), "--out", str(out)],
-        capture_output=True, text=True, timeout=600, env={**os.environ, "TMPDIR": str(private_tmp)},
+        capture_output=True, text=True, timeout=600, check=False, env={**os.environ, "TMPDIR": str(private_tmp)},
     )  # fmt: skip
     wall_s = time.monotonic() - started
     assert run.returncode == 0, run.stdout + run.stderr
@@ -95,7 +95,7 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None
     assert "state FINALIZED" in (out / "logs" / "runtime.log").read_text()
 
     # The run: the whole (shortened) condition, lock-stepped, no fault.
-    steps = int(round(DURATION_S / 1e-3))
+    steps = round(DURATION_S / 1e-3)
     assert results["fault"] is None and results["coverage"]["complete"]
     with np.load(out / "runtime_record.npz") as data:
         record = {k: data[k] for k in data.files}
@@ -153,7 +153,7 @@ def test_hil_demo_ctrl_c_during_the_run_stops_everything(tmp_path: Path, private
             pytest.fail("the demo never reached its run: " + "".join(lines))
         time.sleep(0.5)
         os.kill(process.pid, signal.SIGINT)
-        stdout, rest = process.communicate(timeout=120)
+        _, rest = process.communicate(timeout=120)
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
@@ -181,7 +181,7 @@ def test_hil_demo_refuses_bad_input_before_starting_anything(tmp_path: Path, pri
                                                              env: dict[str, str], message: str) -> None:  # fmt: skip
     run = subprocess.run(
         [_hil(), "demo", "--headless", "--out", str(tmp_path / "demo"), *args],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "TMPDIR": str(private_tmp), **env},
+        capture_output=True, text=True, timeout=120, check=False, env={**os.environ, "TMPDIR": str(private_tmp), **env},
     )  # fmt: skip
     assert run.returncode == 2, run.stderr
     lines = [line for line in run.stderr.splitlines() if line.strip()]
