@@ -14,7 +14,7 @@ tracks the condition from its t = 0. When the run has covered the condition, the
 as systemd stops it (SIGTERM: quick stop, disable, exit 0), the drives are checked stopped at the
 target, the target is stopped, and the private directory (bus sockets, control sockets, configs)
 is removed. The same stop runs on Ctrl-C or any error, at any moment (try/finally; the children
-run in their own sessions and die with the demo: models/demo/processes.py).
+run in their own sessions and die with the demo: models/demo/processes.py). docs/demo.md.
 """
 
 from __future__ import annotations
