@@ -479,6 +479,11 @@ def prepare_reference_out(work: Path, data: dict[str, Any], target: Any) -> dict
 # --- the daemon as its own process ------------------------------------------------------------------------
 
 
+# Two niced processes on a loaded machine: the heartbeat and feedback waits are loosened (the
+# protocol bounds are measured in process); these cases are about the watchdog and signals.
+DAEMON_BUS = {"heartbeat_timeout_s": 2.0, "feedback_timeout_s": 0.2}
+
+
 def _stderr_ok(lines: list[str]) -> bool:
     return not any("Traceback" in line for line in lines)
 
@@ -488,7 +493,7 @@ def sigterm_during_enable(name: str, repeat: int, seed: int, work: Path) -> Case
     rng = np.random.default_rng(seed)
     result = CaseResult(name, repeat, seed)
     delay_s = float(rng.uniform(0.0, 0.01))
-    with rigs.daemon_rig(work, telemetry=False) as rig:
+    with rigs.daemon_rig(work, telemetry=False, bus=DAEMON_BUS) as rig:
         deadline = time.monotonic() + 90
         while rig.configured_at is None and rig.process.poll() is None and time.monotonic() < deadline:
             time.sleep(0.0005)
@@ -559,8 +564,9 @@ def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
     watchdog_usec = 200_000
     comm_loss_s = 0.3
     stall_s = comm_loss_s + 0.7 + float(rng.uniform(0.0, 0.3))
-    with rigs.daemon_rig(work, watchdog_usec=watchdog_usec, bus={"comm_loss_timeout_s": comm_loss_s}) as rig:
-        status = rig.wait_status(lambda s: s.get("state") == "ACTIVE" and s.get("cycles", 0) > 300, 120)
+    bus = {**DAEMON_BUS, "comm_loss_timeout_s": comm_loss_s}
+    with rigs.daemon_rig(work, watchdog_usec=watchdog_usec, bus=bus) as rig:
+        status = rig.wait_status(lambda s: s.get("state") == "FAULT" or (s.get("state") == "ACTIVE" and s.get("cycles", 0) > 300), 120)
         if status.get("state") != "ACTIVE":
             raise RigFault(f"the daemon did not reach ACTIVE: {status} {rig.stderr_lines[-3:]}")
         watch = rigs.TelemetryWatch(rig.telemetry_port)
