@@ -38,16 +38,19 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     mirror = ArmMirror(robot.name) if gui else None
     shown = {"phase": DemoPhase(duration_s=condition.duration_s)}
 
+    # Without a terminal (piped, a log file) a live view cannot redraw: say each phase instead.
+    say_phases = headless or not console.is_terminal
+
     def on_phase(phase: DemoPhase) -> None:
         shown["phase"] = phase
-        if headless:
+        if say_phases:
             console.print(f"hil demo: {phase.text}", soft_wrap=True)
 
     def tick() -> None:
         if mirror is not None and shown["phase"].watch is not None:
             mirror.show(shown["phase"].watch)
 
-    live = None if headless else Live(get_renderable=lambda: render(shown["phase"], disturbance_s), console=console,
+    live = None if say_phases else Live(get_renderable=lambda: render(shown["phase"], disturbance_s), console=console,
                                       refresh_per_second=8)  # fmt: skip
     try:
         if live is not None:
@@ -61,7 +64,7 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     hil_wall_s = time.monotonic() - started
 
     # --- the report: the simulation twin, the scores, the figures, the files -----------------------
-    console.print("hil demo: simulating the same bundle on the same condition (models simulator) ...")
+    console.print("hil demo: simulating the same bundle on the same condition (models simulator) ...", soft_wrap=True)
     steps = round(condition.duration_s / outcome.period_s)
     hil, coverage = report.hil_trajectory(outcome.record, steps, outcome.period_s)
     sim, sim_wall_s = report.simulate_twin(robot, options.law, options.mode, condition, _bundle_gain_set(options))
