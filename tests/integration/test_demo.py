@@ -175,6 +175,7 @@ def test_hil_demo_ctrl_c_during_the_run_stops_everything(tmp_path: Path, private
         (["--condition", "C9"], {}, "--condition: unknown 'C9'"),
         (["--duration", "nan"], {}, "--duration: must be"),
         (["--mode", "hmpc"], {}, "--mode: unknown 'hmpc'"),
+        (["--out", "/proc/hil-demo-out"], {}, "--out /proc/hil-demo-out: cannot create the directory"),
     ],
 )
 def test_hil_demo_refuses_bad_input_before_starting_anything(tmp_path: Path, private_tmp: Path, args: list[str],
