@@ -111,9 +111,10 @@ class EmulatedDrives:
         self._link = FrameLink(bus)
         self._drives: list[EmulatedDrive] = []
         self._watch = MasterWatch(self._link, self._drives)
+        self._nmt = NmtSlave(self._link, self._drives, lambda drive, comm_only: self._objects.reset(drive, comm_only))
         self._objects = ObjectServer(config.encoder_counts_per_rev, config.heartbeat_producer_ms,
-                                     lambda: self._feedback, lambda: self._sync_counter, self._watch.configure)
-        self._nmt = NmtSlave(self._link, self._drives, self._objects.reset)
+                                     lambda: self._feedback, lambda: self._sync_counter, self._watch.configure,
+                                     self._nmt.schedule)
         eds = config.eds_path or odx.EDS_PATH
         self._network = _EmuNetwork(self)
         counts_per_rad = counts_per_rad_from_resolution(config.encoder_counts_per_rev)
@@ -286,7 +287,11 @@ class EmulatedDrives:
             if msg is None:
                 self._watch.check(monotonic())  # nothing queued: the silence is real
                 continue
-            self._handle(msg)
+            self._received += 1
+            try:
+                self._dispatch(msg)
+            except Exception:  # noqa: BLE001 - an emulator bug must not silence the drives
+                log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
 
     def _drain(self) -> bool:
         """Handle every frame already queued; False if they kept coming (no empty queue seen)."""

@@ -29,12 +29,13 @@ class NmtSlave:
         self.link = link
         self.drives = drives
         self.reset_objects = reset_objects
+        self._due = math.inf  # earliest next heartbeat: the receive loop asks for it at every frame
 
     def boot(self, drive: EmulatedDrive, now: float) -> None:
         drive.nmt = fr.NmtState.BOOT_UP
         self.link.emit(drive, fr.HEARTBEAT_BASE + drive.node_id, fr.encode_heartbeat(fr.NmtState.BOOT_UP))
         drive.nmt = fr.NmtState.PRE_OPERATIONAL
-        schedule_heartbeat(drive, now)
+        self.schedule(drive, now)
 
     def on_command(self, drive: EmulatedDrive, command: fr.NmtCommand, now: float) -> None:
         was_operational = drive.nmt is fr.NmtState.OPERATIONAL
@@ -60,8 +61,13 @@ class NmtSlave:
             drive.controlword = drive.previous_controlword = 0
             drive.target_permille = 0
 
+    def schedule(self, drive: EmulatedDrive, now: float) -> None:
+        """(Re)start a drive's heartbeat schedule from ``now`` (boot, reset, a write of 0x1017)."""
+        drive.next_heartbeat_s = now + drive.heartbeat_ms / 1000 if drive.heartbeat_ms > 0 else math.inf
+        self._due = min(self._due, drive.next_heartbeat_s)  # too early at worst: recomputed below
+
     def next_due(self) -> float:
-        return min(drive.next_heartbeat_s for drive in self.drives)
+        return self._due
 
     def produce_heartbeats(self, now: float) -> None:
         for drive in self.drives:
@@ -70,7 +76,4 @@ class NmtSlave:
                     self.link.emit(drive, fr.HEARTBEAT_BASE + drive.node_id, bytes((_NMT_STATE_CODE[drive.nmt],)))
                 # Keep the schedule absolute (no drift), but never burst after a stall.
                 drive.next_heartbeat_s = max(drive.next_heartbeat_s + drive.heartbeat_ms / 1000, now)
-
-
-def schedule_heartbeat(drive: EmulatedDrive, now: float) -> None:
-    drive.next_heartbeat_s = now + drive.heartbeat_ms / 1000 if drive.heartbeat_ms > 0 else math.inf
+        self._due = min(drive.next_heartbeat_s for drive in self.drives)

@@ -19,7 +19,6 @@ from canopen.sdo.exceptions import SdoAbortedError
 from drivers.cia402 import od as odx
 from drivers.cia402 import sdo as sdo_codes
 from sim_target.emulated import pdo
-from sim_target.emulated.nmt import schedule_heartbeat
 from sim_target.emulated.node import EmulatedDrive
 from sim_target.emulated.p402 import statusword
 
@@ -31,12 +30,14 @@ class ObjectServer:
 
     def __init__(self, encoder_counts_per_rev: int, heartbeat_producer_ms: int,
                  feedback: Callable[[], Feedback], sync_counter: Callable[[], int],
-                 on_watch_change: Callable[[float], None]) -> None:
+                 on_watch_change: Callable[[float], None],
+                 schedule_heartbeat: Callable[[EmulatedDrive, float], None]) -> None:
         self.encoder_counts_per_rev = encoder_counts_per_rev
         self.heartbeat_producer_ms = heartbeat_producer_ms
         self.feedback = feedback
         self.sync_counter = sync_counter
         self.on_watch_change = on_watch_change
+        self.schedule_heartbeat = schedule_heartbeat
 
     def attach(self, drive: EmulatedDrive) -> None:
         drive.node.add_read_callback(self._read_hook(drive))
@@ -78,7 +79,7 @@ class ObjectServer:
         drive.abort_connection_option = value(odx.ABORT_CONNECTION_OPTION)
         drive.last_master_heartbeat_s = drive.last_rpdo_s = drive.last_sync_s = 0.0
         now = time.monotonic()
-        schedule_heartbeat(drive, now)
+        self.schedule_heartbeat(drive, now)
         self.on_watch_change(now)
 
     def _read_hook(self, drive: EmulatedDrive) -> Callable[..., int | None]:
@@ -129,7 +130,7 @@ class ObjectServer:
                 drive.quick_stop_option = value
             elif index == odx.HEARTBEAT_PRODUCER:
                 drive.heartbeat_ms = value
-                schedule_heartbeat(drive, time.monotonic())
+                self.schedule_heartbeat(drive, time.monotonic())
             elif index == odx.CONTROLWORD:
                 drive.controlword = value
             elif index == odx.TARGET_TORQUE:

@@ -57,7 +57,9 @@ def send_tpdos(link: FrameLink, drive: EmulatedDrive, position_counts: int, velo
     """This drive's answer to a SYNC, through its injected faults."""
     word = statusword(drive)
     policy = drive.policy
-    if drive.fd_sync_echo and drive.tpdo1_valid and policy.clean:
+    if drive.fd_sync_echo and drive.tpdo1_valid and not (
+        policy.faults.active or policy.drop_next or policy.corrupt_next or policy.delay_next
+    ):
         # The hot path: encode into the drive's own message and send it, nothing allocated here.
         msg = drive.tpdo_msgs[fr.TPDO1_BASE]
         fr.encode_tpdo_fd_sync_into(msg.data, word, torque_permille, position_counts, velocity_counts, sync_counter)
