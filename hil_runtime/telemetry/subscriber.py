@@ -90,14 +90,18 @@ class TelemetryClient:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    def close(self) -> None:
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Undeclare and close; waits at most ``timeout_s`` for Zenoh (a runtime that hangs, e.g.
+        SIGSTOP, keeps its session close busy up to 10 s: that finishes on a helper thread)."""
         for entity in self._declared:
             try:
                 entity.undeclare()
             except Exception:  # noqa: BLE001, S110 - closing: nothing useful to do with it
                 pass
         self._declared.clear()
-        self.session.close()
+        closer = threading.Thread(target=_close_session, args=(self.session,), name="telemetry-client-close")
+        closer.start()  # not a daemon: a daemon thread still inside Zenoh aborts the interpreter at exit
+        closer.join(timeout_s)
 
     # --- queries ---------------------------------------------------------------------------------
 
@@ -149,6 +153,13 @@ class TelemetryClient:
         self._declared.append(
             self.session.liveliness().declare_subscriber(f"{self.prefix}/alive", on_sample, history=True)
         )
+
+
+def _close_session(session: Any) -> None:
+    try:
+        session.close()
+    except Exception:  # noqa: BLE001, S110 - e.g. "close operation timed out": the peer is gone anyway
+        pass
 
 
 def _single_robot(session: Any, connect: Sequence[str], timeout_s: float) -> str:
