@@ -150,6 +150,7 @@ FAULTS: tuple[FaultSpec, ...] = (
               _startup(c.prepare_reference_out, "WIDE")),
 )
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
+SECONDS_ROWS = ("heartbeat_lost", "loop_stall")  # bounds in seconds: the wall time is shown too
 
 
 def _machine() -> dict[str, Any]:
@@ -246,7 +247,7 @@ def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
     cycles = [r.detected_cycles for r in results if r.detected_cycles is not None]
     seconds = [r.detected_s for r in results if r.detected_s is not None]
     ratios = [r.max_torque_ratio for r in results if r.max_torque_ratio is not None]
-    actions = sorted({r.action for r in results})
+    actions = _actions(results)
     finals = sorted({", ".join(sorted(set(r.drives_final))) if isinstance(r.drives_final, list) else r.drives_final
                      for r in results})  # fmt: skip
 
@@ -265,7 +266,7 @@ def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
         "detected_cycles_median": float(np.median(cycles)) if cycles else None,
         "detected_cycles_max": max(cycles) if cycles else None,
         "detected_s_max": max(seconds) if seconds else None,
-        "action": "; ".join(actions),
+        "action": actions,
         "max_torque_ratio": max(ratios) if ratios else None,
         "nonfinite": any(r.nonfinite_commanded for r in results),
         "drives_final": "; ".join(finals),
@@ -279,6 +280,30 @@ def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
     }
 
 
+def _actions(results: list[c.CaseResult]) -> str:
+    """The repeats' actions in one phrase: FAULT kinds merged, counters with their range."""
+    tolerated = [r for r in results if r.action.startswith("tolerated")]
+    others = sorted({r.action for r in results if not r.action.startswith("tolerated")})
+    faults = sorted({r.action.split(",")[0].removeprefix("FAULT ") for r in results if r.action.startswith("FAULT ")})
+    if faults and len(faults) > 1 and all(a.startswith("FAULT ") for a in others):
+        others = [f"FAULT {' / '.join(faults)}, quick stop"]
+    if "watchdog" in " ".join(others):  # one phrase, the kinds seen on resume merged
+        kinds = sorted({str(r.detail.get("fault_on_resume")) for r in results})
+        others = [f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; on resume "
+                  f"FAULT {' / '.join(kinds)}"]  # fmt: skip
+    if tolerated:
+        ranges: dict[str, list[int]] = {}
+        for r in tolerated:
+            for name, rise in r.detail.get("counters_rose", {}).items():
+                if name.split(".")[-1] in c.ANOMALIES:
+                    ranges.setdefault(name.split(".")[-1], []).append(int(rise))
+        counted = ", ".join(f"{k} +{min(v)}" + (f"..{max(v)}" if max(v) != min(v) else "") +
+                            ("" if len(v) == len(tolerated) else f" ({len(v)}/{len(tolerated)})")
+                            for k, v in sorted(ranges.items()))  # fmt: skip
+        others.append("tolerated" + (f"; counted: {counted}" if counted else ", nothing to count"))
+    return "; ".join(others)
+
+
 def format_table(document: dict[str, Any]) -> str:
     head = ("| fault | detected after (cycles: median, max) | bound | action taken | max \\|τ\\| after the fault "
             "/ limit | non-finite commanded | drives' final state | daemon alive | telemetry event | arm inside "
@@ -286,8 +311,9 @@ def format_table(document: dict[str, Any]) -> str:
     lines = [head, "|" + "---|" * 11]
     for row in document["rows"]:
         cycles = (_fmt_cycles(row["detected_cycles"]) if row["detected_cycles"] else "—")
-        if row["detected_s_max"] is not None and "s" in row["bound"] and "(" in row["bound"]:
-            cycles += f" (≤ {row['detected_s_max']:.3f} s)"
+        if row["detected_s_max"] is not None and row["fault"] in SECONDS_ROWS:
+            cycles = (f"{cycles} (≤ {row['detected_s_max']:.3f} s)" if row["detected_cycles"] else
+                      f"— (watchdog silent ≤ {row['detected_s_max']:.2f} s)")  # fmt: skip
         ratio = "—" if row["max_torque_ratio"] is None else f"{row['max_torque_ratio']:.3f} (≤ 1)"
         lines.append(" | ".join([
             f"| {row['label']}", cycles, row["bound"], row["action"].replace("|", "\\|"), ratio,

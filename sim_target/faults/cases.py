@@ -214,6 +214,8 @@ def run_in_process(
         if event is not None and event.get("cycle") is not None:
             result.detected_cycles = int(event["cycle"]) - injected_cycle
     result.telemetry_event = (event is not None) if watch is not None else None
+    if not expect.event and fault_kind is None and not result.telemetry_event:
+        result.telemetry_event = None  # nothing to report (plant faults ridden through, subscriber faults)
 
     # judgement ------------------------------------------------------------------------------------
     fails = result.failures
@@ -597,8 +599,9 @@ def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
                           "drives_enabled_during_stall": during, "status_after": {k: after.get(k) for k in ("state", "fault")},
                           "exit_code": code, "stderr_tail": lines[-2:]})  # fmt: skip
     kind = str(after.get("fault") or "").split(":")[0]
-    result.action = (f"watchdog silent {max_gap:.2f} s (> {watchdog_usec / 1e6:g} s: systemd restarts); drives "
-                     f"quick-stopped on their own; on resume FAULT {kind}")  # fmt: skip
+    result.detail["fault_on_resume"] = kind
+    result.action = (f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; "
+                     f"on resume FAULT {kind}")  # fmt: skip
     result.drives_final = ["operation enabled" if x else "not enabled" for x in final]
     result.daemon_alive = alive
     result.daemon_note = "up in FAULT after SIGCONT; exit 0 on SIGTERM" if alive and code == 0 else f"exit {code}"
