@@ -26,13 +26,26 @@ from drivers.cia402.state_machine import State
 class JointFeedback(Protocol):
     """One cycle's feedback (``DriveFeedback`` satisfies it)."""
 
-    cycle: int
-    position_rad: np.ndarray
-    velocity_rad_s: np.ndarray
-    torque_nm: np.ndarray
-    commanded_torque_nm: np.ndarray
-    fresh: np.ndarray
-    states: tuple[State, ...]
+    @property
+    def cycle(self) -> int: ...
+
+    @property
+    def position_rad(self) -> np.ndarray: ...
+
+    @property
+    def velocity_rad_s(self) -> np.ndarray: ...
+
+    @property
+    def torque_nm(self) -> np.ndarray: ...
+
+    @property
+    def commanded_torque_nm(self) -> np.ndarray: ...
+
+    @property
+    def fresh(self) -> np.ndarray: ...
+
+    @property
+    def states(self) -> tuple[State, ...]: ...
 
 
 @runtime_checkable

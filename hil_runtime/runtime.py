@@ -685,7 +685,7 @@ def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
     """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet."""
     from drivers.drive_bus import DriveBus
 
-    bus: JointBus = DriveBus(config.bus)  # type: ignore[assignment]  # DriveFeedback is frozen; JointFeedback declares settable fields
+    bus: JointBus = DriveBus(config.bus)
     return Runtime(config, bus, **kwargs)
 
 
