@@ -151,8 +151,9 @@ def demo(
     m_hil, m_sim = s["metrics"]["hil"], s["metrics"]["sim"]
     title = f"{_LAW_TITLE.get(options.law, options.law)} {options.mode.upper()} on {options.condition}"
     if results["fault"]:
-        print(f"{title}: the runtime FAULTED after {t['cycles']} cycles ({results['fault']}); the drives were "
-              f"quick-stopped, the scores are not comparable with the simulation's")  # fmt: skip
+        drives = "quick-stopped" if results["shutdown"].get("drives_stopped") else "not confirmed stopped"
+        print(f"{title}: the runtime FAULTED after {t['cycles']} cycles ({results['fault']}); drives {drives}; "
+              "the scores are not comparable with the simulation's")  # fmt: skip
     else:
         print(f"{title}, {results['demo']['duration_s']:g} s: RMSE {m_hil['rmse']:.3f} deg (simulation "
               f"{m_sim['rmse']:.3f}), peak {m_hil['peak']:.3f} deg ({m_sim['peak']:.3f}), composite "
@@ -161,11 +162,13 @@ def demo(
           f"{t['period_us']['median']}/{t['period_us']['p99']}/{t['period_us']['max']} µs, compute "
           f"{t['compute_us']['median']}/{t['compute_us']['p99']}/{t['compute_us']['max']} µs")  # fmt: skip
     stop = results["shutdown"]
+    clean = not (stop["processes_alive"] or stop["ipc_sockets_left"] or stop["control_sockets_left"])
     print(f"stopped: hil run exit {stop['runtime_exit_code']}, drives "
           f"{'quick-stopped' if stop.get('drives_stopped') else 'NOT confirmed stopped'}, target exit "
-          f"{stop['target_exit_code']}, no process or socket left"
-          if not (stop["processes_alive"] or stop["ipc_sockets_left"] or stop["control_sockets_left"])
-          else f"stopped with leftovers: {stop}")  # fmt: skip
+          f"{stop['target_exit_code']}, "
+          + ("no process or socket left" if clean else
+             f"processes left {stop['processes_alive']}, sockets left {stop['ipc_sockets_left'] + stop['control_sockets_left']}"
+             f" (directory removed: {stop['work_dir_removed']})"))  # fmt: skip
     print(f"wrote {out}/: run.npz, runtime_record.npz, simulation.npz, tracking_error.png, summary.md, results.json "
           f"({results['wall_s']['total_s']:g} s)")  # fmt: skip
     if results["fault"]:

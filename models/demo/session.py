@@ -45,8 +45,10 @@ DEFAULT_CONDITION = "C1"
 MODES = ("lmpc", "fb")
 START_TIMEOUT_S = 180.0  # a fresh machine imports pybullet, onnxruntime, zenoh for the first time
 STOP_TIMEOUT_S = 20.0  # SIGTERM -> exit; the quick stop waits at most the bus's state_change_timeout_s
+TARGET_STOP_TIMEOUT_S = 10.0  # the target closes its bus and sockets in well under a second
 WORK_PREFIX = "hil-demo-"
 OWNER_FILE = "demo.pid"  # the demo that owns a private directory (a SIGKILLed demo cannot remove its own)
+STALL_S = 30.0  # ACTIVE without a cycle for this long: the rig is stuck (the drives stop on their own)
 POLL_S = 0.1  # the control socket's status: progress, FAULT
 
 
@@ -302,7 +304,9 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                     documents[name] = client.query_json(name)
 
             active_at: float | None = None
+            cycles, progressed_at = -1, time.monotonic()
             while True:
+                now = time.monotonic()
                 if not children["runtime"].alive():
                     raise DemoError(f"hil run exited ({children['runtime'].process.returncode}) during the run: "
                                     f"{children['runtime'].last_lines()}")  # fmt: skip
@@ -319,6 +323,14 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                     fault = str(status.get("fault"))
                     say(f"FAULT: {fault}")
                     break
+                if active_at is None and now - runtime_started > START_TIMEOUT_S:
+                    raise DemoError(f"hil run not ACTIVE within {START_TIMEOUT_S:g} s (state {state}): "
+                                    f"{children['runtime'].last_lines()}")  # fmt: skip
+                if state == "ACTIVE":
+                    if int(status.get("cycles") or 0) != cycles:
+                        cycles, progressed_at = int(status.get("cycles") or 0), now
+                    elif now - progressed_at > STALL_S:
+                        raise DemoError(f"hil run: the loop made no progress for {STALL_S:g} s (cycle {cycles})")
                 if active_at is not None:
                     if options.realtime:
                         phase.t_s = time.monotonic() - active_at
@@ -349,7 +361,7 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                         shutdown["target_time_s"] = after.get("time_s")
                 target = children.get("target")
                 if target is not None:
-                    processes["target"] = {"pid": target.pid, "exit_code": target.stop(STOP_TIMEOUT_S),
+                    processes["target"] = {"pid": target.pid, "exit_code": target.stop(TARGET_STOP_TIMEOUT_S),
                                            "stop_s": None if target.exit_s is None else round(target.exit_s, 3)}  # fmt: skip
                 if client is not None:
                     with contextlib.suppress(Exception):
@@ -423,8 +435,13 @@ def _stop_line(processes: dict[str, Any], shutdown: dict[str, Any]) -> str:
     if "target" in processes:
         parts.append(f"target exit {processes['target']['exit_code']}")
     leftovers = shutdown["processes_alive"] + shutdown["ipc_sockets_left"] + shutdown["control_sockets_left"]
-    parts.append(f"left behind: {', '.join(leftovers)}" if leftovers or not shutdown["work_dir_removed"]
-                 else "no process, socket or directory left")  # fmt: skip
+    if shutdown["processes_alive"]:
+        parts.append(f"processes still running: {', '.join(shutdown['processes_alive'])}")
+    elif leftovers:
+        parts.append(f"sockets a killed process left ({', '.join(leftovers)}): "
+                     + ("removed with the directory" if shutdown["work_dir_removed"] else "NOT removed"))  # fmt: skip
+    else:
+        parts.append("no process, socket or directory left" if shutdown["work_dir_removed"] else "directory NOT removed")
     return "stopped: " + ", ".join(parts)
 
 
