@@ -118,8 +118,9 @@ def _layout(raw: list[dict[str, Any]]) -> tuple[Slot, ...]:
 class PolicyBundle:
     """A verified bundle with one onnxruntime session (1 intra-op thread) and preallocated buffers."""
 
-    def __init__(self, path: Path, manifest: dict[str, Any], session: Any, inputs: tuple[Slot, ...],
-                 outputs: tuple[Slot, ...]) -> None:  # fmt: skip
+    def __init__(
+        self, path: Path, manifest: dict[str, Any], session: Any, inputs: tuple[Slot, ...], outputs: tuple[Slot, ...]
+    ) -> None:
         self.path, self.manifest, self.session = path, manifest, session
         self.inputs = {s.name: s for s in inputs}
         self.outputs = {s.name: s for s in outputs}
@@ -149,10 +150,16 @@ class PolicyBundle:
 
     # --- loading ------------------------------------------------------------------------------
     @classmethod
-    def load(cls, path: str | Path, expected_joints: int | None = None, expected_period_s: float | None = None,
-             expected_joint_names: tuple[str, ...] | list[str] | None = None,
-             expected_urdf_sha256: str | None = None, intra_op_threads: int = 1,
-             check_behaviour: bool = True) -> PolicyBundle:  # fmt: skip
+    def load(
+        cls,
+        path: str | Path,
+        expected_joints: int | None = None,
+        expected_period_s: float | None = None,
+        expected_joint_names: tuple[str, ...] | list[str] | None = None,
+        expected_urdf_sha256: str | None = None,
+        intra_op_threads: int = 1,
+        check_behaviour: bool = True,
+    ) -> PolicyBundle:
         """Verify and open the bundle at ``path``; raise BundleError (one line) on any mismatch.
 
         ``check_behaviour=False`` skips the probe checks: only for the writer while it records them.
@@ -173,14 +180,18 @@ class PolicyBundle:
             raise BundleError(f"bundle {manifest_path}: not a JSON object")
         schema = raw.get("schema")
         if schema not in SUPPORTED_SCHEMAS:
-            raise BundleError(f"bundle {manifest_path}: unknown schema {schema!r} (supported: {', '.join(SUPPORTED_SCHEMAS)})")
+            raise BundleError(
+                f"bundle {manifest_path}: unknown schema {schema!r} (supported: {', '.join(SUPPORTED_SCHEMAS)})"
+            )
         try:
             parsed = Manifest.model_validate(raw)
         except ValidationError as exc:
             raise BundleError(format_manifest_error(f"bundle {manifest_path}", exc)) from None
         if check_behaviour and parsed.probes is None:
-            raise BundleError(f"bundle {manifest_path}: probes: missing (a bundle records probe inputs and outputs; "
-                              "re-export it with `hil pipeline`)")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: probes: missing (a bundle records probe inputs and outputs; "
+                "re-export it with `hil pipeline`)"
+            )
         manifest = raw
         n_joints, joint_names = parsed.robot.n_joints, list(parsed.robot.joint_names)
         period_s, graph_file = parsed.control_period_s, parsed.graph.file
@@ -194,22 +205,36 @@ class PolicyBundle:
         if expected_joints is not None and n_joints != expected_joints:
             raise BundleError(f"bundle {manifest_path}: {n_joints} joints, the config has {expected_joints}")
         if expected_joint_names is not None and list(expected_joint_names) != joint_names:
-            raise BundleError(f"bundle {manifest_path}: joint order {joint_names} differs from the config's {list(expected_joint_names)}")
+            raise BundleError(
+                f"bundle {manifest_path}: joint order {joint_names} differs from the config's "
+                f"{list(expected_joint_names)}"
+            )
         if expected_period_s is not None and not math.isclose(period_s, expected_period_s, rel_tol=1e-9, abs_tol=1e-12):
-            raise BundleError(f"bundle {manifest_path}: control period {period_s} s, the config has {expected_period_s} s")
+            raise BundleError(
+                f"bundle {manifest_path}: control period {period_s} s, the config has {expected_period_s} s"
+            )
         if expected_urdf_sha256 is not None and parsed.robot.urdf_sha256 != expected_urdf_sha256:
-            raise BundleError(f"bundle {manifest_path}: robot.urdf_sha256 {parsed.robot.urdf_sha256[:12]}… differs from "
-                              f"the robot's URDF ({expected_urdf_sha256[:12]}…): exported for another robot description")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: robot.urdf_sha256 {parsed.robot.urdf_sha256[:12]}… differs from "
+                f"the robot's URDF ({expected_urdf_sha256[:12]}…): exported for another robot description"
+            )
         inputs = _layout(raw["graph"]["input"]["layout"])
         outputs = _layout(raw["graph"]["output"]["layout"])
         session = _open_session(path / graph_file, intra_op_threads)
         width_in, width_out = sum(s.size for s in inputs), sum(s.size for s in outputs)
         got_in, got_out = session.get_inputs(), session.get_outputs()
-        if (len(got_in) != 1 or len(got_out) != 1 or got_in[0].name != parsed.graph.input.name
-                or got_out[0].name != parsed.graph.output.name or got_in[0].shape[-1] != width_in
-                or got_out[0].shape[-1] != width_out):  # fmt: skip
-            raise BundleError(f"bundle {path / graph_file}: graph inputs/outputs do not match the manifest layout "
-                              f"({width_in} -> {width_out})")  # fmt: skip
+        if (
+            len(got_in) != 1
+            or len(got_out) != 1
+            or got_in[0].name != parsed.graph.input.name
+            or got_out[0].name != parsed.graph.output.name
+            or got_in[0].shape[-1] != width_in
+            or got_out[0].shape[-1] != width_out
+        ):
+            raise BundleError(
+                f"bundle {path / graph_file}: graph inputs/outputs do not match the manifest layout "
+                f"({width_in} -> {width_out})"
+            )
         bundle = cls(path, manifest, session, inputs, outputs)
         if check_behaviour:
             bundle._check_behaviour(manifest_path)
@@ -218,9 +243,14 @@ class PolicyBundle:
     # --- behavioural checks -------------------------------------------------------------------
     def _run_rows(self, x: np.ndarray) -> np.ndarray:
         try:
-            return self.session.run([self._output_name], {self._input_name: np.ascontiguousarray(x, np.float64)})[0]
+            rows: np.ndarray = self.session.run(
+                [self._output_name], {self._input_name: np.ascontiguousarray(x, np.float64)}
+            )[0]
+            return rows
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own untyped errors
-            raise BundleError(f"bundle {self.path}: the graph fails on probe inputs ({str(exc).splitlines()[0][:160]})") from None
+            raise BundleError(
+                f"bundle {self.path}: the graph fails on probe inputs ({str(exc).splitlines()[0][:160]})"
+            ) from None
 
     def _check_behaviour(self, manifest_path: Path) -> None:
         """The graph does what the manifest says: recorded probes, saturation, residual bound."""
@@ -231,9 +261,11 @@ class PolicyBundle:
         if not np.all(np.isfinite(y)) or np.any(error > 0):
             column = int(np.unravel_index(np.nanargmax(np.where(np.isfinite(error), error, np.inf)), error.shape)[1])
             slot = next(x for x in self.outputs.values() if x.start <= column < x.start + x.size)
-            raise BundleError(f"bundle {manifest_path}: the graph does not reproduce the recorded probe outputs "
-                              f"({slot.name}[{column - slot.start}]): it is not the graph of this manifest's law "
-                              f"'{self.law_name}', or was changed")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: the graph does not reproduce the recorded probe outputs "
+                f"({slot.name}[{column - slot.start}]): it is not the graph of this manifest's law "
+                f"'{self.law_name}', or was changed"
+            )
         sat_x = saturation_probe_inputs(self)
         sat_y = self._run_rows(sat_x)
         self._check_saturation(manifest_path, np.concatenate([y, sat_y]), sat_y)
@@ -245,16 +277,22 @@ class PolicyBundle:
         over = np.abs(tau) > limit + SATURATION_TOLERANCE_NM
         if over.any():
             j = int(np.argwhere(over)[0][1])
-            raise BundleError(f"bundle {manifest_path}: limits.torque_nm[{j}] is {limit[j]:g} but the graph gives "
-                              f"{np.abs(tau[:, j]).max():g} N m: its saturation differs")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: limits.torque_nm[{j}] is {limit[j]:g} but the graph gives "
+                f"{np.abs(tau[:, j]).max():g} N m: its saturation differs"
+            )
         magnitude = np.abs(sat_y[:, :n])
         peak = magnitude.max(axis=0)
-        plateau = (np.sum(np.abs(magnitude - peak) <= SATURATION_TOLERANCE_NM * np.maximum(1.0, peak), axis=0) >= 2) & (peak > 0)
+        plateau = (np.sum(np.abs(magnitude - peak) <= SATURATION_TOLERANCE_NM * np.maximum(1.0, peak), axis=0) >= 2) & (
+            peak > 0
+        )
         short = plateau & (np.abs(peak - limit) > SATURATION_TOLERANCE_NM * np.maximum(1.0, limit))
         if short.any():
             j = int(np.flatnonzero(short)[0])
-            raise BundleError(f"bundle {manifest_path}: limits.torque_nm[{j}] is {limit[j]:g} but the graph saturates "
-                              f"at {peak[j]:g} N m")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: limits.torque_nm[{j}] is {limit[j]:g} but the graph saturates "
+                f"at {peak[j]:g} N m"
+            )
         bound = self.residual_bound_nm
         self.saturation_checked = plateau
         if bound is None:
@@ -265,14 +303,18 @@ class PolicyBundle:
         beyond = inside & (residual > bound + tol)
         if beyond.any():
             j = int(np.argwhere(beyond)[0][1])
-            raise BundleError(f"bundle {manifest_path}: trust_region.residual_bound_nm[{j}] is {bound[j]:g} but the graph "
-                              f"passes a residual of {residual[beyond[:, j], j].max():g} N m")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: trust_region.residual_bound_nm[{j}] is {bound[j]:g} but the graph "
+                f"passes a residual of {residual[beyond[:, j], j].max():g} N m"
+            )
         clamped_rows = inside.all(axis=1) & (trust[:, 1] > 0.5)
         at_bound = np.abs(residual - bound) <= 1e-7 * np.maximum(1.0, bound)
         unexplained = clamped_rows & ~at_bound.any(axis=1)
         if unexplained.any():
-            raise BundleError(f"bundle {manifest_path}: trust_region.residual_bound_nm does not match the graph's clamp "
-                              "(the graph clamps residuals below the manifest's bound)")  # fmt: skip
+            raise BundleError(
+                f"bundle {manifest_path}: trust_region.residual_bound_nm does not match the graph's clamp "
+                "(the graph clamps residuals below the manifest's bound)"
+            )
 
     # --- running ------------------------------------------------------------------------------
     def _bind(self, x: np.ndarray, y: np.ndarray) -> Any:
@@ -286,10 +328,12 @@ class PolicyBundle:
     def initial_state(self, q0: np.ndarray) -> np.ndarray:
         """The law's state at the start of a run from positions q0: (N,) -> (S,), (B, N) -> (B, S)."""
         q0 = np.asarray(q0, float)
-        return self._init_constant + q0 @ self._init_gain.T
+        state: np.ndarray = self._init_constant + q0 @ self._init_gain.T
+        return state
 
-    def step(self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray,
-             law_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    def step(
+        self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray, law_state: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One arm, one period: (tau (N,), tau_fb (N,), next_law_state (S,)), views of a reused buffer.
 
         Copy the results if you keep them past the next call.
@@ -320,21 +364,26 @@ class PolicyBundle:
         if not refuse:
             return
         bad_input = not np.isfinite(x).all()
-        raise NonFiniteOutputError(f"bundle {self.path}: non-finite law torque or state "
-                                   f"({'non-finite input' if bad_input else 'from finite inputs'}); stop the arm")  # fmt: skip
+        raise NonFiniteOutputError(
+            f"bundle {self.path}: non-finite law torque or state "
+            f"({'non-finite input' if bad_input else 'from finite inputs'}); stop the arm"
+        )
 
     @property
     def last_trust(self) -> np.ndarray:
         """[fallback (1 - alpha), joints_clamped] of the last ``step`` (a view of the output row)."""
         return self._y[0, 2 * self.n_joints + self.state_size :]
 
-    def step_batch(self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray,
-                   law_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    def step_batch(
+        self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray, law_state: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """B arms at once ((B, N) arrays, law_state (B, S)): new arrays (tau, tau_fb, next_law_state).
 
         ``last_trust_batch`` holds the (B, 2) trust output of the call.
         """
-        x = np.concatenate([np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1)
+        x = np.concatenate(
+            [np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1
+        )
         y = self.session.run([self._output_name], {self._input_name: x})[0]
         n, s = self.n_joints, self.state_size
         if not np.isfinite(y).all():  # step's fallback per arm; an arm with nothing finite stays
@@ -345,10 +394,17 @@ class PolicyBundle:
 
     def describe(self) -> dict[str, Any]:
         """What telemetry's bundle-info queryable publishes."""
-        return {"path": str(self.path), "schema": self.manifest["schema"], "law": self.law_name,
-                "robot": self.manifest["robot"]["name"], "n_joints": self.n_joints, "period_s": self.period_s,
-                "files": self.manifest["files"], "validation": self.manifest.get("validation", {}),
-                "trust_region": self.manifest.get("trust_region")}  # fmt: skip
+        return {
+            "path": str(self.path),
+            "schema": self.manifest["schema"],
+            "law": self.law_name,
+            "robot": self.manifest["robot"]["name"],
+            "n_joints": self.n_joints,
+            "period_s": self.period_s,
+            "files": self.manifest["files"],
+            "validation": self.manifest.get("validation", {}),
+            "trust_region": self.manifest.get("trust_region"),
+        }
 
 
 def _probe_state(bundle: PolicyBundle, q: np.ndarray) -> np.ndarray:
@@ -365,9 +421,19 @@ def saturation_probe_inputs(bundle: PolicyBundle) -> np.ndarray:
         for velocity in (0.0, reach):
             for sign in (1.0, -1.0):
                 q = np.zeros((1, n))
-                rows.append(np.concatenate([q, np.zeros((1, n)), np.full((1, n), sign * reach),
-                                            np.full((1, n), sign * velocity), np.zeros((1, n)),
-                                            _probe_state(bundle, q)], 1))  # fmt: skip
+                rows.append(
+                    np.concatenate(
+                        [
+                            q,
+                            np.zeros((1, n)),
+                            np.full((1, n), sign * reach),
+                            np.full((1, n), sign * velocity),
+                            np.zeros((1, n)),
+                            _probe_state(bundle, q),
+                        ],
+                        1,
+                    )
+                )
     return np.concatenate(rows)
 
 
@@ -404,19 +470,41 @@ def record_probes(path: str | Path, count: int = 12) -> dict[str, Any]:
     y = bundle._run_rows(x)
     if not np.isfinite(y).all():
         raise BundleError(f"bundle {path}: the graph gives non-finite outputs on probe inputs")
-    return {"inputs": x.tolist(), "outputs": y.tolist(), "atol": 1e-6,
-            "note": "graph inputs (hil_runtime.bundle.make_probe_inputs) and the exporter's onnxruntime outputs; "
-                    "the loader reruns them (atol + 1e-6 relative)"}  # fmt: skip
+    return {
+        "inputs": x.tolist(),
+        "outputs": y.tolist(),
+        "atol": 1e-6,
+        "note": "graph inputs (hil_runtime.bundle.make_probe_inputs) and the exporter's onnxruntime outputs; "
+        "the loader reruns them (atol + 1e-6 relative)",
+    }
 
 
-def emulator_features(feature_set: str, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,
-                      qdd_d: np.ndarray, tau_fb: np.ndarray) -> np.ndarray:  # fmt: skip
+def emulator_features(
+    feature_set: str,
+    q: np.ndarray,
+    qd: np.ndarray,
+    q_d: np.ndarray,
+    qd_d: np.ndarray,
+    qdd_d: np.ndarray,
+    tau_fb: np.ndarray,
+) -> np.ndarray:
     """The emulator input s of ``feature_set`` (FEATURE_SETS), last axis."""
-    parts = {"q": q, "e": q_d - q, "qd": qd, "e_dot": qd_d - qd, "q_d": q_d, "qd_d": qd_d, "qdd_d": qdd_d, "tau_fb": tau_fb}
+    parts = {
+        "q": q,
+        "e": q_d - q,
+        "qd": qd,
+        "e_dot": qd_d - qd,
+        "q_d": q_d,
+        "qd_d": qd_d,
+        "qdd_d": qdd_d,
+        "tau_fb": tau_fb,
+    }
     return np.concatenate([np.asarray(parts[k], float) for k in FEATURE_SETS[feature_set]], axis=-1)
 
 
-def trust_filter(manifest: dict[str, Any], s: np.ndarray, r: np.ndarray, tau_fb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def trust_filter(
+    manifest: dict[str, Any], s: np.ndarray, r: np.ndarray, tau_fb: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The trust-region rule (module docstring) in numpy: (tau (B, N), trust (B, 2)) from the guard
     features s (B, F) (``emulator_features(GUARD_FEATURES, ...)``), the emulator's residual r (B, N)
     (tau_L_raw - tau_fb for an absolute-target emulator) and tau_fb (B, N). The graph applies the

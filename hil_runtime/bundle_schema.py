@@ -17,8 +17,11 @@ MANIFEST = "manifest.json"
 INPUT_LAYOUT = ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state")
 OUTPUT_LAYOUT = ("tau", "tau_fb", "next_law_state", "trust")
 TRUST_SIZE = 2  # [fallback = 1 - alpha, joints_clamped]
-FEATURE_SETS = {"eq22": ("q", "e", "qd", "e_dot", "tau_fb"), "eq22+qdd_d": ("q", "e", "qd", "e_dot", "qdd_d", "tau_fb"),
-                "ref": ("q_d", "qd_d", "qdd_d")}  # fmt: skip
+FEATURE_SETS = {
+    "eq22": ("q", "e", "qd", "e_dot", "tau_fb"),
+    "eq22+qdd_d": ("q", "e", "qd", "e_dot", "qdd_d", "tau_fb"),
+    "ref": ("q_d", "qd_d", "qdd_d"),
+}
 GUARD_FEATURES = "eq22+qdd_d"  # what the trust box is over
 TRUST_MIN_SPAN = 1e-9
 PROBE_ATOL_MAX = 1e-3  # a manifest cannot loosen the behavioural check beyond this (N m)
@@ -156,7 +159,9 @@ class Manifest(_Strict):
             width_in, width_out = 5 * n + s, 2 * n + s + TRUST_SIZE
             if len(self.probes.inputs) != len(self.probes.outputs):
                 raise ValueError("probes: inputs and outputs differ in count")
-            if any(len(r) != width_in for r in self.probes.inputs) or any(len(r) != width_out for r in self.probes.outputs):
+            if any(len(r) != width_in for r in self.probes.inputs) or any(
+                len(r) != width_out for r in self.probes.outputs
+            ):
                 raise ValueError(f"probes: rows need {width_in} inputs and {width_out} outputs")
         return self
 

@@ -46,8 +46,10 @@ def _flags_show_no_type() -> None:
     def display_type_rich(self: TyperOption, ctx: object) -> str | None:
         if getattr(self, "is_flag", False) and not getattr(self, "count", False) and self.metavar is None:
             return None
-        return original(self, ctx)
+        shown: str | None = original(self, ctx)
+        return shown
 
+    # A marker attribute on a function and a patched method: what this monkeypatch is, by design.
     display_type_rich._hil_flag_patch = True  # type: ignore[attr-defined]
     TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
 
@@ -82,8 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         return _report(exc)
     code = result if isinstance(result, int) and not isinstance(result, bool) else 0
     if code == INTERRUPTED:
-        print("interrupted (Ctrl-C): stopped; files already written are complete, none is half-written",
-              file=sys.stderr)
+        print(
+            "interrupted (Ctrl-C): stopped; files already written are complete, none is half-written", file=sys.stderr
+        )
     return code
 
 
@@ -95,10 +98,11 @@ def _report(exc: Exception) -> int:
     importing click. Usage errors are one line too, like every other user error.
     """
     code = getattr(exc, "exit_code", None)
-    if isinstance(code, int) and callable(getattr(exc, "format_message", None)):  # usage: bad option or value
-        context = getattr(exc, "ctx", None)
-        where = f" (see '{context.command_path} --help')" if getattr(context, "command_path", None) else ""
-        print(f"error: {' '.join(str(exc.format_message()).split())}{where}", file=sys.stderr)  # type: ignore[attr-defined]
+    format_message = getattr(exc, "format_message", None)
+    if isinstance(code, int) and callable(format_message):  # usage: bad option or value
+        command_path = getattr(getattr(exc, "ctx", None), "command_path", None)
+        where = f" (see '{command_path} --help')" if command_path else ""
+        print(f"error: {' '.join(str(format_message()).split())}{where}", file=sys.stderr)
         return code
     if isinstance(code, int):
         print(f"error: {' '.join(str(exc).split()) or type(exc).__name__}", file=sys.stderr)

@@ -42,7 +42,9 @@ def run(
         print(check_config(config))
         return
 
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(levelname)s %(message)s"
+    )
     code = serve(config, record, record_cycles if record is not None else 0)
     if code:
         raise typer.Exit(code)
@@ -60,7 +62,10 @@ def reset(socket_path: SocketOption = None, config: ConfigOption = None) -> None
     from hil_runtime.control import send_command
 
     reply = send_command(_socket_of(socket_path, config), "reset")
-    print(f"reset requested (state was {reply.get('state')}" + (f", fault: {reply['fault']})" if reply.get("fault") else ")"))
+    print(
+        f"reset requested (state was {reply.get('state')}"
+        + (f", fault: {reply['fault']})" if reply.get("fault") else ")")
+    )
 
 
 def stop(socket_path: SocketOption = None, config: ConfigOption = None) -> None:

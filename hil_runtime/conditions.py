@@ -17,9 +17,10 @@ from __future__ import annotations
 import ast
 import math
 import operator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, Self
 
 import numpy as np
 import yaml
@@ -62,9 +63,9 @@ class JointLimits(Protocol):
 class ScalableRobot(Protocol):
     """The two operations a plant mismatch needs (``models.robots.RobotModel`` has them)."""
 
-    def scaled(self, mass_scale: Any = 1.0, inertia_scale: Any = 1.0) -> Any: ...
+    def scaled(self, mass_scale: Any = 1.0, inertia_scale: Any = 1.0) -> Self: ...
 
-    def with_payload(self, mass_kg: float, com_in_ee_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Any: ...
+    def with_payload(self, mass_kg: float, com_in_ee_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Self: ...
 
 
 @dataclass(frozen=True)
@@ -128,8 +129,11 @@ class Condition:
         omega = 2.0 * math.pi * np.asarray(self.frequency_hz)
         phase = omega * (t - self.phase_s)
         if self.shape == "raised_sine":  # the paper's Eq. 27
-            return (offset + 0.5 * amp * (1.0 + np.sin(phase)), 0.5 * amp * omega * np.cos(phase),
-                    -0.5 * amp * omega**2 * np.sin(phase))  # fmt: skip
+            return (
+                offset + 0.5 * amp * (1.0 + np.sin(phase)),
+                0.5 * amp * omega * np.cos(phase),
+                -0.5 * amp * omega**2 * np.sin(phase),
+            )
         if self.shape == "sine":
             return offset + amp * np.sin(phase), amp * omega * np.cos(phase), -amp * omega**2 * np.sin(phase)
         zeros = np.zeros(t.shape[:-1] + amp.shape)
@@ -165,7 +169,12 @@ class Condition:
 
 # --- the file format -----------------------------------------------------------------------------
 
-_OPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv}
+_OPS: dict[type[ast.operator], Callable[[float, float], float]] = {
+    ast.Add: operator.add,
+    ast.Sub: operator.sub,
+    ast.Mult: operator.mul,
+    ast.Div: operator.truediv,
+}
 
 
 def _number(value: Any, where: str) -> float:
@@ -227,7 +236,7 @@ def _at_least(values: tuple[float, ...] | float, bound: float, where: str, stric
             raise ConditionError(f"{where}{index}: must be {relation} {bound:g}, got {v:g}")
 
 
-def _section(raw: dict, key: str, where: str, fields: dict[str, str], n: int) -> dict[str, Any]:
+def _section(raw: dict[str, Any], key: str, where: str, fields: dict[str, str], n: int) -> dict[str, Any]:
     value = raw.get(key)
     if not isinstance(value, dict):
         raise ConditionError(f"{where}.{key}: expected a mapping, got {_short(value)}")
@@ -249,17 +258,29 @@ def _section(raw: dict, key: str, where: str, fields: dict[str, str], n: int) ->
 
 
 _CONDITION_FIELDS = {
-    "name", "amplitude_rad", "frequency_hz", "duration_s", "shape", "phase_s", "offset_rad",
-    "initial_state", "disturbance", "mismatch",
-}  # fmt: skip
+    "name",
+    "amplitude_rad",
+    "frequency_hz",
+    "duration_s",
+    "shape",
+    "phase_s",
+    "offset_rad",
+    "initial_state",
+    "disturbance",
+    "mismatch",
+}
 _DISTURBANCE_FIELDS = {"time_s": "scalar", "torque_nm": "vector", "duration_s": "scalar"}
 _MISMATCH_FIELDS = {
-    "payload_kg": "scalar", "payload_com_m": "vector3", "mass_scale": "vector", "inertia_scale": "vector",
-    "viscous_friction_nm_s": "vector", "coulomb_friction_nm": "vector",
-}  # fmt: skip
+    "payload_kg": "scalar",
+    "payload_com_m": "vector3",
+    "mass_scale": "vector",
+    "inertia_scale": "vector",
+    "viscous_friction_nm_s": "vector",
+    "coulomb_friction_nm": "vector",
+}
 
 
-def _parse_condition(raw: Any, defaults: dict, where: str) -> Condition:
+def _parse_condition(raw: Any, defaults: dict[str, Any], where: str) -> Condition:
     if not isinstance(raw, dict):
         raise ConditionError(f"{where}: expected a mapping, got {_short(raw)}")
     merged = {**defaults, **raw}
@@ -285,12 +306,15 @@ def _parse_condition(raw: Any, defaults: dict, where: str) -> Condition:
     if merged.get("disturbance") is not None:
         disturbance = Disturbance(**_section(merged, "disturbance", where, _DISTURBANCE_FIELDS, n))
         if len(disturbance.torque_nm) != n:  # the default torque has six joints
-            raise ConditionError(f"{where}.disturbance.torque_nm: expected {n} values, got {len(disturbance.torque_nm)}")
+            raise ConditionError(
+                f"{where}.disturbance.torque_nm: expected {n} values, got {len(disturbance.torque_nm)}"
+            )
         _at_least(disturbance.time_s, 0.0, f"{where}.disturbance.time_s", strict=False)
         _at_least(disturbance.duration_s, 0.0, f"{where}.disturbance.duration_s", strict=False)
         if disturbance.time_s >= duration:
             raise ConditionError(
-                f"{where}.disturbance.time_s: {disturbance.time_s:g} s is not before the end of the run ({duration:g} s)"
+                f"{where}.disturbance.time_s: {disturbance.time_s:g} s is not before the end of the run "
+                f"({duration:g} s)"
             )
     mismatch = Mismatch()
     if merged.get("mismatch") is not None:
@@ -355,11 +379,15 @@ def parse_conditions(raw: Any, source: str) -> list[Condition]:
         raise ConditionError(f"{source}: conditions: expected a non-empty list")
     unknown = set(raw) - {"defaults", "conditions"}
     if unknown:
-        raise ConditionError(f"{source}: unknown top-level field '{min(map(str, unknown))}' (known: defaults, conditions)")
+        raise ConditionError(
+            f"{source}: unknown top-level field '{min(map(str, unknown))}' (known: defaults, conditions)"
+        )
     defaults = raw.get("defaults") or {}
     if not isinstance(defaults, dict):
         raise ConditionError(f"{source}: defaults: expected a mapping")
-    conditions = [_parse_condition(item, defaults, f"{source}: conditions[{i}]") for i, item in enumerate(raw["conditions"])]
+    conditions = [
+        _parse_condition(item, defaults, f"{source}: conditions[{i}]") for i, item in enumerate(raw["conditions"])
+    ]
     names = [c.name for c in conditions]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:

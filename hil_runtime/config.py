@@ -51,14 +51,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from drivers.config import DriveBusConfig, format_validation_error
 from drivers.errors import DriveConfigError
-
-try:  # the telemetry helper's model; a minimal stand-in keeps the runtime usable without it
-    from hil_runtime.telemetry.config import TelemetryConfig
-except ImportError:  # pragma: no cover - only while telemetry/config.py does not exist
-
-    class TelemetryConfig(BaseModel):  # type: ignore[no-redef]
-        model_config = ConfigDict(frozen=True, extra="forbid")
-        enabled: bool = False
+from hil_runtime.telemetry.config import TelemetryConfig
 
 
 class RuntimeConfigError(ValueError):
@@ -134,7 +127,11 @@ class SafetySection(_Frozen):
         if self.velocity_limit_rad_s is not None and any(v <= 0 for v in self.velocity_limit_rad_s):
             raise ValueError("velocity_limit_rad_s: values must be positive")
         lo, hi = self.position_lower_rad, self.position_upper_rad
-        if lo is not None and hi is not None and (len(lo) != len(hi) or any(a >= b for a, b in zip(lo, hi))):
+        if (
+            lo is not None
+            and hi is not None
+            and (len(lo) != len(hi) or any(a >= b for a, b in zip(lo, hi, strict=True)))
+        ):
             raise ValueError("position_lower_rad must be below position_upper_rad, joint by joint")
         return self
 
@@ -190,7 +187,8 @@ def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | Non
     base = base_dir or Path.cwd()
     bundle = config.bundle.model_copy(update={"path": _resolve(config.bundle.path, base)})
     reference = config.reference.model_copy(
-        update={"conditions_file": _resolve(config.reference.conditions_file, base)})
+        update={"conditions_file": _resolve(config.reference.conditions_file, base)}
+    )
     control = _resolve(config.control_socket, base)
     return config.model_copy(update={"bundle": bundle, "reference": reference, "control_socket": control})
 

@@ -90,8 +90,9 @@ class ControlServer:
             raise ControlError(f"control socket {self.path}: {exc.strerror or exc}") from None
         finally:
             os.umask(old_umask)
-        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.02},
-                                        name="hil-control", daemon=True)  # fmt: skip
+        self._thread = threading.Thread(
+            target=self._server.serve_forever, kwargs={"poll_interval": 0.02}, name="hil-control", daemon=True
+        )
         self._thread.start()
 
     def close(self) -> None:
@@ -131,6 +132,9 @@ def send_command(path: Path | str, command: str, timeout_s: float = 2.0) -> dict
     except OSError as exc:
         raise ControlError(f"control socket {path}: {exc.strerror or exc}") from None
     try:
-        return json.loads(data)
+        reply = json.loads(data)
     except json.JSONDecodeError:
         raise ControlError(f"control socket {path}: unreadable reply") from None
+    if not isinstance(reply, dict):
+        raise ControlError(f"control socket {path}: unreadable reply (not a JSON object)")
+    return reply

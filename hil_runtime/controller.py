@@ -42,8 +42,9 @@ class Controller:
         """The law's state at the start of a run from the measured positions."""
         self.state[:] = self.bundle.initial_state(np.asarray(q0, float))
 
-    def step(self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,
-             qdd_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
+    def step(
+        self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, float]:
         """(command candidate, tau_fb, fallback) for this cycle; views valid until the next step.
 
         ``fallback`` is the trust region's 1 - alpha in lmpc mode (0: the emulator's torque, 1: the

@@ -31,6 +31,7 @@ from hil_runtime.sdnotify import Notifier
 
 log = logging.getLogger("hil_runtime.daemon")
 
+
 def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
     """The telemetry hook: ``hil_runtime.telemetry.make_sink`` with what it publishes."""
     from hil_runtime.telemetry.codec import STATS_FIELDS
@@ -55,17 +56,24 @@ def check(config_path: Path | str) -> str:
     bundle, limits = runtime.bundle, runtime.limits
     reference = config.reference.condition if config.reference.kind == "condition" else "hold"
     transport = config.bus.transport
-    return "\n".join([
-        f"{config.source}: ok",
-        f"  robot {config.robot}, {len(config.joint_names)} joints: {', '.join(config.joint_names)}",
-        f"  bundle {bundle.path} ({bundle.law_name}, mode {config.bundle.mode}), period {config.period_s * 1e3:g} ms",
-        f"  bus {transport.interface}:{transport.channel}{' CAN FD' if transport.fd else ''}, node ids "
-        f"{list(config.bus.node_ids)}, load {config.bus.bus_load().load:.0%} of the bus",
-        f"  reference {reference}, pacing {config.loop.pacing}",
-        f"  limits: position [{', '.join(f'{a:.3g}..{b:.3g}' for a, b in zip(limits.position_lower_rad, limits.position_upper_rad))}] rad, "
-        f"velocity {limits.velocity_limit_rad_s.round(3).tolist()} rad/s, torque {limits.torque_limit_nm.round(1).tolist()} N·m",
-        f"  telemetry {'on' if config.telemetry.enabled else 'off'}, control socket {config.control_socket or 'none'}",
-    ])  # fmt: skip
+    position = ", ".join(
+        f"{a:.3g}..{b:.3g}" for a, b in zip(limits.position_lower_rad, limits.position_upper_rad, strict=True)
+    )
+    return "\n".join(
+        [
+            f"{config.source}: ok",
+            f"  robot {config.robot}, {len(config.joint_names)} joints: {', '.join(config.joint_names)}",
+            f"  bundle {bundle.path} ({bundle.law_name}, mode {config.bundle.mode}), "
+            f"period {config.period_s * 1e3:g} ms",
+            f"  bus {transport.interface}:{transport.channel}{' CAN FD' if transport.fd else ''}, node ids "
+            f"{list(config.bus.node_ids)}, load {config.bus.bus_load().load:.0%} of the bus",
+            f"  reference {reference}, pacing {config.loop.pacing}",
+            f"  limits: position [{position}] rad, velocity {limits.velocity_limit_rad_s.round(3).tolist()} rad/s, "
+            f"torque {limits.torque_limit_nm.round(1).tolist()} N·m",
+            f"  telemetry {'on' if config.telemetry.enabled else 'off'}, "
+            f"control socket {config.control_socket or 'none'}",
+        ]
+    )
 
 
 def _say(text: str) -> None:
@@ -102,9 +110,11 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
     try:
         runtime.configure()  # StartupError (exit 2): drives never enabled
         configured.set()
-        _say(f"configured {len(config.joint_names)} joints, bundle {runtime.bundle.law_name} "
-             f"({config.bundle.mode}), period {config.period_s * 1e3:g} ms, pacing {config.loop.pacing}"
-             + (f", control socket {config.control_socket}" if control else ""))  # fmt: skip
+        _say(
+            f"configured {len(config.joint_names)} joints, bundle {runtime.bundle.law_name} "
+            f"({config.bundle.mode}), period {config.period_s * 1e3:g} ms, pacing {config.loop.pacing}"
+            + (f", control socket {config.control_socket}" if control else "")
+        )
 
         def loop() -> None:
             try:
@@ -134,8 +144,10 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
         return 1
     result = outcome["result"]
     stats = result.stats
-    _say(f"stopped ({result.reason}) after {result.cycles} cycles, {stats.get('rate_hz', float('nan')):.1f} Hz, "
-         f"overruns {stats.get('overruns', 0)}, compute median {stats.get('compute_median_s', float('nan')) * 1e6:.1f} µs"
-         + (f", last fault: {runtime.last_fault}" if runtime.last_fault else ""))  # fmt: skip
+    _say(
+        f"stopped ({result.reason}) after {result.cycles} cycles, {stats.get('rate_hz', float('nan')):.1f} Hz, "
+        f"overruns {stats.get('overruns', 0)}, "
+        f"compute median {stats.get('compute_median_s', float('nan')) * 1e6:.1f} µs"
+        + (f", last fault: {runtime.last_fault}" if runtime.last_fault else "")
+    )
     return 0
-

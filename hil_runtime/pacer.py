@@ -71,8 +71,13 @@ class RollingStats:
         data[:] = self._buf[:n]
         k50, k99 = int(np.rint(0.5 * (n - 1))), int(np.rint(0.99 * (n - 1)))
         data.partition((k50, k99))
-        return {"median": float(data[k50]), "p99": float(data[k99]), "max": float(data[k99:].max()),
-                "max_all": self.max_all, "count": self.count}  # fmt: skip
+        return {
+            "median": float(data[k50]),
+            "p99": float(data[k99]),
+            "max": float(data[k99:].max()),
+            "max_all": self.max_all,
+            "count": self.count,
+        }
 
 
 class Pacer:
@@ -169,8 +174,11 @@ class Pacer:
             "skipped_periods": self.skipped,
             "rate_hz": (self.cycles - 1) / elapsed if elapsed > 0 else math.nan,
         }
-        for name, stats in (("period", self.period_stats), ("compute", self.compute_stats),
-                            ("exchange", self.exchange_stats)):  # fmt: skip
+        for name, stats in (
+            ("period", self.period_stats),
+            ("compute", self.compute_stats),
+            ("exchange", self.exchange_stats),
+        ):
             for key, value in stats.summary().items():
                 if key != "count":
                     out[f"{name}_{key}_s"] = value  # e.g. period_median_s, compute_p99_s

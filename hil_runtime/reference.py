@@ -22,8 +22,9 @@ from hil_runtime.conditions import Condition
 _MAX_LENGTHEN = 40
 
 
-def quintic(p0: np.ndarray, p1: np.ndarray, v1: np.ndarray, a1: np.ndarray, duration_s: float,
-            t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def quintic(
+    p0: np.ndarray, p1: np.ndarray, v1: np.ndarray, a1: np.ndarray, duration_s: float, t_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rest at p0 (t = 0) to (p1, v1, a1) at t = duration_s: (q, qd, qdd), shaped t.shape + (N,)."""
     T = duration_s
     h = p1 - p0
@@ -69,14 +70,22 @@ class Reference:
         return cls(q, qd, qdd, 0, condition.name)
 
     @classmethod
-    def ramp_then(cls, q0: np.ndarray, condition: Condition, period_s: float, ramp_s: float,
-                  velocity_limit_rad_s: np.ndarray, speed_fraction: float = 0.25) -> Reference:  # fmt: skip
+    def ramp_then(
+        cls,
+        q0: np.ndarray,
+        condition: Condition,
+        period_s: float,
+        ramp_s: float,
+        velocity_limit_rad_s: np.ndarray,
+        speed_fraction: float = 0.25,
+    ) -> Reference:
         q0 = np.asarray(q0, float)
         if condition.n_joints != q0.shape[0]:
             raise ValueError(f"condition {condition.name} has {condition.n_joints} joints, the arm {q0.shape[0]}")
         p1, v1, a1 = (np.asarray(x, float) for x in condition.reference(0.0))
-        duration = ramp_duration_s(q0, p1, v1, a1, ramp_s, np.asarray(velocity_limit_rad_s, float) * speed_fraction,
-                                   period_s)
+        duration = ramp_duration_s(
+            q0, p1, v1, a1, ramp_s, np.asarray(velocity_limit_rad_s, float) * speed_fraction, period_s
+        )
         n_ramp = round(duration / period_s)
         n_cond = math.floor(condition.duration_s / period_s + 1e-9) + 1
         t_cond = np.arange(n_cond) * period_s
@@ -84,12 +93,20 @@ class Reference:
         if n_ramp > 0:
             rq, rqd, rqdd = quintic(q0, p1, v1, a1, duration, np.arange(n_ramp) * period_s)
             cq, cqd, cqdd = (np.concatenate(p) for p in ((rq, cq), (rqd, cqd), (rqdd, cqdd)))
-        return cls(np.ascontiguousarray(cq), np.ascontiguousarray(cqd), np.ascontiguousarray(cqdd), n_ramp,
-                   condition.name)
+        return cls(
+            np.ascontiguousarray(cq), np.ascontiguousarray(cqd), np.ascontiguousarray(cqdd), n_ramp, condition.name
+        )
 
 
-def ramp_duration_s(q0: np.ndarray, p1: np.ndarray, v1: np.ndarray, a1: np.ndarray, min_s: float,
-                    max_speed_rad_s: np.ndarray, period_s: float) -> float:  # fmt: skip
+def ramp_duration_s(
+    q0: np.ndarray,
+    p1: np.ndarray,
+    v1: np.ndarray,
+    a1: np.ndarray,
+    min_s: float,
+    max_speed_rad_s: np.ndarray,
+    period_s: float,
+) -> float:
     """The shortest whole number of periods >= min_s whose quintic ramp stays below max_speed."""
     if np.all(np.abs(p1 - q0) < 1e-12) and np.all(np.abs(v1) < 1e-12) and np.all(np.abs(a1) < 1e-12) and min_s == 0:
         return 0.0

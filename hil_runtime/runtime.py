@@ -79,12 +79,17 @@ class StartupError(RuntimeError):
 
 def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
     """The config's bundle, refused unless it matches the drives: robot, joint count/order, period."""
-    bundle = PolicyBundle.load(config.bundle.path, expected_joints=len(config.bus.joints),
-                               expected_period_s=config.period_s, expected_joint_names=config.joint_names)  # fmt: skip
+    bundle = PolicyBundle.load(
+        config.bundle.path,
+        expected_joints=len(config.bus.joints),
+        expected_period_s=config.period_s,
+        expected_joint_names=config.joint_names,
+    )
     robot = bundle.manifest["robot"].get("name")
     if robot != config.robot:
-        raise RuntimeConfigError(f"{config.source}: robot: '{config.robot}' but bundle {config.bundle.path} "
-                                 f"is for '{robot}'")  # fmt: skip
+        raise RuntimeConfigError(
+            f"{config.source}: robot: '{config.robot}' but bundle {config.bundle.path} is for '{robot}'"
+        )
     return bundle
 
 
@@ -122,16 +127,18 @@ def condition_for(config: RuntimeConfig, limits: SafetyLimits) -> Condition | No
     ref = config.reference
     if ref.kind == "hold":
         return None
-    view = _Limits(config.robot, limits.n_joints, limits.position_lower_rad, limits.position_upper_rad,
-                   limits.velocity_limit_rad_s)  # fmt: skip
+    view = _Limits(
+        config.robot, limits.n_joints, limits.position_lower_rad, limits.position_upper_rad, limits.velocity_limit_rad_s
+    )
     conditions = load_conditions(ref.conditions_file, view)
     for condition in conditions:
         if condition.name == ref.condition:
             return condition
     names = ", ".join(c.name for c in conditions)
     where = ref.conditions_file or "the paper's conditions"
-    raise RuntimeConfigError(f"{config.source}: reference.condition: no condition '{ref.condition}' in {where} "
-                             f"(known: {names})")  # fmt: skip
+    raise RuntimeConfigError(
+        f"{config.source}: reference.condition: no condition '{ref.condition}' in {where} (known: {names})"
+    )
 
 
 # --- the record of a run -----------------------------------------------------------------------------
@@ -158,8 +165,19 @@ class RunRecord:
         self.compute_s = np.zeros(capacity)  # this cycle's loop work, policy call included
         self.exchange_s = np.zeros(capacity)  # this cycle's wait on the bus
 
-    def add(self, t_s: float, wall_s: float, q: np.ndarray, qd: np.ndarray, q_ref: np.ndarray, qd_ref: np.ndarray,
-            tau: np.ndarray, tau_fb: np.ndarray, fallback: float, exchange_s: float) -> int:  # fmt: skip
+    def add(
+        self,
+        t_s: float,
+        wall_s: float,
+        q: np.ndarray,
+        qd: np.ndarray,
+        q_ref: np.ndarray,
+        qd_ref: np.ndarray,
+        tau: np.ndarray,
+        tau_fb: np.ndarray,
+        fallback: float,
+        exchange_s: float,
+    ) -> int:
         """Store one row; returns its index (-1 when full). The loop fills compute_s at the cycle's end."""
         i = self.n
         if i >= self.capacity:
@@ -205,8 +223,19 @@ class RunResult:
 
 
 # Counters of anomalies the loop rides through; a rise is reported as a ``warning`` telemetry event.
-WARNING_COUNTERS = ("overruns", "skipped_periods", "law_substitutions", "nonfinite_fallbacks", "saturations",
-                    "stale_cycles", "bus_dropped", "bus_late", "bus_malformed", "bus_unknown_cob_id", "bus_emcy")  # fmt: skip
+WARNING_COUNTERS = (
+    "overruns",
+    "skipped_periods",
+    "law_substitutions",
+    "nonfinite_fallbacks",
+    "saturations",
+    "stale_cycles",
+    "bus_dropped",
+    "bus_late",
+    "bus_malformed",
+    "bus_unknown_cob_id",
+    "bus_emcy",
+)
 
 
 # --- the runtime ---------------------------------------------------------------------------------------
@@ -230,8 +259,9 @@ class Runtime:
         self.config = config
         self.bus = bus
         if bus.n_joints != len(config.bus.joints):
-            raise RuntimeConfigError(f"{config.source}: bus: {bus.n_joints} drives on the bus, "
-                                     f"{len(config.bus.joints)} joints in the config")  # fmt: skip
+            raise RuntimeConfigError(
+                f"{config.source}: bus: {bus.n_joints} drives on the bus, {len(config.bus.joints)} joints in the config"
+            )
         self.bundle = bundle if bundle is not None else load_bundle_for(config)
         self.limits = safety_limits_for(config, self.bundle)
         self.condition = condition_for(config, self.limits)
@@ -242,8 +272,9 @@ class Runtime:
         self.lifecycle = Lifecycle()
         self.lifecycle.subscribe(self._on_lifecycle)
         self._clock = clock
-        self.pacer = Pacer(config.period_s, config.loop.pacing, clock=clock, sleep=sleep,
-                           stats_window=config.loop.stats_window)  # fmt: skip
+        self.pacer = Pacer(
+            config.period_s, config.loop.pacing, clock=clock, sleep=sleep, stats_window=config.loop.stats_window
+        )
         n = self.bundle.n_joints
         self.record = RunRecord(record_cycles, n)
         self.reference: Reference = Reference.hold(np.zeros(n))
@@ -340,10 +371,15 @@ class Runtime:
             return False
         self._activations += 1
         self.lifecycle.apply(Transition.ACTIVATE)
-        self.telemetry.event("activated", self.total_cycles,
-                             f"reference {self.reference.name}, ramp {self.reference.ramp_cycles} cycles")
-        log.info("ACTIVE: reference %s, ramp %.3f s from %s", self.reference.name,
-                 self.reference.ramp_cycles * self.config.period_s, np.round(q0, 4).tolist())
+        self.telemetry.event(
+            "activated", self.total_cycles, f"reference {self.reference.name}, ramp {self.reference.ramp_cycles} cycles"
+        )
+        log.info(
+            "ACTIVE: reference %s, ramp %.3f s from %s",
+            self.reference.name,
+            self.reference.ramp_cycles * self.config.period_s,
+            np.round(q0, 4).tolist(),
+        )
         return True
 
     def shutdown(self) -> None:
@@ -368,8 +404,9 @@ class Runtime:
             log.warning("telemetry close: %r", exc)
 
     # --- the loop -------------------------------------------------------------------------------
-    def run(self, max_cycles: int | None = None, *, stop_on_fault: bool = False,
-            shutdown_at_end: bool = False) -> RunResult:  # fmt: skip
+    def run(
+        self, max_cycles: int | None = None, *, stop_on_fault: bool = False, shutdown_at_end: bool = False
+    ) -> RunResult:
         """Run the lifecycle on the calling thread until a stop request, ``max_cycles`` ACTIVE
         cycles, ``loop.duration_s`` in ACTIVE, or (``stop_on_fault``) a fault. INACTIVE and FAULT
         wait for requests (activate, reset, stop) with the watchdog fed."""
@@ -400,8 +437,14 @@ class Runtime:
                 if state in (LifecycleState.UNCONFIGURED, LifecycleState.FINALIZED):
                     raise RuntimeError(f"run() needs a configured runtime, it is {state.value}")
                 self._idle()
-            result = RunResult(reason if not self._stop else "stop", self.lifecycle.state, self.lifecycle.fault,
-                               self.total_cycles, self.stats(), self.fault_cycle)  # fmt: skip
+            result = RunResult(
+                reason if not self._stop else "stop",
+                self.lifecycle.state,
+                self.lifecycle.fault,
+                self.total_cycles,
+                self.stats(),
+                self.fault_cycle,
+            )
         finally:
             if shutdown_at_end:
                 self.shutdown()
@@ -490,8 +533,9 @@ class Runtime:
             return fault
         if supervisor.stale_run == 1:  # the first stale cycle: said at once (FAULT past max_stale_cycles)
             stale = [self.config.joint_names[i] for i in np.flatnonzero(~np.asarray(feedback.fresh, bool))]
-            self.telemetry.event("stale_feedback", self.total_cycles, f"no fresh feedback from {', '.join(stale)}; "
-                                 f"last values held")  # fmt: skip
+            self.telemetry.event(
+                "stale_feedback", self.total_cycles, f"no fresh feedback from {', '.join(stale)}; last values held"
+            )
         q_d, qd_d, qdd_d = self.reference.at(k)
         controller = self.controller
         try:
@@ -505,11 +549,22 @@ class Runtime:
         controller.commit(command)
         # compute_s here: this cycle's work up to the hand-off (the pacer's stats hold the full cycle's)
         self._seq += 1
-        self.telemetry.offer_state(self._seq, time.monotonic_ns(), q, qd, q_d, qd_d, command, tau_fb,
-                                   fallback, self._clock() - received_s)  # fmt: skip
+        self.telemetry.offer_state(
+            self._seq, time.monotonic_ns(), q, qd, q_d, qd_d, command, tau_fb, fallback, self._clock() - received_s
+        )
         if self.record.capacity:
-            self.record.add(k * self.pacer.period_s, start_s - self._t0_s, q, qd, q_d, qd_d, command, tau_fb,
-                            fallback, received_s - start_s)  # fmt: skip
+            self.record.add(
+                k * self.pacer.period_s,
+                start_s - self._t0_s,
+                q,
+                qd,
+                q_d,
+                qd_d,
+                command,
+                tau_fb,
+                fallback,
+                received_s - start_s,
+            )
         return None
 
     # --- faults, reset -------------------------------------------------------------------------------
@@ -555,8 +610,14 @@ class Runtime:
             return Reference.hold(q0)
         if ref.start == "condition":  # the plant was placed on the condition's start (RunStart)
             return Reference.condition_only(self.condition, self.config.period_s)
-        return Reference.ramp_then(q0, self.condition, self.config.period_s, ref.ramp_s,
-                                   self.limits.velocity_limit_rad_s, ref.ramp_speed_fraction)  # fmt: skip
+        return Reference.ramp_then(
+            q0,
+            self.condition,
+            self.config.period_s,
+            ref.ramp_s,
+            self.limits.velocity_limit_rad_s,
+            ref.ramp_speed_fraction,
+        )
 
     def _warm_up(self) -> None:
         """Run the policy, the supervisor and the reference code paths before ACTIVE (onnxruntime's
@@ -612,8 +673,11 @@ class Runtime:
         self.notifier.status(self.status_line(stats))
         # Anomalies the loop rides through (a late or malformed frame, an overrun, a substituted
         # torque) are counted where they happen and reported here, one event per stats interval.
-        rose = [f"{name} +{stats[name] - self._warned.get(name, 0)}" for name in WARNING_COUNTERS
-                if stats.get(name, 0) > self._warned.get(name, 0)]  # fmt: skip
+        rose = [
+            f"{name} +{stats[name] - self._warned.get(name, 0)}"
+            for name in WARNING_COUNTERS
+            if stats.get(name, 0) > self._warned.get(name, 0)
+        ]
         self._warned = {name: stats.get(name, 0) for name in WARNING_COUNTERS}
         if rose:
             self.telemetry.event("warning", self.total_cycles, ", ".join(rose))
@@ -645,9 +709,11 @@ class Runtime:
             stats = stats or self._last_stats
             rate = stats.get("rate_hz", math.nan) if stats else math.nan
             rate_text = "starting" if math.isnan(rate) else f"{rate:.0f} Hz"
-            return (f"ACTIVE {rate_text}, {self.total_cycles} cycles, overruns {self.pacer.overruns}, "
-                    f"reference {self.reference.name}")  # fmt: skip
-        return state.value
+            return (
+                f"ACTIVE {rate_text}, {self.total_cycles} cycles, overruns {self.pacer.overruns}, "
+                f"reference {self.reference.name}"
+            )
+        return str(state.value)
 
     def status(self) -> dict[str, Any]:
         """A JSON-able snapshot for the control socket."""
@@ -668,9 +734,16 @@ class Runtime:
             "compute_p99_s": _finite(stats.get("compute_p99_s")),
             "supervisor": self.supervisor.counters(),
             "nonfinite_fallbacks": getattr(self.bundle, "nonfinite_fallbacks", 0),
-            "bus": dataclasses.asdict(self.bus.counters) if dataclasses.is_dataclass(self.bus.counters) else {},  # type: ignore[arg-type]
+            "bus": _counters_dict(self.bus.counters),
             "realtime": {"applied": self.realtime.applied, "refused": self.realtime.refused},
         }
+
+
+def _counters_dict(counters: object) -> dict[str, Any]:
+    """The bus's counters (a dataclass instance, JointBus.counters) as a dict; {} for anything else."""
+    if dataclasses.is_dataclass(counters) and not isinstance(counters, type):
+        return dataclasses.asdict(counters)
+    return {}
 
 
 def _finite(value: Any) -> float | None:
@@ -689,5 +762,13 @@ def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
     return Runtime(config, bus, **kwargs)
 
 
-__all__ = ["BundleError", "ConditionError", "RunRecord", "RunResult", "Runtime", "StartupError", "build_runtime",
-           "load_bundle_for"]  # fmt: skip
+__all__ = [
+    "BundleError",
+    "ConditionError",
+    "RunRecord",
+    "RunResult",
+    "Runtime",
+    "StartupError",
+    "build_runtime",
+    "load_bundle_for",
+]

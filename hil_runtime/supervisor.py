@@ -121,7 +121,7 @@ class Supervisor:
         self._tmax = np.asarray(limits.torque_limit_nm, float)
         # The per-cycle checks run on Python floats: for a handful of joints, ``tolist()`` and a
         # loop cost ~2 µs where one numpy call per rule costs ~1 µs each (docs/runtime.md).
-        self._bounds = list(zip(self._lower.tolist(), self._upper.tolist(), self._vmax.tolist()))
+        self._bounds = list(zip(self._lower.tolist(), self._upper.tolist(), self._vmax.tolist(), strict=True))
         self._tmax_list = self._tmax.tolist()
         self._sat_list = (self._tmax * (1.0 - 1e-9)).tolist()
         self.stale_run = 0  # consecutive cycles with some stale feedback
@@ -136,15 +136,19 @@ class Supervisor:
         self.stale_run = 0
 
     def counters(self) -> dict[str, int]:
-        return {"law_substitutions": self.law_substitutions, "saturated_cycles": self.saturated_cycles,
-                "fallback_cycles": self.fallback_cycles, "full_fallback_cycles": self.full_fallback_cycles,
-                "stale_cycles": self.stale_cycles}  # fmt: skip
+        return {
+            "law_substitutions": self.law_substitutions,
+            "saturated_cycles": self.saturated_cycles,
+            "fallback_cycles": self.fallback_cycles,
+            "full_fallback_cycles": self.full_fallback_cycles,
+            "stale_cycles": self.stale_cycles,
+        }
 
     # --- feedback -----------------------------------------------------------------------------
     def check_feedback(self, q: np.ndarray, qd: np.ndarray, fresh: np.ndarray) -> Fault | None:
         """None when the feedback is usable; else the FAULT to enter."""
         # NaN compares False everywhere, so the bound checks also catch non-finite values.
-        for x, v, (lower, upper, vmax) in zip(q.tolist(), qd.tolist(), self._bounds):
+        for x, v, (lower, upper, vmax) in zip(q.tolist(), qd.tolist(), self._bounds, strict=True):
             if not (lower <= x <= upper and -vmax <= v <= vmax):
                 return self._describe_feedback(q, qd)
         if False not in fresh.tolist():
@@ -154,8 +158,10 @@ class Supervisor:
             self.stale_run += 1
             if self.stale_run > self.limits.max_stale_cycles:
                 stale = [self.joint_names[i] for i in np.flatnonzero(~np.asarray(fresh, bool))]
-                return Fault(FaultKind.STALE_FEEDBACK, f"no fresh feedback from {', '.join(stale)} for "
-                                                       f"{self.stale_run} consecutive cycles")  # fmt: skip
+                return Fault(
+                    FaultKind.STALE_FEEDBACK,
+                    f"no fresh feedback from {', '.join(stale)} for {self.stale_run} consecutive cycles",
+                )
         return None
 
     def _describe_feedback(self, q: np.ndarray, qd: np.ndarray) -> Fault:
@@ -166,10 +172,14 @@ class Supervisor:
         out = (q < self._lower) | (q > self._upper)
         if out.any():
             j = int(np.flatnonzero(out)[0])
-            return Fault(FaultKind.POSITION_LIMIT, f"{self.joint_names[j]} at {q[j]:.4f} rad, limits "
-                                                   f"[{self._lower[j]:.4f}, {self._upper[j]:.4f}]")  # fmt: skip
+            return Fault(
+                FaultKind.POSITION_LIMIT,
+                f"{self.joint_names[j]} at {q[j]:.4f} rad, limits [{self._lower[j]:.4f}, {self._upper[j]:.4f}]",
+            )
         j = int(np.argmax(np.abs(qd) - self._vmax))
-        return Fault(FaultKind.VELOCITY_LIMIT, f"{self.joint_names[j]} at {qd[j]:.4f} rad/s, limit ±{self._vmax[j]:.4f}")
+        return Fault(
+            FaultKind.VELOCITY_LIMIT, f"{self.joint_names[j]} at {qd[j]:.4f} rad/s, limit ±{self._vmax[j]:.4f}"
+        )
 
     # --- policy output --------------------------------------------------------------------------
     def select_torque(self, tau: np.ndarray, tau_fb: np.ndarray, fallback: float, out: np.ndarray) -> Fault | None:
@@ -183,7 +193,7 @@ class Supervisor:
                 return Fault(FaultKind.POLICY_NONFINITE, "policy and feedback-law torques are both non-finite")
             self.law_substitutions += 1
         saturated = False
-        for i, (x, limit, level) in enumerate(zip(values, self._tmax_list, self._sat_list)):
+        for i, (x, limit, level) in enumerate(zip(values, self._tmax_list, self._sat_list, strict=True)):
             if x >= level:
                 saturated = True
                 if x > limit:
