@@ -82,72 +82,226 @@ def _telemetry_sent(rig: Any, result: c.CaseResult) -> None:
 TWO = "2 cycles"
 F = ("feedback_timeout", "stale_feedback")
 FAULTS: tuple[FaultSpec, ...] = (
-    FaultSpec("tpdo_drop_1_one", "TPDO dropped, 1 cycle, one drive", "tolerated (max_missed_cycles 1), counted", True,
-              _ip(c.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None))),
-    FaultSpec("tpdo_drop_1_all", "TPDOs dropped, 1 cycle, all drives", "tolerated, counted", False,
-              _ip(c.drop_tpdos(1, True), Expect(counters=TOLERATED_DROP, max_cycles=None))),
-    FaultSpec("tpdo_drop_3_one", "TPDO dropped, 3 cycles, one drive", TWO, False, _ip(c.drop_tpdos(3, False), Expect(F))),
-    FaultSpec("tpdo_drop_3_all", "TPDOs dropped, 3 cycles, all drives", TWO, True, _ip(c.drop_tpdos(3, True), Expect(F))),
-    FaultSpec("tpdo_drop_50_one", "TPDO dropped, 50 cycles, one drive", TWO, False, _ip(c.drop_tpdos(50, False), Expect(F))),
-    FaultSpec("tpdo_drop_50_all", "TPDOs dropped, 50 cycles, all drives", TWO, False, _ip(c.drop_tpdos(50, True), Expect(F))),
-    FaultSpec("tpdo_delay_1_one", "TPDO delayed past the cycle, once, one drive", "tolerated, counted late", False,
-              _ip(c.delay_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None))),
-    FaultSpec("tpdo_delay_3_all", "TPDOs delayed past the cycle, 3 cycles, all drives", TWO, True,
-              _ip(c.delay_tpdos(3, True), Expect(F))),
-    FaultSpec("tpdo_corrupt_1_one", "TPDO corrupted (wrong length), once, one drive", "tolerated, counted malformed", True,
-              _ip(c.corrupt_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None))),
-    FaultSpec("tpdo_corrupt_3_all", "TPDOs corrupted (wrong length), 3 cycles, all drives", TWO, False,
-              _ip(c.corrupt_tpdos(3, True), Expect(F))),
-    FaultSpec("wrong_length_flood", "wrong-length TPDO/heartbeat/EMCY frames on our drives' COB-IDs, 0.3 s",
-              "tolerated, counted malformed", False,
-              _ip(c.flood("wrong_length"), Expect(counters=("bus.malformed",), max_cycles=None))),
-    FaultSpec("unknown_cob_flood", "unknown COB-IDs flooding the bus, 0.3 s", "tolerated, counted", True,
-              _ip(c.flood("unknown"), Expect(counters=("bus.unknown_cob_id",), max_cycles=None))),
-    FaultSpec("heartbeat_lost", "a drive's heartbeat lost", "heartbeat_timeout_s (0.5 s)", True,
-              _ip(c.target_fault({"kind": "heartbeat", "node_id": "random", "silent": True}),
-                  Expect(("heartbeat_lost",), max_cycles=None), observe_cycles=5000)),
-    FaultSpec("drive_fault_emcy", "a drive enters FAULT (EMCY 0x2310)", TWO, True,
-              _ip(c.target_fault({"kind": "drive_fault", "node_id": "random", "error_code": 0x2310}),
-                  Expect(("drive_fault",)))),
-    FaultSpec("sdo_abort_startup", "SDO abort at start-up (drive 2 refuses 0x6072)", "at start-up, before any enable", False,
-              _startup(c.prepare_sdo_abort, "0x06090030")),
-    FaultSpec("bus_closed", "the bus closed under the driver", TWO, True,
-              _ip(c.close_bus_under_driver, Expect(("transport",)), settle_s=1.6)),
-    FaultSpec("target_killed", "the target process killed (SIGKILL), ipc bus", TWO, True,
-              _ip(c.kill_target_process, Expect(("feedback_timeout", "transport", "stale_feedback")), transport="ipc")),
-    FaultSpec("emulator_nan", "emulator output NaN (crafted bundle)", "substituted in the cycle; reported at the next stats",
-              True, _crafted("nan", Expect(counters=("nonfinite_fallbacks",), max_cycles=None))),
-    FaultSpec("emulator_inf", "emulator output +inf (crafted bundle)", "substituted in the cycle; reported at the next stats",
-              False, _crafted("inf", Expect(counters=("nonfinite_fallbacks",), max_cycles=None))),
-    FaultSpec("policy_nan_both", "law and emulator output NaN (crafted bundle)", TWO, True,
-              _crafted("nan_both", Expect(("policy_nonfinite",)))),
-    FaultSpec("saturating_bundle", "a bundle that saturates every joint (crafted, +1e6 N·m)", "clipped in the cycle",
-              True, _crafted("saturate", Expect(may_fault=c.LIMIT_FAULTS, counters=("supervisor.saturated_cycles",),
-                                                max_cycles=None), observe_cycles=3000)),
-    FaultSpec("tampered_bundle", "bundle tampered on disk before start", "at start-up, before the bus", True,
-              _startup(c.prepare_tampered, "sha256 mismatch")),
-    FaultSpec("subscriber_killed", "the telemetry subscriber killed (SIGKILL)", "not a runtime fault", False,
-              _ip(c.kill_subscriber, Expect(event=False, max_cycles=None), post_check=_states_flow,
-                  prepare=c.start_subscriber)),
-    FaultSpec("no_zenoh_peer", "no Zenoh peer at all (telemetry on)", "not a runtime fault", False,
-              _ip(lambda rig, rng: None, Expect(event=False, max_cycles=None), watch_telemetry=False,
-                  post_check=_telemetry_sent)),
-    FaultSpec("cpu_starvation", "CPU starvation: busy processes on every CPU, clock pacing", "overruns counted",
-              False, _ip(c.starve_cpu, Expect(may_fault=("feedback_timeout", "stale_feedback"), counters=("overruns",),
-                                             max_cycles=None), observe_cycles=2500,
-                         config_extra={"loop": {"pacing": "clock", "time_base": "cycles"}})),
-    FaultSpec("loop_stall", "the loop stalled (daemon SIGSTOPped past the watchdog)", "WatchdogSec (0.2 s here)", True,
-              c.loop_stall),
-    FaultSpec("sigterm_during_enable", "SIGTERM during enable (daemon)", "a request: exit 0", True,
-              c.sigterm_during_enable),
-    FaultSpec("payload_jump", "payload jump, +5 kg at the flange", "not a fault: rejected, or a limit FAULT", False,
-              _ip(c.target_fault({"kind": "payload", "mass_kg": 5.0}),
-                  Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None), observe_cycles=1500)),
-    FaultSpec("disturbance_10x", "10x the paper's disturbance on the plant", "not a fault: rejected, or a limit FAULT",
-              True, _ip(c.target_fault({"kind": "impulse", "torque_nm": [10, 10, 50, 50, 100, 100]}),
-                        Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None), observe_cycles=1500)),
-    FaultSpec("reference_out_of_limits", "a reference that would leave the limits", "at start-up, before the bus", False,
-              _startup(c.prepare_reference_out, "WIDE")),
+    FaultSpec(
+        "tpdo_drop_1_one",
+        "TPDO dropped, 1 cycle, one drive",
+        "tolerated (max_missed_cycles 1), counted",
+        True,
+        _ip(c.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+    ),
+    FaultSpec(
+        "tpdo_drop_1_all",
+        "TPDOs dropped, 1 cycle, all drives",
+        "tolerated, counted",
+        False,
+        _ip(c.drop_tpdos(1, True), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+    ),
+    FaultSpec(
+        "tpdo_drop_3_one", "TPDO dropped, 3 cycles, one drive", TWO, False, _ip(c.drop_tpdos(3, False), Expect(F))
+    ),
+    FaultSpec(
+        "tpdo_drop_3_all", "TPDOs dropped, 3 cycles, all drives", TWO, True, _ip(c.drop_tpdos(3, True), Expect(F))
+    ),
+    FaultSpec(
+        "tpdo_drop_50_one", "TPDO dropped, 50 cycles, one drive", TWO, False, _ip(c.drop_tpdos(50, False), Expect(F))
+    ),
+    FaultSpec(
+        "tpdo_drop_50_all", "TPDOs dropped, 50 cycles, all drives", TWO, False, _ip(c.drop_tpdos(50, True), Expect(F))
+    ),
+    FaultSpec(
+        "tpdo_delay_1_one",
+        "TPDO delayed past the cycle, once, one drive",
+        "tolerated, counted late",
+        False,
+        _ip(c.delay_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+    ),
+    FaultSpec(
+        "tpdo_delay_3_all",
+        "TPDOs delayed past the cycle, 3 cycles, all drives",
+        TWO,
+        True,
+        _ip(c.delay_tpdos(3, True), Expect(F)),
+    ),
+    FaultSpec(
+        "tpdo_corrupt_1_one",
+        "TPDO corrupted (wrong length), once, one drive",
+        "tolerated, counted malformed",
+        True,
+        _ip(c.corrupt_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+    ),
+    FaultSpec(
+        "tpdo_corrupt_3_all",
+        "TPDOs corrupted (wrong length), 3 cycles, all drives",
+        TWO,
+        False,
+        _ip(c.corrupt_tpdos(3, True), Expect(F)),
+    ),
+    FaultSpec(
+        "wrong_length_flood",
+        "wrong-length TPDO/heartbeat/EMCY frames on our drives' COB-IDs, 0.3 s",
+        "tolerated, counted malformed",
+        False,
+        _ip(c.flood("wrong_length"), Expect(counters=("bus.malformed",), max_cycles=None)),
+    ),
+    FaultSpec(
+        "unknown_cob_flood",
+        "unknown COB-IDs flooding the bus, 0.3 s",
+        "tolerated, counted",
+        True,
+        _ip(c.flood("unknown"), Expect(counters=("bus.unknown_cob_id",), max_cycles=None)),
+    ),
+    FaultSpec(
+        "heartbeat_lost",
+        "a drive's heartbeat lost",
+        "heartbeat_timeout_s (0.5 s)",
+        True,
+        _ip(
+            c.target_fault({"kind": "heartbeat", "node_id": "random", "silent": True}),
+            Expect(("heartbeat_lost",), max_cycles=None),
+            observe_cycles=5000,
+        ),
+    ),
+    FaultSpec(
+        "drive_fault_emcy",
+        "a drive enters FAULT (EMCY 0x2310)",
+        TWO,
+        True,
+        _ip(
+            c.target_fault({"kind": "drive_fault", "node_id": "random", "error_code": 0x2310}), Expect(("drive_fault",))
+        ),
+    ),
+    FaultSpec(
+        "sdo_abort_startup",
+        "SDO abort at start-up (drive 2 refuses 0x6072)",
+        "at start-up, before any enable",
+        False,
+        _startup(c.prepare_sdo_abort, "0x06090030"),
+    ),
+    FaultSpec(
+        "bus_closed",
+        "the bus closed under the driver",
+        TWO,
+        True,
+        _ip(c.close_bus_under_driver, Expect(("transport",)), settle_s=1.6),
+    ),
+    FaultSpec(
+        "target_killed",
+        "the target process killed (SIGKILL), ipc bus",
+        TWO,
+        True,
+        _ip(c.kill_target_process, Expect(("feedback_timeout", "transport", "stale_feedback")), transport="ipc"),
+    ),
+    FaultSpec(
+        "emulator_nan",
+        "emulator output NaN (crafted bundle)",
+        "substituted in the cycle; reported at the next stats",
+        True,
+        _crafted("nan", Expect(counters=("nonfinite_fallbacks",), max_cycles=None)),
+    ),
+    FaultSpec(
+        "emulator_inf",
+        "emulator output +inf (crafted bundle)",
+        "substituted in the cycle; reported at the next stats",
+        False,
+        _crafted("inf", Expect(counters=("nonfinite_fallbacks",), max_cycles=None)),
+    ),
+    FaultSpec(
+        "policy_nan_both",
+        "law and emulator output NaN (crafted bundle)",
+        TWO,
+        True,
+        _crafted("nan_both", Expect(("policy_nonfinite",))),
+    ),
+    FaultSpec(
+        "saturating_bundle",
+        "a bundle that saturates every joint (crafted, +1e6 N·m)",
+        "clipped in the cycle",
+        True,
+        _crafted(
+            "saturate",
+            Expect(may_fault=c.LIMIT_FAULTS, counters=("supervisor.saturated_cycles",), max_cycles=None),
+            observe_cycles=3000,
+        ),
+    ),
+    FaultSpec(
+        "tampered_bundle",
+        "bundle tampered on disk before start",
+        "at start-up, before the bus",
+        True,
+        _startup(c.prepare_tampered, "sha256 mismatch"),
+    ),
+    FaultSpec(
+        "subscriber_killed",
+        "the telemetry subscriber killed (SIGKILL)",
+        "not a runtime fault",
+        False,
+        _ip(
+            c.kill_subscriber, Expect(event=False, max_cycles=None), post_check=_states_flow, prepare=c.start_subscriber
+        ),
+    ),
+    FaultSpec(
+        "no_zenoh_peer",
+        "no Zenoh peer at all (telemetry on)",
+        "not a runtime fault",
+        False,
+        _ip(
+            lambda rig, rng: None,
+            Expect(event=False, max_cycles=None),
+            watch_telemetry=False,
+            post_check=_telemetry_sent,
+        ),
+    ),
+    FaultSpec(
+        "cpu_starvation",
+        "CPU starvation: busy processes on every CPU, clock pacing",
+        "overruns counted",
+        False,
+        _ip(
+            c.starve_cpu,
+            Expect(may_fault=("feedback_timeout", "stale_feedback"), counters=("overruns",), max_cycles=None),
+            observe_cycles=2500,
+            config_extra={"loop": {"pacing": "clock", "time_base": "cycles"}},
+        ),
+    ),
+    FaultSpec(
+        "loop_stall",
+        "the loop stalled (daemon SIGSTOPped past the watchdog)",
+        "WatchdogSec (0.2 s here)",
+        True,
+        c.loop_stall,
+    ),
+    FaultSpec(
+        "sigterm_during_enable", "SIGTERM during enable (daemon)", "a request: exit 0", True, c.sigterm_during_enable
+    ),
+    FaultSpec(
+        "payload_jump",
+        "payload jump, +5 kg at the flange",
+        "not a fault: rejected, or a limit FAULT",
+        False,
+        _ip(
+            c.target_fault({"kind": "payload", "mass_kg": 5.0}),
+            Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None),
+            observe_cycles=1500,
+        ),
+    ),
+    FaultSpec(
+        "disturbance_10x",
+        "10x the paper's disturbance on the plant",
+        "not a fault: rejected, or a limit FAULT",
+        True,
+        _ip(
+            c.target_fault({"kind": "impulse", "torque_nm": [10, 10, 50, 50, 100, 100]}),
+            Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None),
+            observe_cycles=1500,
+        ),
+    ),
+    FaultSpec(
+        "reference_out_of_limits",
+        "a reference that would leave the limits",
+        "at start-up, before the bus",
+        False,
+        _startup(c.prepare_reference_out, "WIDE"),
+    ),
 )
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
 SECONDS_ROWS = ("heartbeat_lost", "loop_stall")  # bounds in seconds: the wall time is shown too
@@ -310,7 +464,7 @@ def format_table(document: dict[str, Any]) -> str:
             "the position limits | pass |")  # fmt: skip
     lines = [head, "|" + "---|" * 11]
     for row in document["rows"]:
-        cycles = (_fmt_cycles(row["detected_cycles"]) if row["detected_cycles"] else "—")
+        cycles = _fmt_cycles(row["detected_cycles"]) if row["detected_cycles"] else "—"
         if row["detected_s_max"] is not None and row["fault"] in SECONDS_ROWS:
             cycles = (f"{cycles} (≤ {row['detected_s_max']:.3f} s)" if row["detected_cycles"] else
                       f"— (watchdog silent ≤ {row['detected_s_max']:.2f} s)")  # fmt: skip

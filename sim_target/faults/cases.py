@@ -29,8 +29,20 @@ from sim_target.faults.rig import Q0_RAD, InProcessRig, in_process_rig
 QUICK_STOPPED = ("quick stop active", "switch on disabled", "fault", "fault reaction active", "not enabled")
 LIMIT_FAULTS = ("position_limit", "velocity_limit")
 # The counters a tolerated fault may raise (status), as the action column names them.
-ANOMALIES = frozenset({"stale_cycles", "dropped", "late", "malformed", "unknown_cob_id", "emcy", "overruns",
-                       "nonfinite_fallbacks", "law_substitutions", "saturated_cycles"})
+ANOMALIES = frozenset(
+    {
+        "stale_cycles",
+        "dropped",
+        "late",
+        "malformed",
+        "unknown_cob_id",
+        "emcy",
+        "overruns",
+        "nonfinite_fallbacks",
+        "law_substitutions",
+        "saturated_cycles",
+    }
+)
 
 
 class RigFault(RuntimeError):
@@ -157,16 +169,27 @@ def run_in_process(
                 break
             time.sleep(0.005)
         state = runtime.state
-        result.daemon_alive = rig.loop.error is None and state is not LifecycleState.FINALIZED and (
-            rig.loop.alive or rig.loop.thread is None)
-        result.daemon_note = "loop thread up" if rig.loop.alive else (
-            f"loop returned ({rig.loop.result.reason})" if rig.loop.result is not None else
-            (f"loop raised {rig.loop.error!r}" if rig.loop.error else "not started (FAULT at activation)"))
+        result.daemon_alive = (
+            rig.loop.error is None
+            and state is not LifecycleState.FINALIZED
+            and (rig.loop.alive or rig.loop.thread is None)
+        )
+        result.daemon_note = (
+            "loop thread up"
+            if rig.loop.alive
+            else (
+                f"loop returned ({rig.loop.result.reason})"
+                if rig.loop.result is not None
+                else (f"loop raised {rig.loop.error!r}" if rig.loop.error else "not started (FAULT at activation)")
+            )
+        )
         result.drives_final = rig.drive_states()
         arm = rig.arm_position()
         lower, upper = rig.position_limits()
         status = runtime.status()
-        fault_kind = runtime.last_fault.kind.value if runtime.last_fault is not None and state is LifecycleState.FAULT else None
+        fault_kind = (
+            runtime.last_fault.kind.value if runtime.last_fault is not None and state is LifecycleState.FAULT else None
+        )
         # the telemetry event (the publisher thread sends within a millisecond or so)
         event = None
         if watch is not None:
@@ -226,8 +249,12 @@ def run_in_process(
     if fault_kind is not None:
         if isinstance(result.drives_final, list) and any(s == "operation enabled" for s in result.drives_final):
             fails.append("a drive is still enabled after the FAULT")
-        if expect.faults and expect.max_cycles is not None and fault_kind in expect.faults and \
-                (result.detected_cycles is None or result.detected_cycles > expect.max_cycles):
+        if (
+            expect.faults
+            and expect.max_cycles is not None
+            and fault_kind in expect.faults
+            and (result.detected_cycles is None or result.detected_cycles > expect.max_cycles)
+        ):
             fails.append(f"detected after {result.detected_cycles} cycles (bound {expect.max_cycles})")
         if not result.status_shows:
             fails.append("the status does not show the FAULT")
@@ -365,8 +392,8 @@ def kill_target_process(rig: InProcessRig, rng: np.random.Generator) -> Any:
 def starve_cpu(rig: InProcessRig, rng: np.random.Generator) -> Any:
     """Busy processes, one more than the CPUs: the loop (clock pacing) must count its overruns."""
     count = (os.cpu_count() or 2) + 1
-    busy = [subprocess.Popen([sys.executable, "-c", "import time\nend = time.monotonic() + 3.0\nwhile time.monotonic() < end: pass"])
-            for _ in range(count)]  # fmt: skip
+    spin = "import time\nend = time.monotonic() + 3.0\nwhile time.monotonic() < end: pass"
+    busy = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(count)]
 
     def reap() -> None:
         for process in busy:
@@ -381,14 +408,22 @@ def starve_cpu(rig: InProcessRig, rng: np.random.Generator) -> Any:
 def start_subscriber(rig: InProcessRig, rng: np.random.Generator) -> Any:
     """A second subscriber process on state (started before the drives are enabled)."""
     code = ("import sys, time\nfrom hil_runtime.telemetry.subscriber import TelemetryClient\n"
-            f"c = TelemetryClient.open(connect=['tcp/127.0.0.1:{rig.telemetry_port}'], robot='ur5_paper', timeout_s=20)\n"
+            f"c = TelemetryClient.open(connect=['tcp/127.0.0.1:{rig.telemetry_port}'], robot='ur5_paper',"
+            " timeout_s=20)\n"
             "n = [0]\nc.subscribe('state', lambda p: n.__setitem__(0, n[0] + 1))\n"
             "print('subscribed', flush=True)\ntime.sleep(60)\n")  # fmt: skip
-    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
     assert process.stdout is not None
     ready = process.stdout.readline().strip() == "subscribed"
     rig.subscriber = process  # type: ignore[attr-defined]
-    rig.cleanups.append(lambda: (process.kill(), process.wait(10)))
+
+    def reap() -> None:
+        process.kill()
+        process.wait(10)
+
+    rig.cleanups.append(reap)
     return {"subscriber_ready": ready}
 
 
@@ -412,8 +447,10 @@ def run_cli_in_process(argv: list[str]) -> tuple[int, str]:
     return code, err.getvalue()
 
 
-def startup_case(name: str, repeat: int, seed: int, work: Path, prepare: Callable[[Path, dict[str, Any], Any], dict[str, Any]],
-                 expect_text: str) -> CaseResult:  # fmt: skip
+Prepare = Callable[[Path, dict[str, Any], Any], dict[str, Any]]
+
+
+def startup_case(name: str, repeat: int, seed: int, work: Path, prepare: Prepare, expect_text: str) -> CaseResult:
     """Write a runtime config (changed by ``prepare``), run ``hil run`` on it against a live target."""
     import yaml
 
@@ -473,7 +510,8 @@ def prepare_reference_out(work: Path, data: dict[str, Any], target: Any) -> dict
     # C1's shape with joint 2 asked to swing 4 rad: past its ±2.513 rad limit.
     (work / "conditions.yaml").write_text(
         "defaults: {duration_s: 5.0, shape: raised_sine, frequency_hz: 0.1, phase_s: 2.5, initial_state: reference}\n"
-        "conditions:\n  - name: WIDE\n    amplitude_rad: [-pi/4, 4.0, -pi/6, -pi/4, pi/2, pi/2]\n")
+        "conditions:\n  - name: WIDE\n    amplitude_rad: [-pi/4, 4.0, -pi/6, -pi/4, pi/2, pi/2]\n"
+    )
     data["reference"] = {"kind": "condition", "condition": "WIDE", "conditions_file": str(work / "conditions.yaml")}
     return data
 
@@ -514,7 +552,8 @@ def sigterm_during_enable(name: str, repeat: int, seed: int, work: Path) -> Case
         leftovers = [p.name for p in work.iterdir() if ".partial" in p.name]
     states = [line.split("state ", 1)[1] for line in lines if "hil run: state " in line]
     result.detail.update({"exit_code": code, "signal_after_configured_s": round(delay_s, 4), "states": states,
-                          "stderr_tail": lines[-2:], "record_complete": record_ok, "partial_files": leftovers})  # fmt: skip
+                          "stderr_tail": lines[-2:], "record_complete": record_ok,
+                          "partial_files": leftovers})  # fmt: skip
     result.detail["signal_before_active"] = before_active
     when = "during start-up/enable" if before_active else "just after ACTIVE"
     result.action = f"SIGTERM {when}: quick stop, disable, exit {code}"
@@ -568,7 +607,9 @@ def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
     stall_s = comm_loss_s + 0.7 + float(rng.uniform(0.0, 0.3))
     bus = {**DAEMON_BUS, "comm_loss_timeout_s": comm_loss_s}
     with rigs.daemon_rig(work, watchdog_usec=watchdog_usec, bus=bus) as rig:
-        status = rig.wait_status(lambda s: s.get("state") == "FAULT" or (s.get("state") == "ACTIVE" and s.get("cycles", 0) > 300), 120)
+        status = rig.wait_status(
+            lambda s: s.get("state") == "FAULT" or (s.get("state") == "ACTIVE" and s.get("cycles", 0) > 300), 120
+        )
         if status.get("state") != "ACTIVE":
             raise RigFault(f"the daemon did not reach ACTIVE: {status} {rig.stderr_lines[-3:]}")
         watch = rigs.TelemetryWatch(rig.telemetry_port)
@@ -595,8 +636,9 @@ def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
         lines = list(rig.stderr_lines)
         ratio = _record_ratio(rig.record) if _npz_ok(rig.record) else None
     result.detected_s = round(max_gap, 3)
-    result.detail.update({"stall_s": round(stall_s, 3), "watchdog_usec": watchdog_usec, "max_ping_gap_s": round(max_gap, 3),
-                          "drives_enabled_during_stall": during, "status_after": {k: after.get(k) for k in ("state", "fault")},
+    result.detail.update({"stall_s": round(stall_s, 3), "watchdog_usec": watchdog_usec,
+                          "max_ping_gap_s": round(max_gap, 3), "drives_enabled_during_stall": during,
+                          "status_after": {k: after.get(k) for k in ("state", "fault")},
                           "exit_code": code, "stderr_tail": lines[-2:]})  # fmt: skip
     kind = str(after.get("fault") or "").split(":")[0]
     result.detail["fault_on_resume"] = kind

@@ -10,8 +10,12 @@ import typer
 
 
 def faults(
-    out: Annotated[Path, typer.Option("--out", help="output directory: results.json and table.md")] = Path("results/faults"),
-    quick: Annotated[bool, typer.Option("--quick", help="the subset the test suite runs (about a minute), one repeat")] = False,
+    out: Annotated[Path, typer.Option("--out", help="output directory: results.json and table.md")] = Path(
+        "results/faults"
+    ),
+    quick: Annotated[
+        bool, typer.Option("--quick", help="the subset the test suite runs (about a minute), one repeat")
+    ] = False,
     repeats: Annotated[int | None, typer.Option(help="runs of each fault (default 3; 1 with --quick)")] = None,
     seed: Annotated[int, typer.Option(help="base seed of the repeats")] = 0,
     only: Annotated[str | None, typer.Option(help="comma-separated fault names (see docs/faults.md)")] = None,
@@ -22,6 +26,7 @@ def faults(
 
     from hil_runtime.outputs import prepare_output_dir
     from sim_target.faults.campaign import run_campaign, select
+    from sim_target.faults.cases import CaseResult
 
     names = tuple(x.strip() for x in only.split(",") if x.strip()) if only else None
     select(quick, names)  # unknown names: one line, exit 2, before any work
@@ -30,15 +35,16 @@ def faults(
     out_dir = prepare_output_dir(out)
     count = repeats if repeats is not None else (1 if quick else 3)
 
-    def progress(result: object) -> None:
-        r = result  # a CaseResult
-        mark = "pass" if r.passed else "FAIL: " + "; ".join(r.failures)  # type: ignore[attr-defined]
-        print(f"  {r.fault} #{r.repeat}: {r.action} [{mark}] ({r.wall_s} s)", file=sys.stderr, flush=True)  # type: ignore[attr-defined]
+    def progress(r: CaseResult) -> None:
+        mark = "pass" if r.passed else "FAIL: " + "; ".join(r.failures)
+        print(f"  {r.fault} #{r.repeat}: {r.action} [{mark}] ({r.wall_s} s)", file=sys.stderr, flush=True)
 
     document = run_campaign(out_dir, quick=quick, repeats=count, seed=seed, only=names, progress=progress)
     failed = [row["fault"] for row in document["rows"] if not row["pass"]]
-    print(f"wrote {out_dir / 'table.md'} and {out_dir / 'results.json'}: {len(document['rows'])} faults, "
-          + ("every row passes" if not failed else f"FAILED: {', '.join(failed)}"))
+    print(
+        f"wrote {out_dir / 'table.md'} and {out_dir / 'results.json'}: {len(document['rows'])} faults, "
+        + ("every row passes" if not failed else f"FAILED: {', '.join(failed)}")
+    )
     if failed:
         raise typer.Exit(1)
 

@@ -116,7 +116,8 @@ def craft_bundle(source: Path, destination: Path, kind: CraftKind) -> float:
     onnx.save(model, str(graph_file))
 
     manifest["files"][graph_file.name] = _sha256(graph_file)
-    manifest["graph"]["fused"] = f"{manifest['graph'].get('fused', '')} [fault campaign: '{kind}' when |q0 - {trigger}| < {TRIGGER_HALF_WIDTH_RAD}]"
+    band = f"|q0 - {trigger}| < {TRIGGER_HALF_WIDTH_RAD}"
+    manifest["graph"]["fused"] = f"{manifest['graph'].get('fused', '')} [fault campaign: '{kind}' when {band}]"
     manifest_path.write_text(json.dumps(manifest, indent=1))
     return trigger
 

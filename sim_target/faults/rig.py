@@ -65,7 +65,7 @@ def runtime_config_dict(transport: dict[str, Any], bundle: Path = PD_BUNDLE, tel
         "bundle": {"path": str(bundle), "mode": "lmpc"},
         "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": PERIOD_S,
                 "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))],
+                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))],
                 "feedback_timeout_s": FEEDBACK_TIMEOUT_S, "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
                 "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S, "sdo_timeout_s": 2.0, "state_change_timeout_s": 5.0,
                 "comm_loss_timeout_s": COMM_LOSS_TIMEOUT_S, **(bus or {})},
@@ -82,8 +82,8 @@ def runtime_config_dict(transport: dict[str, Any], bundle: Path = PD_BUNDLE, tel
 def target_config(q0_rad: tuple[float, ...] = Q0_RAD, **extra: Any) -> dict[str, Any]:
     from sim_target.launch import target_config_dict
 
-    return target_config_dict("ur5_paper", PERIOD_S, TARGET_SUBSTEPS,
-                              plant={"substeps": TARGET_SUBSTEPS, "initial_position_rad": list(q0_rad)}, **extra)  # fmt: skip
+    plant = {"substeps": TARGET_SUBSTEPS, "initial_position_rad": list(q0_rad)}
+    return target_config_dict("ur5_paper", PERIOD_S, TARGET_SUBSTEPS, plant=plant, **extra)
 
 
 # --- telemetry, as a subscriber sees it -----------------------------------------------------------
@@ -131,7 +131,9 @@ class TelemetryWatch:
                     return event
         return None
 
-    def wait_event(self, kinds: tuple[str, ...], since_s: float, timeout_s: float, text: str = "") -> dict[str, Any] | None:
+    def wait_event(
+        self, kinds: tuple[str, ...], since_s: float, timeout_s: float, text: str = ""
+    ) -> dict[str, Any] | None:
         deadline = time.monotonic() + timeout_s
         while True:
             found = self.find_event(kinds, since_s, text)
@@ -476,5 +478,17 @@ def json_safe(value: Any) -> Any:
     return value
 
 
-__all__ = ["DaemonRig", "InProcessRig", "LoopThread", "NotifyListener", "RpdoTap", "TelemetryWatch", "daemon_rig",
-           "free_port", "in_process_rig", "json_safe", "runtime_config_dict", "target_config"]
+__all__ = [
+    "DaemonRig",
+    "InProcessRig",
+    "LoopThread",
+    "NotifyListener",
+    "RpdoTap",
+    "TelemetryWatch",
+    "daemon_rig",
+    "free_port",
+    "in_process_rig",
+    "json_safe",
+    "runtime_config_dict",
+    "target_config",
+]

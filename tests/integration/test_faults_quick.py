@@ -30,7 +30,7 @@ def test_hil_faults_quick_passes_every_row(tmp_path: Path) -> None:
 
 
 def test_unknown_fault_names_are_one_line_exit_2(tmp_path: Path) -> None:
-    done = subprocess.run([sys.executable, "-m", "hil_runtime.cli", "faults", "--only", "nope", "--out", str(tmp_path / "x")],
-                          capture_output=True, text=True, timeout=120, check=False)  # fmt: skip
+    command = [sys.executable, "-m", "hil_runtime.cli", "faults", "--only", "nope", "--out", str(tmp_path / "x")]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "nope" in done.stderr, done.stderr
     assert not (tmp_path / "x").exists()
