@@ -156,6 +156,52 @@ class BridgeServer:
         self._thread.join(timeout=2.0)
 
 
+@functools.cache
+def _client_handler_class() -> type:
+    """python-can-remote's per-client handler whose sending thread survives a dead client.
+
+    Upstream, the thread that forwards the bus to a client dies with ``BrokenPipeError`` when the
+    client process is killed and never shuts its bus down: the client's queue stays on the virtual
+    channel for the life of the target, copying every frame. Here a dead client ends the thread
+    quietly and the bus is shut down either way.
+    """
+    from can_remote.server import ClientRequestHandler, RemoteServerProtocol
+    from can_remote.websocket import WebSocket, WebsocketClosed, get_accept_key
+
+    class _Protocol(RemoteServerProtocol):  # type: ignore[misc]  # untyped package
+        def _send_to_client(self) -> None:
+            try:
+                while self.running:
+                    msg = self.bus.recv(0.5)
+                    if msg is not None:
+                        self.send_msg(msg)
+            except (OSError, WebsocketClosed, can.CanError) as exc:
+                log.debug("bridge client gone: %s", exc)
+                self.running = False
+            finally:
+                self.bus.shutdown()
+
+    class _Handler(ClientRequestHandler):  # type: ignore[misc]  # untyped package
+        def start_websocket(self) -> None:
+            # python-can-remote 0.3's start_websocket, building the protocol above.
+            self.send_response(101)
+            self.send_header("Upgrade", "WebSocket")
+            self.send_header("Connection", "Upgrade")
+            self.send_header("Sec-WebSocket-Accept", get_accept_key(self.headers["Sec-WebSocket-Key"]))
+            offered = [p.strip() for p in self.headers.get("Sec-WebSocket-Protocol", "can.json.v1").split(",")]
+            protocol_name = "can.binary+json.v1" if "can.binary+json.v1" in offered else "can.json.v1"
+            self.send_header("Sec-WebSocket-Protocol", protocol_name)
+            self.end_headers()
+            protocol = _Protocol(self.server.config, WebSocket(None, protocol_name, sock=self.request))
+            self.server.clients.append(protocol)
+            try:
+                protocol.run()
+            finally:
+                self.server.clients.remove(protocol)
+
+    return _Handler
+
+
 def start_bridge_server(host: str = "127.0.0.1", port: int = 0, channel: str = "hil") -> BridgeServer:
     """Serve the in-process virtual ``channel`` to bridge clients on ``host:port`` (0: any free).
 
@@ -176,6 +222,7 @@ def start_bridge_server(host: str = "127.0.0.1", port: int = 0, channel: str = "
         server = _Server(host, port, interface="virtual", channel=channel, ignore_config=True)
     except OSError as exc:
         raise TransportError(f"cannot listen on {host}:{port}: {exc.strerror}") from exc
+    server.RequestHandlerClass = _client_handler_class()
     thread = threading.Thread(target=server.serve_forever, name="can-bridge", daemon=True)
     thread.start()
     return BridgeServer(host, server.server_port, channel, server, thread)
