@@ -86,6 +86,9 @@ def test_per_run_scores_normalize_within_a_condition() -> None:
     scores = _per_run_scores(runs)
     assert scores[("pd", "fb", "C1")] == pytest.approx(1.0)
     assert scores[("pd", "lmpc", "C1")] == pytest.approx(0.5)
+    # On another table's scale (parity: the simulation's), a run is scored against that table's maxima.
+    worse = [{**runs[1], "mode": "fb", "metrics": {k: 4 * v for k, v in metrics.items()}}]
+    assert _per_run_scores(worse, scale=runs)[("pd", "fb", "C1")] == pytest.approx(4.0)
 
 
 def test_paper_table_ii_values() -> None:  # PAPER_NOTES: Table II (hardware), FB -> LMPC
