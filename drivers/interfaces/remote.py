@@ -169,6 +169,8 @@ def _client_handler_class() -> type:
     from can_remote.websocket import WebSocket, WebsocketClosed, get_accept_key
 
     class _Protocol(RemoteServerProtocol):  # type: ignore[misc]  # untyped package
+        running: bool  # set by RemoteServerProtocol.__init__
+
         def _send_to_client(self) -> None:
             try:
                 while self.running:
