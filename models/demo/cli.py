@@ -50,8 +50,11 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
         if mirror is not None and shown["phase"].watch is not None:
             mirror.show(shown["phase"].watch)
 
-    live = None if say_phases else Live(get_renderable=lambda: render(shown["phase"], disturbance_s), console=console,
-                                      refresh_per_second=8)  # fmt: skip
+    live = (
+        None
+        if say_phases
+        else Live(get_renderable=lambda: render(shown["phase"], disturbance_s), console=console, refresh_per_second=8)
+    )
     try:
         if live is not None:
             live.start()
@@ -74,8 +77,14 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     arrays = recording.arrays()
     bundle_dir = _bundle_dir(options)
     results: dict[str, Any] = {
-        "demo": {**asdict(options), "duration_s": condition.duration_s, "disturbance_s": disturbance_s,
-                 "period_s": outcome.period_s, "bundle": str(bundle_dir), "steps": steps},
+        "demo": {
+            **asdict(options),
+            "duration_s": condition.duration_s,
+            "disturbance_s": disturbance_s,
+            "period_s": outcome.period_s,
+            "bundle": str(bundle_dir),
+            "steps": steps,
+        },
         "fault": outcome.fault,
         "coverage": coverage,
         "scores": scores,
@@ -84,8 +93,11 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
         "telemetry": {"endpoint": outcome.endpoint, **report.telemetry_check(arrays, outcome.record)},
         "shutdown": outcome.shutdown,
         "processes": outcome.processes,
-        "wall_s": {**{k: round(v, 2) for k, v in outcome.wall_s.items()}, "hil_total_s": round(hil_wall_s, 2),
-                   "simulation_s": round(sim_wall_s, 2)},
+        "wall_s": {
+            **{k: round(v, 2) for k, v in outcome.wall_s.items()},
+            "hil_total_s": round(hil_wall_s, 2),
+            "simulation_s": round(sim_wall_s, 2),
+        },
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "work_dir": outcome.work_dir,
     }
@@ -98,12 +110,23 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
         np.savez_compressed(tmp, **outcome.record)  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
     with atomic_path(out_dir / "simulation.npz") as tmp:
         np.savez_compressed(tmp, **{k: v for k, v in sim.items() if k != "within_limits"})  # type: ignore[arg-type]  # as above
-    title = (f"{options.law.upper()} {options.mode.upper()} on {condition.name}: tracking error, HIL (hil run + "
-             f"pybullet target over the ipc bus) and simulation")  # fmt: skip
-    report.plot_tracking_error(hil, sim, list(outcome.schema.joints), title, disturbance_s, out_dir / "tracking_error.png")
+    title = (
+        f"{options.law.upper()} {options.mode.upper()} on {condition.name}: tracking error, HIL (hil run + "
+        f"pybullet target over the ipc bus) and simulation"
+    )
+    report.plot_tracking_error(
+        hil, sim, list(outcome.schema.joints), title, disturbance_s, out_dir / "tracking_error.png"
+    )
     results["wall_s"]["total_s"] = round(time.monotonic() - started, 2)
-    results["files"] = ["run.npz", "runtime_record.npz", "simulation.npz", "tracking_error.png", "summary.md",
-                        "results.json", "logs/"]  # fmt: skip
+    results["files"] = [
+        "run.npz",
+        "runtime_record.npz",
+        "simulation.npz",
+        "tracking_error.png",
+        "summary.md",
+        "results.json",
+        "logs/",
+    ]
     summary = report.format_summary(results)
     write_text_atomic(out_dir / "summary.md", summary)
     report.write_json(out_dir / "results.json", results)  # last: its presence means the outputs are complete
@@ -123,13 +146,27 @@ def _bundle_gain_set(options: DemoOptions) -> str:
 
 
 def demo(
-    law: Annotated[str, typer.Option(help=f"The bundle's law (default: the best LMPC law of Table I, {BEST_LMPC_LAW}).")] = BEST_LMPC_LAW,
+    law: Annotated[
+        str, typer.Option(help=f"The bundle's law (default: the best LMPC law of Table I, {BEST_LMPC_LAW}).")
+    ] = BEST_LMPC_LAW,
     mode: Annotated[str, typer.Option(help="lmpc: law + emulator (the bundle); fb: the law alone.")] = "lmpc",
-    condition: Annotated[str, typer.Option(help="One of the paper's conditions, C1..C5 (each with its disturbance).")] = DEFAULT_CONDITION,
-    duration: Annotated[float | None, typer.Option(help="Seconds of the condition to run (default: all of it, 5 s).")] = None,
-    realtime: Annotated[bool, typer.Option("--realtime", help="Free-running: the target on its own clock, the runtime on absolute deadlines (default: lock-step).")] = False,
+    condition: Annotated[
+        str, typer.Option(help="One of the paper's conditions, C1..C5 (each with its disturbance).")
+    ] = DEFAULT_CONDITION,
+    duration: Annotated[
+        float | None, typer.Option(help="Seconds of the condition to run (default: all of it, 5 s).")
+    ] = None,
+    realtime: Annotated[
+        bool,
+        typer.Option(
+            "--realtime",
+            help="Free-running: the target on its own clock, the runtime on absolute deadlines (default: lock-step).",
+        ),
+    ] = False,
     headless: Annotated[bool, typer.Option("--headless", help="No live view (CI): the same run and outputs.")] = False,
-    gui: Annotated[bool, typer.Option("--gui", help="Also open pybullet's viewer on the arm (needs a display).")] = False,
+    gui: Annotated[
+        bool, typer.Option("--gui", help="Also open pybullet's viewer on the arm (needs a display).")
+    ] = False,
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/demo"),
     target_substeps: Annotated[int, typer.Option(help="pybullet steps per control period.")] = 32,
 ) -> None:
@@ -138,8 +175,14 @@ def demo(
     from hil_runtime.outputs import remove_if_empty
     from models.demo.report import _LAW_TITLE
 
-    options = DemoOptions(law=law.strip().lower(), mode=mode.strip().lower(), condition=condition.strip().upper(),
-                          duration_s=duration, realtime=realtime, target_substeps=target_substeps)  # fmt: skip
+    options = DemoOptions(
+        law=law.strip().lower(),
+        mode=mode.strip().lower(),
+        condition=condition.strip().upper(),
+        duration_s=duration,
+        realtime=realtime,
+        target_substeps=target_substeps,
+    )
     created = not out.exists()
     try:
         results = run_demo(options, out, headless=headless, gui=gui)
@@ -152,25 +195,38 @@ def demo(
     title = f"{_LAW_TITLE.get(options.law, options.law)} {options.mode.upper()} on {options.condition}"
     if results["fault"]:
         drives = "quick-stopped" if results["shutdown"].get("drives_stopped") else "not confirmed stopped"
-        print(f"{title}: the runtime FAULTED after {t['cycles']} cycles ({results['fault']}); drives {drives}; "
-              "the scores are not comparable with the simulation's")  # fmt: skip
+        print(
+            f"{title}: the runtime FAULTED after {t['cycles']} cycles ({results['fault']}); drives {drives}; "
+            "the scores are not comparable with the simulation's"
+        )
     else:
-        print(f"{title}, {results['demo']['duration_s']:g} s: RMSE {m_hil['rmse']:.3f} deg (simulation "
-              f"{m_sim['rmse']:.3f}), peak {m_hil['peak']:.3f} deg ({m_sim['peak']:.3f}), composite "
-              f"{s['composite']['hil']:.3f} ({s['composite']['sim']:.3f})")  # fmt: skip
-    print(f"loop: {t['rate_hz']} Hz, {t['cycles']} cycles, overruns {t['overruns']}, period median/p99/max "
-          f"{t['period_us']['median']}/{t['period_us']['p99']}/{t['period_us']['max']} µs, compute "
-          f"{t['compute_us']['median']}/{t['compute_us']['p99']}/{t['compute_us']['max']} µs")  # fmt: skip
+        print(
+            f"{title}, {results['demo']['duration_s']:g} s: RMSE {m_hil['rmse']:.3f} deg (simulation "
+            f"{m_sim['rmse']:.3f}), peak {m_hil['peak']:.3f} deg ({m_sim['peak']:.3f}), composite "
+            f"{s['composite']['hil']:.3f} ({s['composite']['sim']:.3f})"
+        )
+    print(
+        f"loop: {t['rate_hz']} Hz, {t['cycles']} cycles, overruns {t['overruns']}, period median/p99/max "
+        f"{t['period_us']['median']}/{t['period_us']['p99']}/{t['period_us']['max']} µs, compute "
+        f"{t['compute_us']['median']}/{t['compute_us']['p99']}/{t['compute_us']['max']} µs"
+    )
     stop = results["shutdown"]
     clean = not (stop["processes_alive"] or stop["ipc_sockets_left"] or stop["control_sockets_left"])
-    print(f"stopped: hil run exit {stop['runtime_exit_code']}, drives "
-          f"{'quick-stopped' if stop.get('drives_stopped') else 'NOT confirmed stopped'}, target exit "
-          f"{stop['target_exit_code']}, "
-          + ("no process or socket left" if clean else
-             f"processes left {stop['processes_alive']}, sockets left {stop['ipc_sockets_left'] + stop['control_sockets_left']}"
-             f" (directory removed: {stop['work_dir_removed']})"))  # fmt: skip
-    print(f"wrote {out}/: run.npz, runtime_record.npz, simulation.npz, tracking_error.png, summary.md, results.json "
-          f"({results['wall_s']['total_s']:g} s)")  # fmt: skip
+    print(
+        f"stopped: hil run exit {stop['runtime_exit_code']}, drives "
+        f"{'quick-stopped' if stop.get('drives_stopped') else 'NOT confirmed stopped'}, target exit "
+        f"{stop['target_exit_code']}, "
+        + (
+            "no process or socket left"
+            if clean
+            else f"processes left {stop['processes_alive']}, sockets left "
+            f"{stop['ipc_sockets_left'] + stop['control_sockets_left']} (directory removed: {stop['work_dir_removed']})"
+        )
+    )
+    print(
+        f"wrote {out}/: run.npz, runtime_record.npz, simulation.npz, tracking_error.png, summary.md, results.json "
+        f"({results['wall_s']['total_s']:g} s)"
+    )
     if results["fault"]:
         from models.demo.processes import DemoError
 

@@ -60,8 +60,12 @@ class Child:
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "HIL_DEMO_PARENT_PID": str(os.getpid())}
         self.process = subprocess.Popen(
             [sys.executable, "-c", _CHILD_SHIM, *args],
-            stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
-        )  # fmt: skip
+            stdin=subprocess.DEVNULL,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
         self.pid = self.process.pid
         self.signalled_s: float | None = None  # when stop() sent SIGTERM
         self.exit_s: float | None = None  # how long from SIGTERM to exit
@@ -84,7 +88,9 @@ class Child:
         end = time.monotonic() + timeout_s
         while marker not in self.log_text():
             if not self.alive():
-                raise DemoError(f"{self.name} exited ({self.process.returncode}) before it was ready: {self.last_lines()}")
+                raise DemoError(
+                    f"{self.name} exited ({self.process.returncode}) before it was ready: {self.last_lines()}"
+                )
             if time.monotonic() > end:
                 raise DemoError(f"{self.name} not ready within {timeout_s:g} s: {self.last_lines()}")
             time.sleep(0.05)

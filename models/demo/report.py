@@ -27,11 +27,19 @@ from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.scoring import METRICS, composite_scores, run_metrics
 
 _LAW_TITLE = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
-_METRIC_TITLE = {"rmse": "RMSE (deg)", "mae": "MAE (deg)", "p95": "95th percentile of abs(e) (deg)", "peak": "peak abs(e) (deg)",
-                 "settle_s": "settling after the disturbance (s)", "dedt_rms": "RMS de/dt (deg/s)"}  # fmt: skip
+_METRIC_TITLE = {
+    "rmse": "RMSE (deg)",
+    "mae": "MAE (deg)",
+    "p95": "95th percentile of abs(e) (deg)",
+    "peak": "peak abs(e) (deg)",
+    "settle_s": "settling after the disturbance (s)",
+    "dedt_rms": "RMS de/dt (deg/s)",
+}
 
 
-def hil_trajectory(record: dict[str, np.ndarray], steps: int, period_s: float) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def hil_trajectory(
+    record: dict[str, np.ndarray], steps: int, period_s: float
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The runtime's record on the simulator's grid t = k * period, k < steps.
 
     Lock-step: one row per period, taken as is. Real time: overrun periods were skipped (no row),
@@ -65,7 +73,9 @@ def hil_trajectory(record: dict[str, np.ndarray], steps: int, period_s: float) -
     return out, info
 
 
-def simulate_twin(robot: Any, law: str, mode: str, condition: Any, gain_set: str) -> tuple[dict[str, np.ndarray], float]:
+def simulate_twin(
+    robot: Any, law: str, mode: str, condition: Any, gain_set: str
+) -> tuple[dict[str, np.ndarray], float]:
     """The models simulator on the same bundle and condition; (trajectory, wall seconds)."""
     from models.feedback import make_law
     from models.sim import SimConfig, make_controller, simulate
@@ -79,23 +89,29 @@ def simulate_twin(robot: Any, law: str, mode: str, condition: Any, gain_set: str
     return run, time.monotonic() - started
 
 
-def compare(robot: Any, condition: Any, hil: dict[str, np.ndarray], sim: dict[str, np.ndarray],
-            hil_fault: str | None) -> dict[str, Any]:  # fmt: skip
+def compare(
+    robot: Any, condition: Any, hil: dict[str, np.ndarray], sim: dict[str, np.ndarray], hil_fault: str | None
+) -> dict[str, Any]:
     """The six metrics of both runs, the composite normalized between the two, and their difference."""
     dist = None if condition.disturbance is None else condition.disturbance.time_s
     m_hil = run_metrics(hil["t"], hil["q"], hil["q_ref"], dist)
     m_sim = run_metrics(sim["t"], sim["q"], sim["q_ref"], dist)
-    hil_ok = bool(hil_fault is None and np.isfinite(hil["q"]).all()
-                  and float(np.max(robot.position_limit_ratio(hil["q"]))) <= 1.0
-                  and float(np.max(np.abs(hil["qd"]) / robot.velocity_limit_rad_s)) <= 1.0)  # fmt: skip
+    hil_ok = bool(
+        hil_fault is None
+        and np.isfinite(hil["q"]).all()
+        and float(np.max(robot.position_limit_ratio(hil["q"]))) <= 1.0
+        and float(np.max(np.abs(hil["qd"]) / robot.velocity_limit_rad_s)) <= 1.0
+    )
     sim_ok = bool(sim["within_limits"])
     failed = {(name, condition.name) for name, ok in (("hil", hil_ok), ("sim", sim_ok)) if not ok}
     composite = composite_scores({("hil", condition.name): m_hil, ("sim", condition.name): m_sim}, failed)
     diff_deg = np.degrees(hil["q"] - sim["q"])
     return {
         "metrics": {"hil": m_hil, "sim": m_sim},
-        "relative": {m: (m_hil[m] - m_sim[m]) / abs(m_sim[m]) if m_sim[m] else (0.0 if m_hil[m] == 0 else math.inf)
-                     for m in METRICS},
+        "relative": {
+            m: (m_hil[m] - m_sim[m]) / abs(m_sim[m]) if m_sim[m] else (0.0 if m_hil[m] == 0 else math.inf)
+            for m in METRICS
+        },
         "composite": composite,
         "within_limits": {"hil": hil_ok, "sim": sim_ok},
         "trajectory_rms_diff_deg": float(np.sqrt(np.mean(diff_deg**2))),
@@ -116,25 +132,42 @@ def timing_figures(stats: dict[str, float], record: dict[str, np.ndarray], perio
     exchange = np.asarray(record.get("exchange_s", np.zeros(0)), float)[1:] * 1e6
     figures: dict[str, Any] = {
         "period_target_us": period_s * 1e6,
-        "rate_hz": None if not math.isfinite(float(stats.get("rate_hz", math.nan))) else round(float(stats["rate_hz"]), 1),
+        "rate_hz": None
+        if not math.isfinite(float(stats.get("rate_hz", math.nan)))
+        else round(float(stats["rate_hz"]), 1),
         "cycles": int(stats.get("cycles", 0) or 0),
         "overruns": int(stats.get("overruns", 0) or 0),
-        "skipped_periods": int(stats.get("skipped_periods", 0) or 0) if math.isfinite(float(stats.get("skipped_periods", 0) or 0)) else None,
+        "skipped_periods": int(stats.get("skipped_periods", 0) or 0)
+        if math.isfinite(float(stats.get("skipped_periods", 0) or 0))
+        else None,
         "period_us": {"median": us("period_median_s"), "p99": us("period_p99_s"), "max": us("period_max_s")},
         "compute_us": {"median": us("compute_median_s"), "p99": us("compute_p99_s"), "max": us("compute_max_s")},
-        "exchange_us": ({"median": round(float(np.median(exchange)), 1), "p99": round(float(np.percentile(exchange, 99)), 1),
-                         "max": round(float(exchange.max()), 1)} if exchange.size else None),
+        "exchange_us": (
+            {
+                "median": round(float(np.median(exchange)), 1),
+                "p99": round(float(np.percentile(exchange, 99)), 1),
+                "max": round(float(exchange.max()), 1),
+            }
+            if exchange.size
+            else None
+        ),
         "fallbacks": int(stats.get("fallbacks", 0) or 0),
         "saturations": int(stats.get("saturations", 0) or 0),
         "telemetry_sent": int(stats.get("telemetry_sent", 0) or 0),
         "telemetry_dropped": int(stats.get("telemetry_dropped", 0) or 0),
         "bus": {k[4:]: int(v) for k, v in stats.items() if k.startswith("bus_") and math.isfinite(float(v))},
-    }  # fmt: skip
+    }
     return figures
 
 
-def plot_tracking_error(hil: dict[str, np.ndarray], sim: dict[str, np.ndarray], joints: list[str], title: str,
-                        disturbance_s: float | None, path: Path) -> Path:  # fmt: skip
+def plot_tracking_error(
+    hil: dict[str, np.ndarray],
+    sim: dict[str, np.ndarray],
+    joints: list[str],
+    title: str,
+    disturbance_s: float | None,
+    path: Path,
+) -> Path:
     """Per joint e = q_ref - q (deg): the runtime on the target, and the simulator."""
     import matplotlib
 
@@ -169,8 +202,10 @@ def telemetry_recording(outcome: Any) -> Any:
     from hil_runtime.telemetry.subscriber import StateRecording
 
     recording = StateRecording(outcome.schema, payloads=list(outcome.state_payloads))
-    for payloads, decode, target in ((outcome.status_payloads, outcome.schema.decode_status, recording.status),
-                                     (outcome.event_payloads, outcome.schema.decode_event, recording.events)):  # fmt: skip
+    for payloads, decode, target in (
+        (outcome.status_payloads, outcome.schema.decode_status, recording.status),
+        (outcome.event_payloads, outcome.schema.decode_event, recording.events),
+    ):
         for payload in payloads:
             try:
                 header, body = decode(payload)
@@ -200,8 +235,11 @@ def telemetry_check(arrays: dict[str, np.ndarray], record: dict[str, np.ndarray]
     from hil_runtime.telemetry.subscriber import missing_samples
 
     seq = arrays["seq"].astype(np.int64)
-    out: dict[str, Any] = {"samples": int(seq.size), "missing": missing_samples(arrays["seq"]),
-                           "gaps": int((arrays["flags"] & 1).astype(bool).sum()) if seq.size else 0}  # fmt: skip
+    out: dict[str, Any] = {
+        "samples": int(seq.size),
+        "missing": missing_samples(arrays["seq"]),
+        "gaps": int((arrays["flags"] & 1).astype(bool).sum()) if seq.size else 0,
+    }
     if seq.size:
         # seq counts the runtime's offered states from 1; the record's row i is the i-th cycle.
         rows = seq - 1
@@ -220,15 +258,21 @@ def format_summary(results: dict[str, Any]) -> str:
     lines = [
         f"# hil demo: {law} {demo['mode'].upper()} on {demo['condition']}",
         "",
-        (f"The runtime (`hil run`, bundle `{demo['bundle']}`) drove the pybullet UR5 (`hil target serve`) over "
-         f"the ipc CAN bus, {clock} at {demo['period_s'] * 1e3:g} ms, for {demo['duration_s']:g} s of condition "
-         f"{demo['condition']}{disturbance}."),
+        (
+            f"The runtime (`hil run`, bundle `{demo['bundle']}`) drove the pybullet UR5 (`hil target serve`) over "
+            f"the ipc CAN bus, {clock} at {demo['period_s'] * 1e3:g} ms, for {demo['duration_s']:g} s of condition "
+            f"{demo['condition']}{disturbance}."
+        ),
         "",
     ]
     if results.get("fault"):
-        lines += [(f"**The runtime FAULTED** after {timing['cycles']} cycles: {results['fault']}. The drives were "
-                   "quick-stopped; the HIL scores below are of a run held at its last pose from there, not comparable."),
-                  ""]  # fmt: skip
+        lines += [
+            (
+                f"**The runtime FAULTED** after {timing['cycles']} cycles: {results['fault']}. The drives were "
+                "quick-stopped; the HIL scores below are of a run held at its last pose from there, not comparable."
+            ),
+            "",
+        ]
     lines += [
         "## Scores (smaller is better), beside the simulation of the same bundle and condition",
         "",
@@ -245,34 +289,47 @@ def format_summary(results: dict[str, Any]) -> str:
     lines += [
         f"| composite (normalized between the two) | {comp['hil']:.3f} | {comp['sim']:.3f} | {shown} |",
         "",
-        (f"Trajectory difference HIL − simulation: RMS {scores['trajectory_rms_diff_deg']:.4f} deg, max "
-         f"{scores['trajectory_max_diff_deg']:.4f} deg. Inside the joint limits: HIL {inside['hil']}, simulation "
-         f"{inside['sim']}. Cycles with the trust region's fallback: {scores['fallback_cycles']['hil']}."),
+        (
+            f"Trajectory difference HIL − simulation: RMS {scores['trajectory_rms_diff_deg']:.4f} deg, max "
+            f"{scores['trajectory_max_diff_deg']:.4f} deg. Inside the joint limits: HIL {inside['hil']}, simulation "
+            f"{inside['sim']}. Cycles with the trust region's fallback: {scores['fallback_cycles']['hil']}."
+        ),
         "",
         "## The loop (the runtime's own stats over the run)",
         "",
         "| figure | median | p99 | max |",
         "|---|---|---|---|",
     ]
-    for name, key in (("period (µs)", "period_us"), ("compute (µs)", "compute_us"),
-                      ("exchange on the bus (µs)", "exchange_us")):  # fmt: skip
+    for name, key in (
+        ("period (µs)", "period_us"),
+        ("compute (µs)", "compute_us"),
+        ("exchange on the bus (µs)", "exchange_us"),
+    ):
         value = timing.get(key) or {}
         lines.append(f"| {name} | {value.get('median', '—')} | {value.get('p99', '—')} | {value.get('max', '—')} |")
-    drives = ("all quick-stopped (Operation Enabled off)" if stop.get("drives_stopped")
-              else str(stop.get("drives_operation_enabled_after_stop")))  # fmt: skip
+    drives = (
+        "all quick-stopped (Operation Enabled off)"
+        if stop.get("drives_stopped")
+        else str(stop.get("drives_operation_enabled_after_stop"))
+    )
     lines += [
         "",
-        (f"Rate {timing['rate_hz']} Hz over {timing['cycles']} cycles, overruns {timing['overruns']}, telemetry "
-         f"{timing['telemetry_sent']} sent / {timing['telemetry_dropped']} dropped; received by the demo: "
-         f"{results['telemetry']['samples']} states, {results['telemetry']['missing']} missing. Machine load "
-         f"average {results['load_average']}."),
+        (
+            f"Rate {timing['rate_hz']} Hz over {timing['cycles']} cycles, overruns {timing['overruns']}, telemetry "
+            f"{timing['telemetry_sent']} sent / {timing['telemetry_dropped']} dropped; received by the demo: "
+            f"{results['telemetry']['samples']} states, {results['telemetry']['missing']} missing. Machine load "
+            f"average {results['load_average']}."
+        ),
         "",
         "## Stop",
         "",
-        (f"hil run: SIGTERM → exit {stop['runtime_exit_code']} in "
-         f"{results['processes'].get('runtime', {}).get('stop_s')} s; drives afterwards: {drives}; target exit "
-         f"{stop['target_exit_code']}; processes left {stop['processes_alive'] or 'none'}; ipc sockets left "
-         f"{stop['ipc_sockets_left'] or 'none'}; private directory removed: {'yes' if stop['work_dir_removed'] else 'NO'}."),
+        (
+            f"hil run: SIGTERM → exit {stop['runtime_exit_code']} in "
+            f"{results['processes'].get('runtime', {}).get('stop_s')} s; drives afterwards: {drives}; target exit "
+            f"{stop['target_exit_code']}; processes left {stop['processes_alive'] or 'none'}; ipc sockets left "
+            f"{stop['ipc_sockets_left'] or 'none'}; private directory removed: "
+            f"{'yes' if stop['work_dir_removed'] else 'NO'}."
+        ),
         "",
     ]
     return "\n".join(lines)
@@ -296,5 +353,15 @@ def write_json(path: Path, results: dict[str, Any]) -> None:
     write_text_atomic(path, json.dumps(_json_safe(results), indent=2))
 
 
-__all__ = ["compare", "final_stats", "format_summary", "hil_trajectory", "plot_tracking_error", "simulate_twin",
-           "telemetry_check", "telemetry_recording", "timing_figures", "write_json"]  # fmt: skip
+__all__ = [
+    "compare",
+    "final_stats",
+    "format_summary",
+    "hil_trajectory",
+    "plot_tracking_error",
+    "simulate_twin",
+    "telemetry_check",
+    "telemetry_recording",
+    "timing_figures",
+    "write_json",
+]

@@ -141,15 +141,25 @@ def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_
     from sim_target.launch import CAN_FD
 
     return {
-        "robot": options.robot, "period_s": period_s, "clock": "realtime" if options.realtime else "lockstep",
+        "robot": options.robot,
+        "period_s": period_s,
+        "clock": "realtime" if options.realtime else "lockstep",
         "bus": {"interface": "ipc", "channel": str(bus_dir), **CAN_FD},
         "plant": {"substeps": options.target_substeps},
         "control_socket": str(control_socket),
-    }  # fmt: skip
+    }
 
 
-def runtime_config(options: DemoOptions, robot: Any, condition: Any, period_s: float, bus_dir: Path,
-                   conditions_file: Path, control_socket: Path, endpoint: str) -> dict[str, Any]:  # fmt: skip
+def runtime_config(
+    options: DemoOptions,
+    robot: Any,
+    condition: Any,
+    period_s: float,
+    bus_dir: Path,
+    conditions_file: Path,
+    control_socket: Path,
+    endpoint: str,
+) -> dict[str, Any]:
     """``hil run``'s config: the shipped bundle, the condition from t = 0 on the placed arm, telemetry
     connecting to the demo's session, a control socket; lock-step (bus pacing) or real time (clock)."""
     from models.hil_experiment import runtime_config_dict
@@ -157,8 +167,15 @@ def runtime_config(options: DemoOptions, robot: Any, condition: Any, period_s: f
     from sim_target.launch import CAN_FD
 
     transport = {"interface": "ipc", "channel": str(bus_dir), **CAN_FD}
-    data = runtime_config_dict(robot, bundle_path(robot.name, options.law, None), options.mode, transport, period_s,
-                               conditions_file, condition.name)  # fmt: skip
+    data = runtime_config_dict(
+        robot,
+        bundle_path(robot.name, options.law, None),
+        options.mode,
+        transport,
+        period_s,
+        conditions_file,
+        condition.name,
+    )
     steps = round(condition.duration_s / period_s)
     data["loop"] = {
         "pacing": "clock" if options.realtime else "bus",
@@ -224,8 +241,13 @@ def _open_listener(endpoint: str, robot: str) -> Any:
     return TelemetryClient(session, robot, timeout_s=3.0)
 
 
-def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable[[DemoPhase], None],
-            tick: Callable[[], None] | None = None) -> HilOutcome:  # fmt: skip
+def run_hil(
+    options: DemoOptions,
+    robot: Any,
+    condition: Any,
+    on_phase: Callable[[DemoPhase], None],
+    tick: Callable[[], None] | None = None,
+) -> HilOutcome:
     """Start the target and the daemon, run the condition, stop everything; the run, in memory.
 
     ``on_phase`` is told of each phase; ``tick`` (the live view) is called every poll."""
@@ -266,8 +288,13 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
             conditions_file = work / "conditions.yaml"
             conditions_file.write_text(conditions_yaml([condition]))
             (work / "target.yaml").write_text(yaml.safe_dump(target_config(options, period_s, bus_dir, target_sock)))
-            (work / "runtime.yaml").write_text(yaml.safe_dump(runtime_config(
-                options, robot, condition, period_s, bus_dir, conditions_file, runtime_sock, endpoint)))  # fmt: skip
+            (work / "runtime.yaml").write_text(
+                yaml.safe_dump(
+                    runtime_config(
+                        options, robot, condition, period_s, bus_dir, conditions_file, runtime_sock, endpoint
+                    )
+                )
+            )
             # Every check that needs no bus, here and now, before any process starts (one line, exit 2).
             from hil_runtime.daemon import check as check_runtime_config
             from sim_target.config import load_target_config
@@ -282,8 +309,9 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
 
             say("starting the pybullet target (hil target serve)")
             with _signals_blocked():
-                children["target"] = Child("target", ["target", "serve", "--config", str(work / "target.yaml")],
-                                           work / "target.log")  # fmt: skip
+                children["target"] = Child(
+                    "target", ["target", "serve", "--config", str(work / "target.yaml")], work / "target.log"
+                )
             children["target"].wait_for_line("target serving", START_TIMEOUT_S)
             wall["target_start_s"] = time.monotonic() - started
             reply = send_control(target_sock, run_start(condition), timeout_s=10.0)
@@ -294,8 +322,18 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
             runtime_started = time.monotonic()
             with _signals_blocked():
                 children["runtime"] = Child(
-                    "runtime", ["run", "--config", str(work / "runtime.yaml"), "--record", str(work / "record.npz"),
-                                "--record-cycles", str(steps + 20_000)], work / "runtime.log")  # fmt: skip
+                    "runtime",
+                    [
+                        "run",
+                        "--config",
+                        str(work / "runtime.yaml"),
+                        "--record",
+                        str(work / "record.npz"),
+                        "--record-cycles",
+                        str(steps + 20_000),
+                    ],
+                    work / "runtime.log",
+                )
             schema = _wait_for_schema(client, children["runtime"])
             phase.watch = attach_watch(client, schema)
             phase.joints = tuple(schema.joints)
@@ -308,8 +346,10 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
             while True:
                 now = time.monotonic()
                 if not children["runtime"].alive():
-                    raise DemoError(f"hil run exited ({children['runtime'].process.returncode}) during the run: "
-                                    f"{children['runtime'].last_lines()}")  # fmt: skip
+                    raise DemoError(
+                        f"hil run exited ({children['runtime'].process.returncode}) during the run: "
+                        f"{children['runtime'].last_lines()}"
+                    )
                 try:
                     status = send_command(runtime_sock, "status", timeout_s=5.0)
                 except ControlError:
@@ -324,8 +364,10 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                     say(f"FAULT: {fault}")
                     break
                 if active_at is None and now - runtime_started > START_TIMEOUT_S:
-                    raise DemoError(f"hil run not ACTIVE within {START_TIMEOUT_S:g} s (state {state}): "
-                                    f"{children['runtime'].last_lines()}")  # fmt: skip
+                    raise DemoError(
+                        f"hil run not ACTIVE within {START_TIMEOUT_S:g} s (state {state}): "
+                        f"{children['runtime'].last_lines()}"
+                    )
                 if state == "ACTIVE":
                     if int(status.get("cycles") or 0) != cycles:
                         cycles, progressed_at = int(status.get("cycles") or 0), now
@@ -349,8 +391,11 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                 stop_started = time.monotonic()
                 runtime = children.get("runtime")
                 if runtime is not None:
-                    processes["runtime"] = {"pid": runtime.pid, "exit_code": runtime.stop(STOP_TIMEOUT_S),
-                                            "stop_s": None if runtime.exit_s is None else round(runtime.exit_s, 3)}  # fmt: skip
+                    processes["runtime"] = {
+                        "pid": runtime.pid,
+                        "exit_code": runtime.stop(STOP_TIMEOUT_S),
+                        "stop_s": None if runtime.exit_s is None else round(runtime.exit_s, 3),
+                    }
                     time.sleep(0.3)  # the daemon's last stats and status are on their way (it flushed them)
                 if "target" in children and children["target"].alive():
                     with contextlib.suppress(OSError, ValueError):
@@ -361,8 +406,11 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
                         shutdown["target_time_s"] = after.get("time_s")
                 target = children.get("target")
                 if target is not None:
-                    processes["target"] = {"pid": target.pid, "exit_code": target.stop(TARGET_STOP_TIMEOUT_S),
-                                           "stop_s": None if target.exit_s is None else round(target.exit_s, 3)}  # fmt: skip
+                    processes["target"] = {
+                        "pid": target.pid,
+                        "exit_code": target.stop(TARGET_STOP_TIMEOUT_S),
+                        "stop_s": None if target.exit_s is None else round(target.exit_s, 3),
+                    }
                 if client is not None:
                     with contextlib.suppress(Exception):
                         client.close()
@@ -383,8 +431,23 @@ def run_hil(options: DemoOptions, robot: Any, condition: Any, on_phase: Callable
     shutdown["target_exit_code"] = processes.get("target", {}).get("exit_code")
     if not record:
         raise DemoError(f"hil run wrote no record; its log: {_tail(logs.get('runtime', ''))}")
-    return HilOutcome(record, schema, payloads["state"], payloads["status"], payloads["events"], payloads["stats"],
-                      documents, endpoint, fault, shutdown, processes, wall, logs, str(work), period_s)  # fmt: skip
+    return HilOutcome(
+        record,
+        schema,
+        payloads["state"],
+        payloads["status"],
+        payloads["events"],
+        payloads["stats"],
+        documents,
+        endpoint,
+        fault,
+        shutdown,
+        processes,
+        wall,
+        logs,
+        str(work),
+        period_s,
+    )
 
 
 def remove_stale_work_dirs() -> list[Path]:
@@ -431,17 +494,23 @@ def _stop_line(processes: dict[str, Any], shutdown: dict[str, Any]) -> str:
     if "runtime" in processes:
         parts.append(f"hil run exit {processes['runtime']['exit_code']}")
     if "drives_stopped" in shutdown:
-        parts.append("drives stopped (Operation Enabled off)" if shutdown["drives_stopped"] else "drives NOT confirmed stopped")
+        parts.append(
+            "drives stopped (Operation Enabled off)" if shutdown["drives_stopped"] else "drives NOT confirmed stopped"
+        )
     if "target" in processes:
         parts.append(f"target exit {processes['target']['exit_code']}")
     leftovers = shutdown["processes_alive"] + shutdown["ipc_sockets_left"] + shutdown["control_sockets_left"]
     if shutdown["processes_alive"]:
         parts.append(f"processes still running: {', '.join(shutdown['processes_alive'])}")
     elif leftovers:
-        parts.append(f"sockets a killed process left ({', '.join(leftovers)}): "
-                     + ("removed with the directory" if shutdown["work_dir_removed"] else "NOT removed"))  # fmt: skip
+        parts.append(
+            f"sockets a killed process left ({', '.join(leftovers)}): "
+            + ("removed with the directory" if shutdown["work_dir_removed"] else "NOT removed")
+        )
     else:
-        parts.append("no process, socket or directory left" if shutdown["work_dir_removed"] else "directory NOT removed")
+        parts.append(
+            "no process, socket or directory left" if shutdown["work_dir_removed"] else "directory NOT removed"
+        )
     return "stopped: " + ", ".join(parts)
 
 

@@ -19,8 +19,10 @@ class NoDisplayError(ValueError):
 
 def check_display() -> None:
     if not os.environ.get("DISPLAY"):
-        raise NoDisplayError("--gui: no display (DISPLAY is not set), so pybullet cannot open its viewer; "
-                             "run without --gui (or with --headless)")  # fmt: skip
+        raise NoDisplayError(
+            "--gui: no display (DISPLAY is not set), so pybullet cannot open its viewer; "
+            "run without --gui (or with --headless)"
+        )
 
 
 def render(phase: DemoPhase, disturbance_s: float | None) -> Any:
@@ -33,7 +35,11 @@ def render(phase: DemoPhase, disturbance_s: float | None) -> Any:
 
     head = Table.grid(padding=(0, 1))
     bar = ProgressBar(total=max(phase.duration_s, 1e-9), completed=min(phase.t_s, phase.duration_s), width=40)
-    marker = "" if disturbance_s is None else f"  disturbance at {disturbance_s:g} s" + (" ✓" if phase.t_s >= disturbance_s else "")
+    marker = (
+        ""
+        if disturbance_s is None
+        else f"  disturbance at {disturbance_s:g} s" + (" ✓" if phase.t_s >= disturbance_s else "")
+    )
     head.add_row(Text("hil demo", style="bold cyan"), Text(phase.text))
     head.add_row(Text(""), Text.assemble(f"t {phase.t_s:6.3f} / {phase.duration_s:g} s ", marker))
     head.add_row(Text(""), bar)

@@ -69,7 +69,9 @@ def _assert_nothing_left(private: Path, pids: list[int]) -> None:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
     # (Only the demo's own directory: a library of the simulator keeps a small file in TMPDIR.)
-    assert list(private.glob("hil-demo-*")) == [], "the demo's private directory (bus and control sockets) was left behind"
+    assert list(private.glob("hil-demo-*")) == [], (
+        "the demo's private directory (bus and control sockets) was left behind"
+    )
 
 
 def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None:
@@ -77,8 +79,12 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None
     started = time.monotonic()
     run = subprocess.run(
         [_hil(), "demo", "--headless", "--duration", str(DURATION_S), "--out", str(out)],
-        capture_output=True, text=True, timeout=600, check=False, env={**os.environ, "TMPDIR": str(private_tmp)},
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+        env={**os.environ, "TMPDIR": str(private_tmp)},
+    )
     wall_s = time.monotonic() - started
     assert run.returncode == 0, run.stdout + run.stderr
     assert "Traceback" not in run.stderr
@@ -107,10 +113,24 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None
         telemetry = {k: data[k] for k in data.files}
     schema = json.loads(str(telemetry["schema"]))
     assert schema["schema"] == "hil-telemetry" and schema["robot"] == "ur5_paper"
-    assert [f["name"] for f in schema["payloads"]["state"]["fields"]] == ["fallback", "compute_s", "q", "qd", "q_ref",
-                                                                          "qd_ref", "tau", "tau_fb"]  # fmt: skip
-    assert list(telemetry["joints"]) == ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
-                                         "wrist_2_joint", "wrist_3_joint"]  # fmt: skip
+    assert [f["name"] for f in schema["payloads"]["state"]["fields"]] == [
+        "fallback",
+        "compute_s",
+        "q",
+        "qd",
+        "q_ref",
+        "qd_ref",
+        "tau",
+        "tau_fb",
+    ]
+    assert list(telemetry["joints"]) == [
+        "shoulder_pan_joint",
+        "shoulder_lift_joint",
+        "elbow_joint",
+        "wrist_1_joint",
+        "wrist_2_joint",
+        "wrist_3_joint",
+    ]
     assert results["telemetry"]["missing"] == 0 and results["telemetry"]["samples"] >= steps
     assert results["telemetry"]["max_abs_q_diff_vs_record_rad"] == 0.0
 
@@ -131,16 +151,22 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None
         assert 0 < figures["median"] <= figures["p99"] <= figures["max"], timing
     assert timing["telemetry_dropped"] == 0
     assert "wrote" in run.stdout and "no process or socket left" in run.stdout
-    print(f"hil demo --headless --duration {DURATION_S}: {wall_s:.1f} s wall, {results['wall_s']}, "
-          f"{timing['rate_hz']} Hz, load {results['load_average']}")  # fmt: skip
+    print(
+        f"hil demo --headless --duration {DURATION_S}: {wall_s:.1f} s wall, {results['wall_s']}, "
+        f"{timing['rate_hz']} Hz, load {results['load_average']}"
+    )
 
 
 def test_hil_demo_ctrl_c_during_the_run_stops_everything(tmp_path: Path, private_tmp: Path) -> None:
     out = tmp_path / "demo"
     process = subprocess.Popen(
-        [_hil(), "demo", "--headless", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True, env={**os.environ, "TMPDIR": str(private_tmp)}, start_new_session=True,
-    )  # fmt: skip
+        [_hil(), "demo", "--headless", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "TMPDIR": str(private_tmp)},
+        start_new_session=True,
+    )
     try:
         # Wait until the daemon is ACTIVE (the demo says "running"), then Ctrl-C.
         assert process.stderr is not None
@@ -178,12 +204,17 @@ def test_hil_demo_ctrl_c_during_the_run_stops_everything(tmp_path: Path, private
         (["--out", "/proc/hil-demo-out"], {}, "--out /proc/hil-demo-out: cannot create the directory"),
     ],
 )
-def test_hil_demo_refuses_bad_input_before_starting_anything(tmp_path: Path, private_tmp: Path, args: list[str],
-                                                             env: dict[str, str], message: str) -> None:  # fmt: skip
+def test_hil_demo_refuses_bad_input_before_starting_anything(
+    tmp_path: Path, private_tmp: Path, args: list[str], env: dict[str, str], message: str
+) -> None:
     run = subprocess.run(
         [_hil(), "demo", "--headless", "--out", str(tmp_path / "demo"), *args],
-        capture_output=True, text=True, timeout=120, check=False, env={**os.environ, "TMPDIR": str(private_tmp), **env},
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        env={**os.environ, "TMPDIR": str(private_tmp), **env},
+    )
     assert run.returncode == 2, run.stderr
     lines = [line for line in run.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and message in lines[0], run.stderr

@@ -18,9 +18,19 @@ from models.demo.session import OWNER_FILE, WORK_PREFIX, remove_stale_work_dirs
 def _record(t_s: np.ndarray, n: int = 6) -> dict[str, np.ndarray]:
     rows = t_s.size
     q = np.outer(t_s, np.arange(1, n + 1))
-    return {"t_s": t_s, "wall_s": t_s.copy(), "q": q, "qd": np.ones((rows, n)), "q_ref": q + 0.01,
-            "qd_ref": np.ones((rows, n)), "tau": np.zeros((rows, n)), "tau_fb": np.zeros((rows, n)),
-            "fallback": np.zeros(rows), "compute_s": np.full(rows, 1e-4), "exchange_s": np.full(rows, 5e-4)}  # fmt: skip
+    return {
+        "t_s": t_s,
+        "wall_s": t_s.copy(),
+        "q": q,
+        "qd": np.ones((rows, n)),
+        "q_ref": q + 0.01,
+        "qd_ref": np.ones((rows, n)),
+        "tau": np.zeros((rows, n)),
+        "tau_fb": np.zeros((rows, n)),
+        "fallback": np.zeros(rows),
+        "compute_s": np.full(rows, 1e-4),
+        "exchange_s": np.full(rows, 5e-4),
+    }
 
 
 def test_lockstep_record_is_taken_row_for_row_and_cut_to_the_condition() -> None:
@@ -46,14 +56,31 @@ def test_a_run_cut_short_is_held_at_its_last_row_and_marked_incomplete() -> None
 
 
 def test_timing_figures_in_microseconds_from_the_runtime_stats() -> None:
-    stats = {"rate_hz": 998.7, "cycles": 5000.0, "overruns": 2.0, "skipped_periods": 3.0, "period_median_s": 1e-3,
-             "period_p99_s": 1.2e-3, "period_max_s": 4e-3, "compute_median_s": 4e-5, "compute_p99_s": 9e-5,
-             "compute_max_s": float("nan"), "fallbacks": 7.0, "bus_dropped": 0.0, "telemetry_dropped": 1.0}  # fmt: skip
+    stats = {
+        "rate_hz": 998.7,
+        "cycles": 5000.0,
+        "overruns": 2.0,
+        "skipped_periods": 3.0,
+        "period_median_s": 1e-3,
+        "period_p99_s": 1.2e-3,
+        "period_max_s": 4e-3,
+        "compute_median_s": 4e-5,
+        "compute_p99_s": 9e-5,
+        "compute_max_s": float("nan"),
+        "fallbacks": 7.0,
+        "bus_dropped": 0.0,
+        "telemetry_dropped": 1.0,
+    }
     figures = report.timing_figures(stats, _record(np.arange(10) * 1e-3), 1e-3)
     assert figures["period_us"] == {"median": 1000.0, "p99": 1200.0, "max": 4000.0}
     assert figures["compute_us"] == {"median": 40.0, "p99": 90.0, "max": None}  # NaN: not reported
     assert figures["exchange_us"]["median"] == 500.0
-    assert (figures["rate_hz"], figures["cycles"], figures["overruns"], figures["skipped_periods"]) == (998.7, 5000, 2, 3)
+    assert (figures["rate_hz"], figures["cycles"], figures["overruns"], figures["skipped_periods"]) == (
+        998.7,
+        5000,
+        2,
+        3,
+    )
     assert figures["bus"] == {"dropped": 0} and figures["telemetry_dropped"] == 1
 
 
@@ -78,8 +105,9 @@ def test_compare_scores_both_runs_and_normalizes_between_them() -> None:
 
 def test_stale_private_directories_of_dead_demos_are_removed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr("tempfile.gettempdir", lambda: str(tmp_path))
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
-                          check=True).stdout.strip()  # fmt: skip
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True
+    ).stdout.strip()
     stale, live, foreign = tmp_path / f"{WORK_PREFIX}old", tmp_path / f"{WORK_PREFIX}live", tmp_path / f"{WORK_PREFIX}x"
     for directory, owner in ((stale, dead), (live, str(os.getpid()))):
         (directory / "bus").mkdir(parents=True)
