@@ -44,6 +44,7 @@ from drivers.config import (
     is_loopback_host,
 )
 from drivers.errors import BusLoadError
+from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
 
 
 class TargetConfigError(ValueError):
@@ -194,7 +195,7 @@ class PlantConfig(_Frozen):
 
 
 class TargetConfig(_Frozen):
-    robot: str | None = "ur5_paper"  # built-in robot name (models.robots)
+    robot: str | None = "ur5_paper"  # built-in robot name (models/robots/data/robots.yaml)
     urdf: Path | None = None  # or a URDF file; wins over robot
     period_s: float = Field(1e-3, gt=0, le=1.0)
     clock: Literal["lockstep", "realtime"] = "lockstep"
@@ -284,20 +285,13 @@ def parse_run_start(data: Any, source: str = "start") -> RunStart:
 
 
 def target_urdf_path(config: TargetConfig) -> Path:
-    """The URDF the plant will load: ``urdf``, or the built-in robot's (through models.robots)."""
+    """The URDF the plant will load: ``urdf``, or the built-in robot's (sim_target/robots.py)."""
     if config.urdf is not None:
         return config.urdf
-    robot = config.robot or "ur5_paper"
     try:
-        from models.robots import urdf_path
-    except ImportError:  # the file ships here even without the models package
-        if robot != "ur5_paper":
-            raise TargetConfigError(f"robot: '{robot}' needs models.robots, which is not importable") from None
-        return Path(__file__).resolve().parents[1] / "models" / "robots" / "data" / "ur5_paper.urdf"
-    try:
-        return Path(urdf_path(robot))
-    except ValueError as exc:
-        raise TargetConfigError(f"robot: {exc}") from None
+        return builtin_urdf_path(config.robot or DEFAULT_ROBOT)
+    except RobotLookupError as exc:
+        raise TargetConfigError(str(exc)) from None
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,8 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import numpy as np
 import pybullet
 
+from sim_target.robots import RobotLookupError, builtin_urdf_path
+
 GRAVITY_M_S2 = 9.81
 _MOVABLE_JOINT_TYPES = (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)
 # 32 steps of 31 µs per 1 ms period: semi-implicit Euler's first-order error then stays under
@@ -154,14 +156,11 @@ def load_arm(client_id: int, urdf: Path | str) -> int:
 
 
 def default_urdf_path(robot: str = "ur5_paper") -> Path:
-    """The URDF of a named robot, through ``models.robots`` when it is importable."""
+    """The URDF of a built-in robot (the shared table, sim_target/robots.py; no models import)."""
     try:
-        from models.robots import urdf_path
-    except ImportError:  # the robot package is light, but tolerate its absence: the file is here
-        if robot != "ur5_paper":
-            raise PlantError(f"robot {robot!r}: models.robots is not importable") from None
-        return Path(__file__).resolve().parents[1] / "models" / "robots" / "data" / "ur5_paper.urdf"
-    return Path(urdf_path(robot))
+        return builtin_urdf_path(robot)
+    except RobotLookupError as exc:
+        raise PlantError(str(exc)) from None
 
 
 class PybulletPlant:

@@ -32,11 +32,11 @@ def _example_robot_data_dir() -> Path:
     raise ModelInputError("robot data: example-robot-data is not installed (pip install example-robot-data)")
 
 
-# name -> (URDF location, end-effector link, limits file or None)
+# name -> (URDF location, end-effector link), from data/robots.yaml: the one table, which the
+# simulated target reads too without importing this package (sim_target/robots.py).
 _BUILTIN: dict[str, tuple[str, str]] = {
-    "ur5_paper": ("local:ur5_paper.urdf", "flange"),
-    "ur5": ("erd:ur_description/urdf/ur5_robot.urdf", "tool0"),
-    "panda": ("erd:panda_description/urdf/panda.urdf", "panda_hand_tcp"),
+    str(name): (str(entry["urdf"]), str(entry["end_effector"]))
+    for name, entry in yaml.safe_load((DATA_DIR / "robots.yaml").read_text()).items()
 }
 
 
