@@ -8,7 +8,7 @@ process receives the state stream over TCP on 127.0.0.1 (scouting off) and count
 
 Per mode: ``offer_us`` (the ``offer_state`` call), ``cycle_us`` (work + hand-off: what the loop's
 compute budget sees, including any GIL time the publisher thread takes from the loop thread)
-and ``lateness_us`` (cycle start after its deadline). Budget (ARCHITECTURE.md): on - off
+and ``lateness_us`` (cycle start after its deadline). Budget (docs/architecture.md): on - off
 <= +15 µs median, <= +50 µs p99 of ``cycle_us``. The publisher thread runs through the off blocks
 too (idle: it wakes every publish_period_s and finds nothing), so "off" carries that idle cost.
 

@@ -64,11 +64,6 @@ def fd_frame_bits(n_bytes: int) -> tuple[int, int]:
     return nominal, data
 
 
-def fd_frame_time_s(n_bytes: int, bitrate: int, data_bitrate: int) -> float:
-    nominal, data = fd_frame_bits(n_bytes)
-    return nominal / bitrate + data / data_bitrate
-
-
 @dataclass(frozen=True)
 class BusLoad:
     n_drives: int

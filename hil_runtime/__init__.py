@@ -1,5 +1,5 @@
 """The deployable HIL daemon: config, bundle loading, the control loop, safety, telemetry, CLI.
 
 Imports only light packages (numpy, onnxruntime, python-can, zenoh) and ``drivers``; never
-``models``, torch, pinocchio or pybullet (see ARCHITECTURE.md).
+``models``, torch, pinocchio or pybullet (docs/architecture.md).
 """

@@ -1,6 +1,6 @@
 """Policy bundles: load, verify and step the exported feedback law + torque emulator.
 
-A bundle is a directory written by ``models.lmpc.bundle_export`` (ARCHITECTURE.md, contract 1)::
+A bundle is a directory written by ``models.lmpc.bundle_export`` (docs/architecture.md, contract 1)::
 
     <bundle>/manifest.json   schema, robot + URDF sha256, joints, period, limits, law, layout,
                              training provenance, validation error, sha256 of every file

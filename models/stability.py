@@ -159,8 +159,3 @@ def evaluate_theorem1(
     terms = {"lmin_dphi_de": l_e, "lmin_dphi_dedot": l_edot, "lmax_M": m_max, "C_max": c_max, "dGdq_max": g_max,
              "P_norm": p_norm, "eq21_lhs": lhs3, "eq21_rhs": rhs3, "beta": beta, "epsilon": epsilon}  # fmt: skip
     return Theorem1Report(law.name, margins, {k: bool(v > 0) for k, v in margins.items()}, terms, len(q), notes)
-
-
-def reference_trajectory(q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The arrays for evaluating at the equilibrium e = 0 along a reference: (q, qd, q_d, qd_d, qdd_d)."""
-    return q_d, qd_d, q_d, qd_d, qdd_d

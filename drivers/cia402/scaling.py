@@ -15,8 +15,6 @@ import math
 from dataclasses import dataclass
 from typing import Final
 
-import numpy as np
-
 INT16_MAX: Final = 32767
 INT32_MAX: Final = 2**31 - 1
 
@@ -87,8 +85,3 @@ def check_torque_range(max_torque_nm: float, rated_torque_mnm: int) -> None:
             f"{rated_torque_mnm} mN·m, above the INTEGER16 limit {INT16_MAX}; "
             f"use a rated torque of at least {need} mN·m"
         )
-
-
-def permille_vector_scale(scalings: tuple[JointScaling, ...]) -> np.ndarray:
-    """Per-joint ‰ per N·m, for vectorised conversion in the driver's hot path."""
-    return np.array([s.permille_per_nm for s in scalings], dtype=np.float64)

@@ -1,4 +1,4 @@
-"""Telemetry out of the runtime (ARCHITECTURE.md, contract 3; docs/telemetry.md).
+"""Telemetry out of the runtime (docs/architecture.md, contract 3; docs/telemetry.md).
 
 The loop talks to a :class:`TelemetrySink` only; every call is made from the loop thread and must
 return in microseconds without blocking (a bounded queue to one publisher thread, drop-oldest).

@@ -1,7 +1,7 @@
 """ADRC law (Sec. IV-B): a linear extended state observer (ESO) per joint and a PD on the errors.
 
 Per joint the plant is modelled as q_ddot = f + u with u = tau / b0: b0 is read as a torque per
-acceleration (kg*m^2), close to this arm's joint inertias (PAPER_NOTES). The ESO, with
+acceleration (kg*m^2), close to this arm's joint inertias (docs/feedback_laws.md). The ESO, with
 A = [[-b1, 1, 0], [-b2, 0, 1], [-b3, 0, 0]], inputs (q, u) and b1, b2, b3 = 3 wo, 3 wo^2, wo^3:
 
     z_dot = A z + [b1, b2, b3]^T q + [0, 1, 0]^T u

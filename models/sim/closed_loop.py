@@ -25,7 +25,7 @@ COULOMB_SMOOTHING_RAD_S = 0.01  # tanh(qd / v) stands in for sign(qd), keeping R
 
 @dataclass(frozen=True)
 class SimConfig:
-    dt_s: float = 1e-3  # control period (PAPER_NOTES: 1 kHz)
+    dt_s: float = 1e-3  # control period (the paper: 1 kHz)
     substeps: int = 2  # RK4 steps per control period
     plant_backend: str = "pinocchio"  # "pinocchio" (C++ ABA, fast) or "rne" (the paper's RNEFDA)
 

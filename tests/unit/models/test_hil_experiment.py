@@ -91,6 +91,6 @@ def test_per_run_scores_normalize_within_a_condition() -> None:
     assert _per_run_scores(worse, scale=runs)[("pd", "fb", "C1")] == pytest.approx(4.0)
 
 
-def test_paper_table_ii_values() -> None:  # PAPER_NOTES: Table II (hardware), FB -> LMPC
+def test_paper_table_ii_values() -> None:  # the paper's Table II (hardware), FB -> LMPC
     assert PAPER_TABLE_II["pd"] == (0.997, 0.661) and PAPER_TABLE_II["smc"] == (0.245, 0.007)
     assert set(PAPER_TABLE_II) == {"pd", "pid", "adrc", "hinf", "smc", "mrac"}
