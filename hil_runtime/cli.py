@@ -10,7 +10,10 @@ It is printed as one line (no traceback) and the process exits with that code (2
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
+import threading
 from importlib.metadata import entry_points
 
 import typer
@@ -66,10 +69,50 @@ def _load_plugins() -> None:
 
 
 INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
+INTERRUPT_GRACE_S = 15.0  # after Ctrl-C, the longest we wait for the work to unwind before leaving
+INTERRUPTED_MESSAGE = "interrupted (Ctrl-C): stopped; files already written are complete, none is half-written"
+
+
+def _leave_now() -> None:
+    print(f"{INTERRUPTED_MESSAGE} (forced exit)", file=sys.stderr, flush=True)
+    os._exit(INTERRUPTED)
+
+
+def _on_sigint(_signum: int, _frame: object) -> None:
+    """First Ctrl-C: KeyboardInterrupt, the work unwinds (outputs are atomic, nothing is half
+    written) and a daemon timer ends the process if that takes longer than INTERRUPT_GRACE_S (a
+    native call or a helper thread that does not return). A second Ctrl-C leaves at once."""
+    if getattr(_on_sigint, "armed", False):
+        _leave_now()
+    _on_sigint.armed = True  # type: ignore[attr-defined]
+    timer = threading.Timer(INTERRUPT_GRACE_S, _leave_now)
+    timer.daemon = True
+    timer.start()
+    raise KeyboardInterrupt
+
+
+def _install_sigint_handler() -> object | None:
+    """Our handler, returning the one it replaced; None where it stays as it is: outside the main
+    thread, or where Ctrl-C is ignored or already owned. Commands that own SIGINT (``hil run``:
+    quick stop, exit 0) install their own handler over this one."""
+    main_thread = threading.current_thread() is threading.main_thread()
+    if not main_thread or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return None
+    _on_sigint.armed = False  # type: ignore[attr-defined]
+    return signal.signal(signal.SIGINT, _on_sigint)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; return the process exit code (the console script does ``sys.exit(main())``)."""
+    previous = _install_sigint_handler()
+    try:
+        return _main(argv)
+    finally:
+        if previous is not None and signal.getsignal(signal.SIGINT) is _on_sigint:
+            signal.signal(signal.SIGINT, previous)  # type: ignore[arg-type]
+
+
+def _main(argv: list[str] | None) -> int:
     try:
         _flags_show_no_type()
         _load_plugins()
@@ -84,9 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         return _report(exc)
     code = result if isinstance(result, int) and not isinstance(result, bool) else 0
     if code == INTERRUPTED:
-        print(
-            "interrupted (Ctrl-C): stopped; files already written are complete, none is half-written", file=sys.stderr
-        )
+        print(INTERRUPTED_MESSAGE, file=sys.stderr, flush=True)
     return code
 
 

@@ -95,15 +95,22 @@ def test_user_errors_and_usage_errors_are_one_line(monkeypatch: pytest.MonkeyPat
 
 def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(tmp_path: Path) -> None:
     out = tmp_path / "out"
+    # PYTHONFAULTHANDLER: should it ever hang, the SIGABRT below prints every thread's stack
     process = subprocess.Popen([*hil_command(), "experiment", "--out", str(out)], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "120"})  # fmt: skip
+                               stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "COLUMNS": "120", "PYTHONFAULTHANDLER": "1"})  # fmt: skip
     try:
         deadline = time.monotonic() + 240
         while time.monotonic() < deadline and not out.is_dir():  # the run has started its work
             time.sleep(0.2)
         time.sleep(2.0)
         process.send_signal(signal.SIGINT)
-        _, err = process.communicate(timeout=120)
+        try:
+            _, err = process.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            process.send_signal(signal.SIGABRT)
+            _, err = process.communicate(timeout=30)
+            pytest.fail(f"hil experiment did not end 120 s after SIGINT; its threads:\n{err[-8000:]}")
     finally:
         if process.poll() is None:
             process.kill()
@@ -120,3 +127,49 @@ def test_help_shows_flags_without_a_bool_type_and_lists_the_robots() -> None:
     assert done.returncode == 0
     assert "--no-plots" in done.stdout and "<bool>" not in done.stdout
     assert "ur5_paper, ur5, panda" in done.stdout
+
+
+STUCK = """
+import sys, time, typer
+from hil_runtime import cli
+cli.INTERRUPT_GRACE_S = float(sys.argv[1])
+app = typer.Typer(add_completion=False)
+cli.app, cli._load_plugins = app, lambda: None
+
+@app.command()
+def stuck() -> None:
+    print("ready", flush=True)
+    while True:  # a native call or helper thread that never returns, as far as Ctrl-C is concerned
+        try:
+            time.sleep(0.05)
+        except KeyboardInterrupt:
+            pass
+
+@app.command()
+def other() -> None:
+    pass
+
+sys.exit(cli.main(["stuck"]))
+"""
+
+
+@pytest.mark.parametrize("second_ctrl_c", [False, True])
+def test_ctrl_c_ends_even_work_that_does_not_unwind(second_ctrl_c: bool) -> None:
+    grace_s = 2.0
+    process = subprocess.Popen([sys.executable, "-c", STUCK, str(grace_s)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)  # fmt: skip
+    try:
+        assert process.stdout is not None and process.stdout.readline().strip() == "ready"
+        start = time.monotonic()
+        process.send_signal(signal.SIGINT)
+        if second_ctrl_c:
+            time.sleep(0.3)
+            process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=30)
+        elapsed = time.monotonic() - start
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130 and "interrupted (Ctrl-C)" in err and "forced exit" in err
+    assert elapsed < (1.5 if second_ctrl_c else grace_s + 3.0)
+    assert second_ctrl_c or elapsed >= grace_s - 0.1
