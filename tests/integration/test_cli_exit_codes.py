@@ -42,7 +42,9 @@ def test_typer_exit_codes_become_the_return_code(monkeypatch: pytest.MonkeyPatch
     assert cli.main(["fine"]) == 0
 
 
-def test_ctrl_c_inside_a_command_is_130_with_a_message(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+def test_ctrl_c_inside_a_command_is_130_with_a_message(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
     app = _app(monkeypatch)
 
     @app.command()
@@ -72,7 +74,9 @@ def test_an_unexpected_error_is_its_own_traceback_not_a_missing_click(monkeypatc
         cli.main(["bug"])
 
 
-def test_user_errors_and_usage_errors_are_one_line(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+def test_user_errors_and_usage_errors_are_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
     app = _app(monkeypatch)
 
     class UserError(ValueError):
@@ -122,8 +126,8 @@ def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(tmp_pat
 
 
 def test_help_shows_flags_without_a_bool_type_and_lists_the_robots() -> None:
-    done = subprocess.run([*hil_command(), "experiment", "--help"], check=False, capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "COLUMNS": "200"})  # fmt: skip
+    done = subprocess.run([*hil_command(), "experiment", "--help"], check=False, capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "COLUMNS": "200"})  # fmt: skip
     assert done.returncode == 0
     assert "--no-plots" in done.stdout and "<bool>" not in done.stdout
     assert "ur5_paper, ur5, panda" in done.stdout
@@ -156,8 +160,8 @@ sys.exit(cli.main(["stuck"]))
 @pytest.mark.parametrize("second_ctrl_c", [False, True])
 def test_ctrl_c_ends_even_work_that_does_not_unwind(second_ctrl_c: bool) -> None:
     grace_s = 2.0
-    process = subprocess.Popen([sys.executable, "-c", STUCK, str(grace_s)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True)  # fmt: skip
+    process = subprocess.Popen([sys.executable, "-c", STUCK, str(grace_s)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
         assert process.stdout is not None and process.stdout.readline().strip() == "ready"
         start = time.monotonic()
