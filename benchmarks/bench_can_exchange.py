@@ -9,7 +9,7 @@ PDO objects (why the cyclic path has its own codec), and machine info.
     python benchmarks/bench_can_exchange.py --mode ipc            # across processes on the ipc bus
     python benchmarks/bench_can_exchange.py --unpaced             # back-to-back: the ceiling
 
-The plant is the fake double integrator of tests/integration/fake_plant.py (lock-stepped: each SYNC
+The plant is the fake double integrator of sim_target/testing/fake_plant.py (lock-stepped: each SYNC
 steps it one period); the pybullet plant's version lives with the target server.
 """
 
@@ -29,31 +29,32 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import can
+import canopen
 import numpy as np
 
+from drivers.cia402 import frames as fr
+from drivers.cia402.od import EDS_PATH
+from drivers.config import parse_drive_bus_config
+from drivers.drive_bus import DriveBus
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "integration")]  # the fake plant and rig live with the tests
-
-import can  # noqa: E402
-import canopen  # noqa: E402
-
-from drivers.cia402 import frames as fr  # noqa: E402
-from drivers.cia402.od import EDS_PATH  # noqa: E402
-from drivers.config import parse_drive_bus_config  # noqa: E402
-from drivers.drive_bus import DriveBus  # noqa: E402
 
 
 def _config(args: argparse.Namespace, transport: dict[str, Any]) -> Any:
     if args.fd:
         transport = {**transport, "fd": True, "data_bitrate": args.data_bitrate}
-    return parse_drive_bus_config({
-        "transport": {**transport, "bitrate": args.bitrate},
-        "period_s": 1.0 / args.rate_hz,
-        "feedback_timeout_s": args.feedback_timeout_s,
-        "max_missed_cycles": 1_000_000,  # count, don't stop: the benchmark reports losses
-        "comm_loss_timeout_s": 5.0,  # nor may the drives stop on a stall of this loaded machine
-        "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(args.drives)],
-    }, "benchmark")
+    return parse_drive_bus_config(
+        {
+            "transport": {**transport, "bitrate": args.bitrate},
+            "period_s": 1.0 / args.rate_hz,
+            "feedback_timeout_s": args.feedback_timeout_s,
+            "max_missed_cycles": 1_000_000,  # count, don't stop: the benchmark reports losses
+            "comm_loss_timeout_s": 5.0,  # nor may the drives stop on a stall of this loaded machine
+            "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(args.drives)],
+        },
+        "benchmark",
+    )
 
 
 def _run_loop(driver: DriveBus, args: argparse.Namespace) -> dict[str, Any]:
@@ -111,9 +112,8 @@ def _run_loop(driver: DriveBus, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
-    from fake_plant import FakePlant, lockstep
-
     from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+    from sim_target.testing.fake_plant import FakePlant, lockstep
 
     channel = f"bench-{uuid.uuid4().hex[:8]}"
     config = _config(args, {"interface": "virtual", "channel": channel})
@@ -138,9 +138,20 @@ def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     extra = ["--ipc-dir", ipc_dir] + ([] if args.fd else ["--classical"]) if ipc_dir else []
     proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "tests" / "integration" / "drive_target_process.py"),
-         "--drives", str(args.drives), "--period-s", str(1.0 / args.rate_hz), *extra],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        [
+            sys.executable,
+            str(ROOT / "tests" / "integration" / "drive_target_process.py"),
+            "--drives",
+            str(args.drives),
+            "--period-s",
+            str(1.0 / args.rate_hz),
+            *extra,
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
     )
     try:
         selector = selectors.DefaultSelector()
@@ -151,8 +162,9 @@ def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str
         if ipc_dir:
             config = _config(args, {"interface": "ipc", "channel": ready["ipc_dir"]})
         else:
-            config = _config(args, {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": ready["port"],
-                                    "channel": ""})
+            config = _config(
+                args, {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": ready["port"], "channel": ""}
+            )
         driver = DriveBus(config)
         try:
             driver.connect()
@@ -207,9 +219,15 @@ def codec_cost() -> dict[str, float]:
         return fr.encode_rpdo(0x000F, -1000)
 
     assert canopen_decode() == ours_decode() and canopen_encode() == ours_encode()
-    return {name: round(timeit.timeit(fn, number=n) / n * 1e6, 3) for name, fn in (
-        ("canopen_tpdo_decode_us", canopen_decode), ("canopen_rpdo_encode_us", canopen_encode),
-        ("struct_tpdo_decode_us", ours_decode), ("struct_rpdo_encode_us", ours_encode))}
+    return {
+        name: round(timeit.timeit(fn, number=n) / n * 1e6, 3)
+        for name, fn in (
+            ("canopen_tpdo_decode_us", canopen_decode),
+            ("canopen_rpdo_encode_us", canopen_encode),
+            ("struct_tpdo_decode_us", ours_decode),
+            ("struct_rpdo_encode_us", ours_encode),
+        )
+    }
 
 
 def machine_info() -> dict[str, Any]:

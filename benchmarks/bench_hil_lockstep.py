@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import platform
-import sys
 import tempfile
 import threading
 import time
@@ -35,15 +34,12 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "integration"))
-
-from hil_target import Q0_RAD, drive_bus_config, target_in_process, target_process, unique_channel  # noqa: E402
-
-from drivers.drive_bus import DriveBus  # noqa: E402
-from drivers.transport import open_bus  # noqa: E402
-from models.dynamics import make_dynamics  # noqa: E402
-from models.robots import load_robot  # noqa: E402
-from sim_target.server import send_control  # noqa: E402
+from drivers.drive_bus import DriveBus
+from drivers.transport import open_bus
+from models.dynamics import make_dynamics
+from models.robots import load_robot
+from sim_target.server import send_control
+from sim_target.testing.hil_target import Q0_RAD, drive_bus_config, target_in_process, target_process, unique_channel
 
 # The benchmark measures losses rather than stopping at the first stale cycle.
 # Likewise the drives' master-loss watchdog: a scheduler stall of 100 ms on a loaded machine must
@@ -163,8 +159,9 @@ def bench_inprocess(duration_s: float, period_s: float, substeps: int, rt: bool 
 def bench_bridge(duration_s: float, period_s: float, substeps: int, rt: bool = False) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp, target_process(Path(tmp), period_s, substeps=substeps) as target:
         target_rt = realtime(target.process.pid) if rt else False
-        bus = DriveBus(drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s,
-                                        **BENCH_DRIVER))
+        bus = DriveBus(
+            drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s, **BENCH_DRIVER)
+        )
         try:
             result = _run(bus, period_s, duration_s, rt)
             status = send_control(target.control_socket, {"kind": "status"})
@@ -179,8 +176,10 @@ def bench_bridge(duration_s: float, period_s: float, substeps: int, rt: bool = F
 
 
 def bench_ipc(duration_s: float, period_s: float, substeps: int, rt: bool = False) -> dict[str, Any]:
-    with tempfile.TemporaryDirectory() as tmp, target_process(Path(tmp), period_s, substeps=substeps,
-                                                              transport="ipc") as target:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        target_process(Path(tmp), period_s, substeps=substeps, transport="ipc") as target,
+    ):
         target_rt = realtime(target.process.pid) if rt else False
         config = drive_bus_config({"interface": "ipc", "channel": str(target.ipc_dir)}, period_s, **BENCH_DRIVER)
         ipc_bus = open_bus(config.transport)  # ours, to read its counters
@@ -197,8 +196,12 @@ def bench_ipc(duration_s: float, period_s: float, substeps: int, rt: bool = Fals
         code, _ = target.stop()
         result["target_exit_code"] = code
     result["frames_lost"] = result["syncs_lost"] + result["tpdos_lost"]
-    return {"mode": "ipc", "transport": "ipc bus (Unix SOCK_SEQPACKET, drivers/ipc), CAN FD", "substeps": substeps,
-            **result}
+    return {
+        "mode": "ipc",
+        "transport": "ipc bus (Unix SOCK_SEQPACKET, drivers/ipc), CAN FD",
+        "substeps": substeps,
+        **result,
+    }
 
 
 def machine() -> dict[str, Any]:
@@ -236,11 +239,19 @@ def main() -> None:
     parser.add_argument("--bridge-substeps", type=int, default=64)
     parser.add_argument("--ipc-period", type=float, default=0.001)
     parser.add_argument("--ipc-substeps", type=int, default=32)
-    parser.add_argument("--rt", action="store_true",
-                        help=f"SCHED_FIFO {RT_PRIORITY} for the driver thread and the target process (CAP_SYS_NICE)")
+    parser.add_argument(
+        "--rt",
+        action="store_true",
+        help=f"SCHED_FIFO {RT_PRIORITY} for the driver thread and the target process (CAP_SYS_NICE)",
+    )
     args = parser.parse_args()
-    out: dict[str, Any] = {"benchmark": "hil_lockstep", "drives": 6, "duration_s": args.duration,
-                           "machine_before": machine(), "results": []}
+    out: dict[str, Any] = {
+        "benchmark": "hil_lockstep",
+        "drives": 6,
+        "duration_s": args.duration,
+        "machine_before": machine(),
+        "results": [],
+    }
     if args.mode in ("all", "inprocess"):
         out["results"].append(bench_inprocess(args.duration, args.inprocess_period, args.inprocess_substeps, args.rt))
     if args.mode in ("all", "bridge"):

@@ -29,7 +29,6 @@ import math
 import os
 import platform
 import shutil
-import sys
 import tempfile
 from collections.abc import Iterator
 from importlib import metadata
@@ -38,36 +37,58 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "integration"))
-
-from hil_target import target_in_process, target_process, unique_channel
-
 from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.runtime import Runtime, build_runtime
+from sim_target.testing.hil_target import target_in_process, target_process, unique_channel
+
+ROOT = Path(__file__).resolve().parents[1]
 
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
 JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
 MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 # The benchmark measures rather than stops at the first stale cycle (as bench_hil_lockstep.py).
-BENCH_DRIVER = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
-                "state_change_timeout_s": 5.0, "max_missed_cycles": 1000, "comm_loss_timeout_s": 1.0}  # fmt: skip
+BENCH_DRIVER = {
+    "feedback_timeout_s": 0.05,
+    "heartbeat_timeout_s": 1.0,
+    "sdo_timeout_s": 2.0,
+    "state_change_timeout_s": 5.0,
+    "max_missed_cycles": 1000,
+    "comm_loss_timeout_s": 1.0,
+}
 
 
-def config_dict(transport: dict[str, Any], period_s: float, pacing: str, bundle: Path, fifo: int | None,
-                cpu: int | None, mode: str = "lmpc", hold: bool = False) -> dict[str, Any]:  # fmt: skip
+def config_dict(
+    transport: dict[str, Any],
+    period_s: float,
+    pacing: str,
+    bundle: Path,
+    fifo: int | None,
+    cpu: int | None,
+    mode: str = "lmpc",
+    hold: bool = False,
+) -> dict[str, Any]:
     return {
         "robot": "ur5_paper",
         "bundle": {"path": str(bundle), "mode": mode},
-        "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": period_s,
-                "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **BENCH_DRIVER},
+        "bus": {
+            "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
+            "period_s": period_s,
+            "joints": [
+                {"name": n, "node_id": i + 1, "max_torque_nm": t}
+                for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))
+            ],
+            **BENCH_DRIVER,
+        },
         "reference": {"kind": "hold"} if hold else {"kind": "condition", "condition": "C1", "ramp_s": 2.0},
         # The targets here are lock-stepped: one reference row per exchange, whatever the pacing.
-        "loop": {"pacing": pacing, "time_base": "cycles", "fifo_priority": fifo,
-                 "cpu_affinity": None if cpu is None else [cpu]},
+        "loop": {
+            "pacing": pacing,
+            "time_base": "cycles",
+            "fifo_priority": fifo,
+            "cpu_affinity": None if cpu is None else [cpu],
+        },
         "safety": {"max_stale_cycles": 1000},
     }
 
@@ -93,8 +114,11 @@ def _us(seconds: np.ndarray) -> dict[str, float]:
     values = np.asarray(seconds) * 1e6
     if values.size == 0:
         return {"median": math.nan, "p99": math.nan, "max": math.nan}
-    return {"median": round(float(np.median(values)), 1), "p99": round(float(np.percentile(values, 99)), 1),
-            "max": round(float(values.max()), 1)}  # fmt: skip
+    return {
+        "median": round(float(np.median(values)), 1),
+        "p99": round(float(np.percentile(values, 99)), 1),
+        "max": round(float(values.max()), 1),
+    }
 
 
 def measure(runtime: Runtime, cycles: int) -> dict[str, Any]:
@@ -128,35 +152,59 @@ def measure(runtime: Runtime, cycles: int) -> dict[str, Any]:
 
 def bench_compute(cycles: int, fifo: int | None, cpu: int | None) -> dict[str, Any]:
     config = parse_runtime_config(config_dict({"interface": "virtual"}, 0.001, "bus", PD_BUNDLE, fifo, cpu))
-    bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=(2.0, 2.0, 1.0, 0.2, 0.2, 0.1), max_torque_nm=MAX_TORQUE_NM,
-                       initial_position_rad=Q0_RAD)  # fmt: skip
+    bus = FakeJointBus(
+        6,
+        period_s=0.001,
+        inertia_kgm2=(2.0, 2.0, 1.0, 0.2, 0.2, 0.1),
+        max_torque_nm=MAX_TORQUE_NM,
+        initial_position_rad=Q0_RAD,
+    )
     result = measure(Runtime(config, bus, record_cycles=cycles + 1), cycles)
-    result["budget"] = {"compute_median<=60us": bool(result["compute_us"]["median"] <= 60.0),
-                        "compute_p99<=150us": bool(result["compute_us"]["p99"] <= 150.0)}  # fmt: skip
+    result["budget"] = {
+        "compute_median<=60us": bool(result["compute_us"]["median"] <= 60.0),
+        "compute_p99<=150us": bool(result["compute_us"]["p99"] <= 150.0),
+    }
     return {"mode": "compute", "bus": "FakeJointBus (no CAN, no wait)", **result}
 
 
 def bench_inprocess(duration_s: float, pacing: str, fifo: int | None, cpu: int | None) -> dict[str, Any]:
     channel = unique_channel()
     period_s = 0.001
-    config = parse_runtime_config(config_dict({"interface": "virtual", "channel": channel}, period_s, pacing,
-                                              PD_BUNDLE, fifo, cpu))  # fmt: skip
+    config = parse_runtime_config(
+        config_dict({"interface": "virtual", "channel": channel}, period_s, pacing, PD_BUNDLE, fifo, cpu)
+    )
     with target_in_process(channel, period_s, substeps=32) as target:
         cycles = int(duration_s / period_s)
         result = measure(build_runtime(config, record_cycles=cycles + 1), cycles)
         result["target_steps"] = target.stats.steps
     if pacing == "clock":
-        result["budget"] = {"rate>=995Hz": bool(result["achieved_rate_hz"] >= 995.0),
-                            "overruns<=0.5%": bool(result["overrun_pct"] <= 0.5)}  # fmt: skip
+        result["budget"] = {
+            "rate>=995Hz": bool(result["achieved_rate_hz"] >= 995.0),
+            "overruns<=0.5%": bool(result["overrun_pct"] <= 0.5),
+        }
     return {"mode": "inprocess", "transport": "virtual, CAN FD, pybullet 32 substeps", **result}
 
 
-def bench_process(transport: str, duration_s: float, pacing: str, period_s: float, fifo: int | None,
-                  cpu: int | None, mode: str = "lmpc", hold: bool = False) -> dict[str, Any]:  # fmt: skip
-    with tempfile.TemporaryDirectory() as tmp, target_process(Path(tmp), period_s, substeps=32,
-                                                              transport=transport) as target, bundle_at(period_s) as bundle:  # fmt: skip
-        bus = ({"interface": "remote", "channel": target.bridge_url} if transport == "bridge"
-               else {"interface": "ipc", "channel": str(target.ipc_dir)})  # fmt: skip
+def bench_process(
+    transport: str,
+    duration_s: float,
+    pacing: str,
+    period_s: float,
+    fifo: int | None,
+    cpu: int | None,
+    mode: str = "lmpc",
+    hold: bool = False,
+) -> dict[str, Any]:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        target_process(Path(tmp), period_s, substeps=32, transport=transport) as target,
+        bundle_at(period_s) as bundle,
+    ):
+        bus = (
+            {"interface": "remote", "channel": target.bridge_url}
+            if transport == "bridge"
+            else {"interface": "ipc", "channel": str(target.ipc_dir)}
+        )
         config = parse_runtime_config(config_dict(bus, period_s, pacing, bundle, fifo, cpu, mode, hold))
         cycles = int(duration_s / period_s)
         result = measure(build_runtime(config, record_cycles=cycles + 1), cycles)
@@ -164,12 +212,18 @@ def bench_process(transport: str, duration_s: float, pacing: str, period_s: floa
         result["target_exit_code"] = code
     if pacing == "clock":
         rate = 1.0 / period_s
-        result["budget"] = {f"rate>={rate * 0.995:.0f}Hz": bool(result["achieved_rate_hz"] >= rate * 0.995),
-                            "overruns<=0.5%": bool(result["overrun_pct"] <= 0.5)}  # fmt: skip
+        result["budget"] = {
+            f"rate>={rate * 0.995:.0f}Hz": bool(result["achieved_rate_hz"] >= rate * 0.995),
+            "overruns<=0.5%": bool(result["overrun_pct"] <= 0.5),
+        }
     name = "python-can-remote bridge on 127.0.0.1" if transport == "bridge" else "ipc bus (Unix sockets)"
     control = f"{mode}, " + ("hold" if hold else "C1")
-    return {"mode": transport, "transport": f"{name}, CAN FD, pybullet 32 substeps in another process",
-            "control": control, **result}
+    return {
+        "mode": transport,
+        "transport": f"{name}, CAN FD, pybullet 32 substeps in another process",
+        "control": control,
+        **result,
+    }
 
 
 def machine() -> dict[str, Any]:
@@ -185,9 +239,14 @@ def machine() -> dict[str, Any]:
             versions[package] = metadata.version(package)
         except metadata.PackageNotFoundError:
             versions[package] = None
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpu": cpu,
-            "cpu_count": os.cpu_count(), "load_average": [round(x, 2) for x in os.getloadavg()],
-            "versions": versions}  # fmt: skip
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "versions": versions,
+    }
 
 
 def main() -> None:
@@ -198,8 +257,13 @@ def main() -> None:
     parser.add_argument("--fifo", type=int, default=None, help="SCHED_FIFO priority of the loop thread")
     parser.add_argument("--cpu", type=int, default=None, help="pin the loop thread to this CPU")
     args = parser.parse_args()
-    out: dict[str, Any] = {"benchmark": "runtime", "bundle": "ur5_paper/pd (lmpc)", "condition": "C1",
-                           "machine": machine(), "results": []}  # fmt: skip
+    out: dict[str, Any] = {
+        "benchmark": "runtime",
+        "bundle": "ur5_paper/pd (lmpc)",
+        "condition": "C1",
+        "machine": machine(),
+        "results": [],
+    }
     if args.mode in ("all", "compute"):
         out["results"].append(bench_compute(args.cycles, args.fifo, args.cpu))
     if args.mode in ("all", "inprocess"):

@@ -12,8 +12,8 @@ import sys
 import can
 
 from drivers.transport import start_bridge_server
-from fake_plant import FakePlant, lockstep
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+from sim_target.testing.fake_plant import FakePlant, lockstep
 
 
 def main() -> None:

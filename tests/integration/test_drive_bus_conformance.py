@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drive_rig import make_rig
 from drivers.checks import check_joint_bus
+from sim_target.testing.drive_rig import make_rig
 
 
 @pytest.mark.parametrize("fd", [False, True], ids=["classical", "fd"])

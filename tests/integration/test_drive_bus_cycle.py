@@ -11,7 +11,6 @@ import can
 import numpy as np
 import pytest
 
-from drive_rig import Rig, make_rig, wait_until
 from drivers.cia402 import frames as fr
 from drivers.cia402.state_machine import State
 from drivers.config import DriveBusConfig
@@ -23,6 +22,7 @@ from drivers.errors import (
     FeedbackTimeoutError,
     HeartbeatLostError,
 )
+from sim_target.testing.drive_rig import Rig, make_rig, wait_until
 
 SAFE_STATES = {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED, State.FAULT}
 

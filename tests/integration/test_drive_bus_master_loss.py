@@ -24,13 +24,13 @@ import can
 import numpy as np
 import pytest
 
-from drive_rig import make_rig, wait_until
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
 from drivers.errors import DriveFaultError
 from drivers.transport import start_bridge_server
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+from sim_target.testing.drive_rig import make_rig, wait_until
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -289,9 +289,8 @@ def test_killing_the_master_brakes_the_realtime_pybullet_arm(tmp_path: Path) -> 
     """The issue's case: the target on its real-time clock keeps simulating after the master dies;
     within the timeout every drive is quick-stopped and the brakes hold the arm."""
     pytest.importorskip("pybullet")
-    from hil_target import target_process
-
     from sim_target.server import send_control
+    from sim_target.testing.hil_target import target_process
 
     timeout_s = 0.1
     with target_process(tmp_path, 0.002, substeps=16, clock="realtime") as target:

@@ -6,7 +6,8 @@ little static stiffness, H∞, drifted 5° RMS from it in the HIL experiment).""
 from __future__ import annotations
 
 import numpy as np
-from drive_rig import make_rig
+
+from sim_target.testing.drive_rig import make_rig
 
 
 def test_rounding_error_is_carried_so_the_average_torque_is_exact() -> None:

@@ -16,14 +16,14 @@ import can
 import numpy as np
 import pytest
 
-from drive_rig import drive_bus_config
 from drivers.cia402.state_machine import State
 from drivers.config import parse_drive_bus_config
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, TransportError
 from drivers.transport import socketcan_unavailable
-from fake_plant import FakePlant, lockstep
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+from sim_target.testing.drive_rig import drive_bus_config
+from sim_target.testing.fake_plant import FakePlant, lockstep
 
 HERE = Path(__file__).parent
 ROOT = HERE.parent.parent

@@ -12,7 +12,6 @@ import can
 import numpy as np
 import pytest
 
-from drive_rig import Rig, make_rig, wait_until
 from drivers.cia402.state_machine import State
 from drivers.errors import (
     DriveCommandError,
@@ -23,6 +22,7 @@ from drivers.errors import (
     HeartbeatLostError,
     SdoAbortError,
 )
+from sim_target.testing.drive_rig import Rig, make_rig, wait_until
 
 
 @pytest.fixture(params=[False, True], ids=["classical", "fd"])

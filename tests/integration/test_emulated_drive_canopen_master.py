@@ -11,10 +11,10 @@ import can
 import canopen
 import pytest
 
-from drive_rig import wait_until
 from drivers.cia402.frames import NmtState
 from drivers.cia402.od import EDS_PATH
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+from sim_target.testing.drive_rig import wait_until
 
 
 @pytest.fixture

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hil_target import drive_bus_config, target_process
 from test_hil_lockstep import SLOW_MACHINE, _check_counters, _check_trajectory, _run_arm
 
 from drivers.cia402.state_machine import State
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, HeartbeatLostError
 from sim_target.server import send_control
+from sim_target.testing.hil_target import drive_bus_config, target_process
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
 

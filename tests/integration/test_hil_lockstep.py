@@ -20,14 +20,6 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-from hil_target import (
-    MAX_TORQUE_NM,
-    Q0_RAD,
-    drive_bus_config,
-    target_in_process,
-    target_process,
-    unique_channel,
-)
 
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
@@ -42,6 +34,14 @@ from models.sim.closed_loop import Plant as SimPlant
 from models.sim.closed_loop import SimConfig
 from sim_target.config import DriveFault, FrameFault, HeartbeatFault
 from sim_target.server import send_control
+from sim_target.testing.hil_target import (
+    MAX_TORQUE_NM,
+    Q0_RAD,
+    drive_bus_config,
+    target_in_process,
+    target_process,
+    unique_channel,
+)
 
 FREQUENCY_HZ = np.array([2.0, 2.2, 2.4, 2.6, 2.8, 3.0])
 EXCURSION_RAD = 0.01  # sinusoid amplitude: M_ii(q0) (2 pi f)^2 x 10 mrad

@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from hil_target import target_in_process, target_process, unique_channel
 
 from drivers.transport import socketcan_unavailable
 from hil_runtime.config import parse_runtime_config
@@ -31,6 +30,7 @@ from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import build_runtime
 from sim_target.config import parse_fault
 from sim_target.server import send_control
+from sim_target.testing.hil_target import target_in_process, target_process, unique_channel
 
 ROOT = Path(__file__).resolve().parents[2]
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"

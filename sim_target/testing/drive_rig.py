@@ -1,5 +1,5 @@
 """Driver + emulated drives + fake plant on one in-process virtual bus (shared by the drive-bus
-tests and the benchmark)."""
+tests and benchmarks/bench_can_exchange.py)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import can
 
 from drivers.config import DriveBusConfig, parse_drive_bus_config
 from drivers.drive_bus import DriveBus
-from fake_plant import FakePlant, lockstep
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+from sim_target.testing.fake_plant import FakePlant, lockstep
 
 
 def drive_bus_config(channel: str, n: int = 6, fd: bool = False, **overrides: Any) -> DriveBusConfig:
@@ -55,13 +55,20 @@ class Rig:
         self.drive_side_bus.shutdown()
 
 
-def make_rig(n: int = 6, fd: bool = False, drive_ids: tuple[int, ...] | None = None,
-             emulated: dict[str, Any] | None = None, connect: bool = True, **overrides: Any) -> Rig:
+def make_rig(
+    n: int = 6,
+    fd: bool = False,
+    drive_ids: tuple[int, ...] | None = None,
+    emulated: dict[str, Any] | None = None,
+    connect: bool = True,
+    **overrides: Any,
+) -> Rig:
     channel = f"drv-{uuid.uuid4().hex[:10]}"
     config = drive_bus_config(channel, n, fd, **overrides)
     side = can.Bus(interface="virtual", channel=channel, ignore_config=True)
-    drives = EmulatedDrives(side, EmulatedDrivesConfig(node_ids=drive_ids or tuple(range(1, n + 1)),
-                                                       **(emulated or {})))
+    drives = EmulatedDrives(
+        side, EmulatedDrivesConfig(node_ids=drive_ids or tuple(range(1, n + 1)), **(emulated or {}))
+    )
     plant = FakePlant(len(drives.config.node_ids), config.period_s)
     lockstep(drives, plant)
     drives.start()

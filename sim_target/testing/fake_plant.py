@@ -1,4 +1,4 @@
-"""A tiny plant for the drive-bus tests and benchmark: independent joints, unit-free inertia.
+"""A tiny plant for the drive-bus tests and benchmarks: independent joints, one inertia.
 
 Implements the Plant protocol of docs/TEAM_CONTRACTS.md without pybullet: each joint is a double
 integrator (torque / inertia), a braked joint is held still. Deterministic, microseconds per step.
@@ -6,9 +6,12 @@ integrator (torque / inertia), a braked joint is held still. Deterministic, micr
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from sim_target.drives import EmulatedDrives
 
 
 class JointState(NamedTuple):
@@ -46,7 +49,7 @@ class FakePlant:
         return self.state()
 
 
-def lockstep(drives, plant: FakePlant) -> None:  # type: ignore[no-untyped-def]
+def lockstep(drives: EmulatedDrives, plant: FakePlant) -> None:
     """Wire ``plant`` to emulated drives the way the target server does in lock-step mode."""
 
     def on_sync() -> None:

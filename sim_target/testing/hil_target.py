@@ -1,6 +1,6 @@
-"""Helpers shared by the HIL integration tests and benchmarks/bench_hil_lockstep.py: start the
-pybullet target (in this process, or as ``hil target serve`` in another one) and build the driver
-master's config for it. Loopback only: the bridge listens on 127.0.0.1, on a port the OS picks."""
+"""Helpers shared by the HIL integration tests and benchmarks (bench_hil_lockstep, bench_runtime):
+start the pybullet target (in this process, or as ``hil target serve`` in another one) and build the
+driver master's config for it. Loopback only: the bridge listens on 127.0.0.1, on a port the OS picks."""
 
 from __future__ import annotations
 
@@ -47,12 +47,17 @@ def target_config_dict(channel: str, period_s: float, substeps: int = 32, **extr
 
 
 def drive_bus_config(transport: dict[str, Any], period_s: float, **extra: Any) -> DriveBusConfig:
-    return parse_drive_bus_config({
-        "transport": {**FD, **transport},
-        "period_s": period_s,
-        "joints": [{"name": f"joint{n}", "node_id": n, "max_torque_nm": m} for n, m in zip(NODE_IDS, MAX_TORQUE_NM)],
-        **extra,
-    })
+    return parse_drive_bus_config(
+        {
+            "transport": {**FD, **transport},
+            "period_s": period_s,
+            "joints": [
+                {"name": f"joint{n}", "node_id": n, "max_torque_nm": m}
+                for n, m in zip(NODE_IDS, MAX_TORQUE_NM, strict=True)
+            ],
+            **extra,
+        }
+    )
 
 
 @contextlib.contextmanager
@@ -90,8 +95,9 @@ class TargetProcess:
 
 
 @contextlib.contextmanager
-def target_process(tmp_dir: Path, period_s: float, substeps: int = 32, transport: str = "bridge",
-                   **config: Any) -> Iterator[TargetProcess]:
+def target_process(
+    tmp_dir: Path, period_s: float, substeps: int = 32, transport: str = "bridge", **config: Any
+) -> Iterator[TargetProcess]:
     """``hil target serve`` in a subprocess, its bus served by the bridge on 127.0.0.1:<free port>,
     or (``transport="ipc"``) on the ipc bus in ``tmp_dir/bus``."""
     sock = tmp_dir / "target.sock"
@@ -100,14 +106,18 @@ def target_process(tmp_dir: Path, period_s: float, substeps: int = 32, transport
         data = target_config_dict("hil", period_s, substeps, control_socket=str(sock), **config)
         data["bus"] = {**data["bus"], "interface": "ipc", "channel": str(ipc_dir)}
     else:
-        data = target_config_dict("hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0},
-                                  control_socket=str(sock), **config)
+        data = target_config_dict(
+            "hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0}, control_socket=str(sock), **config
+        )
     path = tmp_dir / "target.yaml"
     path.write_text(yaml.safe_dump(data))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(
         [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(path)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
     )
     assert process.stderr is not None
     lines = []
