@@ -9,24 +9,19 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "integration"))
-
-from models.dynamics import make_dynamics  # noqa: E402
-from models.robots import load_robot  # noqa: E402
-from test_plant_parity import (  # noqa: E402
+from models.dynamics import make_dynamics
+from models.robots import load_robot
+from models.sim.plant_parity import (
     DURATION_S,
     FREQUENCY_HZ,
     PERIOD_S,
     Q0_RAD,
-    plant_trajectory,
     models_trajectory,
+    plant_trajectory,
     torque_law,
 )
 
@@ -57,9 +52,18 @@ def main() -> None:
                     "plant_and_law_us_per_period": round(elapsed_s / n_periods * 1e6, 1),
                 }
             )
-    print(json.dumps({"benchmark": "plant_parity", "period_s": PERIOD_S, "duration_s": DURATION_S,
-                      "machine": f"{platform.machine()} {platform.processor() or ''} {platform.python_version()}".strip(),
-                      "results": rows}, indent=1))
+    print(
+        json.dumps(
+            {
+                "benchmark": "plant_parity",
+                "period_s": PERIOD_S,
+                "duration_s": DURATION_S,
+                "machine": f"{platform.machine()} {platform.processor() or ''} {platform.python_version()}".strip(),
+                "results": rows,
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":
