@@ -1,6 +1,6 @@
 """Microseconds per dynamics call, own RNE vs pinocchio, single and batched. Prints JSON.
 
-    python benchmarks/bench_dynamics.py [--robot ur5_paper] [--batch 64]
+python benchmarks/bench_dynamics.py [--robot ur5_paper] [--batch 64]
 """
 
 from __future__ import annotations
@@ -51,11 +51,23 @@ def main() -> None:
                 stats = _time_us(fn, args.repeats)
                 stats["per_state_median_us"] = stats["median_us"] / batch
                 results[f"{backend}/{name}/batch{batch}"] = stats
-    print(json.dumps({
-        "benchmark": "dynamics", "robot": robot.name, "n_joints": robot.n_joints, "results": results,
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
-                    "numpy": np.__version__},
-    }, indent=2))  # fmt: skip
+    print(
+        json.dumps(
+            {
+                "benchmark": "dynamics",
+                "robot": robot.name,
+                "n_joints": robot.n_joints,
+                "results": results,
+                "machine": {
+                    "platform": platform.platform(),
+                    "cpu_count": os.cpu_count(),
+                    "python": platform.python_version(),
+                    "numpy": np.__version__,
+                },
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import os
 import platform
 import time
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -37,10 +38,16 @@ def machine() -> dict:
         pin_version = pinocchio.__version__
     except ImportError:  # pragma: no cover
         pin_version = None
-    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "pinocchio": pin_version,
-            "load_average_1min_at_start": os.getloadavg()[0]}  # fmt: skip
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "pinocchio": pin_version,
+        "load_average_1min_at_start": os.getloadavg()[0],
+    }
 
 
 def load() -> float:
@@ -66,9 +73,15 @@ def _timed_controller(law, robot, options: dict):  # type: ignore[no-untyped-def
 
 
 def _stats(wall_ms: np.ndarray, cpu_ms: np.ndarray) -> dict:
-    return {"cycles": int(wall_ms.size), "median_ms": float(np.median(wall_ms)), "p99_ms": float(np.percentile(wall_ms, 99)),
-            "max_ms": float(wall_ms.max()), "cpu_median_ms": float(np.median(cpu_ms)),
-            "cpu_p99_ms": float(np.percentile(cpu_ms, 99)), "cpu_max_ms": float(cpu_ms.max())}  # fmt: skip
+    return {
+        "cycles": int(wall_ms.size),
+        "median_ms": float(np.median(wall_ms)),
+        "p99_ms": float(np.percentile(wall_ms, 99)),
+        "max_ms": float(wall_ms.max()),
+        "cpu_median_ms": float(np.median(cpu_ms)),
+        "cpu_p99_ms": float(np.percentile(cpu_ms, 99)),
+        "cpu_max_ms": float(cpu_ms.max()),
+    }
 
 
 def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto") -> dict:
@@ -83,14 +96,30 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
     options: dict = {"backend": backend, "kernels": kernels}
     if robot_name == "ur5_paper":
         conditions = [replace(c, duration_s=cycles * dt) for c in load_conditions(robot=robot)]
-        make = lambda: make_law("pd", robot, dt)  # noqa: E731
+        make = partial(make_law, "pd", robot, dt)
     else:  # panda: PD gains for its 7 joints; a sine around its ready pose
-        make = lambda: PDLaw(robot.n_joints, dt, robot.torque_limit_nm, kp=np.array([600, 600, 600, 600, 250, 150, 50.0]),  # noqa: E731
-                             kd=np.array([50, 50, 50, 20, 20, 20, 10.0]))  # fmt: skip
+        make = partial(
+            PDLaw,
+            robot.n_joints,
+            dt,
+            robot.torque_limit_nm,
+            kp=np.array([600, 600, 600, 600, 250, 150, 50.0]),
+            kd=np.array([50, 50, 50, 20, 20, 20, 10.0]),
+        )
         ready = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
-        conditions = [Condition(name="panda_sine", amplitude_rad=(0.3,) * 7, frequency_hz=(0.2,) * 7, duration_s=cycles * dt,
-                                shape="sine", phase_s=0.0, offset_rad=ready, initial_state="reference",
-                                disturbance=None)]  # fmt: skip
+        conditions = [
+            Condition(
+                name="panda_sine",
+                amplitude_rad=(0.3,) * 7,
+                frequency_hz=(0.2,) * 7,
+                duration_s=cycles * dt,
+                shape="sine",
+                phase_s=0.0,
+                offset_rad=ready,
+                initial_state="reference",
+                disturbance=None,
+            )
+        ]
         # The URDF's asymmetric joint ranges (e.g. joint 4 in [-3.07, -0.07]) do not fit the
         # symmetric |q| <= limit the robot model keeps; bound |q| by the widest range instead.
         options["position_limit_rad"] = (2.9, 1.77, 2.9, 3.08, 2.9, 3.76, 2.9)
@@ -109,14 +138,24 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
         hard_walls.append(wall_ms[hard]), hard_cpus.append(cpu_ms[hard])
         for key, value in controller.fallbacks.items():
             fallbacks[key] = fallbacks.get(key, 0) + value
-    out = {"robot": robot_name, "joints": robot.n_joints, "horizon_steps": controller.config.horizon_steps,
-           "backend": backend, "kernels": kernels, "law": law.name, "conditions": [c.name for c in conditions],
-           **_stats(np.concatenate(walls), np.concatenate(cpus)),
-           "mean_gauss_newton_iterations": float(np.mean(iterations)), "max_gauss_newton_iterations": int(np.max(iterations)),
-           "fallbacks": fallbacks}  # fmt: skip
+    out = {
+        "robot": robot_name,
+        "joints": robot.n_joints,
+        "horizon_steps": controller.config.horizon_steps,
+        "backend": backend,
+        "kernels": kernels,
+        "law": law.name,
+        "conditions": [c.name for c in conditions],
+        **_stats(np.concatenate(walls), np.concatenate(cpus)),
+        "mean_gauss_newton_iterations": float(np.mean(iterations)),
+        "max_gauss_newton_iterations": int(np.max(iterations)),
+        "fallbacks": fallbacks,
+    }
     if any(h.size for h in hard_walls):
-        out["hard"] = {"which": "C4/C5 cycles 0-19 and cycles 2000-2029 (impulse at t = 2 s) of every condition",
-                       **_stats(np.concatenate(hard_walls), np.concatenate(hard_cpus))}  # fmt: skip
+        out["hard"] = {
+            "which": "C4/C5 cycles 0-19 and cycles 2000-2029 (impulse at t = 2 s) of every condition",
+            **_stats(np.concatenate(hard_walls), np.concatenate(hard_cpus)),
+        }
     out["load_average_1min"] = [load_before, load()]
     return out
 
@@ -140,10 +179,17 @@ def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
     args = (traj.q[run, step], traj.qd[run, step], q_d, qd_d, qdd_d)
     config = HMPCConfig.from_options(**{**LABEL_HMPC_OPTIONS, "kernels": kernels})
     error_deg = np.degrees(np.abs(args[0] - q_d).max(1))
-    out: dict = {"states": states, "kernels": kernels, "options": {**LABEL_HMPC_OPTIONS, "kernels": kernels},
-                 "source": "PD-alone closed-loop states, five paper conditions, cold start",
-                 "max_joint_error_deg": {"median": float(np.median(error_deg)), "p99": float(np.percentile(error_deg, 99)),
-                                         "max": float(error_deg.max())}}  # fmt: skip
+    out: dict = {
+        "states": states,
+        "kernels": kernels,
+        "options": {**LABEL_HMPC_OPTIONS, "kernels": kernels},
+        "source": "PD-alone closed-loop states, five paper conditions, cold start",
+        "max_joint_error_deg": {
+            "median": float(np.median(error_deg)),
+            "p99": float(np.percentile(error_deg, 99)),
+            "max": float(error_deg.max()),
+        },
+    }
     solve_batch(law, robot, *(a[:2] for a in args), config=config)  # load the compiled kernels
     out["load_average_1min_serial"] = [load()]
     start = time.perf_counter()
@@ -152,7 +198,9 @@ def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
     out["load_average_1min_serial"].append(load())
     out["status_counts"] = {str(k): int(v) for k, v in zip(*np.unique(status, return_counts=True), strict=True)}
     with ProcessPoolBatchExecutor(workers) as executor:
-        solve_batch(law, robot, *(a[:workers] for a in args), config=config, executor=executor, chunk_states=1)  # start workers
+        solve_batch(
+            law, robot, *(a[:workers] for a in args), config=config, executor=executor, chunk_states=1
+        )  # start workers
         out[f"load_average_1min_pool_{workers}"] = [load()]
         start = time.perf_counter()
         _, pooled = solve_batch(law, robot, *args, config=config, executor=executor)

@@ -135,8 +135,10 @@ def run(mode: str, cycles: int, period_s: float, rt: bool) -> dict[str, Any]:
             path = str(Path(tmp) / "bus")
             peer = _start_peer("bus", path)
             bus = can.Bus(interface="ipc", channel=path, fd=True)
-            out = [can.Message(arbitration_id=0x201 + i, data=bytes(12), is_fd=True, is_extended_id=False)
-                   for i in range(OUT)]
+            out = [
+                can.Message(arbitration_id=0x201 + i, data=bytes(12), is_fd=True, is_extended_id=False)
+                for i in range(OUT)
+            ]
             send_batch, recv = bus.send_batch, bus.recv
 
             def round_trip() -> None:
@@ -174,6 +176,7 @@ def run(mode: str, cycles: int, period_s: float, rt: bool) -> dict[str, Any]:
                     send(FRAME)
                 for _ in range(BACK):
                     recv_raw(72)
+
         granted = False
         if rt:
             granted = _realtime() and _realtime(peer.pid) and (hub_pid is None or _realtime(hub_pid))
@@ -200,8 +203,11 @@ def run(mode: str, cycles: int, period_s: float, rt: bool) -> dict[str, Any]:
         "mode": mode,
         "cycles": cycles,
         "sched_fifo": granted,
-        "round_trip_us": {"median": round(float(np.median(us)), 1), "p99": round(float(np.percentile(us, 99)), 1),
-                          "max": round(float(us.max()), 1)},
+        "round_trip_us": {
+            "median": round(float(np.median(us)), 1),
+            "p99": round(float(np.percentile(us, 99)), 1),
+            "max": round(float(us.max()), 1),
+        },
         "load_average_at_start": [round(x, 2) for x in load],
     }
 
