@@ -1,7 +1,7 @@
 """``hil target``: serve the emulated arm, inject faults into a running one.
 
-    hil target serve --config deploy/target.virtual.yaml
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "payload", "mass_kg": 2.0}'
+hil target serve --config deploy/target.virtual.yaml
+hil target inject --socket /tmp/hil-target.sock '{"kind": "payload", "mass_kg": 2.0}'
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ def serve(
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(message)s")
     target_config = load_target_config(config)  # before pybullet is imported: a bad config is one line
     from sim_target.server import build_server
+
     server, close = build_server(target_config)
 
     def _stop(signum: int, _frame: object) -> None:
@@ -36,9 +37,13 @@ def serve(
 
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     bridge = f", bridge {server.bridge_url}" if server.bridge_url else ""
-    print(f"target serving {server.plant.n_joints} drives on {target_config.bus.interface}:"
-          f"{target_config.bus.channel}{bridge}, clock {target_config.clock}, "
-          f"period {target_config.period_s * 1e3:g} ms", file=sys.stderr, flush=True)
+    print(
+        f"target serving {server.plant.n_joints} drives on {target_config.bus.interface}:"
+        f"{target_config.bus.channel}{bridge}, clock {target_config.clock}, "
+        f"period {target_config.period_s * 1e3:g} ms",
+        file=sys.stderr,
+        flush=True,
+    )
     try:
         server.run()
     finally:
@@ -50,7 +55,13 @@ def serve(
 
 @target_app.command()
 def inject(
-    command: Annotated[str, typer.Argument(help='one JSON fault, e.g. \'{"kind": "payload", "mass_kg": 2}\', {"kind": "status"}, or a run start {"kind": "start", ...}')],
+    command: Annotated[
+        str,
+        typer.Argument(
+            help='one JSON fault, e.g. \'{"kind": "payload", "mass_kg": 2}\', {"kind": "status"}, '
+            'or a run start {"kind": "start", ...}'
+        ),
+    ],
     socket_path: Annotated[Path, typer.Option("--socket", help="the target's control_socket")],
 ) -> None:
     """Send a fault (or a status request) to a running target; exit 2 if it refuses the fault."""

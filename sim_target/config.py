@@ -129,7 +129,8 @@ class ImpulseFault(_Fault):
 
 
 Fault = Annotated[
-    FrameFault | DriveFault | HeartbeatFault | EncoderNoiseFault | PayloadFault | ImpulseFault, Field(discriminator="kind")
+    FrameFault | DriveFault | HeartbeatFault | EncoderNoiseFault | PayloadFault | ImpulseFault,
+    Field(discriminator="kind"),
 ]
 _FAULT_ADAPTER: TypeAdapter[Fault] = TypeAdapter(Fault)
 PLANT_FAULTS = (EncoderNoiseFault, PayloadFault, ImpulseFault)
@@ -255,8 +256,9 @@ def load_target_config(path: Path | str) -> TargetConfig:
     try:
         data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
     except (yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
-        raise TargetConfigError(f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'YAML'} "
-                                f"({str(exc).splitlines()[0]})") from None
+        raise TargetConfigError(
+            f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'YAML'} ({str(exc).splitlines()[0]})"
+        ) from None
     if data is None or data == {}:
         raise TargetConfigError(f"{path}: empty file (expected target settings; see deploy/target.virtual.yaml)")
     if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
@@ -329,7 +331,9 @@ def target_layout(config: TargetConfig, source: str = "config") -> TargetLayout:
         raise TargetConfigError(f"{source}: {urdf.name}: no revolute joint to drive")
     node_ids = config.drives.node_ids or tuple(range(1, len(chosen) + 1))
     if len(node_ids) != len(chosen):
-        raise TargetConfigError(f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}")
+        raise TargetConfigError(
+            f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}"
+        )
     return TargetLayout(tuple(j.name for j in chosen), tuple(j.lower_rad for j in chosen),
                         tuple(j.upper_rad for j in chosen), tuple(node_ids))  # fmt: skip
 
@@ -359,7 +363,9 @@ def check_run_start(start: RunStart, layout: TargetLayout, source: str = "start"
         values = getattr(start, field)
         if values is not None and len(values) != n:
             raise TargetConfigError(f"{source}: {field}: {len(values)} values for {n} joints")
-    for i, (q, lo, hi, name) in enumerate(zip(start.position_rad, layout.lower_rad, layout.upper_rad, layout.joint_names)):
+    for i, (q, lo, hi, name) in enumerate(
+        zip(start.position_rad, layout.lower_rad, layout.upper_rad, layout.joint_names, strict=True)
+    ):
         if not lo <= q <= hi:
             raise TargetConfigError(f"{source}: position_rad[{i}]: {q:g} rad is outside joint '{name}' limits "
                                     f"[{lo:g}, {hi:g}]")  # fmt: skip
@@ -375,8 +381,12 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
     q0 = config.plant.initial_position_rad
     if q0 is not None:
         if len(q0) != layout.n_joints:
-            raise TargetConfigError(f"{source}: plant.initial_position_rad: {len(q0)} values for {layout.n_joints} joints")
-        for i, (q, lo, hi, name) in enumerate(zip(q0, layout.lower_rad, layout.upper_rad, layout.joint_names)):
+            raise TargetConfigError(
+                f"{source}: plant.initial_position_rad: {len(q0)} values for {layout.n_joints} joints"
+            )
+        for i, (q, lo, hi, name) in enumerate(
+            zip(q0, layout.lower_rad, layout.upper_rad, layout.joint_names, strict=True)
+        ):
             if not lo <= q <= hi:
                 raise TargetConfigError(f"{source}: plant.initial_position_rad[{i}]: {q:g} rad is outside joint "
                                         f"'{name}' limits [{lo:g}, {hi:g}]")  # fmt: skip

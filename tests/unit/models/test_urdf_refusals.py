@@ -24,13 +24,17 @@ def _variant(tmp_path: Path, pattern: str, replacement: str) -> Path:
 
 CASES = [
     (r"<limit [^>]*/>", "", "joint 'shoulder_pan_joint' <limit>: missing"),
-    (r'(<joint name="elbow_joint" type=)"revolute"', r'\1"prismatic"', "joint 'elbow_joint' type 'prismatic' on the arm's chain"),
+    (
+        r'(<joint name="elbow_joint" type=)"revolute"',
+        r'\1"prismatic"',
+        "joint 'elbow_joint' type 'prismatic' on the arm's chain",
+    ),
     (r'(<joint name="wrist_3_joint" type=)"revolute"', r'\1"prismatic"', "joint 'wrist_3_joint' type 'prismatic'"),
     (r'ixx="', 'ixx="-', "<inertia> ixx: negative"),
     (r'ixy="[^"]*"', 'ixy="5"', "<inertia>: not positive semi-definite"),
     (r'<mass value="', '<mass value="-', "<mass> value: negative"),
-    (r'(<limit [^>]*lower=")[^"]*(")', r'\g<1>4\2', "lower 4 above upper"),
-    (r'(<limit [^>]*velocity=")[^"]*(")', r'\g<1>nan\2', "expected 1 finite numbers"),
+    (r'(<limit [^>]*lower=")[^"]*(")', r"\g<1>4\2", "lower 4 above upper"),
+    (r'(<limit [^>]*velocity=")[^"]*(")', r"\g<1>nan\2", "expected 1 finite numbers"),
 ]
 
 

@@ -4,7 +4,6 @@ import json
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -58,7 +57,9 @@ def test_onnxruntime_matches_torch_and_the_numpy_law(exported):
     tau, tau_fb, nxt = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, state)
     with torch.no_grad():
         expected = model(torch.as_tensor(np.concatenate([q, qd, q_d, qd_d, qdd_d, state], 1))).numpy()
-    np.testing.assert_allclose(np.concatenate([tau, tau_fb, nxt, bundle.last_trust_batch], 1), expected, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(
+        np.concatenate([tau, tau_fb, nxt, bundle.last_trust_batch], 1), expected, atol=1e-5, rtol=0
+    )
     fb_np, state_np = law.step(np, state, q, qd, q_d, qd_d, qdd_d)
     np.testing.assert_allclose(tau_fb, fb_np, atol=1e-9)
     np.testing.assert_allclose(nxt, law.with_applied_torque(state_np, tau), atol=1e-9)
@@ -95,7 +96,12 @@ def test_refuses_an_unknown_schema(bundle_copy):
 
 def test_refuses_a_malformed_trust_region(bundle_copy):
     manifest = json.loads((bundle_copy / "manifest.json").read_text())
-    manifest["trust_region"] = {"feature_low": [0.0], "feature_high": [1.0], "box_margin": 0.1, "residual_bound_nm": None}
+    manifest["trust_region"] = {
+        "feature_low": [0.0],
+        "feature_high": [1.0],
+        "box_margin": 0.1,
+        "residual_bound_nm": None,
+    }
     (bundle_copy / "manifest.json").write_text(json.dumps(manifest))
     _refuse(bundle_copy, r"manifest.json: trust_region.feature_low/high need 36 values")
 
@@ -116,8 +122,18 @@ def test_trust_region_in_the_graph_matches_the_numpy_rule_and_falls_back(tmp_pat
     emulator.out_std.fill_(30.0)  # residuals of tens of N m, some above the bound
     box = (np.r_[np.full(30, -1.0), np.full(6, -1e3)], np.r_[np.full(30, 1.0), np.full(6, 1e3)])
     bound = np.array([20.0, 20.0, 10.0, 5.0, 5.0, 5.0])
-    export_bundle(tmp_path / "pid", law, robot, emulator, {}, {}, trust_region=box, residual=True, residual_bound_nm=bound,
-                  box_margin=0.0)  # fmt: skip
+    export_bundle(
+        tmp_path / "pid",
+        law,
+        robot,
+        emulator,
+        {},
+        {},
+        trust_region=box,
+        residual=True,
+        residual_bound_nm=bound,
+        box_margin=0.0,
+    )
     bundle = PolicyBundle.load(tmp_path / "pid", expected_joints=6)
     assert bundle.manifest["emulator"]["residual"] and bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
     rng = np.random.default_rng(3)
@@ -167,8 +183,11 @@ def test_refuses_a_graph_that_does_not_load_even_with_a_matching_hash(bundle_cop
 
 
 def test_loader_imports_no_torch_or_models():
-    code = ("import sys, hil_runtime.bundle; bad = [m for m in ('torch', 'models', 'pinocchio', 'pybullet') if m in sys.modules];"
-            "print(bad); sys.exit(1 if bad else 0)")  # fmt: skip
+    code = (
+        "import sys, hil_runtime.bundle;"
+        "bad = [m for m in ('torch', 'models', 'pinocchio', 'pybullet') if m in sys.modules];"
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stdout + done.stderr
 
@@ -183,7 +202,9 @@ def test_shipped_bundles_load_with_the_robot_config():
     if not root.is_dir():
         pytest.skip("no shipped bundles yet")
     for law in LAW_NAMES:
-        bundle = PolicyBundle.load(root / law, expected_joints=6, expected_period_s=1e-3, expected_joint_names=robot.joint_names)
+        bundle = PolicyBundle.load(
+            root / law, expected_joints=6, expected_period_s=1e-3, expected_joint_names=robot.joint_names
+        )
         assert bundle.law_name == law
         assert bundle.manifest["validation"]["onnx_vs_torch_max_abs_nm"] <= 1e-5
 

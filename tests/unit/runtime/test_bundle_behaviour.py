@@ -54,19 +54,37 @@ def test_a_graph_of_another_law_under_a_fixed_up_hash_is_refused(tmp_path: Path)
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda m: m["limits"].__setitem__("torque_nm", [2 * t for t in m["limits"]["torque_nm"]]),
-         r"limits.torque_nm\[0\] is 204 but the graph saturates at 102"),
-        (lambda m: m["limits"].__setitem__("torque_nm", [t / 2 for t in m["limits"]["torque_nm"]]),
-         r"limits.torque_nm\[\d\] is \d+ but the graph gives"),
-        (lambda m: m["trust_region"].__setitem__("residual_bound_nm", [b / 10 for b in m["trust_region"]["residual_bound_nm"]]),
-         r"trust_region.residual_bound_nm\[\d\] is .* but the graph passes a residual"),
-        (lambda m: m["trust_region"].__setitem__("residual_bound_nm", [b * 10 for b in m["trust_region"]["residual_bound_nm"]]),
-         "residual_bound_nm does not match the graph's clamp"),
+        (
+            lambda m: m["limits"].__setitem__("torque_nm", [2 * t for t in m["limits"]["torque_nm"]]),
+            r"limits.torque_nm\[0\] is 204 but the graph saturates at 102",
+        ),
+        (
+            lambda m: m["limits"].__setitem__("torque_nm", [t / 2 for t in m["limits"]["torque_nm"]]),
+            r"limits.torque_nm\[\d\] is \d+ but the graph gives",
+        ),
+        (
+            lambda m: m["trust_region"].__setitem__(
+                "residual_bound_nm", [b / 10 for b in m["trust_region"]["residual_bound_nm"]]
+            ),
+            r"trust_region.residual_bound_nm\[\d\] is .* but the graph passes a residual",
+        ),
+        (
+            lambda m: m["trust_region"].__setitem__(
+                "residual_bound_nm", [b * 10 for b in m["trust_region"]["residual_bound_nm"]]
+            ),
+            "residual_bound_nm does not match the graph's clamp",
+        ),
         (lambda m: m.pop("probes"), "probes: missing"),
         (lambda m: m["probes"].__setitem__("atol", 1.0), r"probes.atol: Input should be less than or equal to 0.001"),
-        (lambda m: m["probes"]["outputs"][0].__setitem__(0, m["probes"]["outputs"][0][0] + 1.0), "recorded probe outputs"),
+        (
+            lambda m: m["probes"]["outputs"][0].__setitem__(0, m["probes"]["outputs"][0][0] + 1.0),
+            "recorded probe outputs",
+        ),
         (lambda m: m["law"].__setitem__("state_size", 3), "law.initial_state needs"),
-        (lambda m: m["limits"].__setitem__("torque_nm", [float("nan")] * 6), r"limits.torque_nm.0: Input should be a finite number"),
+        (
+            lambda m: m["limits"].__setitem__("torque_nm", [float("nan")] * 6),
+            r"limits.torque_nm.0: Input should be a finite number",
+        ),
         (lambda m: m["robot"].__setitem__("urdf_sha256", "xyz"), "robot.urdf_sha256: String should match pattern"),
         (lambda m: m.__setitem__("colour", "red"), "colour: Extra inputs are not permitted"),
     ],
@@ -98,7 +116,9 @@ def test_step_never_returns_a_non_finite_torque() -> None:
     q_d = np.full(6, 0.1)
     # qdd_d feeds only the emulator and the trust guard: the law's torque stays finite -> used instead
     tau, tau_fb, _ = bundle.step(zeros, zeros, q_d, zeros, np.full(6, np.nan), np.zeros(0))
-    assert np.isfinite(tau).all() and np.array_equal(tau, np.clip(tau_fb, -bundle.torque_limit_nm, bundle.torque_limit_nm))
+    assert np.isfinite(tau).all() and np.array_equal(
+        tau, np.clip(tau_fb, -bundle.torque_limit_nm, bundle.torque_limit_nm)
+    )
     assert bundle.nonfinite_fallbacks == 1 and bundle.last_trust[0] == 1.0
     # a NaN position leaves nothing finite: refused, counted, the caller stops the arm
     with pytest.raises(NonFiniteOutputError, match="non-finite input"):
@@ -109,8 +129,10 @@ def test_step_never_returns_a_non_finite_torque() -> None:
 
 
 def test_writer_and_loader_share_one_schema() -> None:
-    code = ("import inspect, hil_runtime.bundle as b, hil_runtime.bundle_schema as s; import models.lmpc.bundle_export as w;"
-            "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == b.SCHEMA == s.SCHEMA")  # fmt: skip
+    code = (
+        "import hil_runtime.bundle as b, hil_runtime.bundle_schema as s; import models.lmpc.bundle_export as w;"
+        "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == b.SCHEMA == s.SCHEMA"
+    )
     pytest.importorskip("torch")
     done = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-1000:]

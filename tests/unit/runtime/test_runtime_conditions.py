@@ -118,7 +118,9 @@ def test_a_directory_and_a_missing_file(tmp_path: Path) -> None:
 
 def test_zero_frequency_and_pi_expressions_are_accepted(tmp_path: Path) -> None:
     path = tmp_path / "ok.yaml"
-    path.write_text("conditions:\n  - name: Z\n    amplitude_rad: [pi/4, -2*pi/3]\n    frequency_hz: 0\n    disturbance: null\n")
+    path.write_text(
+        "conditions:\n  - name: Z\n    amplitude_rad: [pi/4, -2*pi/3]\n    frequency_hz: 0\n    disturbance: null\n"
+    )
     (c,) = load_conditions(path)
     assert c.amplitude_rad == pytest.approx((math.pi / 4, -2 * math.pi / 3))
     assert c.disturbance is None

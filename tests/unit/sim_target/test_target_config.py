@@ -78,7 +78,9 @@ def test_unparsable_files_are_user_errors(tmp_path: Path) -> None:
             load_target_config(tmp_path / name)
 
 
-def test_cli_reports_a_bad_config_in_one_line_with_exit_code_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_reports_a_bad_config_in_one_line_with_exit_code_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     path = tmp_path / "target.yaml"
     path.write_text("period_s: 0\n")
     assert hil_main(["target", "serve", "--config", str(path)]) == 2
@@ -89,6 +91,9 @@ def test_cli_reports_a_bad_config_in_one_line_with_exit_code_2(tmp_path: Path, c
 def test_fault_commands_share_the_config_schema() -> None:
     assert parse_fault({"kind": "impulse"}) == ImpulseFault(kind="impulse")  # the paper's disturbance
     assert ImpulseFault(kind="impulse").torque_nm == (1.0, 1.0, 5.0, 5.0, 10.0, 10.0)
-    assert parse_fault({"kind": "drive_fault", "node_id": 3}).error_code == DriveFault(kind="drive_fault", node_id=3).error_code
+    assert (
+        parse_fault({"kind": "drive_fault", "node_id": 3}).error_code
+        == DriveFault(kind="drive_fault", node_id=3).error_code
+    )
     with pytest.raises(TargetConfigError, match="control: drive_fault.node_id"):
         parse_fault({"kind": "drive_fault", "node_id": 300}, "control")

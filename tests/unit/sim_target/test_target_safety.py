@@ -36,9 +36,15 @@ def _first(tag: str) -> str:
 
 
 BAD_CONFIGS = [
-    (FD + "plant: {initial_position_rad: [0, 0, 3.0, 0, 0, 0]}\n", "plant.initial_position_rad[2]: 3 rad is outside joint"),
+    (
+        FD + "plant: {initial_position_rad: [0, 0, 3.0, 0, 0, 0]}\n",
+        "plant.initial_position_rad[2]: 3 rad is outside joint",
+    ),
     (FD + "plant: {initial_position_rad: [0, 0, 0]}\n", "plant.initial_position_rad: 3 values for 6 joints"),
-    (FD + "plant: {initial_position_rad: [.nan, 0, 0, 0, 0, 0]}\n", "plant.initial_position_rad.0: Input should be a finite number"),
+    (
+        FD + "plant: {initial_position_rad: [.nan, 0, 0, 0, 0, 0]}\n",
+        "plant.initial_position_rad.0: Input should be a finite number",
+    ),
     (FD + "period_s: .nan\n", "period_s: Input should be a finite number"),
     ("period_s: 0.0002\nbus: {interface: virtual, fd: true, data_bitrate: 5000000}\n", "bus: 6 drives on CAN FD"),
     ("period_s: 0.002\nbus: {interface: virtual}\n", "bus: 6 drives on classical CAN at 1 Mbit/s"),
@@ -134,13 +140,10 @@ class StubDrives:
 
 
 def _server(tmp_path: Path, **extra: object) -> TargetServer:
-    data = {"plant": {"substeps": 4, "initial_position_rad": Q0},
-            "bus": {"interface": "virtual", "channel": f"safety-{tmp_path.name}", "fd": True, "data_bitrate": 5_000_000},
-            **extra}  # fmt: skip
+    bus = {"interface": "virtual", "channel": f"safety-{tmp_path.name}", "fd": True, "data_bitrate": 5_000_000}
+    data = {"plant": {"substeps": 4, "initial_position_rad": Q0}, "bus": bus, **extra}
     config = parse_target_config(data)
     return TargetServer(config, make_plant(config), StubDrives())
-
-
 
 
 @pytest.mark.parametrize(
@@ -226,13 +229,16 @@ def test_close_leaves_a_socket_that_replaced_ours(tmp_path: Path) -> None:
 def test_build_server_releases_everything_when_the_socket_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "in_the_way"
     path.mkdir()
-    config = parse_target_config({"plant": {"substeps": 4}, "control_socket": str(path),
-                                  "bus": {"interface": "virtual", "channel": "b", "fd": True, "data_bitrate": 5_000_000}})  # fmt: skip
+    bus = {"interface": "virtual", "channel": "b", "fd": True, "data_bitrate": 5_000_000}
+    config = parse_target_config({"plant": {"substeps": 4}, "control_socket": str(path), "bus": bus})
     with pytest.raises(TargetConfigError, match="not a socket"):
         build_server(config)
     assert path.is_dir()
 
 
 def test_inject_client_imports_no_pybullet() -> None:
-    code = "import sys, sim_target.cli, sim_target.control, sim_target.config; sys.exit(1 if 'pybullet' in sys.modules else 0)"
+    code = (
+        "import sys, sim_target.cli, sim_target.control, sim_target.config;"
+        "sys.exit(1 if 'pybullet' in sys.modules else 0)"
+    )
     assert subprocess.run([sys.executable, "-c", code], check=False, timeout=60).returncode == 0

@@ -54,8 +54,11 @@ class RecordingDrives:
 
 
 def make_server(tmp_path: Path | None = None, **overrides: object) -> tuple[TargetServer, RecordingDrives]:
-    data = {"plant": {"substeps": 4, "initial_position_rad": Q0},
-            "bus": {"interface": "virtual", "channel": "unit", "fd": True, "data_bitrate": 5_000_000}, **overrides}
+    data = {
+        "plant": {"substeps": 4, "initial_position_rad": Q0},
+        "bus": {"interface": "virtual", "channel": "unit", "fd": True, "data_bitrate": 5_000_000},
+        **overrides,
+    }
     config = parse_target_config(data)
     drives = RecordingDrives()
     return TargetServer(config, make_plant(config), drives), drives
