@@ -24,7 +24,7 @@ def faults(
     """Inject every fault into a live runtime + pybullet target; exit 1 if any row fails."""
     import logging
 
-    from hil_runtime.outputs import prepare_output_dir
+    from hil_runtime.outputs import prepare_output_dir, remove_if_empty
     from sim_target.faults.campaign import run_campaign, select
     from sim_target.faults.cases import CaseResult
 
@@ -39,7 +39,11 @@ def faults(
         mark = "pass" if r.passed else "FAIL: " + "; ".join(r.failures)
         print(f"  {r.fault} #{r.repeat}: {r.action} [{mark}] ({r.wall_s} s)", file=sys.stderr, flush=True)
 
-    document = run_campaign(out_dir, quick=quick, repeats=count, seed=seed, only=names, progress=progress)
+    try:
+        document = run_campaign(out_dir, quick=quick, repeats=count, seed=seed, only=names, progress=progress)
+    except BaseException:  # Ctrl-C or a failure: no empty directory left behind (outputs are atomic)
+        remove_if_empty(out_dir)
+        raise
     failed = [row["fault"] for row in document["rows"] if not row["pass"]]
     print(
         f"wrote {out_dir / 'table.md'} and {out_dir / 'results.json'}: {len(document['rows'])} faults, "
