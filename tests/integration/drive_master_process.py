@@ -31,14 +31,20 @@ def main() -> None:
         transport.update(interface="ipc", channel=args.ipc_dir)
     else:
         transport.update(interface="remote", channel=args.bridge_url)
-    config = parse_drive_bus_config({
-        "transport": transport,
-        "period_s": args.period_s,
-        "joints": [{"name": f"j{n}", "node_id": n, "max_torque_nm": 100.0} for n in range(1, args.drives + 1)],
-        "feedback_timeout_s": 0.05, "max_missed_cycles": 1_000_000, "heartbeat_timeout_s": 2.0,
-        "sdo_timeout_s": 2.0, "state_change_timeout_s": 5.0,
-        "comm_loss_timeout_s": args.comm_loss_timeout_s,
-    }, "drive_master_process")
+    config = parse_drive_bus_config(
+        {
+            "transport": transport,
+            "period_s": args.period_s,
+            "joints": [{"name": f"j{n}", "node_id": n, "max_torque_nm": 100.0} for n in range(1, args.drives + 1)],
+            "feedback_timeout_s": 0.05,
+            "max_missed_cycles": 1_000_000,
+            "heartbeat_timeout_s": 2.0,
+            "sdo_timeout_s": 2.0,
+            "state_change_timeout_s": 5.0,
+            "comm_loss_timeout_s": args.comm_loss_timeout_s,
+        },
+        "drive_master_process",
+    )
     bus = DriveBus(config)
     bus.connect()
     bus.enable()

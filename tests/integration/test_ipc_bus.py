@@ -106,7 +106,7 @@ def test_frames_of_one_sender_keep_their_order_and_none_is_lost(pair: tuple[IpcB
     n = 2000  # below the default 1 MiB queue, so none may be dropped
     for i in range(n):
         a.send(_msg(0x100 + i % 16, i.to_bytes(4, "little")))
-    received = [int.from_bytes(b.recv(2.0).data, "little") for _ in range(n)]  # type: ignore[union-attr]
+    received = [int.from_bytes(b.recv(2.0).data, "little") for _ in range(n)]
     assert received == list(range(n))
     assert b.recv(0) is None
     assert a.stats.frames_sent == n and a.stats.frames_dropped == 0 and b.stats.frames_received == n
@@ -161,7 +161,7 @@ def test_filters_apply(bus_dir: Path) -> None:
     try:
         for can_id in (0x201, 0x181, 0x601, 0x182):
             a.send(_msg(can_id))
-        assert [b.recv(1.0).arbitration_id for _ in range(2)] == [0x181, 0x182]  # type: ignore[union-attr]
+        assert [b.recv(1.0).arbitration_id for _ in range(2)] == [0x181, 0x182]
         assert b.recv(0.05) is None
     finally:
         a.shutdown()
@@ -193,7 +193,7 @@ def test_many_peers_each_see_every_other(bus_dir: Path) -> None:
             assert all(m is not None for m in got)
             by_sender: dict[int, list[int]] = {}
             for m in got:
-                by_sender.setdefault(m.arbitration_id, []).append(m.data[0])  # type: ignore[union-attr]
+                by_sender.setdefault(m.arbitration_id, []).append(m.data[0])
             assert sorted(by_sender) == [0x100 + j for j in range(8) if j != i]
             assert all(seq == [0, 1, 2] for seq in by_sender.values())  # each sender's order kept
             assert bus.recv(0) is None
@@ -392,8 +392,9 @@ time.sleep(60)
 
 
 def _start(script: str, bus_dir: Path) -> subprocess.Popen[str]:
-    process = subprocess.Popen([sys.executable, "-c", script, str(bus_dir)], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-c", script, str(bus_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     assert process.stdout is not None
     line = process.stdout.readline()
     if line.strip() != "ready":
@@ -434,7 +435,7 @@ def test_a_killed_peer_is_dropped_and_its_stale_socket_removed_by_the_next_joine
         victim.wait(10)
         for i in range(3):  # sending to a dead peer neither raises nor blocks
             a.send(_msg(0x10 + i))
-        assert [b.recv(2.0).arbitration_id for _ in range(3)] == [0x10, 0x11, 0x12]  # type: ignore[union-attr]
+        assert [b.recv(2.0).arbitration_id for _ in range(3)] == [0x10, 0x11, 0x12]
         assert a.peer_count == 1 and a.stats.peers_left == 1
         assert len(_sockets(bus_dir)) == 3  # a SIGKILLed process cannot remove its socket file...
         c = IpcBus(bus_dir)  # ...the next joiner finds it refused and removes it

@@ -12,7 +12,7 @@ from models.robots import load_robot, urdf_path
 from sim_target.plant import load_arm
 
 
-def _pybullet_arm(name: str):  # type: ignore[no-untyped-def]
+def _pybullet_arm(name: str):
     client = pybullet.connect(pybullet.DIRECT)
     body = load_arm(client, urdf_path(name))
     pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)
@@ -39,7 +39,7 @@ def test_inverse_dynamics_matches_pybullet(robot_name: str, backend: str) -> Non
         for _ in range(20):
             q, qd, qdd = (rng.uniform(-1.5, 1.5, robot.n_joints) for _ in range(3))
             full = [np.zeros(len(pb_joints)) for _ in range(3)]
-            for vector, value in zip(full, (q, qd, qdd)):
+            for vector, value in zip(full, (q, qd, qdd), strict=True):
                 vector[columns] = value
             tau_pb = np.array(
                 pybullet.calculateInverseDynamics(body, *(v.tolist() for v in full), physicsClientId=client)
@@ -56,7 +56,9 @@ def test_the_check_would_catch_pybullets_phantom_flange_mass() -> None:
     client = pybullet.connect(pybullet.DIRECT)
     try:
         body = pybullet.loadURDF(
-            str(urdf_path("ur5_paper")), useFixedBase=True, flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
+            str(urdf_path("ur5_paper")),
+            useFixedBase=True,
+            flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
             physicsClientId=client,
         )
         pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)

@@ -28,7 +28,9 @@ def test_a_remote_process_shares_the_virtual_bus() -> None:
     try:
         client = subprocess.Popen(
             [sys.executable, "-c", CLIENT, bridge.url],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         request = local.recv(timeout=20)
         assert request is not None, client.stderr.read() if client.poll() is not None else "no frame"

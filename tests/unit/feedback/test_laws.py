@@ -21,7 +21,7 @@ def _signals(rng: np.random.Generator, batch: int, scale: float = 1.0) -> list[n
     return [scale * rng.normal(size=(batch, 6)) for _ in range(5)]
 
 
-def _state(law, rng, q):  # type: ignore[no-untyped-def]
+def _state(law, rng, q):
     return law.initial_state(q) + 0.01 * rng.normal(size=(len(q), law.state_size))
 
 
@@ -46,7 +46,9 @@ def test_step_is_finite_saturated_and_rowwise(name: str) -> None:
     assert tau.shape == (5, 6) and next_state.shape == (5, law.state_size)
     assert np.all(np.isfinite(tau)) and np.all(np.isfinite(next_state))
     for b in range(5):  # batch == one row at a time
-        tau_b, state_b = law.step(np, state[b : b + 1], q[b : b + 1], qd[b : b + 1], q_d[b : b + 1], qd_d[b : b + 1], qdd_d[b : b + 1])
+        tau_b, state_b = law.step(
+            np, state[b : b + 1], q[b : b + 1], qd[b : b + 1], q_d[b : b + 1], qd_d[b : b + 1], qdd_d[b : b + 1]
+        )
         np.testing.assert_allclose(tau_b[0], tau[b], rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(state_b[0], next_state[b], rtol=1e-12, atol=1e-12)
     # Huge errors: every torque saturates at the limit, still finite.
@@ -145,7 +147,7 @@ def test_mrac_adapts_along_the_gradient_and_stays_in_its_box() -> None:
     assert np.all(theta <= law.theta_max) and np.all(theta >= law.theta_min)
 
 
-def _rk4_hold(law, q_ref: np.ndarray, q0: np.ndarray, periods: int) -> np.ndarray:  # type: ignore[no-untyped-def]
+def _rk4_hold(law, q_ref: np.ndarray, q0: np.ndarray, periods: int) -> np.ndarray:
     """Closed loop on ur5_paper: zero-order hold over each period, one RK4 step per period."""
     dyn, dt = make_dynamics(ROBOT, "pinocchio"), law.dt_s
     q, qd = q0[None].copy(), np.zeros((1, 6))

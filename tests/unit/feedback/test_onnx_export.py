@@ -32,7 +32,7 @@ def test_onnx_step_matches_numpy(name: str, tmp_path: Path) -> None:
         if law.state_size:
             state = law.initial_state(signals[0]) + 0.05 * state
         for _ in range(3):  # a few steps, feeding the state back
-            tau_ort, next_ort = session.run(None, dict(zip(INPUT_NAMES, [*signals, state])))
+            tau_ort, next_ort = session.run(None, dict(zip(INPUT_NAMES, [*signals, state], strict=True)))
             tau_np, next_np = run_step_numpy(law, state, *signals)
             np.testing.assert_allclose(tau_ort, tau_np, rtol=0, atol=1e-6)
             np.testing.assert_allclose(next_ort, next_np, rtol=0, atol=1e-6)

@@ -11,8 +11,9 @@ import pytest
 
 
 def hil(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=600)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True, cwd=cwd, timeout=600
+    )
 
 
 @pytest.mark.parametrize(
@@ -47,8 +48,18 @@ def test_experiment_writes_table_results_trajectories_and_plots(tmp_path: Path) 
         "conditions:\n  - {name: S1, amplitude_rad: [-pi/4, pi/6, -pi/6, -pi/4, pi/2, pi/2], frequency_hz: 0.5}\n"
     )
     out = tmp_path / "out"
-    result = hil("experiment", "--laws", "pd,pid", "--conditions", str(conditions), "--out", str(out),
-                 "--timing-cycles", "50", cwd=tmp_path)  # fmt: skip
+    result = hil(
+        "experiment",
+        "--laws",
+        "pd,pid",
+        "--conditions",
+        str(conditions),
+        "--out",
+        str(out),
+        "--timing-cycles",
+        "50",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     results = json.loads((out / "results.json").read_text())
     assert set(results["table"]) == {"pd", "pid"}

@@ -17,7 +17,9 @@ def test_paper_conditions_match_eq27() -> None:
     conditions = load_conditions(robot=ROBOT)
     assert [c.name for c in conditions] == ["C1", "C2", "C3", "C4", "C5"]
     c1, c4 = conditions[0], conditions[3]
-    assert c1.amplitude_rad == pytest.approx((-math.pi / 4, math.pi / 6, -math.pi / 6, -math.pi / 4, math.pi / 2, math.pi / 2))
+    assert c1.amplitude_rad == pytest.approx(
+        (-math.pi / 4, math.pi / 6, -math.pi / 6, -math.pi / 4, math.pi / 2, math.pi / 2)
+    )
     assert conditions[1].amplitude_rad == pytest.approx(tuple(-a for a in c1.amplitude_rad))
     t = np.array([0.0, 1.3, 4.9])
     q, qd, qdd = c4.reference(t)
@@ -44,14 +46,25 @@ def test_random_conditions_are_seeded_and_inside_limits() -> None:
     ("body", "message"),
     [
         ("conditions:\n  - name: A\n    frequency_hz: 0.1\n", "conditions[0].amplitude_rad: missing"),
-        ("conditions:\n  - name: A\n    amplitude_rad: [1, 2, x, 0, 0, 0]\n", "conditions[0].amplitude_rad[2]: not a number"),
+        (
+            "conditions:\n  - name: A\n    amplitude_rad: [1, 2, x, 0, 0, 0]\n",
+            "conditions[0].amplitude_rad[2]: not a number",
+        ),
         ("conditions:\n  - name: A\n    amplitude_rad: [.nan, 0, 0, 0, 0, 0]\n", "amplitude_rad[0]: not finite"),
-        ("conditions:\n  - name: A\n    amplitude_rad: [4, 0, 0, 0, 0, 0]\n", "reference position reaches 4.000 on joint 1"),
+        (
+            "conditions:\n  - name: A\n    amplitude_rad: [4, 0, 0, 0, 0, 0]\n",
+            "reference position reaches 4.000 on joint 1",
+        ),
         ("conditions:\n  - name: A\n    amplitude_rad: [0, 0, 0]\n", "has 3 joints"),
         ("conditions: [\n", "not valid YAML"),
-        ("conditions:\n  - name: A\n    amplitude_rad: [0, 0, 0, 0, 0, 0]\n    disturbance: {time_s: abc}\n",
-         "conditions[0].disturbance.time_s: not a number"),
-        ("conditions:\n  - name: A\n    amplitude_rad: [0, 0, 0, 0, 0, 0]\n    colour: red\n", "unknown field 'colour'"),
+        (
+            "conditions:\n  - name: A\n    amplitude_rad: [0, 0, 0, 0, 0, 0]\n    disturbance: {time_s: abc}\n",
+            "conditions[0].disturbance.time_s: not a number",
+        ),
+        (
+            "conditions:\n  - name: A\n    amplitude_rad: [0, 0, 0, 0, 0, 0]\n    colour: red\n",
+            "unknown field 'colour'",
+        ),
     ],
 )
 def test_bad_condition_files_give_one_line_errors(tmp_path: Path, body: str, message: str) -> None:

@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from models.dynamics import make_dynamics
-from models.robots import load_robot, urdf_path
+from models.robots import load_robot
 from models.robots.description import RobotModel
 
 RTOL = 1e-9
@@ -37,7 +37,8 @@ def random_chain_urdf(n_joints: int, seed: int, path: Path) -> Path:
             f'<link name="l{i}"><inertial><origin xyz="{_fmt(com)}" rpy="0.1 0.2 0.3"/>',
             f'<mass value="{float(rng.uniform(0.2, 3.0))!r}"/>',
             f'<inertia ixx="{float(inertia[0, 0])!r}" ixy="{float(inertia[0, 1])!r}" ixz="{float(inertia[0, 2])!r}" '
-            f'iyy="{float(inertia[1, 1])!r}" iyz="{float(inertia[1, 2])!r}" izz="{float(inertia[2, 2])!r}"/></inertial></link>',
+            f'iyy="{float(inertia[1, 1])!r}" iyz="{float(inertia[1, 2])!r}" izz="{float(inertia[2, 2])!r}"/>'
+            "</inertial></link>",
         ]
     lines += [
         f'<joint name="tool_joint" type="fixed"><parent link="l{n_joints}"/><child link="tool"/>',
@@ -50,7 +51,7 @@ def random_chain_urdf(n_joints: int, seed: int, path: Path) -> Path:
     return path
 
 
-def pinocchio_from_urdf(robot: RobotModel):  # type: ignore[no-untyped-def]
+def pinocchio_from_urdf(robot: RobotModel):
     model = pin.buildModelFromUrdf(str(robot.urdf_path))
     extra = [model.getJointId(name) for name in list(model.names)[1:] if name not in robot.joint_names]
     if extra:  # e.g. the Panda's fingers, locked at zero as in our description

@@ -67,8 +67,13 @@ def test_run_start_schema_refuses_nan() -> None:
 
 def test_a_faulted_record_is_held_at_its_last_position() -> None:
     rows, steps = 3, 6
-    record = {"t_s": np.arange(rows) * 1e-3, "q": np.arange(rows * 2, dtype=float).reshape(rows, 2),
-              "qd": np.ones((rows, 2)), "tau": np.ones((rows, 2)), "compute_s": np.ones(rows)}  # fmt: skip
+    record = {
+        "t_s": np.arange(rows) * 1e-3,
+        "q": np.arange(rows * 2, dtype=float).reshape(rows, 2),
+        "qd": np.ones((rows, 2)),
+        "tau": np.ones((rows, 2)),
+        "compute_s": np.ones(rows),
+    }
     out = _pad(record, steps, 1e-3)
     np.testing.assert_allclose(out["t"], np.arange(steps) * 1e-3)
     np.testing.assert_allclose(out["q"][rows:], np.repeat(record["q"][-1:], steps - rows, axis=0))
@@ -81,8 +86,10 @@ def test_a_faulted_record_is_held_at_its_last_position() -> None:
 def test_per_run_scores_normalize_within_a_condition() -> None:
     metrics = {"rmse": 1.0, "mae": 1.0, "p95": 1.0, "peak": 1.0, "settle_s": 1.0, "dedt_rms": 1.0}
     half = {k: v / 2 for k, v in metrics.items()}
-    runs = [{"law": "pd", "mode": m, "condition": "C1", "metrics": x, "finite": True, "within_limits": True}
-            for m, x in (("fb", metrics), ("lmpc", half))]  # fmt: skip
+    runs = [
+        {"law": "pd", "mode": m, "condition": "C1", "metrics": x, "finite": True, "within_limits": True}
+        for m, x in (("fb", metrics), ("lmpc", half))
+    ]
     scores = _per_run_scores(runs)
     assert scores[("pd", "fb", "C1")] == pytest.approx(1.0)
     assert scores[("pd", "lmpc", "C1")] == pytest.approx(0.5)

@@ -13,7 +13,9 @@ from models.robots import load_robot
 from models.sim import ControllerStack, FeedbackController, SimConfig, simulate
 
 ROBOT = load_robot("ur5_paper")
-SHORT = [replace(c, duration_s=0.5, disturbance=replace(c.disturbance, time_s=0.2)) for c in load_conditions(robot=ROBOT)[:2]]
+SHORT = [
+    replace(c, duration_s=0.5, disturbance=replace(c.disturbance, time_s=0.2)) for c in load_conditions(robot=ROBOT)[:2]
+]
 
 
 class GravityCompensation:
@@ -28,13 +30,20 @@ class GravityCompensation:
     def reset(self, q0: np.ndarray) -> None:
         pass
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):
         return self.dyn.gravity(q)
 
 
 def test_gravity_compensation_holds_still_and_pulse_gives_the_impulse() -> None:
-    still = Condition(name="still", amplitude_rad=(0.3, 0.4, -0.5, 0.2, 0.1, 0.0), frequency_hz=(0.1,) * 6,
-                      shape="constant", initial_state="reference", duration_s=0.3, disturbance=None)  # fmt: skip
+    still = Condition(
+        name="still",
+        amplitude_rad=(0.3, 0.4, -0.5, 0.2, 0.1, 0.0),
+        frequency_hz=(0.1,) * 6,
+        shape="constant",
+        initial_state="reference",
+        duration_s=0.3,
+        disturbance=None,
+    )
     traj = simulate(ROBOT, GravityCompensation(), [still])
     assert np.abs(traj.q[0] - traj.q[0, 0]).max() < 1e-9
     # A pulse J = tau * d on a resting arm changes velocity by M^-1 J (to first order in d).
@@ -66,7 +75,7 @@ def test_rk4_substeps_and_backends_agree() -> None:
 
 def test_torque_is_saturated_and_limits_reported() -> None:
     class Huge(GravityCompensation):
-        def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):
             return np.full_like(q, 1e6)
 
     traj = simulate(ROBOT, Huge(), [replace(SHORT[0], duration_s=0.2)])

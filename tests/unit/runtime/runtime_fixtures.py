@@ -11,8 +11,14 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[3]
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
-JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
-               "wrist_3_joint")  # fmt: skip
+JOINT_NAMES = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
 MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 
@@ -25,8 +31,10 @@ def config_dict(**overrides: Any) -> dict[str, Any]:
         "bus": {
             "transport": {"interface": "virtual", "channel": "unit", "fd": True, "data_bitrate": 5_000_000},
             "period_s": 0.001,
-            "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                       for i, (n, t) in enumerate(zip(JOINT_NAMES, MAX_TORQUE_NM))],
+            "joints": [
+                {"name": n, "node_id": i + 1, "max_torque_nm": t}
+                for i, (n, t) in enumerate(zip(JOINT_NAMES, MAX_TORQUE_NM, strict=True))
+            ],
         },
         "reference": {"kind": "hold"},
         "loop": {"pacing": "bus", "warmup_cycles": 5},
@@ -68,14 +76,18 @@ class StubBundle:
     def initial_state(self, q0: np.ndarray) -> np.ndarray:
         return np.zeros(self.state_size)
 
-    def step(self, q, qd, q_d, qd_d, qdd_d, state):  # type: ignore[no-untyped-def]
+    def step(self, q, qd, q_d, qd_d, qdd_d, state):
         self.calls += 1
         n, s = self.n_joints, self.state_size
         self.states_seen.append(np.array(state))
         law = 50.0 * (q_d - q) + 5.0 * (qd_d - qd)
         y = self._y
         y[n : 2 * n] = law if self.tau_fb_value is None else self.tau_fb_value
-        y[:n] = np.clip(y[n : 2 * n], -self.torque_limit_nm, self.torque_limit_nm) if self.tau_value is None else self.tau_value
+        y[:n] = (
+            np.clip(y[n : 2 * n], -self.torque_limit_nm, self.torque_limit_nm)
+            if self.tau_value is None
+            else self.tau_value
+        )
         y[2 * n : 2 * n + s] = state + 1.0
         y[2 * n + s] = self.trust_value
         return y[:n], y[n : 2 * n], y[2 * n : 2 * n + s]

@@ -44,8 +44,9 @@ def test_commands(command: str) -> None:
     assert target.requests == ([] if command == "status" else [command])
 
 
-@pytest.mark.parametrize(("line", "error"), [("{", "not JSON"), ('{"command": "fly"}', "unknown command"),
-                                              ("[1]", "unknown command")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("line", "error"), [("{", "not JSON"), ('{"command": "fly"}', "unknown command"), ("[1]", "unknown command")]
+)
 def test_bad_requests_are_answered_not_raised(line: str, error: str) -> None:
     reply = handle_command(Target(), line)
     assert reply["ok"] is False and error in reply["error"]

@@ -19,8 +19,13 @@ S, T = LifecycleState, Transition
 
 def _at(state: LifecycleState) -> Lifecycle:
     life = Lifecycle()
-    path = {S.UNCONFIGURED: [], S.INACTIVE: [T.CONFIGURE], S.ACTIVE: [T.CONFIGURE, T.ACTIVATE],
-            S.FAULT: [T.CONFIGURE, T.ACTIVATE, T.FAULT], S.FINALIZED: [T.SHUTDOWN]}[state]  # fmt: skip
+    path = {
+        S.UNCONFIGURED: [],
+        S.INACTIVE: [T.CONFIGURE],
+        S.ACTIVE: [T.CONFIGURE, T.ACTIVATE],
+        S.FAULT: [T.CONFIGURE, T.ACTIVATE, T.FAULT],
+        S.FINALIZED: [T.SHUTDOWN],
+    }[state]
     for transition in path:
         life.apply(transition, "x")
     assert life.state is state
@@ -45,8 +50,14 @@ def test_the_normal_path_and_the_fault_path() -> None:
     life.subscribe(lambda state, fault: seen.append((state, fault)))
     for transition in (T.CONFIGURE, T.ACTIVATE, T.FAULT, T.RESET, T.ACTIVATE, T.SHUTDOWN):
         life.apply(transition, "heartbeat_lost: drive 3" if transition is T.FAULT else None)
-    assert seen == [(S.INACTIVE, None), (S.ACTIVE, None), (S.FAULT, "heartbeat_lost: drive 3"), (S.INACTIVE, None),
-                    (S.ACTIVE, None), (S.FINALIZED, None)]  # fmt: skip
+    assert seen == [
+        (S.INACTIVE, None),
+        (S.ACTIVE, None),
+        (S.FAULT, "heartbeat_lost: drive 3"),
+        (S.INACTIVE, None),
+        (S.ACTIVE, None),
+        (S.FINALIZED, None),
+    ]
 
 
 def test_finalized_is_terminal_and_faults_keep_the_latest_reason() -> None:

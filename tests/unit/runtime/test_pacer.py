@@ -26,7 +26,7 @@ class FakeClock:
 
 def _pacer(period_s: float = 0.001, pacing: str = "clock") -> tuple[Pacer, FakeClock]:
     clock = FakeClock()
-    return Pacer(period_s, pacing, clock=clock, sleep=clock.sleep, stats_window=64), clock  # type: ignore[arg-type]
+    return Pacer(period_s, pacing, clock=clock, sleep=clock.sleep, stats_window=64), clock
 
 
 def test_deadlines_are_absolute_so_work_does_not_drift_the_schedule() -> None:

@@ -23,8 +23,9 @@ def _eperm(*args: object) -> None:
     raise PermissionError(errno.EPERM, "Operation not permitted")
 
 
-def test_refusals_are_one_warning_each_and_not_errors(monkeypatch: pytest.MonkeyPatch,
-                                                      caplog: pytest.LogCaptureFixture) -> None:  # fmt: skip
+def test_refusals_are_one_warning_each_and_not_errors(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
     monkeypatch.setattr(os, "sched_setscheduler", _eperm)
     monkeypatch.setattr(os, "sched_setaffinity", _eperm)
     report = RealtimeReport()

@@ -14,7 +14,7 @@ Q0 = np.array([0.0, -0.5, 0.8, -0.3, 0.0, 0.0])
 VMAX = np.full(6, 2.5)
 
 
-def _c(name: str):  # type: ignore[no-untyped-def]
+def _c(name: str):
     return next(c for c in load_conditions(None) if c.name == name)
 
 

@@ -44,15 +44,18 @@ def _refused(tmp_path: Path, data: object, *fragments: str) -> str:
 
 
 def test_a_valid_config_loads_frozen_with_paths_relative_to_the_file(tmp_path: Path) -> None:
-    data = config_dict(bundle={"path": "bundles/pd"}, control_socket="run/rt.sock",
-                       reference={"kind": "condition", "condition": "C1", "conditions_file": "c.yaml"})
+    data = config_dict(
+        bundle={"path": "bundles/pd"},
+        control_socket="run/rt.sock",
+        reference={"kind": "condition", "condition": "C1", "conditions_file": "c.yaml"},
+    )
     config = load_runtime_config(_write(tmp_path, data))
     assert config.bundle.path == tmp_path / "bundles" / "pd"
     assert config.control_socket == tmp_path / "run" / "rt.sock"
     assert config.reference.conditions_file == tmp_path / "c.yaml"
     assert config.period_s == 0.001 and len(config.joint_names) == 6
     with pytest.raises(ValidationError):
-        config.robot = "other"  # type: ignore[misc]
+        config.robot = "other"
 
 
 @pytest.mark.parametrize(
@@ -107,8 +110,9 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
         ({"swap_joints": True}, BundleError, "joint order"),
     ],
 )
-def test_a_bundle_that_does_not_match_the_drives_is_refused_before_any_io(tmp_path: Path, change: dict,
-                                                                           error: type, fragment: str) -> None:  # fmt: skip
+def test_a_bundle_that_does_not_match_the_drives_is_refused_before_any_io(
+    tmp_path: Path, change: dict, error: type, fragment: str
+) -> None:
     data = config_dict()
     if "robot" in change:
         data["robot"] = change["robot"]
@@ -138,22 +142,25 @@ def test_a_tampered_bundle_is_refused(tmp_path: Path) -> None:
 
 
 def test_conditions_missing_file_unknown_name_and_out_of_limits(tmp_path: Path) -> None:
-    missing = parse_runtime_config(config_dict(reference={"kind": "condition", "condition": "C1",
-                                                          "conditions_file": str(tmp_path / "none.yaml")}))  # fmt: skip
+    missing = parse_runtime_config(
+        config_dict(reference={"kind": "condition", "condition": "C1", "conditions_file": str(tmp_path / "none.yaml")})
+    )
     with pytest.raises(ConditionError, match="file not found"):
         Runtime(missing, FakeJointBus(6))
     unknown = parse_runtime_config(config_dict(reference={"kind": "condition", "condition": "C9"}), "rt.yaml")
     with pytest.raises(RuntimeConfigError, match=r"reference.condition: no condition 'C9'.*known: C1, C2"):
         Runtime(unknown, FakeJointBus(6))
-    tight = parse_runtime_config(config_dict(reference={"kind": "condition", "condition": "C4"},
-                                             safety={"velocity_limit_rad_s": [0.1] * 6}))  # fmt: skip
+    tight = parse_runtime_config(
+        config_dict(reference={"kind": "condition", "condition": "C4"}, safety={"velocity_limit_rad_s": [0.1] * 6})
+    )
     with pytest.raises(ConditionError, match="velocity"):
         Runtime(tight, FakeJointBus(6))
 
 
 def _hil(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, check=False)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True, timeout=timeout, check=False
+    )
 
 
 def test_hil_run_refuses_bad_input_with_one_line_and_exit_2(tmp_path: Path) -> None:
@@ -168,8 +175,13 @@ def test_hil_run_refuses_bad_input_with_one_line_and_exit_2(tmp_path: Path) -> N
 
 def test_hil_run_with_an_unreachable_bus_exits_2_without_enabling(tmp_path: Path) -> None:
     data = config_dict()
-    data["bus"]["transport"] = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": 9,
-                                "fd": True, "data_bitrate": 5_000_000}  # nothing listens on port 9
+    data["bus"]["transport"] = {
+        "interface": "remote",
+        "bridge_host": "127.0.0.1",
+        "bridge_port": 9,
+        "fd": True,
+        "data_bitrate": 5_000_000,
+    }  # nothing listens on port 9
     result = _hil("run", "--config", str(_write(tmp_path, data)))
     assert result.returncode == 2, result.stderr
     assert "error:" in result.stderr and "bus:" in result.stderr and "Traceback" not in result.stderr

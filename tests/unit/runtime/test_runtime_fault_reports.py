@@ -30,11 +30,16 @@ class Events(NullTelemetry):
 
 
 def _runtime(bundle: object = None, record: int = 0, **overrides: object) -> tuple[Runtime, FakeJointBus, Events]:
-    bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=(2.0, 2.0, 1.0, 0.2, 0.2, 0.1), max_torque_nm=MAX_TORQUE_NM,
-                       initial_position_rad=Q0_RAD)  # fmt: skip
+    bus = FakeJointBus(
+        6,
+        period_s=0.001,
+        inertia_kgm2=(2.0, 2.0, 1.0, 0.2, 0.2, 0.1),
+        max_torque_nm=MAX_TORQUE_NM,
+        initial_position_rad=Q0_RAD,
+    )
     sink = Events()
     config = parse_runtime_config(config_dict(**overrides), "rt.yaml")
-    runtime = Runtime(config, bus, bundle=bundle, telemetry=sink, record_cycles=record)  # type: ignore[arg-type]
+    runtime = Runtime(config, bus, bundle=bundle, telemetry=sink, record_cycles=record)
     runtime.configure()
     assert runtime.activate()
     return runtime, bus, sink
@@ -72,7 +77,7 @@ def test_a_policy_with_nothing_finite_to_command_is_policy_nonfinite_not_interna
 
     runtime, bus, sink = _runtime(bundle=bundle)
     runtime.run(max_cycles=3)
-    bundle.step = refuse  # type: ignore[method-assign]
+    bundle.step = refuse
     result = runtime.run(max_cycles=3, stop_on_fault=True)
     assert result.fault is not None and result.fault.startswith("policy_nonfinite: bundle x"), result.fault
     assert bus.quick_stop_calls == 1

@@ -22,8 +22,9 @@ INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 
 
 def _bus(**kwargs: object) -> FakeJointBus:
-    return FakeJointBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM,
-                        initial_position_rad=Q0_RAD, **kwargs)  # type: ignore[arg-type]
+    return FakeJointBus(
+        6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD, **kwargs
+    )
 
 
 class RecordingSink(NullTelemetry):
@@ -42,7 +43,7 @@ class RecordingSink(NullTelemetry):
         assert len(args) == 10
 
     def offer_stats(self, stats: object) -> None:
-        self.stats.append(dict(stats))  # type: ignore[call-overload]
+        self.stats.append(dict(stats))
 
     def set_status(self, state: str, fault: str | None) -> None:
         self.statuses.append((state, fault))
@@ -56,7 +57,7 @@ class RecordingSink(NullTelemetry):
 
 def _runtime(bus: FakeJointBus, record: int = 0, bundle: object = None, **overrides: object) -> Runtime:
     config = parse_runtime_config(config_dict(**overrides), "rt.yaml")
-    return Runtime(config, bus, record_cycles=record, bundle=bundle, telemetry=RecordingSink())  # type: ignore[arg-type]
+    return Runtime(config, bus, record_cycles=record, bundle=bundle, telemetry=RecordingSink())
 
 
 def test_pd_bundle_ramps_onto_c1_and_tracks_it_inside_the_limits() -> None:
@@ -88,8 +89,8 @@ def test_pd_bundle_ramps_onto_c1_and_tracks_it_inside_the_limits() -> None:
     rt.shutdown()
     assert rt.state is LifecycleState.FINALIZED
     assert bus.events[-3:] == ["quick_stop", "disable", "close"]
-    assert rt.telemetry.calls == ["start", "close"]  # type: ignore[attr-defined]
-    assert [s for s, _ in rt.telemetry.statuses] == ["INACTIVE", "ACTIVE", "FINALIZED"]  # type: ignore[attr-defined]
+    assert rt.telemetry.calls == ["start", "close"]
+    assert [s for s, _ in rt.telemetry.statuses] == ["INACTIVE", "ACTIVE", "FINALIZED"]
 
 
 def test_a_second_run_goes_on_along_the_reference() -> None:
@@ -115,14 +116,14 @@ def test_a_driver_error_is_a_fault_drives_stopped_daemon_up_until_reset(error: E
     rt.configure()
     rt.activate()
     rt.run(max_cycles=20)
-    bus.fail_next_exchange(error)  # type: ignore[arg-type]
+    bus.fail_next_exchange(error)
     result = rt.run(max_cycles=20, stop_on_fault=True)
     assert result.reason == "fault" and result.state is LifecycleState.FAULT
     assert result.fault is not None and result.fault.startswith(kind)
     assert rt.last_fault is not None and rt.last_fault.kind.value == kind
     assert result.fault_cycle == 21  # the 21st exchange raised: acted on in that very cycle
     assert not bus.enabled and bus.fail_safe_count == 1 and bus.quick_stop_calls >= 1
-    assert ("fault", 21, result.fault) in rt.telemetry.events  # type: ignore[attr-defined]
+    assert ("fault", 21, result.fault) in rt.telemetry.events
     # FAULT: the loop thread waits for a reset; then ACTIVE again from the measured pose.
     done = threading.Event()
     outcome = {}
@@ -168,8 +169,13 @@ def test_leaving_the_position_limits_quick_stops_and_faults() -> None:
         qd[1] = -2.0  # something drags joint 2 down faster than any command
         return q + qd * dt, qd
 
-    bus = FakeJointBus(6, period_s=0.001, plant=runaway, max_torque_nm=MAX_TORQUE_NM,
-                       initial_position_rad=(0.0, -2.0, 0.0, 0.0, 0.0, 0.0))  # fmt: skip
+    bus = FakeJointBus(
+        6,
+        period_s=0.001,
+        plant=runaway,
+        max_torque_nm=MAX_TORQUE_NM,
+        initial_position_rad=(0.0, -2.0, 0.0, 0.0, 0.0, 0.0),
+    )
     rt = _runtime(bus, record=2000)
     rt.configure()
     rt.activate()
@@ -209,7 +215,7 @@ def test_an_exception_inside_the_loop_is_a_fault_not_a_crash() -> None:
     def broken(*args: object) -> None:
         raise ZeroDivisionError("bug")
 
-    bundle.step = broken  # type: ignore[method-assign]
+    bundle.step = broken
     result = rt.run(max_cycles=5, stop_on_fault=True)
     assert result.fault == "internal: ZeroDivisionError: bug"
     assert bus.quick_stop_calls == 1
@@ -220,7 +226,7 @@ def test_fb_mode_commands_the_law_torque_and_the_state_records_it() -> None:
     bundle.tau_value = np.full(6, 7.0)  # what lmpc would command
     bus = _bus()
     config = parse_runtime_config(config_dict(bundle={"path": "unused", "mode": "fb"}), "rt.yaml")
-    rt = Runtime(config, bus, bundle=bundle)  # type: ignore[arg-type]
+    rt = Runtime(config, bus, bundle=bundle)
     rt.configure()
     rt.activate()
     rt.run(max_cycles=3)
@@ -256,12 +262,24 @@ def test_duration_ends_the_run_and_stats_carry_the_telemetry_fields() -> None:
     result = rt.run()
     assert result.reason == "duration" and result.cycles == 200  # 200 exchanges: the arm reached period 200 = 0.2 s
     stats = result.stats
-    for name in ("rate_hz", "period_median_s", "period_p99_s", "period_max_s", "compute_median_s", "compute_p99_s",
-                 "compute_max_s", "cycles", "overruns", "fallbacks", "saturations", "bus_frames_sent",
-                 "bus_dropped"):  # fmt: skip
+    for name in (
+        "rate_hz",
+        "period_median_s",
+        "period_p99_s",
+        "period_max_s",
+        "compute_median_s",
+        "compute_p99_s",
+        "compute_max_s",
+        "cycles",
+        "overruns",
+        "fallbacks",
+        "saturations",
+        "bus_frames_sent",
+        "bus_dropped",
+    ):
         assert name in stats, name
-    assert rt.telemetry.states == 201  # the activation row + one per exchange  # type: ignore[attr-defined]
-    assert rt.telemetry.stats  # type: ignore[attr-defined]
+    assert rt.telemetry.states == 201  # the activation row + one per exchange
+    assert rt.telemetry.stats
 
 
 def test_status_snapshot_is_json_able() -> None:
@@ -285,15 +303,14 @@ def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: s
     exchange = bus.exchange
     calls = [0]
 
-    def slow_exchange(torque: np.ndarray):  # type: ignore[no-untyped-def]
+    def slow_exchange(torque: np.ndarray):
         calls[0] += 1
         now[0] += 0.0025 if calls[0] % 10 == 0 else 0.0002
         return exchange(torque)
 
-    bus.exchange = slow_exchange  # type: ignore[method-assign]
+    bus.exchange = slow_exchange
     config = parse_runtime_config(config_dict(loop={"pacing": "clock", "time_base": time_base}), "rt.yaml")
-    rt = Runtime(config, bus, record_cycles=200, clock=lambda: now[0],
-                 sleep=lambda s: now.__setitem__(0, now[0] + s))  # fmt: skip
+    rt = Runtime(config, bus, record_cycles=200, clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
     rt.configure()
     rt.activate()
     rt.run(max_cycles=101)  # the 10th slow exchange's overrun shows at the 101st cycle's start

@@ -30,9 +30,12 @@ def _free_port() -> int:
 def test_state_status_and_the_stop_queryable(caplog: pytest.LogCaptureFixture) -> None:
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    config = parse_runtime_config(config_dict(
-        loop={"pacing": "clock"},
-        telemetry={"enabled": True, "listen": [endpoint], "controls_enabled": True}), "rt.yaml")  # fmt: skip
+    config = parse_runtime_config(
+        config_dict(
+            loop={"pacing": "clock"}, telemetry={"enabled": True, "listen": [endpoint], "controls_enabled": True}
+        ),
+        "rt.yaml",
+    )
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
     runtime = Runtime(config, bus)
     runtime.telemetry = make_telemetry(config, runtime)
@@ -47,9 +50,12 @@ def test_state_status_and_the_stop_queryable(caplog: pytest.LogCaptureFixture) -
     runtime.configure()  # the sink starts: the session listens
     session = zenoh.open(conf)
     try:
-        subs = [session.declare_subscriber(f"hil/ur5_paper/{key}",
-                                           lambda sample, key=key: samples.__setitem__(key, samples[key] + 1))
-                for key in ("state", "status")]  # fmt: skip
+        subs = [
+            session.declare_subscriber(
+                f"hil/ur5_paper/{key}", lambda sample, key=key: samples.__setitem__(key, samples[key] + 1)
+            )
+            for key in ("state", "status")
+        ]
         time.sleep(0.5)  # the peers connect
         runtime.request_activate()
         thread = threading.Thread(target=runtime.run, kwargs={"shutdown_at_end": True})

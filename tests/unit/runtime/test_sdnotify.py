@@ -53,7 +53,7 @@ class NotifyListener:
 
 
 @pytest.fixture
-def listener(tmp_path: Path):  # type: ignore[no-untyped-def]
+def listener(tmp_path: Path):
     path = str(tmp_path / "notify.sock")
     lst = NotifyListener(path)
     yield path, lst
@@ -67,8 +67,9 @@ def test_environment_rules(listener: tuple) -> None:
     assert n.enabled and n.watchdog_interval_s == pytest.approx(1.0)
     other = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000", "WATCHDOG_PID": "1"})
     assert other.watchdog_interval_s is None  # the watchdog is someone else's
-    mine = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "100000",
-                                      "WATCHDOG_PID": str(os.getpid())})  # fmt: skip
+    mine = Notifier.from_environment(
+        {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "100000", "WATCHDOG_PID": str(os.getpid())}
+    )
     assert mine.watchdog_interval_s == pytest.approx(0.05)
     for notifier in (n, other, mine):
         notifier.close()
@@ -98,7 +99,7 @@ def test_a_missing_socket_never_raises() -> None:
 def _runtime(notifier: Notifier, bundle: StubBundle) -> Runtime:
     config = parse_runtime_config(config_dict(loop={"pacing": "clock", "idle_poll_s": 0.005}), "rt.yaml")
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
-    return Runtime(config, bus, bundle=bundle, notifier=notifier)  # type: ignore[arg-type]
+    return Runtime(config, bus, bundle=bundle, notifier=notifier)
 
 
 def test_ready_status_watchdog_from_the_loop_and_a_stall_stops_the_pings(listener: tuple) -> None:
@@ -109,13 +110,13 @@ def test_ready_status_watchdog_from_the_loop_and_a_stall_stops_the_pings(listene
     release = threading.Event()
     original = bundle.step
 
-    def step(*args):  # type: ignore[no-untyped-def]
+    def step(*args):
         if stall.is_set():
             release.wait(5)  # the loop hangs inside the policy call
             stall.clear()
         return original(*args)
 
-    bundle.step = step  # type: ignore[method-assign]
+    bundle.step = step
     rt = _runtime(notifier, bundle)
     rt.configure()
     thread = threading.Thread(target=rt.run, kwargs={"shutdown_at_end": True})

@@ -79,8 +79,9 @@ def test_stale_feedback_faults_within_two_cycles(fresh_sequence: list, fault_at:
             got = k
             break
     assert got == fault_at
-    assert sup.stale_cycles == sum(1 for f in fresh_sequence[: (got if got is not None else len(fresh_sequence)) + 1]
-                                   if not all(f))  # fmt: skip
+    assert sup.stale_cycles == sum(
+        1 for f in fresh_sequence[: (got if got is not None else len(fresh_sequence)) + 1] if not all(f)
+    )
 
 
 @pytest.mark.parametrize(
@@ -99,8 +100,9 @@ def test_stale_feedback_faults_within_two_cycles(fresh_sequence: list, fault_at:
         ((1.0, 1.0), (0.0, 0.0), NAN, (1.0, 1.0), None, (0, 0, 0, 0)),
     ],
 )
-def test_torque_rules(tau: tuple, tau_fb: tuple, fallback: float, command: tuple | None, fault: FaultKind | None,
-                      counts: tuple) -> None:  # fmt: skip
+def test_torque_rules(
+    tau: tuple, tau_fb: tuple, fallback: float, command: tuple | None, fault: FaultKind | None, counts: tuple
+) -> None:
     sup = _sup()
     out = np.full(2, 99.0)
     got = sup.select_torque(np.array(tau), np.array(tau_fb), fallback, out)

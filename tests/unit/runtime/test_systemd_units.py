@@ -20,15 +20,16 @@ def test_units_exist() -> None:
 def test_systemd_analyze_verify_is_silent(unit: Path, tmp_path: Path) -> None:
     if shutil.which("systemd-analyze") is None:
         pytest.skip("systemd-analyze is not installed on this machine")
-    result = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, cwd=tmp_path,
-                            timeout=60, check=False)  # fmt: skip
+    result = subprocess.run(
+        ["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, cwd=tmp_path, timeout=60, check=False
+    )
     output = (result.stdout + result.stderr).strip()
     assert result.returncode == 0 and output == "", output
 
 
 def test_the_runtime_unit_has_the_settings_the_daemon_relies_on() -> None:
     parser = configparser.ConfigParser(strict=False, interpolation=None)
-    parser.optionxform = str  # type: ignore[assignment,method-assign]
+    parser.optionxform = str
     parser.read(UNITS[[u.name for u in UNITS].index("hil-runtime.service")])
     service = parser["Service"]
     assert service["Type"] == "notify"

@@ -26,7 +26,7 @@ def _step(bundle: PolicyBundle, q0: float) -> np.ndarray:
 
 @pytest.mark.parametrize("kind", ["nan", "inf", "nan_both", "saturate"])
 def test_crafted_bundles_load_and_misbehave_only_in_their_band(tmp_path: Path, kind: str) -> None:
-    trigger = craft_bundle(PD, tmp_path / kind, kind)  # type: ignore[arg-type]
+    trigger = craft_bundle(PD, tmp_path / kind, kind)
     crafted, original = PolicyBundle.load(tmp_path / kind), PolicyBundle.load(PD)
     outside = trigger + 3 * TRIGGER_HALF_WIDTH_RAD
     np.testing.assert_array_equal(_step(crafted, outside), _step(original, outside))

@@ -25,12 +25,12 @@ ALL_BRAKED = np.ones(6, dtype=bool)
 
 
 @pytest.fixture(scope="module")
-def robot():  # type: ignore[no-untyped-def]
+def robot():
     return load_robot("ur5_paper")
 
 
 @pytest.fixture
-def plant():  # type: ignore[no-untyped-def]
+def plant():
     with PybulletPlant(period_s=1e-3, substeps=4, initial_position_rad=Q0) as p:
         yield p
 
@@ -58,7 +58,7 @@ def test_massless_urdf_links_stay_massless() -> None:
         pybullet.disconnect(client)
 
 
-def test_gravity_compensation_holds_the_arm_still(plant: PybulletPlant, robot) -> None:  # type: ignore[no-untyped-def]
+def test_gravity_compensation_holds_the_arm_still(plant: PybulletPlant, robot) -> None:
     # Fails if any phantom mass, damping or inertia differs from the project's model.
     dyn = make_dynamics(robot)
     for _ in range(500):
@@ -139,7 +139,7 @@ def test_encoder_noise_is_seeded_and_only_in_the_measurement() -> None:
         assert not np.array_equal(other.step(np.zeros(6), ALL_BRAKED).position_rad, samples[0])
 
 
-def test_payload_sits_on_the_flange(plant: PybulletPlant, robot) -> None:  # type: ignore[no-untyped-def]
+def test_payload_sits_on_the_flange(plant: PybulletPlant, robot) -> None:
     # Gravity torque for the model carrying 2 kg at the flange holds the plant carrying it.
     loaded = make_dynamics(robot.with_payload(2.0))
     plant.set_payload(2.0)
@@ -152,7 +152,7 @@ def test_payload_sits_on_the_flange(plant: PybulletPlant, robot) -> None:  # typ
     assert np.abs(state.position_rad - Q0).max() > 1e-2  # too much torque for the bare arm
 
 
-def test_impulse_changes_momentum_by_its_impulse(plant: PybulletPlant, robot) -> None:  # type: ignore[no-untyped-def]
+def test_impulse_changes_momentum_by_its_impulse(plant: PybulletPlant, robot) -> None:
     dyn = make_dynamics(robot)
     impulse = TorqueImpulse(torque_nm=(0.1, 0.1, 0.05, 0.05, 0.01, 0.01), start_s=0.0105, duration_s=5e-4)
     plant.add_impulse(impulse)
@@ -178,7 +178,11 @@ def test_mean_torque_of_a_pulse_over_a_period() -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "field"),
-    [({"period_s": 0.0}, "period_s"), ({"substeps": 0}, "substeps"), ({"initial_position_rad": [0.0] * 5}, "initial_position_rad")],
+    [
+        ({"period_s": 0.0}, "period_s"),
+        ({"substeps": 0}, "substeps"),
+        ({"initial_position_rad": [0.0] * 5}, "initial_position_rad"),
+    ],
 )
 def test_bad_parameters_are_user_errors(kwargs: dict, field: str) -> None:
     with pytest.raises(PlantError, match=field) as info:
