@@ -81,9 +81,15 @@ _DRAIN_MAX = 1000  # frames handled before a check gives up waiting for an empty
 
 
 class JointStateLike(Protocol):
-    position_rad: np.ndarray
-    velocity_rad_s: np.ndarray
-    torque_nm: np.ndarray
+    # Read-only: a NamedTuple (the plants' JointState) satisfies it.
+    @property
+    def position_rad(self) -> np.ndarray: ...
+
+    @property
+    def velocity_rad_s(self) -> np.ndarray: ...
+
+    @property
+    def torque_nm(self) -> np.ndarray: ...
 
 
 class _EmuNetwork(canopen.Network):
@@ -280,7 +286,7 @@ class EmulatedDrives:
                     if self._drain():
                         self._watch.check(monotonic())
                 msg = bus.recv(min(_POLL_S, max(0.0, due - now)))
-            except Exception:  # noqa: BLE001 - the bus went away: nothing left to emulate
+            except Exception:  # the bus went away: nothing left to emulate
                 if not self._stop.is_set():
                     log.exception("emulated drives: receive failed")
                 return
@@ -290,7 +296,7 @@ class EmulatedDrives:
             self._received += 1
             try:
                 self._dispatch(msg)
-            except Exception:  # noqa: BLE001 - an emulator bug must not silence the drives
+            except Exception:  # an emulator bug must not silence the drives
                 log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
 
     def _drain(self) -> bool:
@@ -306,7 +312,7 @@ class EmulatedDrives:
         self._received += 1
         try:
             self._dispatch(msg)
-        except Exception:  # noqa: BLE001 - an emulator bug must not silence the drives
+        except Exception:  # an emulator bug must not silence the drives
             log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
 
     def _dispatch(self, msg: can.Message) -> None:
@@ -365,7 +371,7 @@ class EmulatedDrives:
         if handler is not None:
             try:
                 handler()
-            except Exception:  # noqa: BLE001 - keep the bus alive; the plant owner logs its own
+            except Exception:  # keep the bus alive; the plant owner logs its own
                 log.exception("SYNC handler failed")
         position, velocity, torque = self._scaled_feedback()
         for drive in drives:

@@ -270,7 +270,7 @@ class PybulletPlant:
         ``velocity_rad_s`` (default: at rest), time 0."""
         q0 = self._initial_position_rad if position_rad is None else self._vector(position_rad, "position_rad")
         v0 = np.zeros(self.n_joints) if velocity_rad_s is None else self._vector(velocity_rad_s, "velocity_rad_s")
-        for index, q, v in zip(self._joint_indices, q0, v0):
+        for index, q, v in zip(self._joint_indices, q0, v0, strict=True):
             pybullet.resetJointState(self._body, index, float(q), float(v), physicsClientId=self._client)
         for index in self._held_indices:
             pybullet.resetJointState(self._body, index, 0.0, 0.0, physicsClientId=self._client)
@@ -432,7 +432,7 @@ class PybulletPlant:
     def close(self) -> None:
         if self._client is not None and pybullet.isConnected(physicsClientId=self._client):
             pybullet.disconnect(self._client)
-        self._client = None  # type: ignore[assignment]
+        self._client = None
 
     def __enter__(self) -> PybulletPlant:
         return self

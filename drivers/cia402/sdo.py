@@ -78,7 +78,7 @@ class SdoKind(Enum):
 
 class SdoFrame(NamedTuple):
     kind: SdoKind
-    index: int
+    index: int  # type: ignore[assignment]  # shadows tuple.index(): the CiA 301 name of the field wins
     subindex: int
     data: bytes  # expedited payload (1..4 bytes), else empty
     value: int  # abort code (ABORT), announced size (segmented), else 0

@@ -55,10 +55,14 @@ class ObjectServer:
         od = drive.node.object_dictionary
 
         def value(index: int, subindex: int = 0) -> int:
-            var = od[index] if subindex == 0 and isinstance(od[index], canopen.objectdictionary.ODVariable) \
-                else od[index][subindex]
+            entry = od[index]
+            var = entry if isinstance(entry, canopen.objectdictionary.ODVariable) else entry[subindex]
             raw = store.get(index, {}).get(subindex)
-            return int(var.decode_raw(raw)) if raw is not None else int(var.default)
+            if raw is not None:
+                return int(var.decode_raw(raw))
+            if var.default is None:
+                raise ValueError(f"object 0x{index:04X}:{subindex}: no value and no default in the EDS")
+            return int(var.default)
 
         drive.rated_torque_mnm = value(odx.RATED_TORQUE)
         drive.max_torque_permille = value(odx.MAX_TORQUE)
