@@ -152,7 +152,8 @@ class TelemetryConfig(BaseModel):
         return f"{KEY_PREFIX}/{check_key_chunk(self.robot or robot, 'telemetry: robot')}"
 
     def summary(self) -> dict[str, Any]:
-        return json.loads(self.model_dump_json())
+        summary: dict[str, Any] = json.loads(self.model_dump_json())
+        return summary
 
 
 def parse_telemetry_config(data: Any, source: str = "config") -> TelemetryConfig:
@@ -180,9 +181,7 @@ def zenoh_config(
     try:
         conf = zenoh.Config.from_file(str(base_file)) if base_file is not None else zenoh.Config()
     except zenoh.ZError as exc:
-        raise TelemetryConfigError(
-            f"{base_file}: not a valid Zenoh json5 config ({zenoh_reason(exc)})"
-        ) from None
+        raise TelemetryConfigError(f"{base_file}: not a valid Zenoh json5 config ({zenoh_reason(exc)})") from None
     conf.insert_json5("mode", json.dumps(mode))
     # Peers are named, never discovered: nothing is sent to a multicast group or gossiped on.
     conf.insert_json5("scouting/multicast/enabled", "false")

@@ -80,7 +80,7 @@ class TelemetryClient:
             else:
                 check_key_chunk(robot, "--robot")
         except BaseException:
-            session.close()
+            session.close()  # type: ignore[no-untyped-call]  # zenoh's stub leaves Session.close unannotated
             raise
         return cls(session, robot, timeout_s)
 
@@ -115,7 +115,8 @@ class TelemetryClient:
             remaining = max(0.1, end - time.monotonic())
             for reply in self.session.get(key, timeout=min(remaining, 1.0)):
                 if reply.ok is not None:
-                    return reply.ok.payload.to_bytes()
+                    payload: bytes = reply.ok.payload.to_bytes()
+                    return payload
                 raise TelemetryUnavailable(f"{key}: the runtime replied with an error: {reply.err.payload.to_string()}")
             if time.monotonic() >= end:
                 raise TelemetryUnavailable(
