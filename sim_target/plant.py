@@ -213,7 +213,8 @@ class PybulletPlant:
         else:
             self.brake_holding_torque_nm = self._vector(brake_holding_torque_nm, "brake_holding_torque_nm")
         self._initial_position_rad = (
-            np.zeros(self.n_joints) if initial_position_rad is None
+            np.zeros(self.n_joints)
+            if initial_position_rad is None
             else self._vector(initial_position_rad, "initial_position_rad")
         )
         self._encoder_noise_rad = float(encoder_noise_rad)
@@ -264,8 +265,11 @@ class PybulletPlant:
 
     # --- the Plant protocol ---------------------------------------------------------------------
 
-    def reset(self, position_rad: np.ndarray | Sequence[float] | None = None,
-              velocity_rad_s: np.ndarray | Sequence[float] | None = None) -> JointState:
+    def reset(
+        self,
+        position_rad: np.ndarray | Sequence[float] | None = None,
+        velocity_rad_s: np.ndarray | Sequence[float] | None = None,
+    ) -> JointState:
         """Put the arm at ``position_rad`` (default: the initial position) moving at
         ``velocity_rad_s`` (default: at rest), time 0."""
         q0 = self._initial_position_rad if position_rad is None else self._vector(position_rad, "position_rad")
@@ -320,7 +324,10 @@ class PybulletPlant:
         )
         if external_nm is None:  # the common case: one call, pybullet runs the substeps
             pybullet.setJointMotorControlArray(
-                self._body, self._joint_indices, pybullet.TORQUE_CONTROL, forces=motor_nm.tolist(),
+                self._body,
+                self._joint_indices,
+                pybullet.TORQUE_CONTROL,
+                forces=motor_nm.tolist(),
                 physicsClientId=self._client,
             )
             pybullet.stepSimulation(physicsClientId=self._client)
@@ -353,18 +360,23 @@ class PybulletPlant:
         """One period as ``substeps`` single pybullet steps (the same step size as one call with
         numSubSteps), the external torque changing between them."""
         client = self._client
-        pybullet.setPhysicsEngineParameter(fixedTimeStep=self.period_s / self.substeps, numSubSteps=1,
-                                           physicsClientId=client)  # fmt: skip
+        pybullet.setPhysicsEngineParameter(
+            fixedTimeStep=self.period_s / self.substeps, numSubSteps=1, physicsClientId=client
+        )
         try:
             for k in range(self.substeps):
                 pybullet.setJointMotorControlArray(
-                    self._body, self._joint_indices, pybullet.TORQUE_CONTROL,
-                    forces=(motor_nm + external_nm[k]).tolist(), physicsClientId=client,
+                    self._body,
+                    self._joint_indices,
+                    pybullet.TORQUE_CONTROL,
+                    forces=(motor_nm + external_nm[k]).tolist(),
+                    physicsClientId=client,
                 )
                 pybullet.stepSimulation(physicsClientId=client)
         finally:
-            pybullet.setPhysicsEngineParameter(fixedTimeStep=self.period_s, numSubSteps=self.substeps,
-                                               physicsClientId=client)  # fmt: skip
+            pybullet.setPhysicsEngineParameter(
+                fixedTimeStep=self.period_s, numSubSteps=self.substeps, physicsClientId=client
+            )
 
     # --- plant faults -------------------------------------------------------------------------
 
