@@ -70,7 +70,8 @@ class StructuredConfig:
     hidden: tuple[int, ...] = (32, 32)
     residual_bound_fraction: float = 0.02  # b_j = fraction * torque limit_j
     residual_min_gain: float = 0.10  # the residual MLP is kept only if it lowers the validation loss by this fraction
-    physics_epochs: int = 300
+    physics_steps: int = 3000  # full-batch projected Adam steps on (c, g, Kp, Kd)
+    physics_learning_rate: float = 0.05
     residual_epochs: int = 40
     batch_size: int = 512
     learning_rate: float = 3e-3
@@ -256,10 +257,10 @@ class StructuredEmulator(nn.Module):
         n = robot.n_joints
         self.n, self.ff_point = n, ff_point
         self.rne = SpatialRne(robot)
-        # unconstrained parameters of: c in (-0.5, 0.5), g in (0, G_MAX), kp, kd > 0 (docstring); initial
-        # c = 0, g = G_MAX / 2, kp = 100 1/s^2, kd = 20 1/s
-        self.theta_c = nn.Parameter(torch.zeros(n, dtype=torch.float64))
-        self.theta_g = nn.Parameter(torch.zeros(n, dtype=torch.float64))
+        # c in [C_MIN, 0.5], g in [0, G_MAX] (kept there by projection after every optimizer step); Kp, Kd
+        # free. Initial: c = 0 (the law as it is), g = G_MAX / 2, Kp = 100 I 1/s^2, Kd = 20 I 1/s
+        self.c = nn.Parameter(torch.zeros(n, dtype=torch.float64))
+        self.g = nn.Parameter(torch.full((n,), self.G_MAX / 2, dtype=torch.float64))
         self.theta_kp = nn.Parameter(torch.eye(n, dtype=torch.float64) * (100.0 / self.KP_SCALE))
         self.theta_kd = nn.Parameter(torch.eye(n, dtype=torch.float64) * (20.0 / self.KD_SCALE))
         layers: list[nn.Module] = []
@@ -291,9 +292,13 @@ class StructuredEmulator(nn.Module):
         """(c, g, Kp, Kd): r = c tau_fb + g ID(p, qdd_d + Kp e + Kd e_dot); c, g per joint, Kp, Kd (N, N)."""
         if self.frozen is not None and not live:
             return self.frozen  # type: ignore[return-value]
-        c = self.C_MIN + (0.5 - self.C_MIN) * torch.sigmoid(self.theta_c)
-        g = self.G_MAX * torch.sigmoid(self.theta_g)
-        return c, g, self.KP_SCALE * self.theta_kp, self.KD_SCALE * self.theta_kd
+        return self.c, self.g, self.KP_SCALE * self.theta_kp, self.KD_SCALE * self.theta_kd
+
+    def project(self) -> None:
+        """Back into the bounds of c and g."""
+        with torch.no_grad():
+            self.c.clamp_(self.C_MIN, 0.5)
+            self.g.clamp_(0.0, self.G_MAX)
 
     def physics(self, s: torch.Tensor) -> torch.Tensor:
         q, e, qd, e_dot, qdd_d, tau_fb = self.split(s)
@@ -415,20 +420,32 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
         tau_id = (mt @ accel.unsqueeze(-1)).squeeze(-1) + ht
         return c * tau_fb + g * tau_id
 
-    params = [model.theta_c, model.theta_g, model.theta_kp, model.theta_kd]
-    # relative to the label's size; for the control row (y = 0) relative to 1e-6 of the law's torque
-    denom = float(torch.mean((yt * scale) ** 2)) + 1e-6 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
+    params = [model.c, model.g, model.theta_kp, model.theta_kd]
+    # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0)
+    denom = float(torch.mean((yt * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
     started = time.perf_counter()
-    optimizer = torch.optim.LBFGS(params, lr=1.0, max_iter=config.physics_epochs, tolerance_grad=1e-12,
-                                  tolerance_change=1e-14, history_size=50, line_search_fn="strong_wolfe")  # fmt: skip
-
-    def closure() -> torch.Tensor:
+    # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the bounds:
+    # the control row's optimum c = g = 0 sits on them)
+    optimizer = torch.optim.Adam(params, lr=config.physics_learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.physics_steps, eta_min=1e-3 * config.physics_learning_rate)
+    for _ in range(config.physics_steps):
         optimizer.zero_grad()
         loss = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
         loss.backward()
-        return loss
+        optimizer.step()
+        schedule.step()
+        model.project()
+    # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior)
+    polish = torch.optim.LBFGS([model.theta_kp, model.theta_kd], lr=1.0, max_iter=200, tolerance_grad=1e-12,
+                               tolerance_change=1e-14, history_size=50, line_search_fn="strong_wolfe")  # fmt: skip
 
-    optimizer.step(closure)
+    def closure() -> torch.Tensor:
+        polish.zero_grad()
+        value = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
+        value.backward()
+        return value
+
+    polish.step(closure)
     model.freeze()
     with torch.no_grad():
         physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)

@@ -65,7 +65,7 @@ def _tiny(target: str, **extra):  # type: ignore[no-untyped-def]
 
     extra.setdefault("laws", ("pd",))
     return StructuredConfig(target=target, train_conditions=2, duration_s=0.3, stride=10, residual_epochs=2,
-                            physics_epochs=50, perturb_error_rad=1e-4, perturb_rate_rad_s=1e-2, **extra)  # fmt: skip
+                            physics_steps=200, perturb_error_rad=1e-4, perturb_rate_rad_s=1e-2, **extra)  # fmt: skip
 
 
 def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(tmp_path) -> None:  # type: ignore[no-untyped-def]
