@@ -695,7 +695,7 @@ class Runtime:
         if dataclasses.is_dataclass(bus_counters):
             for field in dataclasses.fields(bus_counters):
                 out[f"bus_{field.name}"] = getattr(bus_counters, field.name)
-        out["nonfinite_fallbacks"] = getattr(self.bundle, "nonfinite_fallbacks", 0)
+        out["nonfinite_fallbacks"] = self.bundle.nonfinite_fallbacks
         out["activations"] = self._activations
         out["faults"] = self._faults
         out["record_overflow"] = self.record.overflow
@@ -733,7 +733,7 @@ class Runtime:
             "compute_median_s": _finite(stats.get("compute_median_s")),
             "compute_p99_s": _finite(stats.get("compute_p99_s")),
             "supervisor": self.supervisor.counters(),
-            "nonfinite_fallbacks": getattr(self.bundle, "nonfinite_fallbacks", 0),
+            "nonfinite_fallbacks": self.bundle.nonfinite_fallbacks,
             "bus": _counters_dict(self.bus.counters),
             "realtime": {"applied": self.realtime.applied, "refused": self.realtime.refused},
         }

@@ -54,6 +54,7 @@ class StubBundle:
     def __init__(self, n: int = 6, period_s: float = 0.001, state_size: int = 0, applied: list[int] | None = None):
         self.n_joints, self.period_s, self.state_size = n, period_s, state_size
         self.law_name = "stub"
+        self.nonfinite_fallbacks = 0  # PolicyBundle's counter: this stub never falls back
         self.joint_names = JOINT_NAMES[:n]
         self.torque_limit_nm = np.array(MAX_TORQUE_NM[:n])
         self.manifest = {
