@@ -114,7 +114,7 @@ class DriveNetwork:
             handler(node, msg, now)
         except (fr.MalformedFrameError, ValueError):
             self.malformed += 1
-        except Exception as exc:  # noqa: BLE001 - keep receiving, report once
+        except Exception as exc:  # keep receiving, report once
             log.exception("frame handler failed")
             self.errors.append(TransportError(f"frame handler failed: {exc!r}"))
 
@@ -123,7 +123,7 @@ class DriveNetwork:
             return self.bus.recv(timeout_s)
         except TransportError:
             raise
-        except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+        except Exception as exc:  # any backend failure is a transport error
             raise TransportError(f"receiving failed: {exc}") from exc
 
     def drain(self) -> None:
@@ -136,7 +136,7 @@ class DriveNetwork:
                 msg = recv(0.0)
             except TransportError:
                 raise
-            except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+            except Exception as exc:  # any backend failure is a transport error
                 raise TransportError(f"receiving failed: {exc}") from exc
             if msg is None:
                 return

@@ -126,7 +126,7 @@ class CyclicExchange:
                         msg = recv(remaining)
                     except TransportError:
                         raise
-                    except Exception as exc:  # noqa: BLE001 - any backend failure is a transport error
+                    except Exception as exc:  # any backend failure is a transport error
                         raise TransportError(f"receiving failed: {exc}") from exc
                     if msg is None:
                         break

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Final
 
 import canopen
-from canopen.objectdictionary import ODVariable, ObjectDictionary, datatypes
+from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
 
 from drivers.errors import DriveConfigError
 
