@@ -595,7 +595,7 @@ class Runtime:
         except DriveError as exc:
             self._enter_fault(classify_bus_error(exc))
             return
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - any other failure of the reset is an internal FAULT
             self._enter_fault(Fault(FaultKind.INTERNAL, f"fault reset: {exc!r}"))
             return
         self.lifecycle.apply(Transition.RESET)
@@ -655,7 +655,7 @@ class Runtime:
     def _close_quietly(self) -> None:
         try:
             self.bus.close()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - closing on the way out: report, never raise
             log.warning("closing the bus: %r", exc)
 
     def _on_lifecycle(self, state: LifecycleState, fault: str | None) -> None:

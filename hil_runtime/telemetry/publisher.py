@@ -336,7 +336,7 @@ class ZenohTelemetry:
             try:
                 publisher.put(payload)
                 self.sent += 1
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:  # noqa: BLE001 - Zenoh's errors are untyped; telemetry never stops the loop
                 self.publish_errors += 1
                 if self.publish_errors == 1:
                     log.error("telemetry: state put failed (%s); further failures counted only", exc)
