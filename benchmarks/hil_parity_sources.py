@@ -8,8 +8,8 @@ pulse): trajectory RMS difference (deg, over time and joints) and composite-metr
 - ``sim_rounded``: the twin with the bus's quantization in the loop (torque set-points rounded to
   1 ‰ of each drive's rated torque, positions to one encoder count, velocities to one count/s),
   nothing else changed; ``sim_rounded_torque_only``: the torque rounding alone.
-- ``sim_carried``: the same, the torque's rounding error carried into the next set-point (what
-  DriveBus does since this study).
+- ``sim_carried_1``, ``sim_carried_2``: the same, each torque rounding error added to the set-point
+  one (noise transfer 1 - z⁻¹) or two (1 - z⁻², what DriveBus does since this study) cycles later.
 - ``sim_nudged_1e-9``: torques rounded to 1e-9 N·m: the law's own sensitivity (chaos).
 - ``sim_delayed``: the twin with a one-cycle feedback delay (the law sees the state of the period
   before): what the bus would add if set-points were applied one SYNC late.
@@ -48,26 +48,27 @@ COUNTS_PER_RAD = (1 << 20) / (2 * np.pi)  # the drives' 0x608F
 
 
 class Quantized:
-    """A simulator controller behind the bus's quantization: encoder counts in, 1 ‰ torque out;
-    ``carry``: the rounding error carried into the next set-point, as DriveBus does."""
+    """A simulator controller behind the bus's quantization: encoder counts in, 1 ‰ torque out.
+    ``carry``: the rounding error of set-point k added to set-point k + ``carry`` (0: plain
+    rounding; 1: error feedback 1 - z⁻¹; 2: 1 - z⁻², what DriveBus does)."""
 
-    def __init__(self, inner: Any, torque_step_nm: np.ndarray, carry: bool, encoder: bool = True) -> None:
+    def __init__(self, inner: Any, torque_step_nm: np.ndarray, carry: int, encoder: bool = True) -> None:
         self.inner, self.step, self.carry, self.encoder = inner, torque_step_nm, carry, encoder
         self.name, self.cycle_times_s = inner.name, inner.cycle_times_s
-        self.residual = np.zeros_like(torque_step_nm)
+        self.errors = [np.zeros_like(torque_step_nm) for _ in range(max(carry, 1))]
 
     def reset(self, q0: np.ndarray) -> None:
         self.inner.reset(q0)
-        self.residual = np.zeros_like(self.step)
+        self.errors = [np.zeros_like(self.step) for _ in range(max(self.carry, 1))]
 
     def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         if self.encoder:
             q = np.rint(q * COUNTS_PER_RAD) / COUNTS_PER_RAD
             qd = np.rint(qd * COUNTS_PER_RAD) / COUNTS_PER_RAD
-        wanted = np.asarray(self.inner(t_s, q, qd, q_d, qd_d, qdd_d), float) + (self.residual if self.carry else 0.0)
+        wanted = np.asarray(self.inner(t_s, q, qd, q_d, qd_d, qdd_d), float) + (self.errors[-1] if self.carry else 0.0)
         self.last_tau_fb = getattr(self.inner, "last_tau_fb", None)
         sent = np.rint(wanted / self.step) * self.step
-        self.residual = wanted - sent
+        self.errors = [wanted - sent] + self.errors[:-1]
         return sent
 
 
@@ -103,13 +104,15 @@ def _simulate(robot: Any, law: str, mode: str, condition: Any, sim: SimConfig, w
     controller = make_controller(mode, make_law(law, robot, PERIOD_S), robot)
     steps = _torque_steps_nm(robot)
     if wrap == "rounded":
-        controller = Quantized(controller, steps, carry=False)
+        controller = Quantized(controller, steps, carry=0)
     elif wrap == "rounded_torque_only":
-        controller = Quantized(controller, steps, carry=False, encoder=False)
-    elif wrap == "carried":
-        controller = Quantized(controller, steps, carry=True)
+        controller = Quantized(controller, steps, carry=0, encoder=False)
+    elif wrap == "carried_1":
+        controller = Quantized(controller, steps, carry=1)
+    elif wrap == "carried_2":
+        controller = Quantized(controller, steps, carry=2)
     elif wrap == "nudged_1e-9":  # a 1e-9 N m rounding: how chaotic is the law itself?
-        controller = Quantized(controller, np.full_like(steps, 1e-9), carry=False, encoder=False)
+        controller = Quantized(controller, np.full_like(steps, 1e-9), carry=0, encoder=False)
     elif wrap == "delayed":
         controller = Delayed(controller)
     traj = simulate(robot, controller, [condition], sim)
@@ -132,7 +135,7 @@ def _compare(run: dict, twin: dict, condition: Any) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", default="pd/fb/C1,adrc/fb/C1,hinf/fb/C2,smc/fb/C1")
+    parser.add_argument("--runs", default="pd/fb/C1,adrc/fb/C1,hinf/fb/C2,mrac/fb/C4,smc/fb/C1")
     parser.add_argument("--substeps", default="8,16,32,64")
     parser.add_argument("--plot", type=Path, default=None)
     args = parser.parse_args()
@@ -151,7 +154,7 @@ def main() -> None:
         row: dict[str, Any] = {}
         row["sim_rk4_16"] = _compare(_simulate(robot, law, mode, condition, replace(twin_config, substeps=16)), twin,
                                      condition)  # fmt: skip
-        for wrap in ("rounded", "rounded_torque_only", "carried", "nudged_1e-9", "delayed"):
+        for wrap in ("rounded", "rounded_torque_only", "carried_1", "carried_2", "nudged_1e-9", "delayed"):
             row[f"sim_{wrap}"] = _compare(_simulate(robot, law, mode, condition, twin_config, wrap), twin, condition)
         variants: list[tuple[str, int, Any]] = [(f"hil_substeps_{n}", int(n), condition) for n in args.substeps.split(",")]
         d = condition.disturbance

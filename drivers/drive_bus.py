@@ -110,8 +110,9 @@ class DriveBus:
         self._enabled = False
         self._cw_enable = [p402.CW_ENABLE] * self.n_joints
         self._zeros_nm = np.zeros(self.n_joints)
-        # Rounding error of the last set-points, carried into the next (exchange only): see _setpoints.
-        self._residual_nm = np.zeros(self.n_joints)
+        # Rounding errors of the last two set-points (exchange only), the older one carried into the
+        # next set-point: see _setpoints.
+        self._residual_nm = np.zeros((2, self.n_joints))
 
     # --- state -----------------------------------------------------------------------------------
 
@@ -232,11 +233,14 @@ class DriveBus:
         """One control cycle: send the torque set-points, return this cycle's feedback.
 
         Set-points are clipped to each joint's max torque and quantised to 1 ‰ of its rated
-        torque, the rounding error carried into the next cycle's set-point (first-order error
-        feedback): the torque's running average is the one asked for, never biased by up to half
-        a step, which a law with little static stiffness integrates into a drift (docs/hil.md:
-        H∞ moved by 5° RMS with plain rounding, 0.008° with the carry). ``commanded_torque_nm``
-        in the result is what was actually sent.
+        torque, each cycle's rounding error added to the set-point two cycles later (error
+        feedback with the noise transfer 1 - z⁻²): the torque's running average is the one asked
+        for, never biased by up to half a step (a law with little static stiffness integrates a
+        bias into a drift: H∞ moved 5° RMS from the simulation with plain rounding), and no
+        rounding noise lands at the Nyquist frequency, where a light joint's discrete loop is
+        least damped (carrying into the next cycle, 1 - z⁻¹, doubled it there and drove MRAC's
+        wrist 3 over its velocity limit). docs/hil.md has the figures. ``commanded_torque_nm`` in
+        the result is what was actually sent.
         """
         if not self._enabled:
             self._raise_pending()
@@ -256,7 +260,8 @@ class DriveBus:
 
     def _setpoints(self, torque_nm: np.ndarray, name: str, carry: bool = False) -> tuple[list[int], np.ndarray]:
         """(‰ of rated torque per drive, the torque in N·m those stand for); refuses bad input.
-        ``carry``: add the previous rounding error first and keep this one (|error| <= half a step)."""
+        ``carry``: add the rounding error of two set-points ago first, keep this one (|error| <= half
+        a step each)."""
         torque = np.asarray(torque_nm, dtype=np.float64)
         if torque.shape != (self.n_joints,):
             raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self.n_joints},)")
@@ -265,11 +270,12 @@ class DriveBus:
             raise DriveCommandError(f"non-finite torque set-point for drive(s) {bad}")
         wanted = np.clip(torque, -self._max_torque_nm, self._max_torque_nm)
         if carry:
-            wanted = np.clip(wanted + self._residual_nm, -self._max_torque_nm, self._max_torque_nm)
+            wanted = np.clip(wanted + self._residual_nm[1], -self._max_torque_nm, self._max_torque_nm)
         permille = np.rint(wanted * self._permille_per_nm)
         sent = permille / self._permille_per_nm
         if carry:
-            self._residual_nm = wanted - sent
+            self._residual_nm[1] = self._residual_nm[0]
+            self._residual_nm[0] = wanted - sent
         return permille.astype(np.int64).tolist(), sent
 
     # --- stopping --------------------------------------------------------------------------------
