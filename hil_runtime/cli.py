@@ -14,7 +14,10 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from importlib.metadata import entry_points
+from types import FrameType
+from typing import Any
 
 import typer
 
@@ -78,27 +81,34 @@ def _leave_now() -> None:
     os._exit(INTERRUPTED)
 
 
+# What signal.signal() returns and accepts (typeshed's own alias is private).
+_SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
+_sigint_armed = False  # a first Ctrl-C was seen: the next one leaves at once
+
+
 def _on_sigint(_signum: int, _frame: object) -> None:
     """First Ctrl-C: KeyboardInterrupt, the work unwinds (outputs are atomic, nothing is half
     written) and a daemon timer ends the process if that takes longer than INTERRUPT_GRACE_S (a
     native call or a helper thread that does not return). A second Ctrl-C leaves at once."""
-    if getattr(_on_sigint, "armed", False):
+    global _sigint_armed
+    if _sigint_armed:
         _leave_now()
-    _on_sigint.armed = True  # type: ignore[attr-defined]
+    _sigint_armed = True
     timer = threading.Timer(INTERRUPT_GRACE_S, _leave_now)
     timer.daemon = True
     timer.start()
     raise KeyboardInterrupt
 
 
-def _install_sigint_handler() -> object | None:
+def _install_sigint_handler() -> _SignalHandler:
     """Our handler, returning the one it replaced; None where it stays as it is: outside the main
     thread, or where Ctrl-C is ignored or already owned. Commands that own SIGINT (``hil run``:
     quick stop, exit 0) install their own handler over this one."""
     main_thread = threading.current_thread() is threading.main_thread()
     if not main_thread or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         return None
-    _on_sigint.armed = False  # type: ignore[attr-defined]
+    global _sigint_armed
+    _sigint_armed = False
     return signal.signal(signal.SIGINT, _on_sigint)
 
 
@@ -109,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         return _main(argv)
     finally:
         if previous is not None and signal.getsignal(signal.SIGINT) is _on_sigint:
-            signal.signal(signal.SIGINT, previous)  # type: ignore[arg-type]
+            signal.signal(signal.SIGINT, previous)
 
 
 def _main(argv: list[str] | None) -> int:
