@@ -331,7 +331,7 @@ class DriveBus:
             except Exception as exc:  # noqa: BLE001 - a dead peer must not mask the first error
                 log.warning("closing the bus failed: %s", exc)
             self._bus = None
-            network.bus = None  # type: ignore[assignment]
+            network.bus = None  # type: ignore[assignment]  # canopen types it BusABC; None detaches the bus
         self._connected = False
 
     def __enter__(self) -> DriveBus:
