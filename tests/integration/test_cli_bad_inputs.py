@@ -10,28 +10,15 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from subprocess import run
-
-import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 UR5_URDF = (ROOT / "models" / "robots" / "data" / "ur5_paper.urdf").read_text()
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
 SIX = "[0, 0, 0, 0, 0, 0]"
 FD = "bus: {interface: virtual, channel: x, fd: true, data_bitrate: 5000000}\n"
-
-
-def hil_command() -> list[str]:
-    """The console script installed beside this interpreter (what `pip install` put on PATH)."""
-    beside = Path(sys.executable).with_name("hil")
-    found = str(beside) if beside.is_file() else shutil.which("hil")
-    if found is None:
-        pytest.skip("the hil entry point is not installed")
-    return [found]
 
 
 def _condition(extra: str) -> str:
@@ -50,10 +37,34 @@ def _manifest(change) -> str:  # type: ignore[no-untyped-def]
     return json.dumps(manifest)
 
 
-EXPERIMENT = ["experiment", "--laws", "pd", "--modes", "fb", "--timing-cycles", "5", "--no-plots", "--no-trajectories",
-              "--out", "{tmp}/out"]  # fmt: skip
-LMPC = ["experiment", "--laws", "pd", "--modes", "lmpc", "--timing-cycles", "5", "--no-plots", "--no-trajectories",
-        "--out", "{tmp}/out", "--lmpc-bundles", "{tmp}/bundles"]  # fmt: skip
+EXPERIMENT = [
+    "experiment",
+    "--laws",
+    "pd",
+    "--modes",
+    "fb",
+    "--timing-cycles",
+    "5",
+    "--no-plots",
+    "--no-trajectories",
+    "--out",
+    "{tmp}/out",
+]
+LMPC = [
+    "experiment",
+    "--laws",
+    "pd",
+    "--modes",
+    "lmpc",
+    "--timing-cycles",
+    "5",
+    "--no-plots",
+    "--no-trajectories",
+    "--out",
+    "{tmp}/out",
+    "--lmpc-bundles",
+    "{tmp}/bundles",
+]
 
 # (id, argv, {relative file: text or bytes}, substrings of the one stderr line)
 CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
@@ -238,7 +249,7 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
 
 
 def _run_case(
-    case: tuple[str, list[str], dict[str, str | bytes], list[str]], base: Path
+    hil: list[str], case: tuple[str, list[str], dict[str, str | bytes], list[str]], base: Path
 ) -> tuple[str, int, str, list[str]]:
     name, argv, files, expected = case
     tmp = base / name
@@ -252,13 +263,13 @@ def _run_case(
             path.write_text(content)
     args = [a.replace("{tmp}", str(tmp)) for a in argv]
     env = {**os.environ, "COLUMNS": "200"}
-    done = run([*hil_command(), *args], check=False, capture_output=True, text=True, timeout=300, env=env, cwd=tmp)
+    done = run([*hil, *args], check=False, capture_output=True, text=True, timeout=300, env=env, cwd=tmp)
     return name, done.returncode, done.stderr, [e.replace("{tmp}", str(tmp)) for e in expected]
 
 
-def test_every_bad_input_is_one_line_naming_file_and_field_exit_2(tmp_path: Path) -> None:
+def test_every_bad_input_is_one_line_naming_file_and_field_exit_2(tmp_path: Path, hil_command: list[str]) -> None:
     with ThreadPoolExecutor(max_workers=3) as pool:
-        results = list(pool.map(lambda case: _run_case(case, tmp_path), CASES))
+        results = list(pool.map(lambda case: _run_case(hil_command, case, tmp_path), CASES))
     failures = []
     for name, code, stderr, expected in results:
         lines = [line for line in stderr.splitlines() if line.strip()]

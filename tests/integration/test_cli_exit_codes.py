@@ -16,9 +16,6 @@ import typer
 
 from hil_runtime import cli
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_cli_bad_inputs import hil_command
-
 
 def _app(monkeypatch: pytest.MonkeyPatch) -> typer.Typer:
     app = typer.Typer(pretty_exceptions_enable=False, add_completion=False)
@@ -97,12 +94,18 @@ def test_user_errors_and_usage_errors_are_one_line(
     assert err.count("\n") == 1 and "--count" in err
 
 
-def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(tmp_path: Path) -> None:
+def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(
+    tmp_path: Path, hil_command: list[str]
+) -> None:
     out = tmp_path / "out"
     # PYTHONFAULTHANDLER: should it ever hang, the SIGABRT below prints every thread's stack
-    process = subprocess.Popen([*hil_command(), "experiment", "--out", str(out)], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "COLUMNS": "120", "PYTHONFAULTHANDLER": "1"})  # fmt: skip
+    process = subprocess.Popen(
+        [*hil_command, "experiment", "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "COLUMNS": "120", "PYTHONFAULTHANDLER": "1"},
+    )
     try:
         deadline = time.monotonic() + 240
         while time.monotonic() < deadline and not out.is_dir():  # the run has started its work
@@ -125,9 +128,15 @@ def test_sigint_during_the_main_job_exits_130_and_leaves_no_partial_file(tmp_pat
     assert not (out / "results.json").exists()  # results.json is written last: absent means incomplete
 
 
-def test_help_shows_flags_without_a_bool_type_and_lists_the_robots() -> None:
-    done = subprocess.run([*hil_command(), "experiment", "--help"], check=False, capture_output=True, text=True,
-                          timeout=120, env={**os.environ, "COLUMNS": "200"})  # fmt: skip
+def test_help_shows_flags_without_a_bool_type_and_lists_the_robots(hil_command: list[str]) -> None:
+    done = subprocess.run(
+        [*hil_command, "experiment", "--help"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     assert done.returncode == 0
     assert "--no-plots" in done.stdout and "<bool>" not in done.stdout
     assert "ur5_paper, ur5, panda" in done.stdout
@@ -160,8 +169,9 @@ sys.exit(cli.main(["stuck"]))
 @pytest.mark.parametrize("second_ctrl_c", [False, True])
 def test_ctrl_c_ends_even_work_that_does_not_unwind(second_ctrl_c: bool) -> None:
     grace_s = 2.0
-    process = subprocess.Popen([sys.executable, "-c", STUCK, str(grace_s)], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)  # fmt: skip
+    process = subprocess.Popen(
+        [sys.executable, "-c", STUCK, str(grace_s)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         assert process.stdout is not None and process.stdout.readline().strip() == "ready"
         start = time.monotonic()

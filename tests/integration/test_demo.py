@@ -28,15 +28,6 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="th
 DURATION_S = 2.5  # past C1's disturbance at 2 s
 
 
-def _hil() -> str:
-    """The console script ``pip install`` put beside this interpreter (else on PATH)."""
-    beside = Path(sys.executable).with_name("hil")
-    found = str(beside) if beside.is_file() else shutil.which("hil")
-    if found is None:
-        pytest.fail("the hil entry point is not installed (pip install -e .)")
-    return found
-
-
 @pytest.fixture
 def private_tmp() -> Iterator[Path]:
     """A short TMPDIR for the demo alone (its bus sockets live there: Unix paths are short)."""
@@ -74,11 +65,11 @@ def _assert_nothing_left(private: Path, pids: list[int]) -> None:
     )
 
 
-def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None:
+def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path, hil_command: list[str]) -> None:
     out = tmp_path / "demo"
     started = time.monotonic()
     run = subprocess.run(
-        [_hil(), "demo", "--headless", "--duration", str(DURATION_S), "--out", str(out)],
+        [*hil_command, "demo", "--headless", "--duration", str(DURATION_S), "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=600,
@@ -157,10 +148,12 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path) -> None
     )
 
 
-def test_hil_demo_ctrl_c_during_the_run_stops_everything(tmp_path: Path, private_tmp: Path) -> None:
+def test_hil_demo_ctrl_c_during_the_run_stops_everything(
+    tmp_path: Path, private_tmp: Path, hil_command: list[str]
+) -> None:
     out = tmp_path / "demo"
     process = subprocess.Popen(
-        [_hil(), "demo", "--headless", "--out", str(out)],
+        [*hil_command, "demo", "--headless", "--out", str(out)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -205,10 +198,10 @@ def test_hil_demo_ctrl_c_during_the_run_stops_everything(tmp_path: Path, private
     ],
 )
 def test_hil_demo_refuses_bad_input_before_starting_anything(
-    tmp_path: Path, private_tmp: Path, args: list[str], env: dict[str, str], message: str
+    tmp_path: Path, private_tmp: Path, args: list[str], env: dict[str, str], message: str, hil_command: list[str]
 ) -> None:
     run = subprocess.run(
-        [_hil(), "demo", "--headless", "--out", str(tmp_path / "demo"), *args],
+        [*hil_command, "demo", "--headless", "--out", str(tmp_path / "demo"), *args],
         capture_output=True,
         text=True,
         timeout=120,

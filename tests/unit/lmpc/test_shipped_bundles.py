@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -54,14 +53,7 @@ def test_a_bundle_for_other_gains_is_still_refused() -> None:
         make_lmpc_controller(make_law("adrc", ROBOT, 1e-3, "paper"), ROBOT)
 
 
-def _hil() -> list[str]:
-    """The installed entry point, as a user runs it (falls back to the module beside this python)."""
-    exe = Path(sys.executable).with_name("hil")
-    found = str(exe) if exe.is_file() else shutil.which("hil")
-    return [found] if found else [sys.executable, "-m", "hil_runtime.cli"]
-
-
-def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path) -> None:
+def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path, hil_command: list[str]) -> None:
     conditions = tmp_path / "short.yaml"
     conditions.write_text(
         "conditions:\n  - name: S1\n    amplitude_rad: [-pi/4, pi/6, -pi/6, -pi/4, pi/2, pi/2]\n"
@@ -70,7 +62,7 @@ def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path) -> Non
     )
     out = tmp_path / "out"
     done = subprocess.run(
-        [*_hil(), "experiment", "--modes", "lmpc", "--conditions", str(conditions), "--timing-cycles", "20",
+        [*hil_command, "experiment", "--modes", "lmpc", "--conditions", str(conditions), "--timing-cycles", "20",
          "--no-plots", "--no-trajectories", "--out", str(out)],
         capture_output=True, text=True, check=False, timeout=600,
     )  # fmt: skip
@@ -84,7 +76,6 @@ def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path) -> Non
 
 
 def test_a_bundle_for_another_urdf_is_refused(tmp_path: Path) -> None:
-    import shutil
 
     shutil.copytree(SHIPPED_BUNDLES / ROBOT.name / "pd", tmp_path / "pd")
     manifest = json.loads((tmp_path / "pd" / "manifest.json").read_text())
