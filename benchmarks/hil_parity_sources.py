@@ -138,6 +138,7 @@ def main() -> None:
     parser.add_argument("--runs", default="pd/fb/C1,adrc/fb/C1,hinf/fb/C2,mrac/fb/C4,smc/fb/C1")
     parser.add_argument("--substeps", default="8,16,32,64")
     parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--floor", default="smc", help="laws whose own score spread under a 1e-9 N m nudge is measured")
     args = parser.parse_args()
     robot = load_robot("ur5_paper")
     conditions = {c.name: c for c in load_conditions(robot=robot)}
@@ -167,11 +168,39 @@ def main() -> None:
             row[name] = _compare(arrays, twin, condition)
         out["runs"][spec] = row
     work.unlink(missing_ok=True)
+    out["floor"] = _floor(robot, list(conditions.values()), [x for x in args.floor.split(",") if x], twin_config)
     out["wall_s"] = round(time.monotonic() - started, 1)
     out["load_average_end"] = os.getloadavg()
     print(json.dumps(out, indent=1))
     if args.plot is not None:
         _plot(out, args.plot)
+
+
+def _floor(robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig) -> dict[str, Any]:
+    """The simulation's own reproducibility: composite score of each law and mode on the five
+    conditions with torques rounded to 1e-9 N·m, against the plain simulation, on its scale (the
+    largest metric among the plain runs of the same law and condition, both modes)."""
+    from models.scoring import METRICS, WEIGHTS
+
+    out: dict[str, Any] = {}
+    for law in laws:
+        for mode in ("fb", "lmpc"):
+            plain, nudged = [], []
+            for c in conditions:
+                dist = c.disturbance.time_s if c.disturbance is not None else None
+                for runs, wrap in ((plain, None), (nudged, "nudged_1e-9")):
+                    r = _simulate(robot, law, mode, c, sim, wrap)
+                    runs.append(run_metrics(r["t"], r["q"], r["q_ref"], dist))
+            largest = [{m: max(a[m], b[m]) for m in METRICS} for a, b in zip(plain, nudged)]
+
+            def score(runs: list[dict[str, float]]) -> float:
+                return float(np.mean([sum(w * r[m] / big[m] for m, w in zip(METRICS, WEIGHTS) if big[m] > 0)
+                                      for r, big in zip(runs, largest)]))  # fmt: skip
+
+            a, b = score(plain), score(nudged)
+            out[f"{law}/{mode}"] = {"score_sim": round(a, 4), "score_nudged": round(b, 4),
+                                    "rel_pct": round(100 * (b - a) / a, 2)}  # fmt: skip
+    return out
 
 
 def _plot(out: dict[str, Any], path: Path) -> None:
