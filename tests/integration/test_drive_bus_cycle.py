@@ -95,7 +95,7 @@ def test_heartbeat_loss_is_reported_within_two_cycles_of_its_deadline_at_full_ra
         assert isinstance(error, HeartbeatLostError), repr(error)
         assert error.node_id == 2
         # Cycles that began after the deadline the driver itself knew at that time.
-        late_cycles = sum(1 for start, deadline in zip(starts, deadlines) if start > deadline)
+        late_cycles = sum(1 for start, deadline in zip(starts, deadlines, strict=True) if start > deadline)
         assert late_cycles <= 2, f"reported {late_cycles} cycles after the heartbeat deadline"
         assert len(starts) > 2
     finally:

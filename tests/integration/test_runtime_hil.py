@@ -52,7 +52,7 @@ def runtime_config(transport: dict[str, Any], **sections: Any) -> dict[str, Any]
         "bundle": {"path": str(PD_BUNDLE), "mode": "lmpc"},
         "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": 0.001,
                 "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM))], **SLOW_MACHINE},
+                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))], **SLOW_MACHINE},
         "reference": {"kind": "condition", "condition": "C1", "ramp_s": 2.0},
         "loop": {"pacing": "bus"},
         **sections,
@@ -119,7 +119,8 @@ def _wait_for(process: subprocess.Popen[str], socket: Path, cycles: int, timeout
     status: dict[str, Any] = {}
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise AssertionError(f"hil run exited {process.returncode}: {process.stderr.read() if process.stderr else ''}")
+            err = process.stderr.read() if process.stderr else ""
+            raise AssertionError(f"hil run exited {process.returncode}: {err}")
         if socket.exists():
             try:
                 status = send_command(socket, "status")

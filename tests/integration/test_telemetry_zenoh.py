@@ -196,7 +196,8 @@ def test_a_dead_or_stalled_subscriber_leaves_the_loop_timing_unchanged(tmp_path:
     assert before.sum() > 300 and after.sum() > 900
     med_before, med_after = np.median(offer_us[before]), np.median(offer_us[after])
     late_before, late_after = np.percentile(late_us[before], 99), np.percentile(late_us[after], 99)
-    print(f"{how}: offer_state median {med_before:.1f} -> {med_after:.1f} µs, max after {offer_us[after].max():.0f} µs; "
+    print(f"{how}: offer_state median {med_before:.1f} -> {med_after:.1f} µs, "
+          f"max after {offer_us[after].max():.0f} µs; "
           f"lateness p99 {late_before:.0f} -> {late_after:.0f} µs; cycles/s {before.sum()} -> {after.sum() / 3:.0f}; "
           f"{counters}")  # fmt: skip
     # The loop never waits on the peer: the hand-off stays a copy, wake-ups stay on time, the rate holds.
@@ -297,8 +298,8 @@ def test_watch_shows_the_arm_live() -> None:
     loop = FakeLoop(port)
     try:
         result = subprocess.run(
-            [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--connect", loop.endpoint, "--seconds", "1.5",
-             "--refresh-hz", "4"],
+            [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--connect", loop.endpoint,
+             "--seconds", "1.5", "--refresh-hz", "4"],
             capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "COLUMNS": "140"}, check=False,
         )  # fmt: skip
     finally:

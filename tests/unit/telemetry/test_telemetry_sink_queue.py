@@ -129,8 +129,8 @@ def test_status_changes_become_lifecycle_events() -> None:
 
 
 def test_queryable_documents() -> None:
-    sink = make_sink(TelemetryConfig(enabled=True), "arm",
-                     {"joints": JOINTS, "config": {"period_s": 0.001}, "bundle": {"bundle_id": "pd:abc", "files": {}}})  # fmt: skip
+    documents = {"joints": JOINTS, "config": {"period_s": 0.001}, "bundle": {"bundle_id": "pd:abc", "files": {}}}
+    sink = make_sink(TelemetryConfig(enabled=True), "arm", documents)
     assert isinstance(sink, ZenohTelemetry)
     assert json.loads(sink._replies["schema"])["joints"] == JOINTS
     config = json.loads(sink._replies["config"])
