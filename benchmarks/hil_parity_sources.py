@@ -96,8 +96,9 @@ def _torque_steps_nm(robot: Any) -> np.ndarray:
     """1 ‰ of each drive's rated torque as the runtime configures it (drivers.config default)."""
     from drivers.config import JointDriveConfig
 
+    joints = zip(robot.joint_names, robot.torque_limit_nm, strict=True)
     return np.array([JointDriveConfig(name=n, node_id=i + 1, max_torque_nm=float(t)).effective_rated_torque_mnm * 1e-6
-                     for i, (n, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm))])  # fmt: skip
+                     for i, (n, t) in enumerate(joints)])  # fmt: skip
 
 
 def _simulate(robot: Any, law: str, mode: str, condition: Any, sim: SimConfig, wrap: str | None = None) -> dict:
@@ -157,7 +158,8 @@ def main() -> None:
                                      condition)  # fmt: skip
         for wrap in ("rounded", "rounded_torque_only", "carried_1", "carried_2", "nudged_1e-9", "delayed"):
             row[f"sim_{wrap}"] = _compare(_simulate(robot, law, mode, condition, twin_config, wrap), twin, condition)
-        variants: list[tuple[str, int, Any]] = [(f"hil_substeps_{n}", int(n), condition) for n in args.substeps.split(",")]
+        variants: list[tuple[str, int, Any]] = [(f"hil_substeps_{n}", int(n), condition)
+                                                for n in args.substeps.split(",")]  # fmt: skip
         d = condition.disturbance
         spread = replace(d, torque_nm=tuple(t * d.duration_s / PERIOD_S for t in d.torque_nm), duration_s=PERIOD_S)
         variants.append(("hil_pulse_spread", 32, replace(condition, disturbance=spread)))
@@ -191,11 +193,12 @@ def _floor(robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig) -
                 for runs, wrap in ((plain, None), (nudged, "nudged_1e-9")):
                     r = _simulate(robot, law, mode, c, sim, wrap)
                     runs.append(run_metrics(r["t"], r["q"], r["q_ref"], dist))
-            largest = [{m: max(a[m], b[m]) for m in METRICS} for a, b in zip(plain, nudged)]
+            largest = [{m: max(a[m], b[m]) for m in METRICS} for a, b in zip(plain, nudged, strict=True)]
 
             def score(runs: list[dict[str, float]]) -> float:
-                return float(np.mean([sum(w * r[m] / big[m] for m, w in zip(METRICS, WEIGHTS) if big[m] > 0)
-                                      for r, big in zip(runs, largest)]))  # fmt: skip
+                weighted = list(zip(METRICS, WEIGHTS, strict=True))
+                return float(np.mean([sum(w * r[m] / big[m] for m, w in weighted if big[m] > 0)
+                                      for r, big in zip(runs, largest, strict=True)]))  # fmt: skip
 
             a, b = score(plain), score(nudged)
             out[f"{law}/{mode}"] = {"score_sim": round(a, 4), "score_nudged": round(b, 4),

@@ -71,7 +71,8 @@ def experiment(
     law_list = _split(laws, LAW_NAMES, "laws")
     if plant not in ("sim", "hil"):
         raise ModelInputError(f"--plant: unknown '{plant}' (known: sim, hil)")
-    mode_list = _split(modes if modes is not None else ("fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"), MODES, "modes")
+    default_modes = "fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"
+    mode_list = _split(modes if modes is not None else default_modes, MODES, "modes")
     hil = None
     if plant == "hil":
         from models.hil_experiment import HilOptions
@@ -97,8 +98,8 @@ def experiment(
     prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
     try:
         _experiment(law_list, mode_list, conditions, robot, out, mismatch, gains, dt, substeps, plant_backend,
-                    timing_cycles, no_trajectories, no_plots, lmpc_bundles, hmpc_formulation, hmpc_dt, hmpc_anchor_scale,
-                    hil)
+                    timing_cycles, no_trajectories, no_plots, lmpc_bundles, hmpc_formulation, hmpc_dt,
+                    hmpc_anchor_scale, hil)
     except BaseException:
         if created:
             remove_if_empty(out)  # nothing was written: leave no empty directory behind
@@ -157,6 +158,8 @@ def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], condition
 
     print(format_hil_table(results) if hil is not None else format_table(results))
     written = ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
+    if hil is not None and getattr(hil, "parity", False):
+        written.append("sim/")  # the simulation twin's own outputs
     console.print(f"wrote {out}/{', '.join(written)}", soft_wrap=True, highlight=False)  # one line, even piped
 
 

@@ -38,7 +38,7 @@ import yaml
 from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition
 from models.errors import ModelInputError
-from models.experiment import ExperimentConfig, _machine, _summarize, format_table, run_experiment
+from models.experiment import ExperimentConfig, _machine, _summarize, run_experiment
 from models.robots import RobotModel
 from models.scoring import run_metrics
 
@@ -130,7 +130,7 @@ def runtime_config_dict(robot: RobotModel, bundle: Path, mode: str, transport: d
                         conditions_file: Path, condition: str) -> dict[str, Any]:  # fmt: skip
     """The runtime's config for one run: lock-step (bus pacing), no ramp (the arm is placed)."""
     joints = [{"name": name, "node_id": i + 1, "max_torque_nm": float(t)}
-              for i, (name, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm))]  # fmt: skip
+              for i, (name, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm, strict=True))]  # fmt: skip
     return {
         "robot": robot.name,
         "bundle": {"path": str(bundle), "mode": mode},
@@ -328,7 +328,8 @@ def run_hil_experiment(
     compute: dict[str, dict[str, list[np.ndarray]]] = {}
     steps = {c.name: int(round(c.duration_s / period_s)) for c in conditions}
     total = len(config.laws) * len(config.modes) * sum(s - 1 for s in steps.values())
-    label = f"hil ({options.transport}): {len(config.laws)} laws x {len(config.modes)} modes x {len(conditions)} conditions"
+    label = (f"hil ({options.transport}): {len(config.laws)} laws x {len(config.modes)} modes x "
+             f"{len(conditions)} conditions")  # fmt: skip
     advance = progress(label, total) if progress else None
     try:
         target_config = target_config_dict(robot.name, period_s, options.target_substeps)
@@ -346,8 +347,8 @@ def run_hil_experiment(
         if sim_process is not None:
             sim_process.join()
             if sim_process.exitcode != 0 or not (sim_dir / "results.json").is_file():
-                raise ModelInputError(f"the simulation twin failed (exit {sim_process.exitcode}); "
-                                      "rerun with --no-parity, or run `hil experiment --plant sim` to see why")  # fmt: skip
+                raise ModelInputError(f"the simulation twin failed (exit {sim_process.exitcode}); rerun with "
+                                      "--no-parity, or run `hil experiment --plant sim` to see why")  # fmt: skip
             sim_results = json.loads((sim_dir / "results.json").read_text())
             if sim_advance is not None:
                 sim_advance(1)
@@ -363,7 +364,7 @@ def run_hil_experiment(
     results["hil"] = {
         "transport": options.transport, "target_substeps": options.target_substeps,
         "period_s": period_s, "wall_s": round(hil_wall_s, 1),
-        "simulated_s": round(sum(steps[c.name] for c in conditions) * period_s * len(config.laws) * len(config.modes), 1),
+        "simulated_s": round(sum(steps.values()) * period_s * len(config.laws) * len(config.modes), 1),
         "time_columns": "runtime compute per cycle (feedback in -> set-points out: supervisor, reference, one "
                         "onnxruntime call, record), median over every cycle of the law's runs",
         "paper_table_ii": {law: {"fb": v[0], "lmpc": v[1]} for law, v in PAPER_TABLE_II.items()},
@@ -407,7 +408,8 @@ def _json_safe(value: Any) -> Any:
 # --- parity with the simulation ----------------------------------------------------------------------
 
 
-def _per_run_scores(runs: list[dict[str, Any]], scale: list[dict[str, Any]] | None = None) -> dict[tuple[str, str, str], float]:
+def _per_run_scores(runs: list[dict[str, Any]],
+                    scale: list[dict[str, Any]] | None = None) -> dict[tuple[str, str, str], float]:  # fmt: skip
     """Composite score of each run (models.scoring's weights), normalized per condition and metric
     by the largest value among the runs of ``scale`` (default: ``runs`` themselves, as the table
     does) that stayed finite and inside the limits."""
@@ -421,8 +423,8 @@ def _per_run_scores(runs: list[dict[str, Any]], scale: list[dict[str, Any]] | No
         largest = {m: max(r["metrics"][m] for r in healthy) for m in METRICS}
         for r in runs:
             if r["condition"] == cond:
-                out[(r["law"], r["mode"], cond)] = sum(
-                    w * (r["metrics"][m] / largest[m] if largest[m] > 0 else 0.0) for m, w in zip(METRICS, WEIGHTS))
+                normalized = [r["metrics"][m] / largest[m] if largest[m] > 0 else 0.0 for m in METRICS]
+                out[(r["law"], r["mode"], cond)] = sum(w * x for w, x in zip(WEIGHTS, normalized, strict=True))
     return out
 
 
@@ -473,7 +475,7 @@ def parity(hil: dict[str, Any], sim: dict[str, Any], trajectories: dict[tuple[st
                 "score_hil": h_score, "score_sim": s_score, "score_rel": _relative(h_score, s_score),
                 "score_hil_own_table": row[mode]["score"], "score_sim_own_table": sim["table"][law][mode]["score"],
                 "trajectory_rms_diff_deg": float(np.sqrt(np.mean([p["trajectory_rms_diff_deg"] ** 2 for p in mine]))),
-                "trajectory_rms_diff_rel_to_sim_rmse": float(np.max([p["trajectory_rms_diff_rel_to_sim_rmse"] for p in mine])),
+                "trajectory_rms_diff_rel_to_sim_rmse": max(p["trajectory_rms_diff_rel_to_sim_rmse"] for p in mine),
                 "within_tolerance": abs(_relative(h_score, s_score)) <= PARITY_TOLERANCE,
             }  # fmt: skip
     return {"tolerance": PARITY_TOLERANCE, "table": table, "runs": per_run,
@@ -489,9 +491,9 @@ def format_hil_table(results: dict[str, Any]) -> str:
     """Table II's layout (FB -> LMPC per law, the paper's beside), then the parity table."""
     modes = results["config"]["modes"]
     hil = results["hil"]
-    lines = ["| Controller | " + " | ".join(m.upper() for m in modes)
-             + (" | η_L (%)" if {"fb", "lmpc"} <= set(modes) else "")
-             + " | paper FB → LMPC | " + " | ".join(f"t_{'L' if m == 'lmpc' else 'FB'} (µs)" for m in modes) + " |"]  # fmt: skip
+    times = " | ".join(f"t_{'L' if m == 'lmpc' else 'FB'} (µs)" for m in modes)
+    eta = " | η_L (%)" if {"fb", "lmpc"} <= set(modes) else ""
+    lines = ["| Controller | " + " | ".join(m.upper() for m in modes) + eta + " | paper FB → LMPC | " + times + " |"]
     lines.append("|" + "---|" * (lines[0].count("|") - 1))
     for law, row in results["table"].items():
         cells = [_LAW_TITLE.get(law, law)]
@@ -569,7 +571,7 @@ def plot_parity(results: dict[str, Any], trajectories: dict[tuple[str, str, str]
         x = np.arange(len(laws)) + (i - (len(modes) - 1) / 2) * width
         axes[0].bar(x, [100 * par["table"][law][mode]["score_rel"] for law in laws], width, label=mode.upper())
         axes[1].bar(x, [par["table"][law][mode]["trajectory_rms_diff_deg"] for law in laws], width, label=mode.upper())
-    for ax, title in zip(axes, ("composite score, HIL vs sim (%)", "trajectory RMS difference (deg)")):
+    for ax, title in zip(axes, ("composite score, HIL vs sim (%)", "trajectory RMS difference (deg)"), strict=True):
         ax.set_xticks(np.arange(len(laws)), [_LAW_TITLE.get(law, law) for law in laws])
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3, axis="y")
@@ -585,7 +587,7 @@ def plot_parity(results: dict[str, Any], trajectories: dict[tuple[str, str, str]
 
     for mode in modes:
         fig, axes = plt.subplots(len(laws), 1, figsize=(9, 1.9 * len(laws) + 0.6), sharex=True, squeeze=False)
-        for ax, law in zip(axes[:, 0], laws):
+        for ax, law in zip(axes[:, 0], laws, strict=True):
             mine = [p for p in par["runs"] if p["law"] == law and p["mode"] == mode]
             worst = max(mine, key=lambda p: abs(p["score_rel"]))
             cond = worst["condition"]
