@@ -334,8 +334,12 @@ def target_layout(config: TargetConfig, source: str = "config") -> TargetLayout:
         raise TargetConfigError(
             f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}"
         )
-    return TargetLayout(tuple(j.name for j in chosen), tuple(j.lower_rad for j in chosen),
-                        tuple(j.upper_rad for j in chosen), tuple(node_ids))  # fmt: skip
+    return TargetLayout(
+        tuple(j.name for j in chosen),
+        tuple(j.lower_rad for j in chosen),
+        tuple(j.upper_rad for j in chosen),
+        tuple(node_ids),
+    )
 
 
 def check_fault(fault: Fault, layout: TargetLayout, source: str = "fault") -> None:
@@ -344,8 +348,10 @@ def check_fault(fault: Fault, layout: TargetLayout, source: str = "fault") -> No
 
     def known(node_id: int, field: str) -> None:
         if node_id not in nodes:
-            raise TargetConfigError(f"{source}: {field}: node {node_id} is not a drive of this target "
-                                    f"(drives: {', '.join(map(str, layout.node_ids))})")  # fmt: skip
+            raise TargetConfigError(
+                f"{source}: {field}: node {node_id} is not a drive of this target "
+                f"(drives: {', '.join(map(str, layout.node_ids))})"
+            )
 
     if isinstance(fault, ImpulseFault) and len(fault.torque_nm) != layout.n_joints:
         raise TargetConfigError(f"{source}: torque_nm: {len(fault.torque_nm)} values for {layout.n_joints} joints")
@@ -367,8 +373,9 @@ def check_run_start(start: RunStart, layout: TargetLayout, source: str = "start"
         zip(start.position_rad, layout.lower_rad, layout.upper_rad, layout.joint_names, strict=True)
     ):
         if not lo <= q <= hi:
-            raise TargetConfigError(f"{source}: position_rad[{i}]: {q:g} rad is outside joint '{name}' limits "
-                                    f"[{lo:g}, {hi:g}]")  # fmt: skip
+            raise TargetConfigError(
+                f"{source}: position_rad[{i}]: {q:g} rad is outside joint '{name}' limits [{lo:g}, {hi:g}]"
+            )
     for i, fault in enumerate(start.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
 
@@ -388,8 +395,10 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
             zip(q0, layout.lower_rad, layout.upper_rad, layout.joint_names, strict=True)
         ):
             if not lo <= q <= hi:
-                raise TargetConfigError(f"{source}: plant.initial_position_rad[{i}]: {q:g} rad is outside joint "
-                                        f"'{name}' limits [{lo:g}, {hi:g}]")  # fmt: skip
+                raise TargetConfigError(
+                    f"{source}: plant.initial_position_rad[{i}]: {q:g} rad is outside joint "
+                    f"'{name}' limits [{lo:g}, {hi:g}]"
+                )
     for field in ("brake_holding_torque_nm",):
         values = getattr(config.plant, field)
         if values is not None:
@@ -402,10 +411,16 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
     defaults = DriveBusConfig.model_fields
     try:
         check_bus_load(
-            layout.n_joints, 1.0 / config.period_s, config.bus.bitrate, config.bus.fd_data_bitrate,
-            defaults["heartbeat_producer_ms"].default / 1000.0, DEFAULT_LIMIT, f"{source}: bus",
-            TPDO_FD_SYNC_BYTES, defaults["master_heartbeat_ms"].default / 1000.0,
-        )  # fmt: skip
+            layout.n_joints,
+            1.0 / config.period_s,
+            config.bus.bitrate,
+            config.bus.fd_data_bitrate,
+            defaults["heartbeat_producer_ms"].default / 1000.0,
+            DEFAULT_LIMIT,
+            f"{source}: bus",
+            TPDO_FD_SYNC_BYTES,
+            defaults["master_heartbeat_ms"].default / 1000.0,
+        )
     except BusLoadError as exc:
         raise TargetConfigError(str(exc)) from None
     return layout

@@ -54,8 +54,13 @@ class TargetLaunchError(RuntimeError):
 class LaunchedTarget:
     """A running target, whichever the transport: what a driving program needs from it."""
 
-    def __init__(self, transport: dict[str, Any], server: Any = None, control_socket: Path | None = None,
-                 process: subprocess.Popen[str] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        transport: dict[str, Any],
+        server: Any = None,
+        control_socket: Path | None = None,
+        process: subprocess.Popen[str] | None = None,
+    ) -> None:
         self.transport = transport  # drivers.config.TransportConfig fields for the runtime's bus
         self.server = server  # the TargetServer (virtual only)
         self.control_socket = control_socket
@@ -84,13 +89,20 @@ class LaunchedTarget:
 
 def target_config_dict(robot: str, period_s: float, substeps: int, **extra: Any) -> dict[str, Any]:
     """A lock-stepped target for ``robot`` (drives 1..6 by default), ``extra`` merged on top."""
-    return {"robot": robot, "period_s": period_s, "clock": "lockstep", "bus": {"interface": "virtual", **CAN_FD},
-            "plant": {"substeps": substeps}, **extra}  # fmt: skip
+    return {
+        "robot": robot,
+        "period_s": period_s,
+        "clock": "lockstep",
+        "bus": {"interface": "virtual", **CAN_FD},
+        "plant": {"substeps": substeps},
+        **extra,
+    }
 
 
 @contextlib.contextmanager
-def launch_target(config: dict[str, Any], transport: Transport = "virtual",
-                  work_dir: Path | None = None) -> Iterator[LaunchedTarget]:  # fmt: skip
+def launch_target(
+    config: dict[str, Any], transport: Transport = "virtual", work_dir: Path | None = None
+) -> Iterator[LaunchedTarget]:
     """The target of ``config`` (a target config mapping; its ``bus`` section is set here)."""
     if transport not in TRANSPORTS:
         raise TargetLaunchError(f"transport: unknown '{transport}' (known: {', '.join(TRANSPORTS)})")
@@ -144,8 +156,11 @@ def _child_process(config: dict[str, Any], transport: str, directory: Path) -> I
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(
         [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(path)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-    )  # fmt: skip
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         url = _wait_ready(process, transport)
         if transport == "bridge":

@@ -113,9 +113,12 @@ class TargetServer:
         self._stop = threading.Event()
         self._pending: queue.SimpleQueue[Fault] = queue.SimpleQueue()
         self._scheduled: list[Fault] = []
-        self.layout = TargetLayout(plant.joint_names, tuple(plant.position_limit_rad[:, 0]),
-                                   tuple(plant.position_limit_rad[:, 1]),
-                                   config.drives.node_ids or tuple(range(1, plant.n_joints + 1)))  # fmt: skip
+        self.layout = TargetLayout(
+            plant.joint_names,
+            tuple(plant.position_limit_rad[:, 0]),
+            tuple(plant.position_limit_rad[:, 1]),
+            config.drives.node_ids or tuple(range(1, plant.n_joints + 1)),
+        )
         for i, fault in enumerate(config.faults):
             check_fault(fault, self.layout, f"faults[{i}]")
             if isinstance(fault, ImpulseFault):  # the plant schedules impulses to the sub-period

@@ -143,8 +143,10 @@ def record(
     lost = missing_samples(arrays["seq"], decimation)
     gaps = int((arrays["flags"] & 1).astype(bool).sum())
     refused = f", {recording.refused} refused ({recording.first_refusal})" if recording.refused else ""
-    print(f"wrote {out}: {count} state samples, seq {int(arrays['seq'][0])}..{int(arrays['seq'][-1])}, "
-          f"{lost} missing, {gaps} after publisher drops{refused}")  # fmt: skip
+    print(
+        f"wrote {out}: {count} state samples, seq {int(arrays['seq'][0])}..{int(arrays['seq'][-1])}, "
+        f"{lost} missing, {gaps} after publisher drops{refused}"
+    )
 
 
 @telemetry_app.command()
@@ -225,8 +227,14 @@ def _render(state: _WatchState, robot: str, joints: tuple[str, ...]) -> Any:
             table.add_row(name, "-", "-", "-", "-", "-")
             continue
         q, q_ref = float(sample["q"][j]), float(sample["q_ref"][j])
-        table.add_row(name, f"{q:+.4f}", f"{q_ref:+.4f}", f"{q_ref - q:+.2e}", f"{float(sample['tau'][j]):+8.3f}",
-                      f"{float(sample['tau_fb'][j]):+8.3f}")  # fmt: skip
+        table.add_row(
+            name,
+            f"{q:+.4f}",
+            f"{q_ref:+.4f}",
+            f"{q_ref - q:+.2e}",
+            f"{float(sample['tau'][j]):+8.3f}",
+            f"{float(sample['tau_fb'][j]):+8.3f}",
+        )
     parts: list[Any] = [head, table]
     if sample is not None and sample.values:
         parts.append(Text(f"cycle {sample.header.seq}, compute {float(sample['compute_s']) * 1e6:.0f} µs"))
@@ -324,8 +332,12 @@ def watch(
         end_s = None if seconds is None else time.monotonic() + seconds
         console = Console()
         try:
-            with Live(_render(state, client.robot, schema.joints), console=console, refresh_per_second=refresh_hz,
-                      transient=False) as live:  # fmt: skip
+            with Live(
+                _render(state, client.robot, schema.joints),
+                console=console,
+                refresh_per_second=refresh_hz,
+                transient=False,
+            ) as live:
                 while not stop.wait(1.0 / refresh_hz):
                     live.update(_render(state, client.robot, schema.joints))
                     if end_s is not None and time.monotonic() >= end_s:
