@@ -112,7 +112,7 @@ def launch_target(
         return
     own_dir = work_dir is None
     # A short private directory: Unix socket paths are limited to ~107 bytes.
-    directory = Path(tempfile.mkdtemp(prefix="hil-")) if own_dir else Path(work_dir)  # type: ignore[arg-type]
+    directory = Path(tempfile.mkdtemp(prefix="hil-")) if work_dir is None else Path(work_dir)
     try:
         with _child_process(config, transport, directory) as target:
             yield target
