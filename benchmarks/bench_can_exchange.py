@@ -155,10 +155,10 @@ def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str
     )
     try:
         selector = selectors.DefaultSelector()
-        selector.register(proc.stdout, selectors.EVENT_READ)  # type: ignore[arg-type]
+        selector.register(proc.stdout, selectors.EVENT_READ)
         if not selector.select(30.0):
             raise RuntimeError("target process did not start")
-        ready = json.loads(proc.stdout.readline())  # type: ignore[union-attr]
+        ready = json.loads(proc.stdout.readline())
         if ipc_dir:
             config = _config(args, {"interface": "ipc", "channel": ready["ipc_dir"]})
         else:
@@ -172,7 +172,7 @@ def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str
         finally:
             driver.close()
     finally:
-        proc.stdin.close()  # type: ignore[union-attr]
+        proc.stdin.close()
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -213,7 +213,7 @@ def codec_cost() -> dict[str, float]:
         return bytes(rpdo.data)
 
     def ours_decode() -> tuple[int, int, int]:
-        return tuple(fr.decode_tpdo1(data)[:3])  # type: ignore[return-value]  # three int fields
+        return tuple(fr.decode_tpdo1(data)[:3])  # three int fields
 
     def ours_encode() -> bytes:
         return fr.encode_rpdo(0x000F, -1000)

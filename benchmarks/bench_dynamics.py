@@ -17,7 +17,7 @@ from models.dynamics import make_dynamics
 from models.robots import load_robot
 
 
-def _time_us(fn, repeats: int) -> dict[str, float]:  # type: ignore[no-untyped-def]
+def _time_us(fn, repeats: int) -> dict[str, float]:
     fn()
     samples = []
     for _ in range(repeats):

@@ -149,7 +149,7 @@ def bench_inprocess(duration_s: float, period_s: float, substeps: int, rt: bool 
             result["syncs_lost"] = bus.counters.cycles - target.stats.syncs
         finally:
             bus.close()
-        drives = target.drives.counters  # type: ignore[attr-defined]
+        drives = target.drives.counters
         result["target_frames_received"] = drives.frames_received
         result["target_frames_sent"] = drives.frames_sent
     result["frames_lost"] = result["syncs_lost"] + result["tpdos_lost"]

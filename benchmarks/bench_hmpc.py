@@ -54,7 +54,7 @@ def load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
-def _timed_controller(law, robot, options: dict):  # type: ignore[no-untyped-def]
+def _timed_controller(law, robot, options: dict):
     """The HMPC controller, its solver wrapped to record thread CPU time per call."""
     from models.hmpc import make_hmpc_controller
 
@@ -62,13 +62,13 @@ def _timed_controller(law, robot, options: dict):  # type: ignore[no-untyped-def
     cpu: list[float] = []
     solve = controller.solver.solve
 
-    def timed(*args, **kwargs):  # type: ignore[no-untyped-def]
+    def timed(*args, **kwargs):
         start = time.thread_time()
         result = solve(*args, **kwargs)
         cpu.append(time.thread_time() - start)
         return result
 
-    controller.solver.solve = timed  # type: ignore[method-assign]
+    controller.solver.solve = timed
     return controller, cpu
 
 
