@@ -33,9 +33,17 @@ from models.errors import ModelInputError
 from models.robots import RobotModel
 
 __all__ = [
-    "INITIAL_STATES", "PAPER_CONDITIONS", "SHAPES", "Condition", "ConditionError", "Disturbance", "Mismatch",
-    "load_conditions", "parse_conditions", "random_conditions",
-]  # fmt: skip
+    "INITIAL_STATES",
+    "PAPER_CONDITIONS",
+    "SHAPES",
+    "Condition",
+    "ConditionError",
+    "Disturbance",
+    "Mismatch",
+    "load_conditions",
+    "parse_conditions",
+    "random_conditions",
+]
 
 
 def load_conditions(path: str | Path | None = None, robot: RobotModel | None = None) -> list[Condition]:
@@ -56,8 +64,9 @@ def random_conditions(
 ) -> list[Condition]:
     """Seeded raised-sine conditions whose references stay inside ``limit_fraction`` of the limits."""
     rng = np.random.default_rng(seed)
-    template = template or Condition(name="template", amplitude_rad=(0.0,) * robot.n_joints,
-                                     frequency_hz=(0.1,) * robot.n_joints)  # fmt: skip
+    template = template or Condition(
+        name="template", amplitude_rad=(0.0,) * robot.n_joints, frequency_hz=(0.1,) * robot.n_joints
+    )
     pos_limit = np.minimum(robot.position_limit_rad, math.pi) * limit_fraction
     vel_limit = np.minimum(robot.velocity_limit_rad_s, 10.0) * limit_fraction
     out = []
@@ -66,6 +75,13 @@ def random_conditions(
         # |A| bounded by the position range (the reference spans [0, A]) and by the peak velocity pi f |A|.
         max_amp = np.minimum(pos_limit, vel_limit / (math.pi * freq))
         amp = rng.uniform(-1.0, 1.0, size=robot.n_joints) * max_amp
-        out.append(replace(template, name=f"R{seed}-{k:03d}", amplitude_rad=tuple(amp), frequency_hz=tuple(freq),
-                           phase_s=float(rng.uniform(0.0, template.duration_s))))  # fmt: skip
+        out.append(
+            replace(
+                template,
+                name=f"R{seed}-{k:03d}",
+                amplitude_rad=tuple(amp),
+                frequency_hz=tuple(freq),
+                phase_s=float(rng.uniform(0.0, template.duration_s)),
+            )
+        )
     return out

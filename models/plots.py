@@ -59,7 +59,14 @@ def plot_tracking_errors(
                 if run is None:
                     continue
                 mean_abs = np.abs(np.degrees(run["q_ref"] - run["q"])).mean(axis=1)
-                ax.plot(run["t"], mean_abs, _STYLE.get(mode, "-"), color=f"C{i}", lw=1, label=f"{law.upper()} {mode.upper()}")
+                ax.plot(
+                    run["t"],
+                    mean_abs,
+                    _STYLE.get(mode, "-"),
+                    color=f"C{i}",
+                    lw=1,
+                    label=f"{law.upper()} {mode.upper()}",
+                )
         ax.set_yscale("log")
         ax.set_ylim(bottom=1e-3)
         ax.set_xlabel("t (s)")

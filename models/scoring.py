@@ -9,7 +9,8 @@ Six smaller-is-better metrics on the joint tracking error e = q_ref - q in degre
 - ``dedt_rms``: RMS of de/dt (deg/s), all joints pooled.
 
 Composite: on each condition, each metric is divided by its largest value among the configurations
-compared (runs that left the limits excluded from that maximum), weighted by [0.1, 0.1, 0.1, 0.1, 0.3, 0.3] and summed; scores are averaged over conditions.
+compared (runs that left the limits excluded from that maximum), weighted by
+[0.1, 0.1, 0.1, 0.1, 0.3, 0.3] and summed; scores are averaged over conditions.
 eta = 1 - score / score_FB for the same law.
 """
 
@@ -22,7 +23,9 @@ WEIGHTS = (0.1, 0.1, 0.1, 0.1, 0.3, 0.3)
 SETTLE_TOLERANCE_DEG = 1.0
 
 
-def run_metrics(t_s: np.ndarray, q: np.ndarray, q_ref: np.ndarray, disturbance_time_s: float | None) -> dict[str, float]:
+def run_metrics(
+    t_s: np.ndarray, q: np.ndarray, q_ref: np.ndarray, disturbance_time_s: float | None
+) -> dict[str, float]:
     """The six metrics of one run; q, q_ref are (T, N) in radians."""
     e = np.degrees(q_ref - q)
     abs_e = np.abs(e)

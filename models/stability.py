@@ -50,12 +50,25 @@ class Theorem1Report:
         return all(self.holds.values())
 
     def as_dict(self) -> dict[str, Any]:
-        return {"law": self.law, "margins": self.margins, "holds": self.holds, "terms": self.terms,
-                "samples": self.samples, "all_hold": self.all_hold}  # fmt: skip
+        return {
+            "law": self.law,
+            "margins": self.margins,
+            "holds": self.holds,
+            "terms": self.terms,
+            "samples": self.samples,
+            "all_hold": self.all_hold,
+        }
 
 
-def law_jacobians(law: FeedbackLaw, states: np.ndarray, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray,
-                  qd_d: np.ndarray, qdd_d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def law_jacobians(
+    law: FeedbackLaw,
+    states: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    q_d: np.ndarray,
+    qd_d: np.ndarray,
+    qdd_d: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """d tau / d e and d tau / d e_dot (T, N, N) of one law step, by torch autograd (batched over T)."""
     import torch
 
@@ -73,8 +86,9 @@ def law_jacobians(law: FeedbackLaw, states: np.ndarray, q: np.ndarray, qd: np.nd
     return d_e, d_edot
 
 
-def roll_states(law: FeedbackLaw, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,
-                qdd_d: np.ndarray) -> np.ndarray:  # fmt: skip
+def roll_states(
+    law: FeedbackLaw, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+) -> np.ndarray:
     """The law's state before each sample (T, S), stepping the law along the given signals."""
     state = law.initial_state(q[:1])
     states = np.zeros((len(q), law.state_size))
@@ -156,6 +170,16 @@ def evaluate_theorem1(
     notes = []
     if damping_bracket < 0 and rhs3 > lhs3:
         notes.append("eq21 holds only because both of its brackets are negative (eq19 fails)")
-    terms = {"lmin_dphi_de": l_e, "lmin_dphi_dedot": l_edot, "lmax_M": m_max, "C_max": c_max, "dGdq_max": g_max,
-             "P_norm": p_norm, "eq21_lhs": lhs3, "eq21_rhs": rhs3, "beta": beta, "epsilon": epsilon}  # fmt: skip
+    terms = {
+        "lmin_dphi_de": l_e,
+        "lmin_dphi_dedot": l_edot,
+        "lmax_M": m_max,
+        "C_max": c_max,
+        "dGdq_max": g_max,
+        "P_norm": p_norm,
+        "eq21_lhs": lhs3,
+        "eq21_rhs": rhs3,
+        "beta": beta,
+        "epsilon": epsilon,
+    }
     return Theorem1Report(law.name, margins, {k: bool(v > 0) for k, v in margins.items()}, terms, len(q), notes)

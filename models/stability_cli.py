@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import numpy as np
 import typer
@@ -18,7 +18,7 @@ from models.errors import ModelInputError
 
 def stability(
     law: Annotated[str, typer.Argument(help="Feedback law: pd, pid, adrc, hinf, smc, mrac.")],
-    conditions: Annotated[Optional[Path], typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
+    conditions: Annotated[Path | None, typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
     condition: Annotated[int, typer.Option(help="1-based index of the condition in the file.")] = 1,
     robot: Annotated[str, typer.Option(help="Robot: ur5_paper, ur5, panda, or a URDF path.")] = "ur5_paper",
     dt: Annotated[float, typer.Option(help="Control period (s); also the sampling of the reference.")] = 1e-3,
@@ -46,12 +46,15 @@ def stability(
     q_d, qd_d, qdd_d = chosen.reference(t)
     states = roll_states(feedback, q_d, qd_d, q_d, qd_d, qdd_d)[::stride]
     pick = slice(None, None, stride)
-    report = evaluate_theorem1(feedback, arm, q_d[pick], qd_d[pick], q_d[pick], qd_d[pick], qdd_d[pick], states,
-                               beta=beta, epsilon=epsilon)  # fmt: skip
+    report = evaluate_theorem1(
+        feedback, arm, q_d[pick], qd_d[pick], q_d[pick], qd_d[pick], qdd_d[pick], states, beta=beta, epsilon=epsilon
+    )
     if as_json:
         typer.echo(json.dumps({"condition": chosen.name, **report.as_dict()}, indent=2))
         return
-    typer.echo(f"Theorem 1 for {law} on condition '{chosen.name}' ({report.samples} samples, beta={beta}, eps={epsilon})")
+    typer.echo(
+        f"Theorem 1 for {law} on condition '{chosen.name}' ({report.samples} samples, beta={beta}, eps={epsilon})"
+    )
     for key, margin in report.margins.items():
         typer.echo(f"  {key}: margin {margin:+.6g}  {'holds' if report.holds[key] else 'FAILS'}")
     for note in report.notes:

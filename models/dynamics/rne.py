@@ -50,10 +50,22 @@ class ChainArrays:
         axis = robot.joint_axis
         outer = np.einsum("ni,nj->nij", axis, axis)
         values = [
-            robot.joint_rotation, robot.joint_translation, axis, _skew(axis), outer, np.eye(3) - outer,
-            robot.mass_kg, robot.com_m, robot.inertia_kg_m2, robot.ee_rotation, robot.ee_translation,
-            robot.gravity_m_s2, _skew(robot.joint_translation), _skew(robot.com_m), _skew(robot.ee_translation),
-        ]  # fmt: skip
+            robot.joint_rotation,
+            robot.joint_translation,
+            axis,
+            _skew(axis),
+            outer,
+            np.eye(3) - outer,
+            robot.mass_kg,
+            robot.com_m,
+            robot.inertia_kg_m2,
+            robot.ee_rotation,
+            robot.ee_translation,
+            robot.gravity_m_s2,
+            _skew(robot.joint_translation),
+            _skew(robot.com_m),
+            _skew(robot.ee_translation),
+        ]
         return cls(*[to_array(np.asarray(v, dtype=np.float64)) for v in values], n_joints=robot.n_joints)
 
 

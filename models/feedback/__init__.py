@@ -12,7 +12,8 @@ gives each law's equations and readings.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from models.errors import ModelInputError
 from models.feedback._common import joint_vector
@@ -26,7 +27,13 @@ def _pd(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None) -> Feedb
     from models.feedback.pd import PAPER_KD, PAPER_KP, PDLaw
 
     n = robot.n_joints
-    return PDLaw(n, dt_s, robot.torque_limit_nm, joint_vector("pd", "kp", kp, n, PAPER_KP), joint_vector("pd", "kd", kd, n, PAPER_KD))
+    return PDLaw(
+        n,
+        dt_s,
+        robot.torque_limit_nm,
+        joint_vector("pd", "kp", kp, n, PAPER_KP),
+        joint_vector("pd", "kd", kd, n, PAPER_KD),
+    )
 
 
 def _pid(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None, ki: Any = None) -> FeedbackLaw:
@@ -34,16 +41,32 @@ def _pid(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None, ki: Any
     from models.feedback.pid import PAPER_KI, PIDLaw
 
     n = robot.n_joints
-    gains = [joint_vector("pid", f, v, n, p) for f, v, p in (("kp", kp, PAPER_KP), ("kd", kd, PAPER_KD), ("ki", ki, PAPER_KI))]
+    gains = [
+        joint_vector("pid", f, v, n, p)
+        for f, v, p in (("kp", kp, PAPER_KP), ("kd", kd, PAPER_KD), ("ki", ki, PAPER_KI))
+    ]
     return PIDLaw(n, dt_s, robot.torque_limit_nm, *gains)
 
 
-def _adrc(robot: RobotModel, dt_s: float, b0: Any = None, omega_o: float | None = None, omega_c: float | None = None,
-          b0_reading: str = "inertia") -> FeedbackLaw:  # fmt: skip
+def _adrc(
+    robot: RobotModel,
+    dt_s: float,
+    b0: Any = None,
+    omega_o: float | None = None,
+    omega_c: float | None = None,
+    b0_reading: str = "inertia",
+) -> FeedbackLaw:
     from models.feedback.adrc import PAPER_B0, PAPER_OMEGA_C, PAPER_OMEGA_O, ADRCLaw
 
-    return ADRCLaw(robot.n_joints, dt_s, robot.torque_limit_nm, joint_vector("adrc", "b0", b0, robot.n_joints, PAPER_B0),
-                   PAPER_OMEGA_O if omega_o is None else omega_o, PAPER_OMEGA_C if omega_c is None else omega_c, b0_reading)  # fmt: skip
+    return ADRCLaw(
+        robot.n_joints,
+        dt_s,
+        robot.torque_limit_nm,
+        joint_vector("adrc", "b0", b0, robot.n_joints, PAPER_B0),
+        PAPER_OMEGA_O if omega_o is None else omega_o,
+        PAPER_OMEGA_C if omega_c is None else omega_c,
+        b0_reading,
+    )
 
 
 def _hinf(robot: RobotModel, dt_s: float, alpha: Any = None, gravity_compensation: bool = True) -> FeedbackLaw:
@@ -53,27 +76,53 @@ def _hinf(robot: RobotModel, dt_s: float, alpha: Any = None, gravity_compensatio
     return HinfLaw(robot, dt_s, PAPER_ALPHA if alpha is None else alpha, gravity_compensation)
 
 
-def _smc(robot: RobotModel, dt_s: float, lam: Any = None, k: Any = None, epsilon: float | None = None,
-         switching_units: str = "torque") -> FeedbackLaw:  # fmt: skip
+def _smc(
+    robot: RobotModel,
+    dt_s: float,
+    lam: Any = None,
+    k: Any = None,
+    epsilon: float | None = None,
+    switching_units: str = "torque",
+) -> FeedbackLaw:
     from models.feedback.smc import PAPER_EPSILON, PAPER_K, PAPER_LAMBDA, SMCLaw
 
     n = robot.n_joints
-    return SMCLaw(robot, dt_s, joint_vector("smc", "lam", lam, n, PAPER_LAMBDA), joint_vector("smc", "k", k, n, PAPER_K),
-                  PAPER_EPSILON if epsilon is None else epsilon, switching_units)  # fmt: skip
+    return SMCLaw(
+        robot,
+        dt_s,
+        joint_vector("smc", "lam", lam, n, PAPER_LAMBDA),
+        joint_vector("smc", "k", k, n, PAPER_K),
+        PAPER_EPSILON if epsilon is None else epsilon,
+        switching_units,
+    )
 
 
-def _mrac(robot: RobotModel, dt_s: float, alpha: Any = None, gamma: Any = None, lam: Any = None,
-          inertia_bound_scale: float = 10.0) -> FeedbackLaw:  # fmt: skip
+def _mrac(
+    robot: RobotModel,
+    dt_s: float,
+    alpha: Any = None,
+    gamma: Any = None,
+    lam: Any = None,
+    inertia_bound_scale: float = 10.0,
+) -> FeedbackLaw:
     from models.feedback.mrac import PAPER_ALPHA, PAPER_GAMMA, PAPER_LAMBDA, MRACLaw
 
     n = robot.n_joints
-    gains = [joint_vector("mrac", f, v, n, p) for f, v, p in (("alpha", alpha, PAPER_ALPHA), ("gamma", gamma, PAPER_GAMMA), ("lam", lam, PAPER_LAMBDA))]
+    gains = [
+        joint_vector("mrac", f, v, n, p)
+        for f, v, p in (("alpha", alpha, PAPER_ALPHA), ("gamma", gamma, PAPER_GAMMA), ("lam", lam, PAPER_LAMBDA))
+    ]
     return MRACLaw(robot, dt_s, *gains, inertia_bound_scale=inertia_bound_scale)
 
 
 _FACTORIES: dict[str, Callable[..., FeedbackLaw]] = {
-    "pd": _pd, "pid": _pid, "adrc": _adrc, "hinf": _hinf, "smc": _smc, "mrac": _mrac,
-}  # fmt: skip
+    "pd": _pd,
+    "pid": _pid,
+    "adrc": _adrc,
+    "hinf": _hinf,
+    "smc": _smc,
+    "mrac": _mrac,
+}
 
 
 #: Gain sets. "paper": Sec. IV-B values with our first readings. "stabilized" (the default): the
@@ -90,7 +139,9 @@ GAIN_SETS: dict[str, dict[str, dict[str, Any]]] = {
 DEFAULT_GAIN_SET = "stabilized"
 
 
-def make_law(name: str, robot: RobotModel, dt_s: float = 1e-3, gain_set: str = DEFAULT_GAIN_SET, **gains: Any) -> FeedbackLaw:
+def make_law(
+    name: str, robot: RobotModel, dt_s: float = 1e-3, gain_set: str = DEFAULT_GAIN_SET, **gains: Any
+) -> FeedbackLaw:
     """The named law for ``robot`` at control period ``dt_s``, from ``gain_set`` unless gains are given."""
     if name not in _FACTORIES:
         raise ModelInputError(f"feedback law: unknown '{name}' (known: {', '.join(LAW_NAMES)})")

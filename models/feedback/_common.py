@@ -25,7 +25,9 @@ def joint_vector(law: str, field: str, value: Any, n_joints: int, paper_value: n
     if array.ndim == 0:
         array = np.full(n_joints, float(array))
     if array.shape != (n_joints,) or not np.all(np.isfinite(array)):
-        raise ModelInputError(f"law '{law}': {field} must be {n_joints} finite numbers, got {np.asarray(value).tolist()}")
+        raise ModelInputError(
+            f"law '{law}': {field} must be {n_joints} finite numbers, got {np.asarray(value).tolist()}"
+        )
     return array
 
 

@@ -50,8 +50,16 @@ def eso_matrices(omega_o: float, dt_s: float) -> tuple[np.ndarray, np.ndarray, n
 class ADRCLaw(FeedbackLaw):
     name = "adrc"
 
-    def __init__(self, n_joints: int, dt_s: float, torque_limit_nm: np.ndarray, b0: np.ndarray = PAPER_B0,
-                 omega_o: float = PAPER_OMEGA_O, omega_c: float = PAPER_OMEGA_C, b0_reading: str = "inertia") -> None:  # fmt: skip
+    def __init__(
+        self,
+        n_joints: int,
+        dt_s: float,
+        torque_limit_nm: np.ndarray,
+        b0: np.ndarray = PAPER_B0,
+        omega_o: float = PAPER_OMEGA_O,
+        omega_c: float = PAPER_OMEGA_C,
+        b0_reading: str = "inertia",
+    ) -> None:
         super().__init__(n_joints, dt_s, torque_limit_nm)
         if b0_reading not in ("inertia", "gain"):
             raise ModelInputError(f"law 'adrc': b0_reading must be 'inertia' or 'gain', got '{b0_reading}'")
@@ -72,9 +80,16 @@ class ADRCLaw(FeedbackLaw):
     @property
     def params(self) -> dict[str, Any]:
         wo = self.omega_o
-        return {"b0": self.b0.tolist(), "b0_reading": self.b0_reading, "omega_o": wo, "omega_c": self.omega_c,
-                "eso_gains": [3 * wo, 3 * wo**2, wo**3], "kc_p": self.omega_c**2, "kc_d": 2 * self.omega_c,
-                "eso_discretization": "zero-order hold (exact)"}  # fmt: skip
+        return {
+            "b0": self.b0.tolist(),
+            "b0_reading": self.b0_reading,
+            "omega_o": wo,
+            "omega_c": self.omega_c,
+            "eso_gains": [3 * wo, 3 * wo**2, wo**3],
+            "kc_p": self.omega_c**2,
+            "kc_d": 2 * self.omega_c,
+            "eso_discretization": "zero-order hold (exact)",
+        }
 
     def initial_state(self, q0: np.ndarray) -> np.ndarray:
         """The observer starts at rest on the measured position: z1 = q0, z2 = z3 = 0, tau_applied = 0."""
@@ -88,7 +103,11 @@ class ADRCLaw(FeedbackLaw):
         ad, bq, bu, gain = (const(xp, a) for a in (self.eso_ad, self.eso_bq, self.eso_bu, self.torque_per_accel))
         z = xp.reshape(state[:, : 3 * n], (-1, 3, n))
         u_applied = state[:, 3 * n :] / gain
-        z = xp.einsum("ij,bjn->bin", ad, z) + bq[None, :, None] * q[:, None, :] + bu[None, :, None] * u_applied[:, None, :]
+        z = (
+            xp.einsum("ij,bjn->bin", ad, z)
+            + bq[None, :, None] * q[:, None, :]
+            + bu[None, :, None] * u_applied[:, None, :]
+        )
         u = self.omega_c**2 * (q_d - q) + 2.0 * self.omega_c * (qd_d - qd) + qdd_d - z[:, 2, :]
         tau = self.saturate(xp, gain * u)
         return tau, xp.concatenate([xp.reshape(z, (-1, 3 * n)), tau], -1)

@@ -60,6 +60,14 @@ def export_law_onnx(law: FeedbackLaw, path: str | Path) -> Path:
     axes = {name: {0: "batch"} for name in INPUT_NAMES + OUTPUT_NAMES}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # TorchScript exporter deprecation and tracer notices
-        torch.onnx.export(Step(), example, str(path), input_names=INPUT_NAMES, output_names=OUTPUT_NAMES,
-                          dynamic_axes=axes, opset_version=OPSET, dynamo=False)  # fmt: skip
+        torch.onnx.export(
+            Step(),
+            example,
+            str(path),
+            input_names=INPUT_NAMES,
+            output_names=OUTPUT_NAMES,
+            dynamic_axes=axes,
+            opset_version=OPSET,
+            dynamo=False,
+        )
     return path

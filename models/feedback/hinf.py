@@ -83,8 +83,13 @@ def residualize_fast_modes(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.nd
     return t11, b_m[:n_slow], c_m[:, :n_slow], d_r
 
 
-def design_joint(inertia_kg_m2: float, dt_s: float, alpha: float = PAPER_ALPHA,
-                 ws: tuple[float, float, float] = PAPER_WS, wu: tuple[float, float, float] = PAPER_WU) -> JointDesign:  # fmt: skip
+def design_joint(
+    inertia_kg_m2: float,
+    dt_s: float,
+    alpha: float = PAPER_ALPHA,
+    ws: tuple[float, float, float] = PAPER_WS,
+    wu: tuple[float, float, float] = PAPER_WU,
+) -> JointDesign:
     import control as ct
 
     delta = PLANT_POLE_SHIFT_RAD_S
@@ -95,8 +100,12 @@ def design_joint(inertia_kg_m2: float, dt_s: float, alpha: float = PAPER_ALPHA,
         try:
             controller, _, info = ct.mixsyn(plant, *weights)
         except Exception as exc:  # slycot raises its own arithmetic errors
-            raise ModelInputError(f"law 'hinf': mixsyn failed for inertia {inertia_kg_m2:.3g}: {exc}".splitlines()[0]) from exc
-        closed_loop = ct.feedback(ct.ss(plant) * ct.ss(controller), 1)  # state space: tf products lose the cancellations
+            raise ModelInputError(
+                f"law 'hinf': mixsyn failed for inertia {inertia_kg_m2:.3g}: {exc}".splitlines()[0]
+            ) from exc
+        closed_loop = ct.feedback(
+            ct.ss(plant) * ct.ss(controller), 1
+        )  # state space: tf products lose the cancellations
     if np.any(np.real(closed_loop.poles()) >= 0):
         raise ModelInputError(f"law 'hinf': synthesized loop unstable for inertia {inertia_kg_m2:.3g}")
     k = ct.ss(controller)
@@ -108,19 +117,20 @@ def design_joint(inertia_kg_m2: float, dt_s: float, alpha: float = PAPER_ALPHA,
 class HinfLaw(FeedbackLaw):
     name = "hinf"
 
-    def __init__(self, robot: RobotModel, dt_s: float, alpha: np.ndarray | float = PAPER_ALPHA,
-                 gravity_compensation: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self, robot: RobotModel, dt_s: float, alpha: np.ndarray | float = PAPER_ALPHA, gravity_compensation: bool = True
+    ) -> None:
         super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
         self.alpha = np.broadcast_to(np.asarray(alpha, float), (robot.n_joints,)).copy()
         self.gravity_compensation = gravity_compensation
         self.nominal = NominalModel(robot)
         inertia = self.nominal.mass_matrix_diagonal(np.zeros(robot.n_joints))
-        self.designs = [design_joint(m, self.dt_s, a) for m, a in zip(inertia, self.alpha)]
+        self.designs = [design_joint(m, self.dt_s, a) for m, a in zip(inertia, self.alpha, strict=True)]
         orders = [j.a.shape[0] for j in self.designs]
         nx, n = sum(orders), robot.n_joints
         self.ad, self.bd, self.cd, self.dd = np.zeros((nx, nx)), np.zeros((nx, n)), np.zeros((n, nx)), np.zeros((n, n))
         start = 0
-        for i, (design, order) in enumerate(zip(self.designs, orders)):
+        for i, (design, order) in enumerate(zip(self.designs, orders, strict=True)):
             block = slice(start, start + order)
             self.ad[block, block], self.bd[block, i], self.cd[i, block] = design.a, design.b[:, 0], design.c[0]
             self.dd[i, i] = design.d[0, 0]
@@ -137,10 +147,16 @@ class HinfLaw(FeedbackLaw):
 
     @property
     def params(self) -> dict[str, Any]:
-        return {"alpha_wt": self.alpha.tolist(), "ws": list(PAPER_WS), "wu": list(PAPER_WU), "gamma": self.gammas,
-                "nominal_inertia_kg_m2": [j.inertia_kg_m2 for j in self.designs],
-                "plant_pole_shift_rad_s": PLANT_POLE_SHIFT_RAD_S, "discretization": "tustin",
-                "gravity_compensation": self.gravity_compensation}  # fmt: skip
+        return {
+            "alpha_wt": self.alpha.tolist(),
+            "ws": list(PAPER_WS),
+            "wu": list(PAPER_WU),
+            "gamma": self.gammas,
+            "nominal_inertia_kg_m2": [j.inertia_kg_m2 for j in self.designs],
+            "plant_pole_shift_rad_s": PLANT_POLE_SHIFT_RAD_S,
+            "discretization": "tustin",
+            "gravity_compensation": self.gravity_compensation,
+        }
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         ad_t, bd_t, cd_t, dd_t = (const(xp, m.T.copy()) for m in (self.ad, self.bd, self.cd, self.dd))

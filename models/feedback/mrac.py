@@ -39,14 +39,25 @@ VISCOUS_BOUND_NM_S = 1.0
 class MRACLaw(FeedbackLaw):
     name = "mrac"
 
-    def __init__(self, robot: RobotModel, dt_s: float, alpha: np.ndarray = PAPER_ALPHA, gamma: np.ndarray = PAPER_GAMMA,
-                 lam: np.ndarray = PAPER_LAMBDA, inertia_bound_scale: float = 10.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        robot: RobotModel,
+        dt_s: float,
+        alpha: np.ndarray = PAPER_ALPHA,
+        gamma: np.ndarray = PAPER_GAMMA,
+        lam: np.ndarray = PAPER_LAMBDA,
+        inertia_bound_scale: float = 10.0,
+    ) -> None:
         super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
         self.alpha, self.gamma, self.lam = (np.asarray(g, float) for g in (alpha, gamma, lam))
         self.nominal_inertia_kg_m2 = NominalModel(robot).mass_matrix_diagonal(np.zeros(robot.n_joints))
         n = robot.n_joints
-        self.theta_min = np.concatenate([0.1 * self.nominal_inertia_kg_m2, np.full(n, -VISCOUS_BOUND_NM_S), -self.torque_limit_nm])
-        self.theta_max = np.concatenate([inertia_bound_scale * self.nominal_inertia_kg_m2, np.full(n, VISCOUS_BOUND_NM_S), self.torque_limit_nm])
+        self.theta_min = np.concatenate(
+            [0.1 * self.nominal_inertia_kg_m2, np.full(n, -VISCOUS_BOUND_NM_S), -self.torque_limit_nm]
+        )
+        self.theta_max = np.concatenate(
+            [inertia_bound_scale * self.nominal_inertia_kg_m2, np.full(n, VISCOUS_BOUND_NM_S), self.torque_limit_nm]
+        )
 
     @property
     def state_size(self) -> int:
@@ -54,9 +65,15 @@ class MRACLaw(FeedbackLaw):
 
     @property
     def params(self) -> dict[str, Any]:
-        return {"alpha_kd": self.alpha.tolist(), "gamma": self.gamma.tolist(), "lambda": self.lam.tolist(),
-                "regressor": "per joint [qdd_r, qd_r, 1]", "theta0": self._theta0().tolist(),
-                "theta_min": self.theta_min.tolist(), "theta_max": self.theta_max.tolist()}  # fmt: skip
+        return {
+            "alpha_kd": self.alpha.tolist(),
+            "gamma": self.gamma.tolist(),
+            "lambda": self.lam.tolist(),
+            "regressor": "per joint [qdd_r, qd_r, 1]",
+            "theta0": self._theta0().tolist(),
+            "theta_min": self.theta_min.tolist(),
+            "theta_max": self.theta_max.tolist(),
+        }
 
     def _theta0(self) -> np.ndarray:
         return np.concatenate([self.nominal_inertia_kg_m2, np.zeros(2 * self.n_joints)])
@@ -66,7 +83,9 @@ class MRACLaw(FeedbackLaw):
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         n = self.n_joints
-        alpha, gamma, lam, lo, hi = (const(xp, a) for a in (self.alpha, self.gamma, self.lam, self.theta_min, self.theta_max))
+        alpha, gamma, lam, lo, hi = (
+            const(xp, a) for a in (self.alpha, self.gamma, self.lam, self.theta_min, self.theta_max)
+        )
         e, e_dot = q_d - q, qd_d - qd
         s = e_dot + lam * e
         qd_r, qdd_r = qd_d + lam * e, qdd_d + lam * e_dot

@@ -15,8 +15,14 @@ PAPER_KD = np.array([1.0, 5.0, 2.0, 0.6, 0.1, 0.05])
 class PDLaw(FeedbackLaw):
     name = "pd"
 
-    def __init__(self, n_joints: int, dt_s: float, torque_limit_nm: np.ndarray,
-                 kp: np.ndarray = PAPER_KP, kd: np.ndarray = PAPER_KD) -> None:  # fmt: skip
+    def __init__(
+        self,
+        n_joints: int,
+        dt_s: float,
+        torque_limit_nm: np.ndarray,
+        kp: np.ndarray = PAPER_KP,
+        kd: np.ndarray = PAPER_KD,
+    ) -> None:
         super().__init__(n_joints, dt_s, torque_limit_nm)
         self.kp, self.kd = np.asarray(kp, float), np.asarray(kd, float)
 

@@ -25,8 +25,15 @@ PAPER_KI = np.array([0.3, 0.4, 0.3, 0.1, 0.03, 0.03])
 class PIDLaw(FeedbackLaw):
     name = "pid"
 
-    def __init__(self, n_joints: int, dt_s: float, torque_limit_nm: np.ndarray,
-                 kp: np.ndarray = PAPER_KP, kd: np.ndarray = PAPER_KD, ki: np.ndarray = PAPER_KI) -> None:  # fmt: skip
+    def __init__(
+        self,
+        n_joints: int,
+        dt_s: float,
+        torque_limit_nm: np.ndarray,
+        kp: np.ndarray = PAPER_KP,
+        kd: np.ndarray = PAPER_KD,
+        ki: np.ndarray = PAPER_KI,
+    ) -> None:
         super().__init__(n_joints, dt_s, torque_limit_nm)
         self.kp, self.kd, self.ki = (np.asarray(g, float) for g in (kp, kd, ki))
         # Anti-windup bound on the integral (rad*s); a large finite number where Ki = 0 keeps ONNX finite.
@@ -38,8 +45,13 @@ class PIDLaw(FeedbackLaw):
 
     @property
     def params(self) -> dict[str, Any]:
-        return {"kp": self.kp.tolist(), "kd": self.kd.tolist(), "ki": self.ki.tolist(),
-                "integral_limit_rad_s": self.integral_limit_rad_s.tolist(), "integration": "backward rectangle"}  # fmt: skip
+        return {
+            "kp": self.kp.tolist(),
+            "kd": self.kd.tolist(),
+            "ki": self.ki.tolist(),
+            "integral_limit_rad_s": self.integral_limit_rad_s.tolist(),
+            "integration": "backward rectangle",
+        }
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         kp, kd, ki, limit = (const(xp, a) for a in (self.kp, self.kd, self.ki, self.integral_limit_rad_s))

@@ -36,11 +36,20 @@ PAPER_EPSILON = 0.02
 class SMCLaw(FeedbackLaw):
     name = "smc"
 
-    def __init__(self, robot: RobotModel, dt_s: float, lam: np.ndarray = PAPER_LAMBDA, k: np.ndarray = PAPER_K,
-                 epsilon: float = PAPER_EPSILON, switching_units: str = "torque") -> None:  # fmt: skip
+    def __init__(
+        self,
+        robot: RobotModel,
+        dt_s: float,
+        lam: np.ndarray = PAPER_LAMBDA,
+        k: np.ndarray = PAPER_K,
+        epsilon: float = PAPER_EPSILON,
+        switching_units: str = "torque",
+    ) -> None:
         super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
         if switching_units not in ("acceleration", "torque"):
-            raise ModelInputError(f"law 'smc': switching_units must be 'acceleration' or 'torque', got '{switching_units}'")
+            raise ModelInputError(
+                f"law 'smc': switching_units must be 'acceleration' or 'torque', got '{switching_units}'"
+            )
         if not epsilon > 0:
             raise ModelInputError(f"law 'smc': epsilon must be positive, got {epsilon}")
         self.lam, self.k = np.asarray(lam, float), np.asarray(k, float)
@@ -49,9 +58,13 @@ class SMCLaw(FeedbackLaw):
 
     @property
     def params(self) -> dict[str, Any]:
-        return {"lambda": self.lam.tolist(), "k": self.k.tolist(), "epsilon": self.epsilon,
-                "switching_units": self.switching_units,
-                "equivalent_control": "computed torque ID^(q, qd, qdd_d + lambda e_dot), one RNEIDA call"}  # fmt: skip
+        return {
+            "lambda": self.lam.tolist(),
+            "k": self.k.tolist(),
+            "epsilon": self.epsilon,
+            "switching_units": self.switching_units,
+            "equivalent_control": "computed torque ID^(q, qd, qdd_d + lambda e_dot), one RNEIDA call",
+        }
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         lam, k = const(xp, self.lam), const(xp, self.k)

@@ -196,8 +196,10 @@ def _link_inertial(path: Path, link: ET.Element) -> tuple[float, np.ndarray, np.
             raise ModelInputError(f"{path.name}: link '{link.get('name')}' <inertia> {k}: negative ({i[k]:g})")
     smallest = float(np.linalg.eigvalsh(tensor)[0])
     if smallest < -1e-12 * max(1.0, float(np.abs(tensor).max())):
-        raise ModelInputError(f"{path.name}: link '{link.get('name')}' <inertia>: not positive semi-definite "
-                              f"(principal moment {smallest:g})")  # fmt: skip
+        raise ModelInputError(
+            f"{path.name}: link '{link.get('name')}' <inertia>: not positive semi-definite "
+            f"(principal moment {smallest:g})"
+        )
     return mass, com, rotation @ tensor @ rotation.T
 
 
@@ -289,8 +291,10 @@ def _chain_from_urdf(
             stack.append(j.find("child").get("link"))  # type: ignore[union-attr]
     for joint in on_chain:
         if joint.get("type") == "prismatic":
-            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' type 'prismatic' on the arm's chain: "
-                                  "only revolute and continuous joints are supported")  # fmt: skip
+            raise ModelInputError(
+                f"{path.name}: joint '{joint.get('name')}' type 'prismatic' on the arm's chain: "
+                "only revolute and continuous joints are supported"
+            )
     for j in joints:
         if j.get("type") not in _MOVING | {"fixed", "prismatic"}:
             raise ModelInputError(f"{path.name}: joint '{j.get('name')}' type '{j.get('type')}' not supported")
@@ -333,19 +337,25 @@ def _chain_from_urdf(
         axes.append(axis / np.linalg.norm(axis))
         limit = joint.find("limit")
         if limit is None and joint.get("type") == "revolute":  # URDF requires it; NaN limits otherwise
-            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit>: missing "
-                                  "(a revolute joint needs lower, upper, effort and velocity)")  # fmt: skip
+            raise ModelInputError(
+                f"{path.name}: joint '{joint.get('name')}' <limit>: missing "
+                "(a revolute joint needs lower, upper, effort and velocity)"
+            )
         lower = float(_floats(path, limit, "lower", "0", 1)[0]) if limit is not None else -math.inf
         upper = float(_floats(path, limit, "upper", "0", 1)[0]) if limit is not None else math.inf
         if joint.get("type") == "continuous":
             lower, upper = -math.inf, math.inf
         elif lower > upper:
-            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit>: lower {lower:g} above upper {upper:g}")
+            raise ModelInputError(
+                f"{path.name}: joint '{joint.get('name')}' <limit>: lower {lower:g} above upper {upper:g}"
+            )
         pos_range.append((lower, upper))
         velocity = float(_floats(path, limit, "velocity", "inf", 1)[0]) if limit is not None else math.inf
         effort = float(_floats(path, limit, "effort", "inf", 1)[0]) if limit is not None else math.inf
         if velocity <= 0 or effort <= 0:
-            raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit>: velocity and effort must be positive")
+            raise ModelInputError(
+                f"{path.name}: joint '{joint.get('name')}' <limit>: velocity and effort must be positive"
+            )
         vel_lim.append(velocity)
         tau_lim.append(effort)
 

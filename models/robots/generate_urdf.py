@@ -33,7 +33,9 @@ def render_urdf(params: dict) -> str:
         '  <link name="base_link"/>',
     ]
     parent, offset = "base_link", (0.0, 0.0, 0.0)
-    joints = zip(params["links"], params["joint_names"], params["position_limit_rad"], params["torque_limit_nm"], strict=True)
+    joints = zip(
+        params["links"], params["joint_names"], params["position_limit_rad"], params["torque_limit_nm"], strict=True
+    )
     for link, joint_name, pos_limit, torque_limit in joints:
         name, length, mass = link["name"], link["length_m"], link["mass_kg"]
         direction = _UNIT[link["along"]]

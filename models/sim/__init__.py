@@ -4,6 +4,13 @@ from models.sim.closed_loop import Plant, SimConfig, Trajectory, simulate
 from models.sim.controllers import MODES, Controller, ControllerStack, FeedbackController, make_controller
 
 __all__ = [
-    "MODES", "Controller", "ControllerStack", "FeedbackController", "Plant", "SimConfig", "Trajectory",
-    "make_controller", "simulate",
-]  # fmt: skip
+    "MODES",
+    "Controller",
+    "ControllerStack",
+    "FeedbackController",
+    "Plant",
+    "SimConfig",
+    "Trajectory",
+    "make_controller",
+    "simulate",
+]

@@ -59,8 +59,14 @@ class Trajectory:
 
     def run(self, b: int) -> dict[str, np.ndarray]:
         """One run's arrays, for saving as .npz."""
-        out = {"t": self.t_s, "q": self.q[b], "qd": self.qd[b], "q_ref": self.q_ref[b],
-               "qd_ref": self.qd_ref[b], "tau": self.tau[b]}  # fmt: skip
+        out = {
+            "t": self.t_s,
+            "q": self.q[b],
+            "qd": self.qd[b],
+            "q_ref": self.q_ref[b],
+            "qd_ref": self.qd_ref[b],
+            "tau": self.tau[b],
+        }
         if self.tau_fb is not None:
             out["tau_fb"] = self.tau_fb[b]
         return out
@@ -81,7 +87,9 @@ class Plant:
         friction = self.viscous * qd + self.coulomb * np.tanh(qd / COULOMB_SMOOTHING_RAD_S)
         return self.dynamics.forward_dynamics(q, qd, tau - friction)
 
-    def integrate(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def integrate(
+        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, duration_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """RK4 over ``duration_s`` with torque held, in steps no longer than dt / substeps."""
         steps = max(1, math.ceil(duration_s / (self.config.dt_s / self.config.substeps) - 1e-9))
         h = duration_s / steps
@@ -159,18 +167,32 @@ def simulate(
                 progress(1)
 
     traj = Trajectory(
-        t_s=t, q=log_q, qd=log_qd, q_ref=q_ref, qd_ref=qd_ref, tau=log_tau,
+        t_s=t,
+        q=log_q,
+        qd=log_qd,
+        q_ref=q_ref,
+        qd_ref=qd_ref,
+        tau=log_tau,
         tau_fb=None if np.isnan(log_fb).all() else log_fb,
-        condition_names=[c.name for c in conditions], disturbance=dist,
-    )  # fmt: skip
+        condition_names=[c.name for c in conditions],
+        disturbance=dist,
+    )
     traj.position_ratio = np.max(robot.position_limit_ratio(log_q), axis=(1, 2))
     traj.velocity_ratio = np.max(np.abs(log_qd) / robot.velocity_limit_rad_s, axis=(1, 2))
     traj.finite = finite
     return traj
 
 
-def _advance(plant: Plant, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, t0: float, dt: float,
-             dist: Disturbance | None, dist_torque: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def _advance(
+    plant: Plant,
+    q: np.ndarray,
+    qd: np.ndarray,
+    tau: np.ndarray,
+    t0: float,
+    dt: float,
+    dist: Disturbance | None,
+    dist_torque: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
     """One control period; split at the disturbance pulse's edges so it is integrated exactly."""
     t1 = t0 + dt
     if dist is None or dist.duration_s <= 0 or dist.time_s >= t1 or dist.time_s + dist.duration_s <= t0:

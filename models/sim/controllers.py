@@ -28,8 +28,9 @@ class Controller(Protocol):
     def reset(self, q0: np.ndarray) -> None:
         """Start a run from positions q0 (B, N) at rest."""
 
-    def __call__(self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,
-                 qdd_d: np.ndarray) -> np.ndarray:  # fmt: skip
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         """Torques (B, N) to hold over the next period."""
 
 
