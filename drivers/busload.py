@@ -133,9 +133,7 @@ def compute_bus_load(
         raise ValueError("need at least one drive, a positive rate and a positive bitrate")
     if data_bitrate is None:
         bits = classical_frame_bits(0) + n_drives * (
-            classical_frame_bits(RPDO_BYTES)
-            + classical_frame_bits(TPDO1_BYTES)
-            + classical_frame_bits(TPDO2_BYTES)
+            classical_frame_bits(RPDO_BYTES) + classical_frame_bits(TPDO1_BYTES) + classical_frame_bits(TPDO2_BYTES)
         )
         nominal_bits, data_bits, frames = bits, 0, 1 + 3 * n_drives
         cycle_time_s = bits / bitrate
@@ -178,18 +176,20 @@ def what_would_fit(load: BusLoad, limit: float = DEFAULT_LIMIT) -> str:
     for data_bitrate in STANDARD_FD_DATA_BITRATES:
         if load.data_bitrate is not None and data_bitrate <= load.data_bitrate:
             continue
-        fd = compute_bus_load(load.n_drives, load.rate_hz, load.bitrate, data_bitrate, hb_period,
-                              load.fd_tpdo_bytes, master_hb_period)
+        fd = compute_bus_load(
+            load.n_drives, load.rate_hz, load.bitrate, data_bitrate, hb_period, load.fd_tpdo_bytes, master_hb_period
+        )
         if fd.load <= limit:
-            parts.append(
-                f"{load.rate_hz:g} Hz needs CAN FD with a {_mbit(data_bitrate)} data phase "
-                f"({fd.load:.0%})"
-            )
+            parts.append(f"{load.rate_hz:g} Hz needs CAN FD with a {_mbit(data_bitrate)} data phase ({fd.load:.0%})")
             break
     per_bus = 0
     for n in range(load.n_drives, 0, -1):
-        if compute_bus_load(n, load.rate_hz, load.bitrate, load.data_bitrate, hb_period,
-                            load.fd_tpdo_bytes, master_hb_period).load <= limit:
+        if (
+            compute_bus_load(
+                n, load.rate_hz, load.bitrate, load.data_bitrate, hb_period, load.fd_tpdo_bytes, master_hb_period
+            ).load
+            <= limit
+        ):
             per_bus = n
             break
     if per_bus:
@@ -210,10 +210,9 @@ def check_bus_load(
     master_heartbeat_period_s: float | None = None,
 ) -> BusLoad:
     """The bus load, or :class:`BusLoadError` saying what would fit when above ``limit``."""
-    load = compute_bus_load(n_drives, rate_hz, bitrate, data_bitrate, heartbeat_period_s, fd_tpdo_bytes,
-                            master_heartbeat_period_s)
+    load = compute_bus_load(
+        n_drives, rate_hz, bitrate, data_bitrate, heartbeat_period_s, fd_tpdo_bytes, master_heartbeat_period_s
+    )
     if load.load > limit:
-        raise BusLoadError(
-            f"{source}: {load.describe()}, above the {limit:.0%} limit; {what_would_fit(load, limit)}"
-        )
+        raise BusLoadError(f"{source}: {load.describe()}, above the {limit:.0%} limit; {what_would_fit(load, limit)}")
     return load

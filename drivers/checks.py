@@ -40,32 +40,45 @@ def _require(condition: bool, message: str) -> None:
 
 def check_feedback(feedback: Any, n_joints: int, where: str) -> None:
     """One cycle's feedback: every JointFeedback field present, (n,) float arrays, finite where fresh."""
-    _require(isinstance(feedback, JointFeedback), f"{where}: returned {type(feedback).__name__}, "
-             "which lacks JointFeedback fields")
+    _require(
+        isinstance(feedback, JointFeedback),
+        f"{where}: returned {type(feedback).__name__}, which lacks JointFeedback fields",
+    )
     _require(isinstance(feedback.cycle, (int, np.integer)), f"{where}: cycle is not an integer")
     for name in ("position_rad", "velocity_rad_s", "torque_nm", "commanded_torque_nm"):
         value = getattr(feedback, name)
-        _require(isinstance(value, np.ndarray) and value.shape == (n_joints,),
-                 f"{where}: {name} is not an ndarray of shape ({n_joints},)")
+        _require(
+            isinstance(value, np.ndarray) and value.shape == (n_joints,),
+            f"{where}: {name} is not an ndarray of shape ({n_joints},)",
+        )
         _require(value.dtype.kind == "f", f"{where}: {name} has dtype {value.dtype}, expected float")
     fresh = feedback.fresh
-    _require(isinstance(fresh, np.ndarray) and fresh.shape == (n_joints,) and fresh.dtype == np.bool_,
-             f"{where}: fresh is not a bool ndarray of shape ({n_joints},)")
+    _require(
+        isinstance(fresh, np.ndarray) and fresh.shape == (n_joints,) and fresh.dtype == np.bool_,
+        f"{where}: fresh is not a bool ndarray of shape ({n_joints},)",
+    )
     for name in ("position_rad", "velocity_rad_s", "torque_nm"):
         _require(bool(np.isfinite(getattr(feedback, name)[fresh]).all()), f"{where}: non-finite fresh {name}")
     _require(bool(np.isfinite(feedback.commanded_torque_nm).all()), f"{where}: non-finite commanded_torque_nm")
-    _require(isinstance(feedback.states, tuple) and len(feedback.states) == n_joints
-             and all(isinstance(s, State) for s in feedback.states),
-             f"{where}: states is not a tuple of {n_joints} State values")
+    _require(
+        isinstance(feedback.states, tuple)
+        and len(feedback.states) == n_joints
+        and all(isinstance(s, State) for s in feedback.states),
+        f"{where}: states is not a tuple of {n_joints} State values",
+    )
 
 
 def _check_counters(bus: JointBus, where: str) -> dict[str, int]:
     counters = bus.counters
-    _require(dataclasses.is_dataclass(counters) and not isinstance(counters, type),
-             f"{where}: counters is not a dataclass instance")
+    _require(
+        dataclasses.is_dataclass(counters) and not isinstance(counters, type),
+        f"{where}: counters is not a dataclass instance",
+    )
     values: dict[str, int] = dataclasses.asdict(counters)  # type: ignore[call-overload]  # checked just above
-    _require(all(isinstance(v, int) and v >= 0 for v in values.values()),
-             f"{where}: counters are not all non-negative integers: {values}")
+    _require(
+        all(isinstance(v, int) and v >= 0 for v in values.values()),
+        f"{where}: counters are not all non-negative integers: {values}",
+    )
     try:
         setattr(counters, next(iter(values)), 0)
     except dataclasses.FrozenInstanceError:
@@ -111,8 +124,10 @@ def check_joint_bus(bus: JointBus, hold_torque_nm: np.ndarray | None = None, cyc
         feedback = bus.enable(hold)
         check_feedback(feedback, n, "enable()")
         _require(bus.enabled, "enabled is false after enable() returned")
-        _require(all(s is State.OPERATION_ENABLED for s in feedback.states),
-                 f"enable() returned states {[s.value for s in feedback.states]}, expected operation enabled")
+        _require(
+            all(s is State.OPERATION_ENABLED for s in feedback.states),
+            f"enable() returned states {[s.value for s in feedback.states]}, expected operation enabled",
+        )
         before = _check_counters(bus, "after enable()")
 
         last_cycle = int(feedback.cycle)
@@ -120,21 +135,26 @@ def check_joint_bus(bus: JointBus, hold_torque_nm: np.ndarray | None = None, cyc
             feedback = bus.exchange(hold)
             where = f"exchange() #{k + 1}"
             check_feedback(feedback, n, where)
-            _require(int(feedback.cycle) > last_cycle, f"{where}: cycle {feedback.cycle} did not advance "
-                     f"from {last_cycle}")
+            _require(
+                int(feedback.cycle) > last_cycle, f"{where}: cycle {feedback.cycle} did not advance from {last_cycle}"
+            )
             last_cycle = int(feedback.cycle)
         after = _check_counters(bus, f"after {cycles} exchanges")
         if "cycles" in before:
-            _require(after["cycles"] >= before["cycles"] + cycles,
-                     f"counters.cycles went from {before['cycles']} to {after['cycles']} over {cycles} exchanges")
+            _require(
+                after["cycles"] >= before["cycles"] + cycles,
+                f"counters.cycles went from {before['cycles']} to {after['cycles']} over {cycles} exchanges",
+            )
 
         _expect_refused(bus, np.zeros(n + 1), "wrong shape")
         _expect_refused(bus, np.full(n, np.nan), "NaN")
 
         states = bus.quick_stop()
         _require(not bus.enabled, "enabled is true after quick_stop()")
-        _require(isinstance(states, tuple) and len(states) == n and all(s in _STOPPED for s in states),
-                 f"quick_stop() returned {states!r}, expected {n} quick-stop/switch-on-disabled states")
+        _require(
+            isinstance(states, tuple) and len(states) == n and all(s in _STOPPED for s in states),
+            f"quick_stop() returned {states!r}, expected {n} quick-stop/switch-on-disabled states",
+        )
         try:
             bus.exchange(hold)
         except DriveStateError:
@@ -147,9 +167,12 @@ def check_joint_bus(bus: JointBus, hold_torque_nm: np.ndarray | None = None, cyc
         _require(bus.enabled, "enable() after quick_stop() did not enable")
         states = bus.disable()
         _require(not bus.enabled, "enabled is true after disable()")
-        _require(isinstance(states, tuple) and len(states) == n
-                 and all(s in (State.SWITCH_ON_DISABLED, State.FAULT) for s in states),
-                 f"disable() returned {states!r}, expected switch on disabled")
+        _require(
+            isinstance(states, tuple)
+            and len(states) == n
+            and all(s in (State.SWITCH_ON_DISABLED, State.FAULT) for s in states),
+            f"disable() returned {states!r}, expected switch on disabled",
+        )
         bus.fault_reset()  # nothing faulted: must be harmless
     finally:
         bus.close()

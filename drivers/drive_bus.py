@@ -78,8 +78,9 @@ _RUNTIME_ERRORS = (FeedbackTimeoutError, DriveFaultError, HeartbeatLostError, Dr
 class _Services:
     """The protocol services of one DriveBus, built at its first connect (they load the EDS)."""
 
-    def __init__(self, config: DriveBusConfig, network: DriveNetwork, nodes: Sequence[DriveNode],
-                 sync: SyncProducer) -> None:
+    def __init__(
+        self, config: DriveBusConfig, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer
+    ) -> None:
         self.sdo = SdoClient(network, nodes, config.eds_path or odx.EDS_PATH, config.sdo_timeout_s)
         self.heartbeats = HeartbeatConsumer(network, nodes, config.heartbeat_timeout_s)
         self.emcy = EmcyConsumer(network, nodes)
@@ -193,8 +194,13 @@ class DriveBus:
         for node in nodes:
             send_command(network, fr.NmtCommand.START, node.node_id)
         # Heartbeats were switched on by SDO (0x1017); the first one after START confirms it.
-        wait_for(network, nodes, lambda node: node.nmt_state is fr.NmtState.OPERATIONAL,
-                 timeout + config.heartbeat_producer_ms / 1000, "not NMT operational")
+        wait_for(
+            network,
+            nodes,
+            lambda node: node.nmt_state is fr.NmtState.OPERATIONAL,
+            timeout + config.heartbeat_producer_ms / 1000,
+            "not NMT operational",
+        )
         services.heartbeats.arm()
 
     # --- the cycle -------------------------------------------------------------------------------
@@ -221,8 +227,9 @@ class DriveBus:
             permille, commanded = [0] * self.n_joints, self._zeros_nm
         else:
             permille, commanded = self._setpoints(hold_torque_nm, "hold_torque_nm")
-        feedback = p402.walk_to_enabled(self._cycle, self.nodes, permille, commanded,
-                                        self.config.state_change_timeout_s, self._raise_pending)
+        feedback = p402.walk_to_enabled(
+            self._cycle, self.nodes, permille, commanded, self.config.state_change_timeout_s, self._raise_pending
+        )
         for node in self.nodes:
             node.missed_cycles = 0
         self._residual_nm[:] = 0.0

@@ -70,8 +70,7 @@ class FeedbackTimeoutError(DriveError, TimeoutError):
         self.node_ids = node_ids
         self.missed_cycles = missed_cycles
         super().__init__(
-            f"no feedback from drive(s) {', '.join(map(str, node_ids))} "
-            f"for {missed_cycles} consecutive cycle(s)"
+            f"no feedback from drive(s) {', '.join(map(str, node_ids))} for {missed_cycles} consecutive cycle(s)"
         )
 
 
@@ -96,8 +95,7 @@ class SdoAbortError(SdoError):
         self.subindex = subindex
         self.code = code
         super().__init__(
-            f"drive {node_id} aborted SDO 0x{index:04X}:{subindex:02X} with 0x{code:08X} "
-            f"({abort_code_text(code)})"
+            f"drive {node_id} aborted SDO 0x{index:04X}:{subindex:02X} with 0x{code:08X} ({abort_code_text(code)})"
         )
 
 

@@ -23,12 +23,12 @@ from drivers.node import DriveNode
 
 
 def send_command(network: DriveNetwork, command: fr.NmtCommand, node_id: int = 0) -> None:
-    network.send(can.Message(arbitration_id=fr.NMT_COB_ID, data=fr.encode_nmt(command, node_id),
-                             is_extended_id=False))
+    network.send(can.Message(arbitration_id=fr.NMT_COB_ID, data=fr.encode_nmt(command, node_id), is_extended_id=False))
 
 
-def wait_for(network: DriveNetwork, nodes: Sequence[DriveNode], done: Callable[[DriveNode], bool],
-             timeout_s: float, what: str) -> None:
+def wait_for(
+    network: DriveNetwork, nodes: Sequence[DriveNode], done: Callable[[DriveNode], bool], timeout_s: float, what: str
+) -> None:
     """Until ``done(node)`` for every drive; :class:`DriveStateError` naming the others after
     ``timeout_s``; a transport failure seen meanwhile is raised at once."""
     deadline = time.monotonic() + timeout_s
@@ -87,7 +87,8 @@ class HeartbeatConsumer:
             if not node.heartbeat_lost and now - node.last_heartbeat_s > timeout:
                 node.heartbeat_lost = True
                 self.network.errors.append(
-                    HeartbeatLostError(node.node_id, f"no heartbeat for {now - node.last_heartbeat_s:.3f} s"))
+                    HeartbeatLostError(node.node_id, f"no heartbeat for {now - node.last_heartbeat_s:.3f} s")
+                )
 
 
 class HeartbeatProducer:
@@ -97,8 +98,11 @@ class HeartbeatProducer:
     def __init__(self, network: DriveNetwork, node_id: int, period_s: float) -> None:
         self.network = network
         self.period_s = period_s
-        self.msg = can.Message(arbitration_id=fr.HEARTBEAT_BASE + node_id,
-                               data=fr.encode_heartbeat(fr.NmtState.OPERATIONAL), is_extended_id=False)
+        self.msg = can.Message(
+            arbitration_id=fr.HEARTBEAT_BASE + node_id,
+            data=fr.encode_heartbeat(fr.NmtState.OPERATIONAL),
+            is_extended_id=False,
+        )
         self.next_s = float("inf")  # stopped
         self.sent = 0
 

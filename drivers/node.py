@@ -51,8 +51,13 @@ class DriveNode:
     def __post_init__(self) -> None:
         self.permille_per_nm = 1e6 / self.joint.effective_rated_torque_mnm
         self.max_torque_nm = self.joint.max_torque_nm
-        self.rpdo = can.Message(arbitration_id=fr.RPDO1_BASE + self.node_id, data=bytearray(fr.RPDO_LENGTH),
-                                is_extended_id=False, is_fd=self.fd, bitrate_switch=self.fd)
+        self.rpdo = can.Message(
+            arbitration_id=fr.RPDO1_BASE + self.node_id,
+            data=bytearray(fr.RPDO_LENGTH),
+            is_extended_id=False,
+            is_fd=self.fd,
+            bitrate_switch=self.fd,
+        )
 
     @property
     def node_id(self) -> int:

@@ -68,8 +68,9 @@ def set_rpdo_timeout(sdo: SdoClient, node_id: int, timeout_ms: int) -> bool:
 class CyclicExchange:
     """The control cycle. Not thread-safe: the caller's thread only."""
 
-    def __init__(self, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer,
-                 feedback_timeout_s: float, fd: bool) -> None:
+    def __init__(
+        self, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer, feedback_timeout_s: float, fd: bool
+    ) -> None:
         self.network = network
         self.nodes = tuple(nodes)
         self.sync = sync

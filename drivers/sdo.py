@@ -41,8 +41,9 @@ class _CanopenNetwork(canopen.Network):
 
 
 class SdoClient:
-    def __init__(self, network: DriveNetwork, nodes: Sequence[DriveNode], eds_path: Path | str,
-                 timeout_s: float) -> None:
+    def __init__(
+        self, network: DriveNetwork, nodes: Sequence[DriveNode], eds_path: Path | str, timeout_s: float
+    ) -> None:
         self.network = network
         self._canopen = _CanopenNetwork(network)
         self._by_id: dict[int, DriveNode] = {}

@@ -47,7 +47,8 @@ def configure_master_loss(sdo: SdoClient, node: DriveNode, config: DriveBusConfi
         if sdo.variable(node_id, index, subindex) is None:
             raise DriveConfigError(
                 f"joints.{node.index}: the EDS of drive {node_id} has no 0x{index:04X}:{subindex:02X}, needed "
-                "for the drive to stop on loss of the master (comm_loss_timeout_s: null runs without)")
+                "for the drive to stop on loss of the master (comm_loss_timeout_s: null runs without)"
+            )
     timeout_ms = max(1, round(config.comm_loss_timeout_s * 1000))
     sdo.write(node_id, odx.CONSUMER_HEARTBEAT, 1, (config.master_node_id << 16) | timeout_ms)
     set_rpdo_timeout(sdo, node_id, timeout_ms)
@@ -81,6 +82,8 @@ def fail_safe(cycle: p402.Cycle, nodes: Sequence[DriveNode]) -> None:
         except DriveError as exc:
             log.warning("quick stop after an error failed: %s", exc)
             return
-        if all(not fresh or s in p402.QUICK_STOP_STATES or s in p402.FAULT_STATES
-               for fresh, s in zip(feedback.fresh, feedback.states, strict=True)):
+        if all(
+            not fresh or s in p402.QUICK_STOP_STATES or s in p402.FAULT_STATES
+            for fresh, s in zip(feedback.fresh, feedback.states, strict=True)
+        ):
             return

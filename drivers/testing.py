@@ -78,15 +78,19 @@ class FakeJointBus:
             raise ValueError("n_joints must be at least 1")
         self._n = n_joints
         self.period_s = period_s
-        self.plant: PlantStep = plant or DoubleIntegrator(np.broadcast_to(
-            np.asarray(inertia_kgm2, dtype=np.float64), (n_joints,)).copy())
+        self.plant: PlantStep = plant or DoubleIntegrator(
+            np.broadcast_to(np.asarray(inertia_kgm2, dtype=np.float64), (n_joints,)).copy()
+        )
         self.max_torque_nm = np.broadcast_to(np.asarray(max_torque_nm, dtype=np.float64), (n_joints,)).copy()
         self.max_missed_cycles = max_missed_cycles
         self.node_ids = tuple(node_ids) if node_ids is not None else tuple(range(1, n_joints + 1))
         if len(self.node_ids) != n_joints:
             raise ValueError("node_ids must name one node per joint")
-        self.position_rad = (np.zeros(n_joints) if initial_position_rad is None
-                             else np.asarray(initial_position_rad, dtype=np.float64).copy())
+        self.position_rad = (
+            np.zeros(n_joints)
+            if initial_position_rad is None
+            else np.asarray(initial_position_rad, dtype=np.float64).copy()
+        )
         self.velocity_rad_s = np.zeros(n_joints)
         self.applied_torque_nm = np.zeros(n_joints)
 
@@ -142,8 +146,12 @@ class FakeJointBus:
 
     @property
     def counters(self) -> BusCounters:
-        return BusCounters(cycles=self._cycle, frames_sent=self._cycle * (self._n + 1),
-                           frames_received=self._cycle * self._n - self._dropped, dropped=self._dropped)
+        return BusCounters(
+            cycles=self._cycle,
+            frames_sent=self._cycle * (self._n + 1),
+            frames_received=self._cycle * self._n - self._dropped,
+            dropped=self._dropped,
+        )
 
     def connect(self) -> None:
         self.events.append("connect")
@@ -198,8 +206,9 @@ class FakeJointBus:
         if not self._connected:
             raise DriveStateError("not connected: call connect() first")
         self._next_error = None
-        self._states = [State.SWITCH_ON_DISABLED if s in (State.FAULT, State.FAULT_REACTION_ACTIVE) else s
-                        for s in self._states]
+        self._states = [
+            State.SWITCH_ON_DISABLED if s in (State.FAULT, State.FAULT_REACTION_ACTIVE) else s for s in self._states
+        ]
 
     def close(self) -> None:
         self.events.append("close")
@@ -269,8 +278,10 @@ class FakeJointBus:
         self._enabled = False
         if self._connected:
             self._states = [
-                s if s in (State.FAULT, State.FAULT_REACTION_ACTIVE)
-                else State.QUICK_STOP_ACTIVE if target is State.QUICK_STOP_ACTIVE and s in _QUICK_STOPPABLE
+                s
+                if s in (State.FAULT, State.FAULT_REACTION_ACTIVE)
+                else State.QUICK_STOP_ACTIVE
+                if target is State.QUICK_STOP_ACTIVE and s in _QUICK_STOPPABLE
                 else State.SWITCH_ON_DISABLED
                 for s in self._states
             ]

@@ -45,8 +45,9 @@ def _factory(interface: str) -> Callable[[TransportConfig], can.BusABC]:
     try:
         module_name, function = BACKENDS[interface]
     except KeyError:  # the config's Literal rules this out unless the two tables disagree
-        raise TransportError(f"transport.interface: no backend for {interface!r} "
-                             f"(known: {', '.join(BACKENDS)})") from None
+        raise TransportError(
+            f"transport.interface: no backend for {interface!r} (known: {', '.join(BACKENDS)})"
+        ) from None
     factory: Callable[[TransportConfig], can.BusABC] = getattr(importlib.import_module(module_name), function)
     return factory
 
@@ -61,6 +62,4 @@ def open_bus(config: TransportConfig) -> can.BusABC:
         raise
     except (can.CanError, OSError, ValueError, ImportError, AssertionError) as exc:
         # python-can-remote asserts on a bad websocket handshake; all are "could not open".
-        raise TransportError(
-            f"cannot open {config.interface} bus {channel!r}: {exc or type(exc).__name__}"
-        ) from exc
+        raise TransportError(f"cannot open {config.interface} bus {channel!r}: {exc or type(exc).__name__}") from exc

@@ -70,8 +70,7 @@ from sim_target.emulated.node import (
 from sim_target.emulated.objects import ObjectServer
 from sim_target.emulated.supervision import MasterWatch
 
-__all__ = ["DriveCounters", "EmulatedDrives", "EmulatedDrivesConfig", "FrameFaults", "MasterLoss",
-           "make_drive_bank"]
+__all__ = ["DriveCounters", "EmulatedDrives", "EmulatedDrivesConfig", "FrameFaults", "MasterLoss", "make_drive_bank"]
 
 log = logging.getLogger(__name__)
 
@@ -118,9 +117,14 @@ class EmulatedDrives:
         self._drives: list[EmulatedDrive] = []
         self._watch = MasterWatch(self._link, self._drives)
         self._nmt = NmtSlave(self._link, self._drives, lambda drive, comm_only: self._objects.reset(drive, comm_only))
-        self._objects = ObjectServer(config.encoder_counts_per_rev, config.heartbeat_producer_ms,
-                                     lambda: self._feedback, lambda: self._sync_counter, self._watch.configure,
-                                     self._nmt.schedule)
+        self._objects = ObjectServer(
+            config.encoder_counts_per_rev,
+            config.heartbeat_producer_ms,
+            lambda: self._feedback,
+            lambda: self._sync_counter,
+            self._watch.configure,
+            self._nmt.schedule,
+        )
         eds = config.eds_path or odx.EDS_PATH
         self._network = _EmuNetwork(self)
         counts_per_rad = counts_per_rad_from_resolution(config.encoder_counts_per_rev)
@@ -167,8 +171,10 @@ class EmulatedDrives:
 
     def commanded_torque_nm(self) -> np.ndarray:
         return np.array(
-            [d.applied_permille * d.rated_torque_mnm * 1e-6 if d.state is State.OPERATION_ENABLED else 0.0
-             for d in self._drives]
+            [
+                d.applied_permille * d.rated_torque_mnm * 1e-6 if d.state is State.OPERATION_ENABLED else 0.0
+                for d in self._drives
+            ]
         )
 
     def operation_enabled(self) -> np.ndarray:
@@ -259,8 +265,17 @@ class EmulatedDrives:
     @property
     def counters(self) -> DriveCounters:
         link = self._link
-        return DriveCounters(self._received, link.sent, self._malformed, self._unknown, self._syncs,
-                             link.dropped, link.delayed, link.corrupted, len(self._watch.events))
+        return DriveCounters(
+            self._received,
+            link.sent,
+            self._malformed,
+            self._unknown,
+            self._syncs,
+            link.dropped,
+            link.delayed,
+            link.corrupted,
+            len(self._watch.events),
+        )
 
     # --- receive thread --------------------------------------------------------------------------
 

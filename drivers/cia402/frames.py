@@ -264,9 +264,7 @@ def encode_tpdo2(velocity_counts_s: int) -> bytes:
         raise ValueError(f"TPDO2 field out of range: {exc}") from None
 
 
-def encode_tpdo_fd(
-    statusword: int, torque_actual_permille: int, position_counts: int, velocity_counts_s: int
-) -> bytes:
+def encode_tpdo_fd(statusword: int, torque_actual_permille: int, position_counts: int, velocity_counts_s: int) -> bytes:
     try:
         return _TPDO_FD.pack(statusword, torque_actual_permille, position_counts, velocity_counts_s)
     except struct.error as exc:
@@ -289,20 +287,24 @@ def encode_tpdo_fd_sync(
     statusword: int, torque_actual_permille: int, position_counts: int, velocity_counts_s: int, sync_counter: int
 ) -> bytes:
     try:
-        return _TPDO_FD_SYNC.pack(statusword, torque_actual_permille, position_counts, velocity_counts_s,
-                                  sync_counter)
+        return _TPDO_FD_SYNC.pack(statusword, torque_actual_permille, position_counts, velocity_counts_s, sync_counter)
     except struct.error as exc:
         raise ValueError(f"tagged FD TPDO field out of range: {exc}") from None
 
 
 def encode_tpdo_fd_sync_into(
-    buffer: bytearray, statusword: int, torque_actual_permille: int, position_counts: int,
-    velocity_counts_s: int, sync_counter: int,
+    buffer: bytearray,
+    statusword: int,
+    torque_actual_permille: int,
+    position_counts: int,
+    velocity_counts_s: int,
+    sync_counter: int,
 ) -> None:
     """The tagged FD TPDO written into a reused 16-byte frame buffer (the drive's SYNC answer)."""
     try:
-        _pack_tpdo_fd_sync_into(buffer, 0, statusword, torque_actual_permille, position_counts,
-                                velocity_counts_s, sync_counter)
+        _pack_tpdo_fd_sync_into(
+            buffer, 0, statusword, torque_actual_permille, position_counts, velocity_counts_s, sync_counter
+        )
     except struct.error as exc:
         raise ValueError(f"tagged FD TPDO field out of range: {exc}") from None
 

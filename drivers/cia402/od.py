@@ -168,7 +168,6 @@ def load_object_dictionary(node_id: int, eds_path: Path | str = EDS_PATH) -> Obj
             raise EdsError(f"{path}: [{index:04X}] sub {subindex}: required object missing")
         if var.data_type != data_type:
             raise EdsError(
-                f"{path}: [{index:04X}] sub {subindex}: DataType 0x{var.data_type:04X}, "
-                f"expected 0x{data_type:04X}"
+                f"{path}: [{index:04X}] sub {subindex}: DataType 0x{var.data_type:04X}, expected 0x{data_type:04X}"
             )
     return od

@@ -64,9 +64,7 @@ def decode_statusword(statusword: int) -> State:
 
 
 # Cache all 128 combinations of the relevant bits: the driver decodes one per drive per cycle.
-_STATE_BY_BITS: Final[tuple[State, ...]] = tuple(
-    decode_statusword((b & 0x0F) | ((b & 0x30) << 1)) for b in range(64)
-)
+_STATE_BY_BITS: Final[tuple[State, ...]] = tuple(decode_statusword((b & 0x0F) | ((b & 0x30) << 1)) for b in range(64))
 
 
 def decode_statusword_fast(statusword: int) -> State:
@@ -134,9 +132,7 @@ def next_controlword(current: State, target: State) -> int | None:
     raise ValueError(f"no transition from {current.value} to {target.value}")
 
 
-def apply_controlword(
-    state: State, controlword: int, previous_controlword: int, quick_stop_option: int
-) -> State:
+def apply_controlword(state: State, controlword: int, previous_controlword: int, quick_stop_option: int) -> State:
     """Drive side: the state after one controlword (applied at SYNC).
 
     ``quick_stop_option`` is 0x605A: 5..8 stay in Quick Stop Active, anything else passes on to

@@ -52,8 +52,9 @@ def _remote_bus_class() -> type[can.BusABC]:
 
         def _closed(self, exc: BaseException) -> TransportError:
             if self._peer_closed is None:
-                self._peer_closed = (f"peer closed: the bridge at {self.channel} closed the connection "
-                                     f"({type(exc).__name__}: {exc})")
+                self._peer_closed = (
+                    f"peer closed: the bridge at {self.channel} closed the connection ({type(exc).__name__}: {exc})"
+                )
             return TransportError(self._peer_closed)
 
         def _check_peer(self) -> None:

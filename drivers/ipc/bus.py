@@ -162,7 +162,8 @@ class IpcBus(can.BusABC):
             path = self.directory / name
             if len(os.fsencode(path)) > MAX_PATH_BYTES:
                 raise can.CanInitializationError(
-                    f"ipc bus: socket path {path} is longer than {MAX_PATH_BYTES} bytes; use a shorter directory")
+                    f"ipc bus: socket path {path} is longer than {MAX_PATH_BYTES} bytes; use a shorter directory"
+                )
             listen = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
             try:
                 listen.bind(os.fspath(path))

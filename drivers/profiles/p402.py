@@ -82,8 +82,14 @@ def describe(nodes: Sequence[DriveNode]) -> str:
     return ", ".join(f"drive {node.node_id}: {node.state.value}" for node in nodes)
 
 
-def walk_to_enabled(cycle: Cycle, nodes: Sequence[DriveNode], permille: Sequence[int], commanded_nm: np.ndarray,
-                    timeout_s: float, raise_pending: Callable[[], None]) -> DriveFeedback:
+def walk_to_enabled(
+    cycle: Cycle,
+    nodes: Sequence[DriveNode],
+    permille: Sequence[int],
+    commanded_nm: np.ndarray,
+    timeout_s: float,
+    raise_pending: Callable[[], None],
+) -> DriveFeedback:
     """Every drive to Operation Enabled, sending ``permille`` with each controlword; a drive in
     Fault raises :class:`DriveFaultError` (fault reset first)."""
     deadline = time.monotonic() + timeout_s
@@ -101,8 +107,9 @@ def walk_to_enabled(cycle: Cycle, nodes: Sequence[DriveNode], permille: Sequence
             raise DriveStateError(f"not in operation enabled after {timeout_s} s: {describe(nodes)}")
 
 
-def stop(cycle: Cycle, nodes: Sequence[DriveNode], controlword: int, targets: frozenset[State],
-         timeout_s: float) -> tuple[State, ...]:
+def stop(
+    cycle: Cycle, nodes: Sequence[DriveNode], controlword: int, targets: frozenset[State], timeout_s: float
+) -> tuple[State, ...]:
     """Send ``controlword`` until every drive confirms a state in ``targets`` (or Fault); best
     effort: returns the states reached, logs instead of raising."""
     n = len(nodes)

@@ -32,8 +32,15 @@ class FrameLink:
         self.delayed = 0
         self.corrupted = 0
 
-    def emit(self, drive: EmulatedDrive, cob_id: int, data: bytes, fd: bool = False, corrupt: bool = False,
-             delay_s: float = 0.0) -> None:
+    def emit(
+        self,
+        drive: EmulatedDrive,
+        cob_id: int,
+        data: bytes,
+        fd: bool = False,
+        corrupt: bool = False,
+        delay_s: float = 0.0,
+    ) -> None:
         """A frame from ``drive``, through its fault policy."""
         faults = drive.policy.faults
         if faults.active:

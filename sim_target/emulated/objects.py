@@ -28,10 +28,15 @@ Feedback = tuple[np.ndarray, np.ndarray, np.ndarray] | None  # position, velocit
 class ObjectServer:
     """Read/write hooks of every drive's object dictionary."""
 
-    def __init__(self, encoder_counts_per_rev: int, heartbeat_producer_ms: int,
-                 feedback: Callable[[], Feedback], sync_counter: Callable[[], int],
-                 on_watch_change: Callable[[float], None],
-                 schedule_heartbeat: Callable[[EmulatedDrive, float], None]) -> None:
+    def __init__(
+        self,
+        encoder_counts_per_rev: int,
+        heartbeat_producer_ms: int,
+        feedback: Callable[[], Feedback],
+        sync_counter: Callable[[], int],
+        on_watch_change: Callable[[float], None],
+        schedule_heartbeat: Callable[[EmulatedDrive, float], None],
+    ) -> None:
         self.encoder_counts_per_rev = encoder_counts_per_rev
         self.heartbeat_producer_ms = heartbeat_producer_ms
         self.feedback = feedback

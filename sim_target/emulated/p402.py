@@ -20,8 +20,9 @@ from drivers.cia402.state_machine import (
 from sim_target.emulated.link import FrameLink
 from sim_target.emulated.node import EmulatedDrive
 
-_VOLTAGE_STATES = frozenset({State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED,
-                             State.QUICK_STOP_ACTIVE})
+_VOLTAGE_STATES = frozenset(
+    {State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE}
+)
 # 0x6007 abort connection option code -> what the drive does (CiA 402 6.3.2).
 ABORT_REACTIONS = {0: "none", 1: "fault", 2: "disable voltage", 3: "quick stop"}
 
@@ -47,8 +48,7 @@ def step(link: FrameLink, drive: EmulatedDrive) -> None:
         drive.applied_permille = 0
         return
     previous_state = drive.state
-    drive.state = apply_controlword(drive.state, drive.controlword, drive.previous_controlword,
-                                    drive.quick_stop_option)
+    drive.state = apply_controlword(drive.state, drive.controlword, drive.previous_controlword, drive.quick_stop_option)
     drive.previous_controlword = drive.controlword
     if previous_state is State.FAULT and drive.state is not State.FAULT:
         drive.error_code = 0
@@ -68,8 +68,10 @@ def enter_fault(link: FrameLink, drive: EmulatedDrive, code: int, register: int 
     drive.state = State.FAULT
     drive.applied_permille = 0
     drive.error_code = code
-    drive.error_register = register if register is not None else fr.ERROR_REGISTER_GENERIC | (
-        fr.ERROR_REGISTER_CURRENT if 0x2000 <= code < 0x3000 else 0
+    drive.error_register = (
+        register
+        if register is not None
+        else fr.ERROR_REGISTER_GENERIC | (fr.ERROR_REGISTER_CURRENT if 0x2000 <= code < 0x3000 else 0)
     )
     link.emit(drive, fr.EMCY_BASE + drive.node_id, fr.encode_emcy(code, drive.error_register))
 

@@ -47,18 +47,29 @@ def set_tpdo1_layout(drive: EmulatedDrive, n_entries: int) -> None:
     drive.fd_layout = n_entries in (len(odx.FD_LAYOUT.tpdo1), len(odx.FD_SYNC_LAYOUT.tpdo1))
     drive.fd_sync_echo = n_entries == len(odx.FD_SYNC_LAYOUT.tpdo1)
     drive.tpdo_msgs[fr.TPDO1_BASE] = can.Message(
-        arbitration_id=fr.TPDO1_BASE + drive.node_id, data=bytearray(fr.TPDO_FD_SYNC_LENGTH), is_extended_id=False,
-        is_fd=True, bitrate_switch=True,
+        arbitration_id=fr.TPDO1_BASE + drive.node_id,
+        data=bytearray(fr.TPDO_FD_SYNC_LENGTH),
+        is_extended_id=False,
+        is_fd=True,
+        bitrate_switch=True,
     )
 
 
-def send_tpdos(link: FrameLink, drive: EmulatedDrive, position_counts: int, velocity_counts: int,
-               torque_permille: int, sync_counter: int) -> None:
+def send_tpdos(
+    link: FrameLink,
+    drive: EmulatedDrive,
+    position_counts: int,
+    velocity_counts: int,
+    torque_permille: int,
+    sync_counter: int,
+) -> None:
     """This drive's answer to a SYNC, through its injected faults."""
     word = statusword(drive)
     policy = drive.policy
-    if drive.fd_sync_echo and drive.tpdo1_valid and not (
-        policy.faults.active or policy.drop_next or policy.corrupt_next or policy.delay_next
+    if (
+        drive.fd_sync_echo
+        and drive.tpdo1_valid
+        and not (policy.faults.active or policy.drop_next or policy.corrupt_next or policy.delay_next)
     ):
         # The hot path: encode into the drive's own message and send it, nothing allocated here.
         msg = drive.tpdo_msgs[fr.TPDO1_BASE]
@@ -85,11 +96,17 @@ def send_tpdos(link: FrameLink, drive: EmulatedDrive, position_counts: int, velo
             link.emit(drive, fr.TPDO1_BASE + drive.node_id, data, fd=True, corrupt=corrupt, delay_s=delay_s)
         return
     if drive.tpdo1_valid:
-        link.emit(drive, fr.TPDO1_BASE + drive.node_id, fr.encode_tpdo1(word, torque_permille, position_counts),
-                  corrupt=corrupt, delay_s=delay_s)
+        link.emit(
+            drive,
+            fr.TPDO1_BASE + drive.node_id,
+            fr.encode_tpdo1(word, torque_permille, position_counts),
+            corrupt=corrupt,
+            delay_s=delay_s,
+        )
     if drive.tpdo2_valid:
-        link.emit(drive, fr.TPDO2_BASE + drive.node_id, fr.encode_tpdo2(velocity_counts),
-                  corrupt=corrupt, delay_s=delay_s)
+        link.emit(
+            drive, fr.TPDO2_BASE + drive.node_id, fr.encode_tpdo2(velocity_counts), corrupt=corrupt, delay_s=delay_s
+        )
 
 
 def write_comm(drive: EmulatedDrive, index: int, subindex: int, value: int) -> bool:

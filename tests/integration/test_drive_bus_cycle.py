@@ -178,8 +178,9 @@ def test_tpdos_of_an_older_sync_are_late_never_fresh() -> None:
 def test_tpdos_queued_before_the_sync_are_drained_as_late(fd: bool) -> None:
     """A well-formed TPDO already on the bus when the cycle starts cannot answer its SYNC."""
     rig = make_rig(n=2, fd=fd, feedback_timeout_s=0.2)
-    intruder = can.Bus(interface="virtual", channel=rig.config.transport.channel, ignore_config=True,
-                       protocol=can.CanProtocol.CAN_FD)
+    intruder = can.Bus(
+        interface="virtual", channel=rig.config.transport.channel, ignore_config=True, protocol=can.CanProtocol.CAN_FD
+    )
     bus, plant = rig.driver, rig.plant
     try:
         bus.enable()
@@ -189,12 +190,21 @@ def test_tpdos_queued_before_the_sync_are_drained_as_late(fd: bool) -> None:
         if fd:
             # Echoing the counter the next SYNC will carry: still queued before that SYNC.
             counter = fr.next_sync_counter(bus.sync_counter)
-            frames = [can.Message(arbitration_id=0x181, is_extended_id=False, is_fd=True,
-                                  data=fr.encode_tpdo_fd_sync(statusword, 0, bogus_counts, 0, counter))]
+            frames = [
+                can.Message(
+                    arbitration_id=0x181,
+                    is_extended_id=False,
+                    is_fd=True,
+                    data=fr.encode_tpdo_fd_sync(statusword, 0, bogus_counts, 0, counter),
+                )
+            ]
         else:
-            frames = [can.Message(arbitration_id=0x181, is_extended_id=False,
-                                  data=fr.encode_tpdo1(statusword, 0, bogus_counts)),
-                      can.Message(arbitration_id=0x281, is_extended_id=False, data=fr.encode_tpdo2(0))]
+            frames = [
+                can.Message(
+                    arbitration_id=0x181, is_extended_id=False, data=fr.encode_tpdo1(statusword, 0, bogus_counts)
+                ),
+                can.Message(arbitration_id=0x281, is_extended_id=False, data=fr.encode_tpdo2(0)),
+            ]
         late = bus.counters.late
         for msg in frames:
             intruder.send(msg)
@@ -225,7 +235,7 @@ def test_sync_frames_carry_the_counter_and_the_drives_echo_it() -> None:
 def test_sync_counter_wraps_after_240() -> None:
     assert [fr.next_sync_counter(c) for c in (0, 1, 239, 240)] == [1, 2, 240, 1]
     data = fr.encode_tpdo_fd_sync(0x1237, -2, 5, -6, 240)
-    assert data == bytes.fromhex("3712feff05000000faffffff" "f0000000")
+    assert data == bytes.fromhex("3712feff05000000fafffffff0000000")
     assert fr.decode_tpdo_fd_sync(data) == (fr.TpdoData(0x1237, -2, 5, -6), 240)
     with pytest.raises(fr.MalformedFrameError):
         fr.decode_tpdo_fd_sync(data[:13])
@@ -235,8 +245,9 @@ def test_sync_counter_wraps_after_240() -> None:
 
 
 def test_documented_defaults() -> None:
-    config = DriveBusConfig.model_validate({"period_s": 0.001,
-                                            "joints": [{"name": "a", "node_id": 1, "max_torque_nm": 1.0}]})
+    config = DriveBusConfig.model_validate(
+        {"period_s": 0.001, "joints": [{"name": "a", "node_id": 1, "max_torque_nm": 1.0}]}
+    )
     # What docs/drivers.md documents ("Timeouts and what they trade").
     assert (config.feedback_timeout_s, config.max_missed_cycles) == (0.02, 25)
     assert (config.heartbeat_timeout_s, config.comm_loss_timeout_s, config.state_change_timeout_s) == (1.0, 0.5, 2.0)

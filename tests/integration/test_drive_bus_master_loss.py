@@ -144,11 +144,14 @@ def hand() -> Iterator[_HandMaster]:
     master.close()
 
 
-@pytest.mark.parametrize(("stopped", "cause", "code"), [
-    ("heartbeat", "heartbeat", fr.EMCY_HEARTBEAT),
-    ("rpdo", "rpdo", fr.EMCY_RPDO_TIMEOUT),
-    ("sync", "sync", fr.EMCY_COMMUNICATION),
-])
+@pytest.mark.parametrize(
+    ("stopped", "cause", "code"),
+    [
+        ("heartbeat", "heartbeat", fr.EMCY_HEARTBEAT),
+        ("rpdo", "rpdo", fr.EMCY_RPDO_TIMEOUT),
+        ("sync", "sync", fr.EMCY_COMMUNICATION),
+    ],
+)
 def test_each_watch_alone_quick_stops_the_drive(hand: _HandMaster, stopped: str, cause: str, code: int) -> None:
     hand.watch(**{f"{stopped}_ms": 60})
     hand.enable()
@@ -170,8 +173,10 @@ def test_each_watch_alone_quick_stops_the_drive(hand: _HandMaster, stopped: str,
     assert hand.drives.counters.master_lost == 1
 
 
-@pytest.mark.parametrize(("option", "state"), [(0, State.OPERATION_ENABLED), (1, State.FAULT),
-                                                (2, State.SWITCH_ON_DISABLED), (3, State.QUICK_STOP_ACTIVE)])
+@pytest.mark.parametrize(
+    ("option", "state"),
+    [(0, State.OPERATION_ENABLED), (1, State.FAULT), (2, State.SWITCH_ON_DISABLED), (3, State.QUICK_STOP_ACTIVE)],
+)
 def test_abort_connection_option_code_picks_the_reaction(hand: _HandMaster, option: int, state: State) -> None:
     hand.watch(heartbeat_ms=50, option=option)
     hand.enable()
@@ -226,8 +231,13 @@ def test_a_master_that_stops_exchanging_while_enabled_finds_its_drives_stopped()
 
 def _start_master(args: list[str]) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(HERE), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.Popen([sys.executable, str(HERE / "drive_master_process.py"), *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, str(HERE / "drive_master_process.py"), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
 
 
 def _reap(proc: subprocess.Popen[str]) -> None:
@@ -294,8 +304,18 @@ def test_killing_the_master_brakes_the_realtime_pybullet_arm(tmp_path: Path) -> 
 
     timeout_s = 0.1
     with target_process(tmp_path, 0.002, substeps=16, clock="realtime") as target:
-        master = _start_master(["--bridge-url", target.bridge_url, "--comm-loss-timeout-s", str(timeout_s),
-                                "--period-s", "0.002", "--torque-nm", "0.0"])
+        master = _start_master(
+            [
+                "--bridge-url",
+                target.bridge_url,
+                "--comm-loss-timeout-s",
+                str(timeout_s),
+                "--period-s",
+                "0.002",
+                "--torque-nm",
+                "0.0",
+            ]
+        )
         try:
             _wait_running(master)
             assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [True] * 6

@@ -40,8 +40,7 @@ def _run_cycles(driver: DriveBus, period_s: float, cycles: int = 100) -> None:
         feedback = driver.exchange(torque)
     assert feedback.fresh.all()
     resolution = 1 / driver.counts_per_rad[0]
-    np.testing.assert_allclose(feedback.position_rad, _expected_position(torque, period_s, cycles),
-                               atol=resolution)
+    np.testing.assert_allclose(feedback.position_rad, _expected_position(torque, period_s, cycles), atol=resolution)
     assert driver.quick_stop() == (State.QUICK_STOP_ACTIVE,) * 6
     counters = driver.counters
     assert counters.dropped == counters.late == counters.malformed == 0
@@ -66,9 +65,19 @@ def target_process() -> Iterator[tuple[int, subprocess.Popen[str]]]:
         pytest.skip(f"python-can-remote is not installed: {exc}")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen(
-        [sys.executable, str(HERE / "drive_target_process.py"), "--period-s", "0.004",
-         "--channel", f"t-{uuid.uuid4().hex[:8]}"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        [
+            sys.executable,
+            str(HERE / "drive_target_process.py"),
+            "--period-s",
+            "0.004",
+            "--channel",
+            f"t-{uuid.uuid4().hex[:8]}",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
     )
     try:
         port = _read_json_line(proc, 30.0)["port"]
@@ -84,8 +93,7 @@ def target_process() -> Iterator[tuple[int, subprocess.Popen[str]]]:
 
 
 @pytest.mark.parametrize("fd", [False, True], ids=["classical", "fd"])
-def test_two_processes_over_the_loopback_bridge(target_process: tuple[int, subprocess.Popen[str]],
-                                                fd: bool) -> None:
+def test_two_processes_over_the_loopback_bridge(target_process: tuple[int, subprocess.Popen[str]], fd: bool) -> None:
     port, proc = target_process
     transport = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port, "channel": ""}
     config = drive_bus_config("unused", fd=fd, transport=transport, period_s=0.004)
@@ -110,11 +118,14 @@ def test_vcan0_when_the_kernel_has_it() -> None:
     plant = FakePlant(6, 0.004)
     lockstep(drives, plant)
     drives.start()
-    config = parse_drive_bus_config({
-        "transport": {"interface": "socketcan", "channel": "vcan0"},
-        "period_s": 0.004, "feedback_timeout_s": 0.5,
-        "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(6)],
-    })
+    config = parse_drive_bus_config(
+        {
+            "transport": {"interface": "socketcan", "channel": "vcan0"},
+            "period_s": 0.004,
+            "feedback_timeout_s": 0.5,
+            "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(6)],
+        }
+    )
     driver = DriveBus(config)
     try:
         driver.connect()
@@ -126,7 +137,8 @@ def test_vcan0_when_the_kernel_has_it() -> None:
 
 
 def test_a_dead_bridge_peer_is_named_and_close_does_not_mask_it(
-        target_process: tuple[int, subprocess.Popen[str]]) -> None:
+    target_process: tuple[int, subprocess.Popen[str]],
+) -> None:
     """The target process dies mid-run: the next exchange says the peer closed (not a feedback
     timeout), the drives' fail-safe cannot reach them, and close() raises nothing of its own."""
     port, proc = target_process

@@ -161,8 +161,7 @@ def test_random_frame_faults_at_run_time_are_all_accounted_for() -> None:
     rig = make_rig(n=3, feedback_timeout_s=0.1, max_missed_cycles=1000, heartbeat_timeout_s=5.0)
     try:
         rig.driver.enable()
-        rig.drives.apply_fault(_FrameFault(node_ids=(1, 2, 3), drop_probability=0.05,
-                                           corrupt_probability=0.05, seed=7))
+        rig.drives.apply_fault(_FrameFault(node_ids=(1, 2, 3), drop_probability=0.05, corrupt_probability=0.05, seed=7))
         for _ in range(100):
             rig.driver.exchange(np.zeros(3))
         rig.drives.apply_fault(_FrameFault(node_ids=None))  # probabilities 0: faults off
@@ -181,8 +180,7 @@ def test_random_frame_faults_at_run_time_are_all_accounted_for() -> None:
 def test_frame_faults_from_config_apply_from_boot() -> None:
     """Every frame dropped from the start: connect fails fast with a typed error naming the drive."""
     with pytest.raises(DriveStateError, match=r"drive\(s\) 1: no boot-up"):
-        make_rig(n=1, state_change_timeout_s=0.2,
-                 emulated={"frame_faults": _faults(drop=1.0, corrupt=0.0, seed=0)})
+        make_rig(n=1, state_change_timeout_s=0.2, emulated={"frame_faults": _faults(drop=1.0, corrupt=0.0, seed=0)})
 
 
 def test_heartbeat_loss_raises_typed_error() -> None:
@@ -285,8 +283,14 @@ class _FrameFault:
 
     kind = "frames"
 
-    def __init__(self, node_ids: tuple[int, ...] | None, drop_probability: float = 0.0,
-                 corrupt_probability: float = 0.0, delay_s: float = 0.0, seed: int = 0) -> None:
+    def __init__(
+        self,
+        node_ids: tuple[int, ...] | None,
+        drop_probability: float = 0.0,
+        corrupt_probability: float = 0.0,
+        delay_s: float = 0.0,
+        seed: int = 0,
+    ) -> None:
         self.node_ids = node_ids
         self.drop_probability = drop_probability
         self.corrupt_probability = corrupt_probability

@@ -49,8 +49,7 @@ def test_sdo_read_write_through_the_eds(master: tuple[canopen.Network, EmulatedD
         node.sdo["Modes of operation"].raw = 1
     assert info.value.code == 0x06090030
     node.tpdo.read()  # the mapping objects decode into the EDS's own objects
-    assert [var.name for var in node.tpdo[1].map] == [
-        "Statusword", "Torque actual value", "Position actual value"]
+    assert [var.name for var in node.tpdo[1].map] == ["Statusword", "Torque actual value", "Position actual value"]
     node.rpdo.read()
     assert [var.name for var in node.rpdo[1].map] == ["Controlword", "Target torque"]
 

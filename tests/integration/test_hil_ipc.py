@@ -27,8 +27,7 @@ def test_driver_moves_the_arm_across_processes_on_the_ipc_bus_at_1_ms(tmp_path: 
     period_s, cycles = 0.001, 400
     with target_process(tmp_path, period_s, substeps=32, transport="ipc") as target:
         assert target.ipc_dir is not None
-        bus = DriveBus(drive_bus_config({"interface": "ipc", "channel": str(target.ipc_dir)}, period_s,
-                                        **SLOW_MACHINE))
+        bus = DriveBus(drive_bus_config({"interface": "ipc", "channel": str(target.ipc_dir)}, period_s, **SLOW_MACHINE))
         try:
             positions, velocities, commanded = _run_arm(bus, cycles, period_s)
             _check_trajectory(positions, velocities, commanded, period_s)
@@ -49,8 +48,13 @@ def test_driver_moves_the_arm_across_processes_on_the_ipc_bus_at_1_ms(tmp_path: 
 def test_a_killed_target_stops_the_driver_with_a_feedback_error(tmp_path: Path) -> None:
     period_s = 0.001
     with target_process(tmp_path, period_s, substeps=8, transport="ipc") as target:
-        bus = DriveBus(drive_bus_config({"interface": "ipc", "channel": str(target.ipc_dir)}, period_s,
-                                        **{**SLOW_MACHINE, "feedback_timeout_s": 0.01}))
+        bus = DriveBus(
+            drive_bus_config(
+                {"interface": "ipc", "channel": str(target.ipc_dir)},
+                period_s,
+                **{**SLOW_MACHINE, "feedback_timeout_s": 0.01},
+            )
+        )
         try:
             bus.connect()
             bus.enable()
@@ -73,8 +77,12 @@ def test_serve_with_the_deployed_ipc_config_stops_cleanly_on_sigterm(tmp_path: P
     data["bus"]["channel"] = str(tmp_path / "bus")
     config = tmp_path / "target.ipc.yaml"
     config.write_text(yaml.safe_dump(data))
-    process = subprocess.Popen([sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(config)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(config)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert process.stderr is not None
     ready = ""
     for line in process.stderr:

@@ -53,8 +53,14 @@ LOOSE_TOLERANCE_RAD = 2e-3  # pybullet (semi-implicit Euler, substeps) vs RK4, p
 # the checks below compute between exchanges with the drives enabled (seconds on a loaded
 # machine), and a lock-stepped arm does not move without SYNCs anyway: not watched here.
 # The fault tests count cycles against one tolerated miss (the default budget rides out stalls).
-SLOW_MACHINE = {"feedback_timeout_s": 0.05, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
-                "state_change_timeout_s": 5.0, "comm_loss_timeout_s": None, "max_missed_cycles": 1}
+SLOW_MACHINE = {
+    "feedback_timeout_s": 0.05,
+    "heartbeat_timeout_s": 1.0,
+    "sdo_timeout_s": 2.0,
+    "state_change_timeout_s": 5.0,
+    "comm_loss_timeout_s": None,
+    "max_missed_cycles": 1,
+}
 
 
 def _gravity_plus_sinusoid():  # type: ignore[no-untyped-def]
@@ -153,8 +159,9 @@ def test_driver_moves_the_pybullet_arm_in_one_process_and_quick_stop_brakes() ->
 def test_driver_moves_the_arm_across_processes_over_the_loopback_bridge(tmp_path: Path) -> None:
     period_s, cycles = 0.002, 300
     with target_process(tmp_path, period_s, substeps=32) as target:
-        bus = DriveBus(drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s,
-                                        **SLOW_MACHINE))
+        bus = DriveBus(
+            drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s, **SLOW_MACHINE)
+        )
         try:
             positions, velocities, commanded = _run_arm(bus, cycles, period_s)
             _check_trajectory(positions, velocities, commanded, period_s)
@@ -187,8 +194,9 @@ def test_driver_moves_the_arm_over_vcan0() -> None:
         pytest.skip(f"vcan0 unavailable: {reason}")
     period_s, cycles = 0.001, 200
     transport = {"interface": "socketcan", "channel": "vcan0"}
-    with target_in_process("unused", period_s, bus={"interface": "socketcan", "channel": "vcan0", "fd": True,
-                                                    "data_bitrate": 5_000_000}):
+    with target_in_process(
+        "unused", period_s, bus={"interface": "socketcan", "channel": "vcan0", "fd": True, "data_bitrate": 5_000_000}
+    ):
         bus = DriveBus(drive_bus_config(transport, period_s, **SLOW_MACHINE))
         try:
             positions, velocities, commanded = _run_arm(bus, cycles, period_s)
@@ -210,8 +218,9 @@ def _cycles_until_error(bus: DriveBus, torque: np.ndarray, limit: int = 20) -> t
 
 
 def _enabled_bus(channel: str, period_s: float, **extra: object) -> tuple[DriveBus, np.ndarray]:
-    bus = DriveBus(drive_bus_config({"interface": "virtual", "channel": channel}, period_s,
-                                    **{**SLOW_MACHINE, **extra}))
+    bus = DriveBus(
+        drive_bus_config({"interface": "virtual", "channel": channel}, period_s, **{**SLOW_MACHINE, **extra})
+    )
     bus.connect()
     bus.enable()
     hold = make_dynamics(load_robot("ur5_paper"), backend="rne").gravity(np.array(Q0_RAD))
@@ -310,8 +319,9 @@ def test_fault_injected_through_the_control_socket_across_processes(
 ) -> None:
     period_s = 0.002
     with target_process(tmp_path, period_s, substeps=8) as target:
-        bus = DriveBus(drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s,
-                                        **SLOW_MACHINE))
+        bus = DriveBus(
+            drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s, **SLOW_MACHINE)
+        )
         try:
             bus.connect()
             bus.enable()
@@ -349,8 +359,12 @@ def test_serve_with_the_deployed_virtual_config_stops_cleanly_on_sigterm(tmp_pat
     data["control_socket"] = str(tmp_path / "target.sock")  # not the shared /tmp path
     config = tmp_path / "target.virtual.yaml"
     config.write_text(yaml.safe_dump(data))
-    process = subprocess.Popen([sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(config)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(config)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert process.stderr is not None
     ready = ""
     for line in process.stderr:

@@ -38,8 +38,13 @@ JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_j
 MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 # Bounds on waits for frames on a loaded machine (not assertions on time): the lock-step target
 # does not care about wall time.
-SLOW_MACHINE = {"feedback_timeout_s": 0.2, "heartbeat_timeout_s": 1.0, "sdo_timeout_s": 2.0,
-                "state_change_timeout_s": 5.0, "comm_loss_timeout_s": 1.0}
+SLOW_MACHINE = {
+    "feedback_timeout_s": 0.2,
+    "heartbeat_timeout_s": 1.0,
+    "sdo_timeout_s": 2.0,
+    "state_change_timeout_s": 5.0,
+    "comm_loss_timeout_s": 1.0,
+}
 TRACK_S = 5.0
 # What the PD bundle (LMPC) achieves on C1 in lock-step (pybullet, 32 substeps): max |q - q_ref| after
 # the ramp, per joint, about 0.002-0.07 rad; bounded here with a margin, per joint.
@@ -50,9 +55,15 @@ def runtime_config(transport: dict[str, Any], **sections: Any) -> dict[str, Any]
     return {
         "robot": "ur5_paper",
         "bundle": {"path": str(PD_BUNDLE), "mode": "lmpc"},
-        "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": 0.001,
-                "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))], **SLOW_MACHINE},
+        "bus": {
+            "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
+            "period_s": 0.001,
+            "joints": [
+                {"name": n, "node_id": i + 1, "max_torque_nm": t}
+                for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))
+            ],
+            **SLOW_MACHINE,
+        },
         "reference": {"kind": "condition", "condition": "C1", "ramp_s": 2.0},
         "loop": {"pacing": "bus"},
         **sections,
@@ -109,9 +120,23 @@ def test_runtime_tracks_c1_with_the_target_in_one_process_then_stop_quick_stops(
 
 
 def _hil_run(config_path: Path, record: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "hil_runtime.cli", "run", "--config", str(config_path),
-                             "--record", str(record), "--record-cycles", "20000"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "hil_runtime.cli",
+            "run",
+            "--config",
+            str(config_path),
+            "--record",
+            str(record),
+            "--record-cycles",
+            "20000",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _wait_for(process: subprocess.Popen[str], socket: Path, cycles: int, timeout_s: float) -> dict[str, Any]:
@@ -139,8 +164,11 @@ def test_hil_run_and_hil_target_serve_as_two_processes(tmp_path: Path, transport
     if transport == "ipc" and not sys.platform.startswith("linux"):
         pytest.skip("the ipc bus is Linux only")
     with target_process(tmp_path, 0.001, substeps=32, transport=transport) as target:
-        bus = ({"interface": "remote", "channel": target.bridge_url} if transport == "bridge"
-               else {"interface": "ipc", "channel": str(target.ipc_dir)})  # fmt: skip
+        bus = (
+            {"interface": "remote", "channel": target.bridge_url}
+            if transport == "bridge"
+            else {"interface": "ipc", "channel": str(target.ipc_dir)}
+        )
         sock = tmp_path / "runtime.sock"
         config_path = tmp_path / "runtime.yaml"
         config_path.write_text(yaml.safe_dump(runtime_config(bus, control_socket=str(sock))))
@@ -164,9 +192,14 @@ def test_hil_run_and_hil_target_serve_as_two_processes(tmp_path: Path, transport
         assert not sock.exists()
         with np.load(record) as data:
             rec = {k: data[k] for k in data.files}
-        check_run(rec, status["ramp_cycles"], {"position_rad": [np.pi, 2.5132741228718345, 2.5132741228718345,
-                                                                np.pi, np.pi, np.pi],
-                                               "velocity_rad_s": [2.5446900494077327] * 6})  # fmt: skip
+        check_run(
+            rec,
+            status["ramp_cycles"],
+            {
+                "position_rad": [np.pi, 2.5132741228718345, 2.5132741228718345, np.pi, np.pi, np.pi],
+                "velocity_rad_s": [2.5446900494077327] * 6,
+            },
+        )
         # SIGTERM to exit, process teardown included (the loop itself leaves within a cycle).
         assert stop_s < 5.0, f"{stop_s:.3f} s from SIGTERM to exit"
         code, target_err = target.stop()
@@ -181,8 +214,9 @@ def test_runtime_tracks_c1_over_vcan0() -> None:
     if reason is not None:
         pytest.skip(f"vcan0 unavailable: {reason}")
     config = parse_runtime_config(runtime_config({"interface": "socketcan", "channel": "vcan0"}))
-    with target_in_process("unused", 0.001, bus={"interface": "socketcan", "channel": "vcan0", "fd": True,
-                                                 "data_bitrate": 5_000_000}) as target:  # fmt: skip
+    with target_in_process(
+        "unused", 0.001, bus={"interface": "socketcan", "channel": "vcan0", "fd": True, "data_bitrate": 5_000_000}
+    ) as target:
         runtime = build_runtime(config, record_cycles=10_000)
         try:
             runtime.configure()
@@ -213,8 +247,9 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
         process = _hil_run(config_path, tmp_path / "run.npz")
         try:
             _wait_for(process, sock, 200, timeout_s=120)
-            assert send_control(target.control_socket, {"kind": "drive_fault", "node_id": 4,
-                                                        "error_code": 0x2310}) == {"ok": True}  # fmt: skip
+            assert send_control(target.control_socket, {"kind": "drive_fault", "node_id": 4, "error_code": 0x2310}) == {
+                "ok": True
+            }
             deadline = time.monotonic() + 30
             status = send_command(sock, "status")
             while status["state"] != "FAULT" and time.monotonic() < deadline:
@@ -225,8 +260,13 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
             assert process.poll() is None
             assert send_command(sock, "status")["state"] == "FAULT"
             assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [False] * 6
-            reset = subprocess.run([sys.executable, "-m", "hil_runtime.cli", "reset", "--socket", str(sock)],
-                                   capture_output=True, text=True, timeout=30, check=False)  # fmt: skip
+            reset = subprocess.run(
+                [sys.executable, "-m", "hil_runtime.cli", "reset", "--socket", str(sock)],
+                capture_output=True,
+                text=True,
+                timeout=30,
+                check=False,
+            )
             assert reset.returncode == 0 and "state was FAULT" in reset.stdout, reset.stderr
             deadline = time.monotonic() + 30
             while send_command(sock, "status")["state"] != "ACTIVE" and time.monotonic() < deadline:
@@ -258,11 +298,13 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
     ],
     ids=["dropped-tpdos", "drive-fault"],
 )
-def test_an_injected_fault_is_a_fault_within_two_cycles_in_one_process(fault: dict[str, Any],
-                                                                      kind: tuple[str, ...]) -> None:  # fmt: skip
+def test_an_injected_fault_is_a_fault_within_two_cycles_in_one_process(
+    fault: dict[str, Any], kind: tuple[str, ...]
+) -> None:
     channel = unique_channel()
-    config = parse_runtime_config(runtime_config({"interface": "virtual", "channel": channel},
-                                                 reference={"kind": "hold"}))  # fmt: skip
+    config = parse_runtime_config(
+        runtime_config({"interface": "virtual", "channel": channel}, reference={"kind": "hold"})
+    )
     with target_in_process(channel, 0.001, substeps=8) as target:
         runtime = build_runtime(config)
         try:

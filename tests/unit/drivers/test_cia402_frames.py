@@ -96,7 +96,7 @@ def test_rpdo_into_a_reused_buffer() -> None:
 def test_tagged_fd_tpdo_into_a_reused_buffer() -> None:
     buffer = bytearray(b"\xaa" * f.TPDO_FD_SYNC_LENGTH)
     f.encode_tpdo_fd_sync_into(buffer, 0x1237, -2, 5, -6, 240)
-    assert bytes(buffer) == bytes.fromhex("3712feff05000000faffffff" "f0000000")  # pad bytes zeroed
+    assert bytes(buffer) == bytes.fromhex("3712feff05000000fafffffff0000000")  # pad bytes zeroed
     assert f.decode_tpdo_fd_sync(buffer) == (f.TpdoData(0x1237, -2, 5, -6), 240)
     with pytest.raises(ValueError):
         f.encode_tpdo_fd_sync_into(buffer, 0x1237, 0, 0, 0, 256)

@@ -22,9 +22,7 @@ from drivers.cia402.od import EDS_PATH
 def test_expedited_download(index: int, sub: int, payload: bytes, expected: str) -> None:
     data = sdo.encode_download_expedited(index, sub, payload)
     assert data.hex() == expected
-    assert sdo.decode_request(data) == sdo.SdoFrame(
-        sdo.SdoKind.DOWNLOAD_EXPEDITED, index, sub, payload, 0
-    )
+    assert sdo.decode_request(data) == sdo.SdoFrame(sdo.SdoKind.DOWNLOAD_EXPEDITED, index, sub, payload, 0)
 
 
 def test_upload_request_and_response() -> None:

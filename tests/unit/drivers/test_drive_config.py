@@ -33,8 +33,10 @@ def test_yaml_error_names_file_and_field(tmp_path: Path) -> None:
 
 def test_bus_load_refused_at_load(tmp_path: Path) -> None:
     path = tmp_path / "fast.yaml"
-    path.write_text("period_s: 0.001\njoints:\n" + "".join(
-        f"  - {{name: j{i}, node_id: {i + 1}, max_torque_nm: 10}}\n" for i in range(6)))
+    path.write_text(
+        "period_s: 0.001\njoints:\n"
+        + "".join(f"  - {{name: j{i}, node_id: {i + 1}, max_torque_nm: 10}}\n" for i in range(6))
+    )
     with pytest.raises(BusLoadError, match="fast.yaml: 6 drives"):
         load_drive_bus_config(path)
 
@@ -43,15 +45,17 @@ def test_bus_load_refused_at_load(tmp_path: Path) -> None:
 def test_remote_bridge_must_be_loopback(host: str) -> None:
     with pytest.raises(DriveConfigError, match="not loopback"):
         parse_drive_bus_config(
-            {"transport": {"interface": "remote", "bridge_host": host}, "period_s": 0.01,
-             "joints": _joints(1)}
+            {"transport": {"interface": "remote", "bridge_host": host}, "period_s": 0.01, "joints": _joints(1)}
         )
 
 
 def test_ipv6_loopback_bridge_url() -> None:
     config = parse_drive_bus_config(
-        {"transport": {"interface": "remote", "bridge_host": "::1", "bridge_port": 5000},
-         "period_s": 0.01, "joints": _joints(1)}
+        {
+            "transport": {"interface": "remote", "bridge_host": "::1", "bridge_port": 5000},
+            "period_s": 0.01,
+            "joints": _joints(1),
+        }
     )
     assert config.transport.remote_url == "ws://[::1]:5000/"
 
@@ -59,8 +63,7 @@ def test_ipv6_loopback_bridge_url() -> None:
 def test_torque_out_of_int16_range_refused() -> None:
     with pytest.raises(DriveConfigError, match="joints.0: .*at least 4578 mN·m"):
         parse_drive_bus_config(
-            {"period_s": 0.01, "joints": [{"name": "a", "node_id": 1, "max_torque_nm": 150,
-                                           "rated_torque_mnm": 1000}]}
+            {"period_s": 0.01, "joints": [{"name": "a", "node_id": 1, "max_torque_nm": 150, "rated_torque_mnm": 1000}]}
         )
 
 
@@ -71,10 +74,12 @@ def test_eds_shipped_is_valid() -> None:
 
 def test_bad_eds_names_file_and_object(tmp_path: Path) -> None:
     broken = tmp_path / "broken.eds"
-    broken.write_text(EDS_PATH.read_text().replace("[6077]\nParameterName=Torque actual value\n"
-                                                  "ObjectType=0x7\nDataType=0x0003",
-                                                  "[6077]\nParameterName=Torque actual value\n"
-                                                  "ObjectType=0x7\nDataType=0x0007"))
+    broken.write_text(
+        EDS_PATH.read_text().replace(
+            "[6077]\nParameterName=Torque actual value\nObjectType=0x7\nDataType=0x0003",
+            "[6077]\nParameterName=Torque actual value\nObjectType=0x7\nDataType=0x0007",
+        )
+    )
     with pytest.raises(EdsError, match=r"broken.eds: \[6077\] sub 0: DataType 0x0007"):
         load_object_dictionary(1, broken)
     missing = tmp_path / "missing.eds"

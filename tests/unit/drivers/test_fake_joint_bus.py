@@ -115,10 +115,13 @@ class _StaysEnabled(FakeJointBus):
         return tuple(self.states)
 
 
-@pytest.mark.parametrize(("bus", "message"), [
-    (_AcceptsNaN(n_joints=2), "exchange(NaN) was accepted"),
-    (_StaysEnabled(n_joints=2), "enabled is true after quick_stop()"),
-])
+@pytest.mark.parametrize(
+    ("bus", "message"),
+    [
+        (_AcceptsNaN(n_joints=2), "exchange(NaN) was accepted"),
+        (_StaysEnabled(n_joints=2), "enabled is true after quick_stop()"),
+    ],
+)
 def test_checker_names_the_broken_promise(bus: FakeJointBus, message: str) -> None:
     with pytest.raises(JointBusCheckError, match=message.replace("(", r"\(").replace(")", r"\)")):
         check_joint_bus(bus)

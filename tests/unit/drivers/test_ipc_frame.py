@@ -24,31 +24,37 @@ little_endian = pytest.mark.skipif(sys.byteorder != "little", reason="the byte v
 @little_endian
 def test_classical_standard_frame_bytes() -> None:
     msg = can.Message(arbitration_id=0x123, data=b"abc", is_extended_id=False)
-    assert encode(msg) == bytes.fromhex("23010000" "03000000" "6162630000000000")
+    assert encode(msg) == bytes.fromhex("23010000030000006162630000000000")
 
 
 @little_endian
 def test_extended_remote_frame_bytes() -> None:
     msg = can.Message(arbitration_id=0x1234567, is_extended_id=True, is_remote_frame=True, dlc=4)
     # can_id = 0x01234567 | CAN_EFF_FLAG | CAN_RTR_FLAG
-    assert encode(msg) == bytes.fromhex("674523c1" "04000000") + bytes(8)
+    assert encode(msg) == bytes.fromhex("674523c104000000") + bytes(8)
 
 
 @little_endian
 def test_fd_frame_bytes_with_flags() -> None:
-    msg = can.Message(arbitration_id=0x181, data=bytes(range(12)), is_extended_id=False, is_fd=True,
-                      bitrate_switch=True, error_state_indicator=True)
+    msg = can.Message(
+        arbitration_id=0x181,
+        data=bytes(range(12)),
+        is_extended_id=False,
+        is_fd=True,
+        bitrate_switch=True,
+        error_state_indicator=True,
+    )
     frame = encode(msg)
     assert len(frame) == 72
     # len 12; flags FDF | ESI | BRS = 0x07
-    assert frame[:8] == bytes.fromhex("81010000" "0c070000")
+    assert frame[:8] == bytes.fromhex("810100000c070000")
     assert frame[8:20] == bytes(range(12)) and frame[20:] == bytes(52)
 
 
 @little_endian
 def test_rx_overflow_error_frame_is_linux_error_class() -> None:
     frame = rx_overflow_frame()
-    assert frame[:8] == bytes.fromhex("04000020" "08000000")  # CAN_ERR_FLAG | CAN_ERR_CRTL, len 8
+    assert frame[:8] == bytes.fromhex("0400002008000000")  # CAN_ERR_FLAG | CAN_ERR_CRTL, len 8
     msg = decode(frame)
     assert msg.is_error_frame and msg.arbitration_id == CAN_ERR_CRTL
     assert msg.data[1] == CAN_ERR_CRTL_RX_OVERFLOW
@@ -67,7 +73,13 @@ MESSAGES = [
 
 def _same(a: can.Message, b: can.Message) -> None:
     assert (a.arbitration_id, a.is_extended_id, a.is_remote_frame, a.is_error_frame, a.is_fd, a.dlc) == (
-        b.arbitration_id, b.is_extended_id, b.is_remote_frame, b.is_error_frame, b.is_fd, b.dlc)
+        b.arbitration_id,
+        b.is_extended_id,
+        b.is_remote_frame,
+        b.is_error_frame,
+        b.is_fd,
+        b.dlc,
+    )
     assert bytes(a.data) == bytes(b.data)
     if a.is_fd:
         assert (a.bitrate_switch, a.error_state_indicator) == (b.bitrate_switch, b.error_state_indicator)
@@ -96,20 +108,32 @@ def test_fd_payload_padded_to_a_fd_length() -> None:
     assert decode(encode(msg)).dlc == 12
 
 
-@pytest.mark.parametrize("msg", [
-    can.Message(arbitration_id=0x800, data=b"", is_extended_id=False),
-    can.Message(arbitration_id=0x20000000, data=b"", is_extended_id=True),
-    can.Message(arbitration_id=0x1, data=bytes(9), is_extended_id=False, check=False),
-    can.Message(arbitration_id=0x1, data=bytes(65), is_extended_id=False, is_fd=True, check=False),
-])
+@pytest.mark.parametrize(
+    "msg",
+    [
+        can.Message(arbitration_id=0x800, data=b"", is_extended_id=False),
+        can.Message(arbitration_id=0x20000000, data=b"", is_extended_id=True),
+        can.Message(arbitration_id=0x1, data=bytes(9), is_extended_id=False, check=False),
+        can.Message(arbitration_id=0x1, data=bytes(65), is_extended_id=False, is_fd=True, check=False),
+    ],
+)
 def test_refuses_what_is_not_a_frame(msg: can.Message) -> None:
     with pytest.raises(FrameError):
         encode(msg)
 
 
-@pytest.mark.parametrize("datagram", [b"", bytes(15), bytes(17), bytes(71), bytes(73),
-                                      bytes.fromhex("00000000" "09000000") + bytes(8),
-                                      bytes.fromhex("00000000" "0d000000") + bytes(64)])
+@pytest.mark.parametrize(
+    "datagram",
+    [
+        b"",
+        bytes(15),
+        bytes(17),
+        bytes(71),
+        bytes(73),
+        bytes.fromhex("0000000009000000") + bytes(8),
+        bytes.fromhex("000000000d000000") + bytes(64),
+    ],
+)
 def test_refuses_datagrams_that_are_not_frames(datagram: bytes) -> None:
     with pytest.raises(FrameError):
         decode(datagram)

@@ -103,18 +103,40 @@ def test_virtual_bus_internals_fast_virtual_bus_relies_on() -> None:
         bus.shutdown()
     # Every Message field the copy must carry (a new slot would be lost by the fast copy).
     assert set(can.Message.__slots__) == {
-        "__weakref__", "arbitration_id", "bitrate_switch", "channel", "data", "dlc", "error_state_indicator",
-        "is_error_frame", "is_extended_id", "is_fd", "is_remote_frame", "is_rx", "timestamp"}
+        "__weakref__",
+        "arbitration_id",
+        "bitrate_switch",
+        "channel",
+        "data",
+        "dlc",
+        "error_state_indicator",
+        "is_error_frame",
+        "is_extended_id",
+        "is_fd",
+        "is_remote_frame",
+        "is_rx",
+        "timestamp",
+    }
     assert FastVirtualBus.__mro__[1] is virtual.VirtualBus
 
 
-@pytest.mark.parametrize("msg", [
-    can.Message(arbitration_id=0x201, data=bytes(range(6)), is_extended_id=False),
-    can.Message(arbitration_id=0x181, data=bytes(range(12)), is_fd=True, bitrate_switch=True,
-                error_state_indicator=True, is_extended_id=False),
-    can.Message(arbitration_id=0x1ABCDEF, is_remote_frame=True, dlc=4, is_extended_id=True),
-    can.Message(is_error_frame=True, data=b"\x01", is_extended_id=False),
-], ids=["classical", "fd", "remote", "error"])
+@pytest.mark.parametrize(
+    "msg",
+    [
+        can.Message(arbitration_id=0x201, data=bytes(range(6)), is_extended_id=False),
+        can.Message(
+            arbitration_id=0x181,
+            data=bytes(range(12)),
+            is_fd=True,
+            bitrate_switch=True,
+            error_state_indicator=True,
+            is_extended_id=False,
+        ),
+        can.Message(arbitration_id=0x1ABCDEF, is_remote_frame=True, dlc=4, is_extended_id=True),
+        can.Message(is_error_frame=True, data=b"\x01", is_extended_id=False),
+    ],
+    ids=["classical", "fd", "remote", "error"],
+)
 def test_fast_virtual_bus_delivers_what_virtual_bus_delivers(msg: can.Message) -> None:
     from can.interfaces.virtual import VirtualBus
 
