@@ -19,12 +19,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from sim_target.faults import cases as c
 from sim_target.faults.cases import Expect
+
+if TYPE_CHECKING:
+    from sim_target.faults.crafted import CraftKind
 
 RIG_RETRIES = 2
 TOLERATED_DROP = ("supervisor.stale_cycles", "bus.dropped", "bus.late", "bus.malformed")
@@ -43,15 +46,24 @@ def _ip(inject: Callable[..., Any], expect: Expect, **kwargs: Any) -> Callable[[
     return lambda name, repeat, seed, work: c.run_in_process(name, repeat, seed, inject, expect, **kwargs)
 
 
-def _crafted(kind: str, expect: Expect, **kwargs: Any) -> Callable[[str, int, int, Path], c.CaseResult]:
+def _crafted(kind: CraftKind, expect: Expect, **kwargs: Any) -> Callable[[str, int, int, Path], c.CaseResult]:
     def run(name: str, repeat: int, seed: int, work: Path) -> c.CaseResult:
         from sim_target.faults.crafted import craft_bundle
         from sim_target.faults.rig import Q0_RAD
 
-        trigger = craft_bundle(c.rigs.PD_BUNDLE, work / f"bundle-{kind}", kind)  # type: ignore[arg-type]
+        trigger = craft_bundle(c.rigs.PD_BUNDLE, work / f"bundle-{kind}", kind)
         q0 = (trigger, *Q0_RAD[1:])  # the arm starts where the crafted graph misbehaves
-        result = c.run_in_process(name, repeat, seed, lambda rig, rng: None, expect, q0_rad=q0,
-                                  bundle_path=work / f"bundle-{kind}", fault_at_activation=True, **kwargs)  # fmt: skip
+        result = c.run_in_process(
+            name,
+            repeat,
+            seed,
+            lambda rig, rng: None,
+            expect,
+            q0_rad=q0,
+            bundle_path=work / f"bundle-{kind}",
+            fault_at_activation=True,
+            **kwargs,
+        )
         result.detail["trigger_q0_rad"] = trigger
         return result
 
@@ -308,8 +320,12 @@ SECONDS_ROWS = ("heartbeat_lost", "loop_stall")  # bounds in seconds: the wall t
 
 
 def _machine() -> dict[str, Any]:
-    return {"cpu": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-            "python": platform.python_version(), "load_average": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip
+    return {
+        "cpu": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+    }
 
 
 def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseResult:
@@ -327,8 +343,13 @@ def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseRe
                 continue
             result = c.CaseResult(spec.name, repeat, seed, action=f"rig failed: {exc}", failures=[f"rig: {exc}"])
         except Exception as exc:  # noqa: BLE001 - a campaign bug or a crash: the row fails, the campaign goes on
-            result = c.CaseResult(spec.name, repeat, seed, action=f"case raised {type(exc).__name__}",
-                                  failures=[f"{type(exc).__name__}: {exc}"])  # fmt: skip
+            result = c.CaseResult(
+                spec.name,
+                repeat,
+                seed,
+                action=f"case raised {type(exc).__name__}",
+                failures=[f"{type(exc).__name__}: {exc}"],
+            )
         result.rig_retries = retries
         result.wall_s = round(time.monotonic() - started, 2)
         shutil.rmtree(work, ignore_errors=True)
@@ -350,9 +371,15 @@ class CampaignError(ValueError):
     exit_code = 2
 
 
-def run_campaign(out_dir: Path | None, *, quick: bool = False, repeats: int = 3, seed: int = 0,
-                 only: tuple[str, ...] | None = None,
-                 progress: Callable[[c.CaseResult], None] | None = None) -> dict[str, Any]:  # fmt: skip
+def run_campaign(
+    out_dir: Path | None,
+    *,
+    quick: bool = False,
+    repeats: int = 3,
+    seed: int = 0,
+    only: tuple[str, ...] | None = None,
+    progress: Callable[[c.CaseResult], None] | None = None,
+) -> dict[str, Any]:
     """Run the faults; write ``results.json`` and ``table.md`` to ``out_dir`` (atomically)."""
     specs = select(quick, only)
     if repeats < 1:
@@ -376,15 +403,18 @@ def run_campaign(out_dir: Path | None, *, quick: bool = False, repeats: int = 3,
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     document = {
-        "command": "hil faults" + (" --quick" if quick else "") + (f" --repeats {repeats}" if repeats != 3 else "")
-                   + (f" --seed {seed}" if seed else "") + (f" --only {','.join(only)}" if only else ""),
+        "command": "hil faults"
+        + (" --quick" if quick else "")
+        + (f" --repeats {repeats}" if repeats != 3 else "")
+        + (f" --seed {seed}" if seed else "")
+        + (f" --only {','.join(only)}" if only else ""),
         "machine": {**_machine(), "load_average_before": load_before},
         "wall_s": round(time.monotonic() - started, 1),
         "repeats": repeats,
         "passed": all(row["pass"] for row in rows),
         "rows": rows,
         "cases": [case.to_json() for case in cases],
-    }  # fmt: skip
+    }
     if out_dir is not None:
         write_outputs(out_dir, document)
     return document
@@ -402,8 +432,12 @@ def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
     seconds = [r.detected_s for r in results if r.detected_s is not None]
     ratios = [r.max_torque_ratio for r in results if r.max_torque_ratio is not None]
     actions = _actions(results)
-    finals = sorted({", ".join(sorted(set(r.drives_final))) if isinstance(r.drives_final, list) else r.drives_final
-                     for r in results})  # fmt: skip
+    finals = sorted(
+        {
+            ", ".join(sorted(set(r.drives_final))) if isinstance(r.drives_final, list) else r.drives_final
+            for r in results
+        }
+    )
 
     def tri(values: list[bool | None]) -> str:
         known = [v for v in values if v is not None]
@@ -443,42 +477,67 @@ def _actions(results: list[c.CaseResult]) -> str:
         others = [f"FAULT {' / '.join(faults)}, quick stop"]
     if "watchdog" in " ".join(others):  # one phrase, the kinds seen on resume merged
         kinds = sorted({str(r.detail.get("fault_on_resume")) for r in results})
-        others = [f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; on resume "
-                  f"FAULT {' / '.join(kinds)}"]  # fmt: skip
+        others = [
+            f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; on resume "
+            f"FAULT {' / '.join(kinds)}"
+        ]
     if tolerated:
         ranges: dict[str, list[int]] = {}
         for r in tolerated:
             for name, rise in r.detail.get("counters_rose", {}).items():
                 if name.split(".")[-1] in c.ANOMALIES:
                     ranges.setdefault(name.split(".")[-1], []).append(int(rise))
-        counted = ", ".join(f"{k} +{min(v)}" + (f"..{max(v)}" if max(v) != min(v) else "") +
-                            ("" if len(v) == len(tolerated) else f" ({len(v)}/{len(tolerated)})")
-                            for k, v in sorted(ranges.items()))  # fmt: skip
+        counted = ", ".join(
+            f"{k} +{min(v)}"
+            + (f"..{max(v)}" if max(v) != min(v) else "")
+            + ("" if len(v) == len(tolerated) else f" ({len(v)}/{len(tolerated)})")
+            for k, v in sorted(ranges.items())
+        )
         others.append("tolerated" + (f"; counted: {counted}" if counted else ", nothing to count"))
     return "; ".join(others)
 
 
 def format_table(document: dict[str, Any]) -> str:
-    head = ("| fault | detected after (cycles: median, max) | bound | action taken | max \\|τ\\| after the fault "
-            "/ limit | non-finite commanded | drives' final state | daemon alive | telemetry event | arm inside "
-            "the position limits | pass |")  # fmt: skip
+    head = (
+        "| fault | detected after (cycles: median, max) | bound | action taken | max \\|τ\\| after the fault "
+        "/ limit | non-finite commanded | drives' final state | daemon alive | telemetry event | arm inside "
+        "the position limits | pass |"
+    )
     lines = [head, "|" + "---|" * 11]
     for row in document["rows"]:
         cycles = _fmt_cycles(row["detected_cycles"]) if row["detected_cycles"] else "—"
         if row["detected_s_max"] is not None and row["fault"] in SECONDS_ROWS:
-            cycles = (f"{cycles} (≤ {row['detected_s_max']:.3f} s)" if row["detected_cycles"] else
-                      f"— (watchdog silent ≤ {row['detected_s_max']:.2f} s)")  # fmt: skip
+            cycles = (
+                f"{cycles} (≤ {row['detected_s_max']:.3f} s)"
+                if row["detected_cycles"]
+                else f"— (watchdog silent ≤ {row['detected_s_max']:.2f} s)"
+            )
         ratio = "—" if row["max_torque_ratio"] is None else f"{row['max_torque_ratio']:.3f} (≤ 1)"
-        lines.append(" | ".join([
-            f"| {row['label']}", cycles, row["bound"], row["action"].replace("|", "\\|"), ratio,
-            "yes" if row["nonfinite"] else "no", row["drives_final"], row["daemon_alive"], row["telemetry_event"],
-            row["arm_in_limits"], ("**pass**" if row["pass"] else "**FAIL**: " + "; ".join(row["failures"])) + " |",
-        ]))  # fmt: skip
+        lines.append(
+            " | ".join(
+                [
+                    f"| {row['label']}",
+                    cycles,
+                    row["bound"],
+                    row["action"].replace("|", "\\|"),
+                    ratio,
+                    "yes" if row["nonfinite"] else "no",
+                    row["drives_final"],
+                    row["daemon_alive"],
+                    row["telemetry_event"],
+                    row["arm_in_limits"],
+                    ("**pass**" if row["pass"] else "**FAIL**: " + "; ".join(row["failures"])) + " |",
+                ]
+            )
+        )
     machine = document["machine"]
-    lines += ["", f"`{document['command']}`: {len(document['rows'])} faults × {document['repeats']} repeats, "
-                  f"{document['wall_s']} s, {machine['cpus']} CPUs ({machine['cpu']}), load average "
-                  f"{machine['load_average_before']} before, {machine['load_average']} after; "
-                  f"{'every row passes' if document['passed'] else 'SOME ROWS FAIL'}."]  # fmt: skip
+    lines += [
+        "",
+        f"`{document['command']}`: {len(document['rows'])} faults × {document['repeats']} repeats, "
+        f"{document['wall_s']} s, {machine['cpus']} CPUs ({machine['cpu']}), load average "
+        f"{machine['load_average_before']} before, {machine['load_average']} after; "
+        f"{'every row passes' if document['passed'] else 'SOME ROWS FAIL'}.",
+    ]
     return "\n".join(lines) + "\n"
 
 

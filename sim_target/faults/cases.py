@@ -19,9 +19,12 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from sim_target.launch import Transport
 
 from sim_target.faults import rig as rigs
 from sim_target.faults.rig import Q0_RAD, InProcessRig, in_process_rig
@@ -105,7 +108,7 @@ def run_in_process(
     inject: Callable[[InProcessRig, np.random.Generator], Any],
     expect: Expect,
     *,
-    transport: str = "virtual",
+    transport: Transport = "virtual",
     q0_rad: tuple[float, ...] = Q0_RAD,
     bundle_path: Path | None = None,
     config_extra: dict[str, Any] | None = None,
@@ -332,8 +335,10 @@ class _Flood:
     def _run(self) -> None:
         import can
 
-        messages = [can.Message(arbitration_id=cob, data=data, is_extended_id=False, is_fd=True, bitrate_switch=True)
-                    for cob, data in self.frames]  # fmt: skip
+        messages = [
+            can.Message(arbitration_id=cob, data=data, is_extended_id=False, is_fd=True, bitrate_switch=True)
+            for cob, data in self.frames
+        ]
         while time.monotonic() < self.until:
             for msg in messages:
                 self.bus.send(msg)
@@ -351,12 +356,21 @@ def flood(kind: str) -> Callable[[InProcessRig, np.random.Generator], Any]:
 
         if kind == "unknown":  # a node that is not ours (100), every service of it
             node = 100
-            frames = [(fr.TPDO1_BASE + node, bytes(8)), (0x700 + node, b"\x05"), (0x080 + node, bytes(8)),
-                      (0x580 + node, bytes(8)), (0x7E4, bytes(rng.integers(0, 256, 8).tolist()))]  # fmt: skip
+            frames = [
+                (fr.TPDO1_BASE + node, bytes(8)),
+                (0x700 + node, b"\x05"),
+                (0x080 + node, bytes(8)),
+                (0x580 + node, bytes(8)),
+                (0x7E4, bytes(rng.integers(0, 256, 8).tolist())),
+            ]
         else:  # wrong lengths on the COB-IDs of our own drives: TPDO, heartbeat, EMCY
             node = int(rng.integers(1, 7))
-            frames = [(fr.TPDO1_BASE + node, b"\x01\x02\x03"), (0x700 + node, b""), (0x700 + node, b"\x05\x00\x00"),
-                      (0x080 + node, b"\x00\x10")]  # fmt: skip
+            frames = [
+                (fr.TPDO1_BASE + node, b"\x01\x02\x03"),
+                (0x700 + node, b""),
+                (0x700 + node, b"\x05\x00\x00"),
+                (0x080 + node, b"\x00\x10"),
+            ]
         rogue = _Flood(rig.config.bus.transport.channel, frames, 0.3)
         rig.cleanups.append(rogue.close)
         return {"kind": kind, "node": node, "cob_ids": sorted({hex(c) for c, _ in frames})}
@@ -407,17 +421,19 @@ def starve_cpu(rig: InProcessRig, rng: np.random.Generator) -> Any:
 
 def start_subscriber(rig: InProcessRig, rng: np.random.Generator) -> Any:
     """A second subscriber process on state (started before the drives are enabled)."""
-    code = ("import sys, time\nfrom hil_runtime.telemetry.subscriber import TelemetryClient\n"
-            f"c = TelemetryClient.open(connect=['tcp/127.0.0.1:{rig.telemetry_port}'], robot='ur5_paper',"
-            " timeout_s=20)\n"
-            "n = [0]\nc.subscribe('state', lambda p: n.__setitem__(0, n[0] + 1))\n"
-            "print('subscribed', flush=True)\ntime.sleep(60)\n")  # fmt: skip
+    code = (
+        "import sys, time\nfrom hil_runtime.telemetry.subscriber import TelemetryClient\n"
+        f"c = TelemetryClient.open(connect=['tcp/127.0.0.1:{rig.telemetry_port}'], robot='ur5_paper',"
+        " timeout_s=20)\n"
+        "n = [0]\nc.subscribe('state', lambda p: n.__setitem__(0, n[0] + 1))\n"
+        "print('subscribed', flush=True)\ntime.sleep(60)\n"
+    )
     process = subprocess.Popen(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
     )
     assert process.stdout is not None
     ready = process.stdout.readline().strip() == "subscribed"
-    rig.subscriber = process  # type: ignore[attr-defined]
+    rig.subscriber = process
 
     def reap() -> None:
         process.kill()
@@ -429,7 +445,8 @@ def start_subscriber(rig: InProcessRig, rng: np.random.Generator) -> Any:
 
 def kill_subscriber(rig: InProcessRig, rng: np.random.Generator) -> Any:
     """SIGKILL the subscriber process while the loop publishes to it."""
-    process = rig.subscriber  # type: ignore[attr-defined]
+    process = rig.subscriber
+    assert process is not None
     process.kill()
     return {"killed": "SIGKILL", "pid": process.pid}
 
@@ -551,9 +568,16 @@ def sigterm_during_enable(name: str, repeat: int, seed: int, work: Path) -> Case
         record_ok = (not rig.record.exists()) or _npz_ok(rig.record)
         leftovers = [p.name for p in work.iterdir() if ".partial" in p.name]
     states = [line.split("state ", 1)[1] for line in lines if "hil run: state " in line]
-    result.detail.update({"exit_code": code, "signal_after_configured_s": round(delay_s, 4), "states": states,
-                          "stderr_tail": lines[-2:], "record_complete": record_ok,
-                          "partial_files": leftovers})  # fmt: skip
+    result.detail.update(
+        {
+            "exit_code": code,
+            "signal_after_configured_s": round(delay_s, 4),
+            "states": states,
+            "stderr_tail": lines[-2:],
+            "record_complete": record_ok,
+            "partial_files": leftovers,
+        }
+    )
     result.detail["signal_before_active"] = before_active
     when = "during start-up/enable" if before_active else "just after ACTIVE"
     result.action = f"SIGTERM {when}: quick stop, disable, exit {code}"
@@ -636,14 +660,22 @@ def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
         lines = list(rig.stderr_lines)
         ratio = _record_ratio(rig.record) if _npz_ok(rig.record) else None
     result.detected_s = round(max_gap, 3)
-    result.detail.update({"stall_s": round(stall_s, 3), "watchdog_usec": watchdog_usec,
-                          "max_ping_gap_s": round(max_gap, 3), "drives_enabled_during_stall": during,
-                          "status_after": {k: after.get(k) for k in ("state", "fault")},
-                          "exit_code": code, "stderr_tail": lines[-2:]})  # fmt: skip
+    result.detail.update(
+        {
+            "stall_s": round(stall_s, 3),
+            "watchdog_usec": watchdog_usec,
+            "max_ping_gap_s": round(max_gap, 3),
+            "drives_enabled_during_stall": during,
+            "status_after": {k: after.get(k) for k in ("state", "fault")},
+            "exit_code": code,
+            "stderr_tail": lines[-2:],
+        }
+    )
     kind = str(after.get("fault") or "").split(":")[0]
     result.detail["fault_on_resume"] = kind
-    result.action = (f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; "
-                     f"on resume FAULT {kind}")  # fmt: skip
+    result.action = (
+        f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; on resume FAULT {kind}"
+    )
     result.drives_final = ["operation enabled" if x else "not enabled" for x in final]
     result.daemon_alive = alive
     result.daemon_note = "up in FAULT after SIGCONT; exit 0 on SIGTERM" if alive and code == 0 else f"exit {code}"

@@ -102,15 +102,17 @@ def craft_bundle(source: Path, destination: Path, kind: CraftKind) -> float:
     graph.initializer.append(numpy_helper.from_array(np.array([0], np.int64), "craft_start"))
     graph.initializer.append(numpy_helper.from_array(np.array([1], np.int64), "craft_end"))
     graph.initializer.append(numpy_helper.from_array(np.array([-1], np.int64), "craft_axis"))
-    graph.node.extend([
-        helper.make_node("Slice", [input_name, "craft_start", "craft_end", "craft_axis"], ["craft_q0"]),
-        helper.make_node("Sub", ["craft_q0", "craft_trigger"], ["craft_dq0"]),
-        helper.make_node("Abs", ["craft_dq0"], ["craft_abs"]),
-        helper.make_node("Less", ["craft_abs", "craft_width"], ["craft_in_band"]),
-        helper.make_node("Mul", [raw, "craft_scale"], ["craft_scaled"]),
-        helper.make_node("Add", ["craft_scaled", "craft_offset"], ["craft_bad"]),
-        helper.make_node("Where", ["craft_in_band", "craft_bad", raw], [output_name]),
-    ])  # fmt: skip
+    graph.node.extend(
+        [
+            helper.make_node("Slice", [input_name, "craft_start", "craft_end", "craft_axis"], ["craft_q0"]),
+            helper.make_node("Sub", ["craft_q0", "craft_trigger"], ["craft_dq0"]),
+            helper.make_node("Abs", ["craft_dq0"], ["craft_abs"]),
+            helper.make_node("Less", ["craft_abs", "craft_width"], ["craft_in_band"]),
+            helper.make_node("Mul", [raw, "craft_scale"], ["craft_scaled"]),
+            helper.make_node("Add", ["craft_scaled", "craft_offset"], ["craft_bad"]),
+            helper.make_node("Where", ["craft_in_band", "craft_bad", raw], [output_name]),
+        ]
+    )
     del TensorProto  # only the helpers are needed; the dtype comes from the arrays
     onnx.checker.check_model(model)
     onnx.save(model, str(graph_file))

@@ -29,10 +29,13 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
+
+if TYPE_CHECKING:
+    from sim_target.launch import Transport
 
 ROOT = Path(__file__).resolve().parents[2]
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
@@ -56,26 +59,44 @@ def free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-def runtime_config_dict(transport: dict[str, Any], bundle: Path = PD_BUNDLE, telemetry_port: int | None = None,
-                        bus: dict[str, Any] | None = None, loop: dict[str, Any] | None = None,
-                        **sections: Any) -> dict[str, Any]:  # fmt: skip
+def runtime_config_dict(
+    transport: dict[str, Any],
+    bundle: Path = PD_BUNDLE,
+    telemetry_port: int | None = None,
+    bus: dict[str, Any] | None = None,
+    loop: dict[str, Any] | None = None,
+    **sections: Any,
+) -> dict[str, Any]:
     """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing."""
     data: dict[str, Any] = {
         "robot": "ur5_paper",
         "bundle": {"path": str(bundle), "mode": "lmpc"},
-        "bus": {"transport": {"fd": True, "data_bitrate": 5_000_000, **transport}, "period_s": PERIOD_S,
-                "joints": [{"name": n, "node_id": i + 1, "max_torque_nm": t}
-                           for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))],
-                "feedback_timeout_s": FEEDBACK_TIMEOUT_S, "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
-                "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S, "sdo_timeout_s": 2.0, "state_change_timeout_s": 5.0,
-                "comm_loss_timeout_s": COMM_LOSS_TIMEOUT_S, **(bus or {})},
+        "bus": {
+            "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
+            "period_s": PERIOD_S,
+            "joints": [
+                {"name": n, "node_id": i + 1, "max_torque_nm": t}
+                for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))
+            ],
+            "feedback_timeout_s": FEEDBACK_TIMEOUT_S,
+            "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
+            "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S,
+            "sdo_timeout_s": 2.0,
+            "state_change_timeout_s": 5.0,
+            "comm_loss_timeout_s": COMM_LOSS_TIMEOUT_S,
+            **(bus or {}),
+        },
         "reference": {"kind": "hold"},
         "loop": {"pacing": "bus", "stats_interval_s": STATS_INTERVAL_S, "warmup_cycles": 50, **(loop or {})},
         **sections,
-    }  # fmt: skip
+    }
     if telemetry_port is not None:
-        data["telemetry"] = {"enabled": True, "listen": [f"tcp/127.0.0.1:{telemetry_port}"],
-                             "stats_period_s": STATS_INTERVAL_S, "close_timeout_s": 0.5}  # fmt: skip
+        data["telemetry"] = {
+            "enabled": True,
+            "listen": [f"tcp/127.0.0.1:{telemetry_port}"],
+            "stats_period_s": STATS_INTERVAL_S,
+            "close_timeout_s": 0.5,
+        }
     return data
 
 
@@ -237,8 +258,16 @@ class LoopThread:
 class InProcessRig:
     """Target + runtime + telemetry watch (+ RPDO tap on a virtual channel), one case's life."""
 
-    def __init__(self, target: Any, config: Any, *, telemetry_port: int | None, record_cycles: int = 20_000,
-                 tap: bool = True, bundle: Any = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        target: Any,
+        config: Any,
+        *,
+        telemetry_port: int | None,
+        record_cycles: int = 20_000,
+        tap: bool = True,
+        bundle: Any = None,
+    ) -> None:
         from drivers.drive_bus import DriveBus
         from drivers.transport import open_bus
         from hil_runtime.daemon import make_telemetry
@@ -259,6 +288,7 @@ class InProcessRig:
             per_nm = np.array([node.permille_per_nm for node in self.drive_bus.nodes])
             self.tap = RpdoTap(config.bus.transport.channel, per_nm, self.runtime.limits.torque_limit_nm)
         self.loop = LoopThread(self.runtime)
+        self.subscriber: subprocess.Popen[str] | None = None  # a second telemetry subscriber, when a case starts one
         self.cleanups: list[Callable[[], None]] = []  # a case's own helpers (rogue senders, busy processes)
 
     def start(self, watch: bool = True) -> None:
@@ -309,13 +339,20 @@ class InProcessRig:
 
 
 @contextlib.contextmanager
-def in_process_rig(transport: str = "virtual", *, telemetry: bool = True, q0_rad: tuple[float, ...] = Q0_RAD,
-                   bundle_path: Path = PD_BUNDLE, config_extra: dict[str, Any] | None = None,
-                   target_extra: dict[str, Any] | None = None, tap: bool = True) -> Iterator[InProcessRig]:  # fmt: skip
+def in_process_rig(
+    transport: Transport = "virtual",
+    *,
+    telemetry: bool = True,
+    q0_rad: tuple[float, ...] = Q0_RAD,
+    bundle_path: Path = PD_BUNDLE,
+    config_extra: dict[str, Any] | None = None,
+    target_extra: dict[str, Any] | None = None,
+    tap: bool = True,
+) -> Iterator[InProcessRig]:
     from hil_runtime.config import parse_runtime_config
     from sim_target.launch import launch_target
 
-    with launch_target(target_config(q0_rad, **(target_extra or {})), transport) as target:  # type: ignore[arg-type]
+    with launch_target(target_config(q0_rad, **(target_extra or {})), transport) as target:
         port = free_port() if telemetry else None
         data = runtime_config_dict(dict(target.transport), bundle_path, port, **(config_extra or {}))
         config = parse_runtime_config(data, "fault-campaign")
@@ -420,8 +457,9 @@ class DaemonRig:
 
 
 @contextlib.contextmanager
-def daemon_rig(work: Path, *, watchdog_usec: int = 200_000, bus: dict[str, Any] | None = None,
-               telemetry: bool = True) -> Iterator[DaemonRig]:  # fmt: skip
+def daemon_rig(
+    work: Path, *, watchdog_usec: int = 200_000, bus: dict[str, Any] | None = None, telemetry: bool = True
+) -> Iterator[DaemonRig]:
     """``hil target serve`` (ipc bus) and ``hil run`` as two processes, sd_notify to a socket of ours."""
     from sim_target.launch import launch_target
 
@@ -429,20 +467,38 @@ def daemon_rig(work: Path, *, watchdog_usec: int = 200_000, bus: dict[str, Any] 
     with launch_target(target_config(), "ipc", work_dir=work / "t") as target:
         port = free_port()
         sock = work / "runtime.sock"
-        data = runtime_config_dict(dict(target.transport), PD_BUNDLE, port if telemetry else None, bus=bus,
-                                   control_socket=str(sock))  # fmt: skip
+        data = runtime_config_dict(
+            dict(target.transport), PD_BUNDLE, port if telemetry else None, bus=bus, control_socket=str(sock)
+        )
         config_path = work / "runtime.yaml"
         config_path.write_text(yaml.safe_dump(data))
         notify = NotifyListener(work / "notify.sock")
         record = work / "run.npz"
-        env = {**os.environ, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": str(watchdog_usec),
-               "PYTHONUNBUFFERED": "1"}  # fmt: skip
+        env = {
+            **os.environ,
+            "NOTIFY_SOCKET": str(notify.path),
+            "WATCHDOG_USEC": str(watchdog_usec),
+            "PYTHONUNBUFFERED": "1",
+        }
         env.pop("WATCHDOG_PID", None)
         process = subprocess.Popen(
-            [sys.executable, "-m", "hil_runtime.cli", "run", "--config", str(config_path), "--record", str(record),
-             "--record-cycles", "20000"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "hil_runtime.cli",
+                "run",
+                "--config",
+                str(config_path),
+                "--record",
+                str(record),
+                "--record-cycles",
+                "20000",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
         rig = DaemonRig(process, sock, record, notify, port, target)
         rig.start_reader()
         try:
