@@ -151,9 +151,12 @@ cli.app, cli._load_plugins = app, lambda: None
 
 @app.command()
 def stuck() -> None:
-    print("ready", flush=True)
+    ready = False
     while True:  # a native call or helper thread that never returns, as far as Ctrl-C is concerned
-        try:
+        try:  # "ready" is printed inside the try: a Ctrl-C right after it must land in the swallowing loop
+            if not ready:
+                print("ready", flush=True)
+                ready = True
             time.sleep(0.05)
         except KeyboardInterrupt:
             pass
