@@ -19,7 +19,8 @@ pulse): trajectory RMS difference (deg, over time and joints) and composite-metr
   as the target did before its impulses were resolved to substeps (same impulse, N·m·s).
 
     python benchmarks/hil_parity_sources.py                      # prints JSON
-    python benchmarks/hil_parity_sources.py --runs pd/fb/C1,smc/lmpc/C4 --plot docs/figures/hil_parity_sources.png
+    python benchmarks/hil_parity_sources.py --plot docs/figures/hil_parity_sources.png
+    python benchmarks/hil_parity_sources.py --runs "" --floor smc --sim-results results/experiment/sim/results.json
 """
 
 from __future__ import annotations
@@ -139,7 +140,9 @@ def main() -> None:
     parser.add_argument("--runs", default="pd/fb/C1,adrc/fb/C1,hinf/fb/C2,mrac/fb/C4,smc/fb/C1")
     parser.add_argument("--substeps", default="8,16,32,64")
     parser.add_argument("--plot", type=Path, default=None)
-    parser.add_argument("--floor", default="smc", help="laws whose own score spread under a 1e-9 N m nudge is measured")
+    parser.add_argument("--floor", default="smc", help="laws whose own score spread under a nudge is measured")
+    parser.add_argument("--sim-results", type=Path, default=None,
+                        help="an `hil experiment` results.json: score the floor on its scale (the parity table's)")
     args = parser.parse_args()
     robot = load_robot("ur5_paper")
     conditions = {c.name: c for c in load_conditions(robot=robot)}
@@ -149,7 +152,7 @@ def main() -> None:
     work = Path(os.environ.get("TMPDIR", "/tmp")) / f"hil-parity-{os.getpid()}.yaml"
     work.write_text(conditions_yaml(list(conditions.values())))
     twin_config = SimConfig(dt_s=PERIOD_S, substeps=2, plant_backend="pinocchio")
-    for spec in args.runs.split(","):
+    for spec in [x for x in args.runs.split(",") if x]:
         law, mode, cname = spec.split("/")
         condition = conditions[cname]
         twin = _simulate(robot, law, mode, condition, twin_config)
@@ -170,39 +173,46 @@ def main() -> None:
             row[name] = _compare(arrays, twin, condition)
         out["runs"][spec] = row
     work.unlink(missing_ok=True)
-    out["floor"] = _floor(robot, list(conditions.values()), [x for x in args.floor.split(",") if x], twin_config)
+    out["floor"] = _floor(robot, list(conditions.values()), [x for x in args.floor.split(",") if x], twin_config,
+                          args.sim_results)
     out["wall_s"] = round(time.monotonic() - started, 1)
     out["load_average_end"] = os.getloadavg()
     print(json.dumps(out, indent=1))
-    if args.plot is not None:
+    if args.plot is not None and out["runs"]:
         _plot(out, args.plot)
 
 
-def _floor(robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig) -> dict[str, Any]:
-    """The simulation's own reproducibility: composite score of each law and mode on the five
-    conditions with torques rounded to 1e-9 N·m, against the plain simulation, on its scale (the
-    largest metric among the plain runs of the same law and condition, both modes)."""
-    from models.scoring import METRICS, WEIGHTS
+def _floor(robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig,
+           sim_results: Path | None) -> dict[str, Any]:  # fmt: skip
+    """The simulation's own reproducibility: each law and mode on every condition with its torques
+    rounded to 1e-9 or 1e-6 N·m (a nudge) or quantized as the drives do (``carried_2``), scored
+    against the plain simulation. On the scale of ``sim_results`` (an ``hil experiment``
+    results.json: the parity table's scale) when given, else each pair on its own."""
+    from models.hil_experiment import _per_run_scores
 
+    scale = json.loads(sim_results.read_text())["runs"] if sim_results is not None else None
     out: dict[str, Any] = {}
     for law in laws:
         for mode in ("fb", "lmpc"):
-            plain, nudged = [], []
-            for c in conditions:
-                dist = c.disturbance.time_s if c.disturbance is not None else None
-                for runs, wrap in ((plain, None), (nudged, "nudged_1e-9")):
+            runs: dict[str | None, list[dict[str, Any]]] = {}
+            for wrap in (None, "nudged_1e-9", "nudged_1e-6", "carried_2"):
+                runs[wrap] = []
+                for c in conditions:
+                    dist = c.disturbance.time_s if c.disturbance is not None else None
                     r = _simulate(robot, law, mode, c, sim, wrap)
-                    runs.append(run_metrics(r["t"], r["q"], r["q_ref"], dist))
-            largest = [{m: max(a[m], b[m]) for m in METRICS} for a, b in zip(plain, nudged, strict=True)]
-
-            def score(runs: list[dict[str, float]]) -> float:
-                weighted = list(zip(METRICS, WEIGHTS, strict=True))
-                return float(np.mean([sum(w * r[m] / big[m] for m, w in weighted if big[m] > 0)
-                                      for r, big in zip(runs, largest, strict=True)]))  # fmt: skip
-
-            a, b = score(plain), score(nudged)
-            out[f"{law}/{mode}"] = {"score_sim": round(a, 4), "score_nudged": round(b, 4),
-                                    "rel_pct": round(100 * (b - a) / a, 2)}  # fmt: skip
+                    runs[wrap].append({"law": law, "mode": mode, "condition": c.name, "finite": True,
+                                       "within_limits": r["within_limits"],
+                                       "metrics": run_metrics(r["t"], r["q"], r["q_ref"], dist)})  # fmt: skip
+            for wrap in ("nudged_1e-9", "nudged_1e-6", "carried_2"):
+                pair = runs[None] + runs[wrap]
+                base = _per_run_scores(runs[None], scale=scale or pair)
+                moved = _per_run_scores(runs[wrap], scale=scale or pair)
+                per_condition = {c.name: round(100 * (moved[(law, mode, c.name)] / base[(law, mode, c.name)] - 1), 1)
+                                 for c in conditions}  # fmt: skip
+                a, b = float(np.mean(list(base.values()))), float(np.mean(list(moved.values())))
+                out[f"{law}/{mode}/{wrap}"] = {"score_sim": round(a, 4), "score": round(b, 4),
+                                               "rel_pct": round(100 * (b - a) / a, 1),
+                                               "per_condition_pct": per_condition}  # fmt: skip
     return out
 
 
