@@ -101,7 +101,7 @@ def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: 
     from rich.console import Console
 
     from models.feedback import LAW_NAMES
-    from models.lmpc.structured import PERTURBATION, StructuredConfig, run_structured
+    from models.lmpc.structured import C_FIXED, PERTURBATION, StructuredConfig, run_structured
 
     law_list = tuple(x.strip() for x in laws.split(",") if x.strip())
     for law in law_list:
@@ -111,7 +111,8 @@ def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: 
     options = {} if formulation == "absolute" else {"torque_cost": formulation}
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(laws=law_list, hmpc_options=options, target=target, ff_point=ff_point, train_conditions=conditions,
-                              perturb_error_rad=sigma_e, perturb_rate_rad_s=sigma_rate, dagger_rounds=dagger_rounds)  # fmt: skip
+                              perturb_error_rad=sigma_e, perturb_rate_rad_s=sigma_rate, dagger_rounds=dagger_rounds,
+                              c_fixed=C_FIXED[formulation] if target == "hmpc" else None)  # fmt: skip
     console = Console(stderr=True)
     summary = run_structured(config, bundles, work, log=console.print)
     console.print(f"wrote {bundles}/<robot>/<law>/ and {work}/structured.json ({summary['wall_s']:.0f} s)")

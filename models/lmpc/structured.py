@@ -8,11 +8,10 @@ not generalize. Here the physics is computed, not learned:
     tau_id = ID(q, qd, a)        ("measured": the project's RNE at the measured state)
            | ID(q_d, qd_d, a)    ("reference": along the reference)
     r      = c * tau_fb + g * tau_id + b * tanh(MLP(s) / b)                b: the residual's absolute bound
-    c in (-1.05, 0.5), g in (0, 1.2) per joint; Kp, Kd (N x N): learned
+    c in [-1.05, c_max = 0], g in [0, 1.2] per joint; Kp, Kd (N x N): learned
     tau_L  = tau_fb + r = (1 + c) tau_fb + g tau_id + residual, then the trust region and saturation
 
-i.e. the law (scaled by 0.5..1.5, the HMPC's candidate range) plus a share of the model's
-computed torque with positive gains. The bounds keep a fit on thin data (the expert's closed loop
+i.e. the law (kept, reduced or removed) plus a share of the model's computed torque. The bounds keep a fit on thin data (the expert's closed loop
 has e ~ 0, tau_fb ~ 0) from producing negative damping or terms that cancel each other (an
 unconstrained fit did both on the wrists: c = 8.7, g = -9.7, kd = -378).
 
@@ -48,6 +47,8 @@ FF_POINTS = ("measured", "reference")
 #: perturbation (sigma_e rad, sigma_e_dot rad/s) of the relabeled copies per HMPC formulation: small enough
 #: that the absolute-cost HMPC (gains ~1e5 1/s^2, ~1e3 1/s) stays off its torque limits
 PERTURBATION = {"absolute": (1e-4, 1e-2), "anchored": (2e-3, 2e-2)}
+#: c fixed per formulation (None: fitted): the absolute-cost optimum does not depend on the law
+C_FIXED = {"absolute": -1.0, "anchored": None}
 TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
 
 
@@ -69,8 +70,17 @@ class StructuredConfig:
     substeps: int = 2
     hidden: tuple[int, ...] = (32, 32)
     residual_bound_fraction: float = 0.02  # b_j = fraction * torque limit_j
+    # upper bound of c (tau_L = (1 + c) tau_fb + ...): 0 = the law is kept or reduced, never amplified. The
+    # expert's closed loop has tau_fb ~ 0, so c is weakly identified; c = +0.5 on MRAC's joints 2-3 (fitted
+    # with the bound at 0.5) drove its adaptation unstable on all five paper conditions.
+    c_max: float = 0.0
+    # c fixed (not fitted) when the expert does not depend on the law: the absolute-cost HMPC's optimum is
+    # the same for every law (docs/hmpc.md), so tau_L should not depend on tau_fb either (c = -1). A fitted
+    # c is noise there (tau_fb ~ 0 on the expert's states) and c = 0 on MRAC's joints 2-3 fed its
+    # adaptation back into the torque: every paper condition left the limits.
+    c_fixed: float | None = None
     residual_min_gain: float = 0.10  # the residual MLP is kept only if it lowers the validation loss by this fraction
-    physics_steps: int = 3000  # full-batch projected Adam steps on (c, g, Kp, Kd)
+    physics_steps: int = 1500  # full-batch projected Adam steps on (c, g, Kp, Kd)
     physics_learning_rate: float = 0.05
     residual_epochs: int = 40
     batch_size: int = 512
@@ -250,8 +260,10 @@ class StructuredEmulator(nn.Module):
     bundle exporter reads).
     """
 
-    def __init__(self, robot: RobotModel, hidden: tuple[int, ...], bound_nm: np.ndarray, ff_point: str = "measured") -> None:
+    def __init__(self, robot: RobotModel, hidden: tuple[int, ...], bound_nm: np.ndarray, ff_point: str = "measured",
+                 c_max: float = 0.0) -> None:  # fmt: skip
         super().__init__()
+        self.c_max = float(c_max)
         from models.dynamics.torch_rne import SpatialRne
 
         n = robot.n_joints
@@ -297,7 +309,8 @@ class StructuredEmulator(nn.Module):
     def project(self) -> None:
         """Back into the bounds of c and g."""
         with torch.no_grad():
-            self.c.clamp_(self.C_MIN, 0.5)
+            if self.c.requires_grad:
+                self.c.clamp_(self.C_MIN, self.c_max)
             self.g.clamp_(0.0, self.G_MAX)
 
     def physics(self, s: torch.Tensor) -> torch.Tensor:
@@ -403,7 +416,11 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
     bound = config.residual_bound_fraction * limit
-    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point)
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)
+    if config.c_fixed is not None:
+        with torch.no_grad():
+            model.c.fill_(config.c_fixed)
+        model.c.requires_grad_(False)
     mass, bias = _physics_terms(robot, s, config.ff_point)
     from models.dynamics import make_dynamics
 
@@ -420,7 +437,7 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
         tau_id = (mt @ accel.unsqueeze(-1)).squeeze(-1) + ht
         return c * tau_fb + g * tau_id
 
-    params = [model.c, model.g, model.theta_kp, model.theta_kd]
+    params = [p for p in (model.c, model.g, model.theta_kp, model.theta_kd) if p.requires_grad]
     # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0)
     denom = float(torch.mean((yt * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
     started = time.perf_counter()
