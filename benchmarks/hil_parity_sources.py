@@ -113,10 +113,12 @@ def _simulate(robot: Any, law: str, mode: str, condition: Any, sim: SimConfig, w
         controller = Quantized(controller, steps, carry=1)
     elif wrap == "carried_2":
         controller = Quantized(controller, steps, carry=2)
-    elif wrap == "nudged_1e-9":  # a 1e-9 N m rounding: how chaotic is the law itself?
-        controller = Quantized(controller, np.full_like(steps, 1e-9), carry=0, encoder=False)
+    elif wrap is not None and wrap.startswith("nudged_"):  # a tiny rounding: how chaotic is the law itself?
+        controller = Quantized(controller, np.full_like(steps, float(wrap[7:])), carry=0, encoder=False)
     elif wrap == "delayed":
         controller = Delayed(controller)
+    elif wrap is not None:
+        raise ValueError(f"unknown variant {wrap!r}")
     traj = simulate(robot, controller, [condition], sim)
     return {"t": traj.t_s, "q": traj.q[0], "q_ref": traj.q_ref[0], "tau": traj.tau[0],
             "within_limits": bool(traj.within_limits[0])}  # fmt: skip
