@@ -24,14 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import threading
 import time
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import benchinfo
 import numpy as np
 
 from drivers.drive_bus import DriveBus
@@ -205,28 +204,7 @@ def bench_ipc(duration_s: float, period_s: float, substeps: int, rt: bool = Fals
 
 
 def machine() -> dict[str, Any]:
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    versions = {}
-    for package in ("python-can", "python-can-remote", "canopen", "pybullet", "numpy"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = None
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
-        "versions": versions,
-    }
+    return benchinfo.machine("python-can", "python-can-remote", "canopen", "pybullet", "numpy")
 
 
 def main() -> None:

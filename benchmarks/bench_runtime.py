@@ -27,14 +27,13 @@ import contextlib
 import json
 import math
 import os
-import platform
 import shutil
 import tempfile
 from collections.abc import Iterator
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import benchinfo
 import numpy as np
 
 from drivers.testing import FakeJointBus
@@ -227,26 +226,7 @@ def bench_process(
 
 
 def machine() -> dict[str, Any]:
-    cpu = ""
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    versions = {}
-    for package in ("onnxruntime", "numpy", "python-can", "canopen", "pybullet"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = None
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
-        "versions": versions,
-    }
+    return benchinfo.machine("onnxruntime", "numpy", "python-can", "canopen", "pybullet")
 
 
 def main() -> None:
