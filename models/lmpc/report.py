@@ -47,7 +47,8 @@ def gain_kept(results: dict[str, Any]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
     for law, row in results["table"].items():
         eta_h, eta_l = row.get("hmpc", {}).get("eta"), row.get("lmpc", {}).get("eta")
-        out[law] = None if eta_h in (None, 0) or eta_l is None else float(eta_l / eta_h)
+        failed = any(row.get(m, {}).get("failed_conditions") for m in ("fb", "hmpc", "lmpc"))
+        out[law] = None if failed or eta_h in (None, 0) or eta_l is None else float(eta_l / eta_h)
     return out
 
 
