@@ -19,6 +19,7 @@ Outputs in ``out_dir``, as ``hil experiment``:
   trajectories/  one .npz per run: the runtime's record (t, q, qd, q_ref, qd_ref, tau, tau_fb, ...)
   plots/         tracking errors (as the simulation's), plots/parity/ HIL vs simulation
   sim/           the simulation's own outputs (parity)
+  bundles/       the bundles both ran, copied at the start (a re-export meanwhile changes nothing)
 """
 
 from __future__ import annotations
@@ -173,6 +174,23 @@ def check_hil_inputs(robot: RobotModel, conditions: list[Condition], config: Exp
                                   f"'{config.gain_set}' (the runtime runs the bundle's law)")  # fmt: skip
 
 
+def snapshot_bundles(robot: RobotModel, laws: tuple[str, ...], bundle_dir: Path | None, into: Path) -> Path:
+    """Copy each law's bundle (its directory's files) to ``into/<law>``; returns ``into``."""
+    import shutil
+
+    from models.lmpc.controller import bundle_path
+
+    for law in laws:
+        source = bundle_path(robot.name, law, bundle_dir)
+        target = into / law
+        if source.resolve() == target.resolve():
+            continue
+        if target.exists():
+            shutil.rmtree(target)
+        shutil.copytree(source, target)
+    return into
+
+
 # --- one run ---------------------------------------------------------------------------------------
 
 
@@ -307,6 +325,9 @@ def run_hil_experiment(
 
     check_hil_inputs(robot, conditions, config, options)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # One snapshot of the bundles for the HIL runs and the simulation twin alike: a bundle
+    # re-exported while the experiment runs (it happened) must not mix two versions in one table.
+    options = replace(options, bundle_dir=snapshot_bundles(robot, config.laws, options.bundle_dir, out_dir / "bundles"))
     period_s = config.sim.dt_s
     conditions_file = out_dir / "conditions.yaml"
     write_text_atomic(conditions_file, conditions_yaml(conditions))
@@ -368,6 +389,7 @@ def run_hil_experiment(
         "time_columns": "runtime compute per cycle (feedback in -> set-points out: supervisor, reference, one "
                         "onnxruntime call, record), median over every cycle of the law's runs",
         "paper_table_ii": {law: {"fb": v[0], "lmpc": v[1]} for law, v in PAPER_TABLE_II.items()},
+        "bundles": {law: _bundle_digest(options.bundle_dir / law) for law in config.laws},  # type: ignore[operator]
     }  # fmt: skip
     results["machine"] = _machine()
     if sim_results is not None:
@@ -388,6 +410,14 @@ def run_hil_experiment(
     write_text_atomic(out_dir / "table.md", format_hil_table(results))
     write_text_atomic(out_dir / "results.json", json.dumps(_json_safe(results), indent=2))
     return results
+
+
+def _bundle_digest(path: Path) -> dict[str, Any]:
+    """Where the snapshot came from and the sha256 of its graph (the manifest lists every file's)."""
+    manifest = json.loads((path / "manifest.json").read_text())
+    files = manifest.get("files") or manifest.get("sha256") or {}
+    return {"path": str(path), "law": manifest["law"]["name"], "gain_set": manifest["law"].get("gain_set"),
+            "files_sha256": files}  # fmt: skip
 
 
 def _timing(compute_s: np.ndarray) -> dict[str, float]:

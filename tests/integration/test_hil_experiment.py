@@ -92,8 +92,15 @@ def test_short_hil_experiment_through_the_cli(tmp_path: Path, short_conditions: 
         assert abs(row["score_rel"]) <= 0.05, row
         assert row["trajectory_rms_diff_deg"] < 0.05, row
     for name in ("plots/pd_C4short.png", "plots/average_error_C4short.png", "plots/parity/parity_scores.png",
-                 "plots/parity/parity_error_fb.png", "sim/results.json", "conditions.yaml"):  # fmt: skip
+                 "plots/parity/parity_error_fb.png", "sim/results.json", "conditions.yaml",
+                 "bundles/pd/manifest.json"):  # fmt: skip
         assert (out / name).is_file(), name
+    # Both the HIL runs and the twin ran the snapshot taken at the start (a re-export meanwhile
+    # cannot mix two versions), and the results say which files those were.
+    snapshot = results["hil"]["bundles"]["pd"]
+    assert snapshot["path"] == str(out / "bundles" / "pd") and "policy.onnx" in snapshot["files_sha256"]
+    assert json.loads((out / "sim" / "results.json").read_text())["controller_options"]["lmpc"]["bundle_dir"] == str(
+        out / "bundles")
 
 
 def test_disturbance_hits_at_its_time_as_in_the_simulator(short_conditions: Path) -> None:
