@@ -128,3 +128,12 @@ def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
     nominal.pending = (pq, pqd, pa)
     torch.testing.assert_close(nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11)
     torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
+
+
+def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from models.cli import experiment
+
+    with pytest.raises(ModelInputError, match="--hmpc-formulation"):
+        experiment(modes="fb", laws="pd", out=tmp_path, hmpc_formulation="relative", conditions=None)
+    with pytest.raises(ModelInputError, match="--conditions"):
+        experiment(modes="fb", laws="pd", out=tmp_path, conditions="random:zero:1")
