@@ -499,7 +499,6 @@ class HMPCSolver:
             weighted_sens = (block @ sens).reshape(k, horizon * 2 * n, horizon * n)
         hessian = np.swapaxes(flat_sens, 1, 2) @ weighted_sens
         gradient = np.einsum("kxi,kx->ki", flat_sens, residual.reshape(k, -1))
-        flat_u = u.reshape(k, -1)
         hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self._stage_torque_weight
         gradient = gradient + self._stage_torque_weight * rows.deviation(u).reshape(k, -1)
         diagonal = hessian[:, np.arange(horizon * n), np.arange(horizon * n)]

@@ -93,7 +93,9 @@ class StructuredConfig:
     # errors would hand every cycle back to the law).
     error_envelope_rad: float = 0.1
     rate_envelope_rad_s: float = 3.0  # the 2 s impulse alone moves the wrist by ~1.6 rad/s
-    bound_scale: float = 3.0  # trust region residual bound: 3 x max |tau* - tau_fb| over the training labels
+    # trust region residual bound: 10 x max |tau* - tau_fb| over the training labels (3x clamped the
+    # cancellation of ADRC's and SMC's torque after the impulse: eta_L 73.3 / 67.1 -> 81.2 / 77.0)
+    bound_scale: float = 10.0
     # DART-style excitation of the expert rollouts: the plant gets tau* + noise (the label stays tau*),
     # noise = accel_noise * M_ii(0) * a standard normal held for noise_hold_steps periods, seeded; a
     # fraction noise_fraction of the training conditions run with it. Without it the expert's own
@@ -487,7 +489,7 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
 
     best, best_state = float("inf"), None
     residual_history = []
-    for epoch in range(config.residual_epochs):
+    for _ in range(config.residual_epochs):
         perm = rng.permutation(train)
         for a in range(0, len(perm), config.batch_size):
             idx = perm[a : a + config.batch_size]
@@ -539,10 +541,7 @@ def export_structured(out_dir: Path, law_name: str, robot: RobotModel, model: St
                           "residual_bound": f"{config.bound_scale} x max |tau* - tau_fb| over the training labels"}}  # fmt: skip
     validation = {"physics_relative_loss": summary["physics"]["relative_loss"],
                   "residual_val_relative_loss": summary["residual"]["val_relative_loss"]}  # fmt: skip
-    rng = np.random.default_rng(0)
-    pick = rng.choice(len(s), size=min(64, len(s)), replace=False)
-    n = robot.n_joints
-    # parity rows: the logged states (q, qd, q_d, qd_d, qdd_d) and law states are not in s; use zeros for the law state
+    # onnxruntime-vs-torch parity on the exporter's seeded random rows; probes recorded by the exporter
     return export_bundle(out_dir, law, robot, model, training, validation, trust_region=(low, high), residual=True,
                          residual_bound_nm=bound, box_margin=config.box_margin, feature_set="eq22+qdd_d",
                          policy_class=_structured_policy_class())  # fmt: skip
