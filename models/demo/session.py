@@ -38,8 +38,8 @@ import yaml
 from models.demo.processes import Child, DemoError, free_loopback_port
 from models.errors import ModelInputError
 
-#: The best LMPC law of Table I (README, docs/lmpc.md): the lowest LMPC composite score, MRAC 0.107
-#: (SMC 0.122, ADRC 0.158, PID 0.286, PD 0.291, H∞ 0.994). Lower is better.
+#: The best LMPC law of Table I (README, docs/lmpc.md): the lowest LMPC composite score, MRAC 0.025
+#: (PD 0.031, PID 0.031, ADRC 0.043, SMC 0.045, H∞ 0.047; structured bundles). Lower is better.
 BEST_LMPC_LAW = "mrac"
 DEFAULT_CONDITION = "C1"
 MODES = ("lmpc", "fb")
