@@ -36,6 +36,8 @@ def pipeline(
     target: Annotated[str, typer.Option(help="Structured design: 'hmpc', or 'law' (the control row: imitate the law itself).")] = "hmpc",
     ff_point: Annotated[str, typer.Option(help="Structured design: feed-forward at the 'measured' state or along the 'reference'.")] = "measured",
     train_conditions: Annotated[int, typer.Option(help="Structured design: paper-range training conditions.")] = 16,
+    residual_bound_scale: Annotated[float, typer.Option(
+        help="Structured design: trust-region residual bound, x the largest |tau* - tau_fb| of the labels.")] = 3.0,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     if design not in ("paper", "structured"):
@@ -43,7 +45,10 @@ def pipeline(
     if hmpc_formulation not in ("absolute", "anchored"):
         raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
     if design == "structured":
-        _structured(work, bundles, laws, hmpc_formulation, target, ff_point, train_conditions, dagger_rounds)
+        if not residual_bound_scale > 0:
+            raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
+        _structured(work, bundles, laws, hmpc_formulation, target, ff_point, train_conditions, dagger_rounds,
+                    residual_bound_scale)  # fmt: skip
         return
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -95,7 +100,7 @@ def pipeline(
 
 
 def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: str, ff_point: str, conditions: int,
-                dagger_rounds: int) -> None:  # fmt: skip
+                dagger_rounds: int, bound_scale: float = 3.0) -> None:  # fmt: skip
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
     from rich.console import Console
@@ -112,7 +117,7 @@ def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: 
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(laws=law_list, hmpc_options=options, target=target, ff_point=ff_point, train_conditions=conditions,
                               perturb_error_rad=sigma_e, perturb_rate_rad_s=sigma_rate, dagger_rounds=dagger_rounds,
-                              c_fixed=C_FIXED[formulation] if target == "hmpc" else None)  # fmt: skip
+                              c_fixed=C_FIXED[formulation] if target == "hmpc" else None, bound_scale=bound_scale)  # fmt: skip
     console = Console(stderr=True)
     summary = run_structured(config, bundles, work, log=console.print)
     console.print(f"wrote {bundles}/<robot>/<law>/ and {work}/structured.json ({summary['wall_s']:.0f} s)")
