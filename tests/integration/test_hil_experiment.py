@@ -100,7 +100,8 @@ def test_short_hil_experiment_through_the_cli(tmp_path: Path, short_conditions: 
     snapshot = results["hil"]["bundles"]["pd"]
     assert snapshot["path"] == str(out / "bundles" / "pd") and "policy.onnx" in snapshot["files_sha256"]
     assert json.loads((out / "sim" / "results.json").read_text())["controller_options"]["lmpc"]["bundle_dir"] == str(
-        out / "bundles")
+        out / "bundles"
+    )
 
 
 def test_disturbance_hits_at_its_time_as_in_the_simulator(short_conditions: Path) -> None:
