@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
 from models.errors import ModelInputError
-
 
 # The built-in robots (models.robots.robot_names(); tests/unit/models/test_cli.py keeps them equal).
 ROBOTS_HELP = "ur5_paper, ur5, panda"
@@ -36,32 +35,55 @@ def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
 
 def experiment(
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
-    modes: Annotated[Optional[str], typer.Option(
-        help="Comma-separated modes: fb, hmpc, lmpc (default: fb,hmpc,lmpc; with --plant hil: fb,lmpc).")] = None,
-    conditions: Annotated[Optional[str], typer.Option(
-        help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range).")] = None,
+    modes: Annotated[
+        str | None,
+        typer.Option(help="Comma-separated modes: fb, hmpc, lmpc (default: fb,hmpc,lmpc; with --plant hil: fb,lmpc)."),
+    ] = None,
+    conditions: Annotated[
+        str | None,
+        typer.Option(
+            help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range)."
+        ),
+    ] = None,
     robot: Annotated[str, typer.Option(help=f"Robot: {ROBOTS_HELP}, or a URDF path.")] = "ur5_paper",
-    out: Annotated[Path, typer.Option(help="Output directory (checked writable before any work).")] = Path("results/experiment"),
+    out: Annotated[Path, typer.Option(help="Output directory (checked writable before any work).")] = Path(
+        "results/experiment"
+    ),
     mismatch: Annotated[str, typer.Option(help="'none', or 'paper': +0.5 kg payload, inertias ±20 %.")] = "none",
-    gains: Annotated[str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper' (docs/feedback_laws.md).")] = "stabilized",
+    gains: Annotated[
+        str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper' (docs/feedback_laws.md).")
+    ] = "stabilized",
     dt: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
     substeps: Annotated[int, typer.Option(help="RK4 plant steps per control period.")] = 2,
     plant_backend: Annotated[str, typer.Option(help="Plant dynamics: pinocchio or rne (own RNEFDA).")] = "pinocchio",
     timing_cycles: Annotated[int, typer.Option(help="Single-robot cycles timed per law and mode.")] = 1000,
     no_trajectories: Annotated[bool, typer.Option("--no-trajectories", help="Skip the .npz files.")] = False,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the PNG plots.")] = False,
-    lmpc_bundles: Annotated[Optional[Path], typer.Option(help="LMPC bundle root (default: the shipped ones).")] = None,
-    hmpc_formulation: Annotated[str, typer.Option(
-        help="HMPC torque cost: 'absolute' (W2 on tau) or 'anchored' (W2 on tau - w* tau_fb, docs/hmpc.md).")] = "absolute",
-    hmpc_dt: Annotated[Optional[float], typer.Option(help="HMPC prediction step (s); default: the control period.")] = None,
+    lmpc_bundles: Annotated[Path | None, typer.Option(help="LMPC bundle root (default: the shipped ones).")] = None,
+    hmpc_formulation: Annotated[
+        str,
+        typer.Option(
+            help="HMPC torque cost: 'absolute' (W2 on tau) or 'anchored' (W2 on tau - w* tau_fb, docs/hmpc.md)."
+        ),
+    ] = "absolute",
+    hmpc_dt: Annotated[
+        float | None, typer.Option(help="HMPC prediction step (s); default: the control period.")
+    ] = None,
     hmpc_anchor_scale: Annotated[float, typer.Option(help="Anchored cost: c in W2_i = c dt^2 / M_ii(0)^2.")] = 10.0,
-    plant: Annotated[str, typer.Option(
-        help="sim: the models simulator; hil: the runtime drives the pybullet target over CAN (docs/hil.md).")] = "sim",
-    transport: Annotated[str, typer.Option(
-        help="--plant hil: virtual (one process), ipc or bridge (the target in its own process).")] = "virtual",
+    plant: Annotated[
+        str,
+        typer.Option(
+            help="sim: the models simulator; hil: the runtime drives the pybullet target over CAN (docs/hil.md)."
+        ),
+    ] = "sim",
+    transport: Annotated[
+        str, typer.Option(help="--plant hil: virtual (one process), ipc or bridge (the target in its own process).")
+    ] = "virtual",
     target_substeps: Annotated[int, typer.Option(help="--plant hil: pybullet steps per control period.")] = 32,
-    no_parity: Annotated[bool, typer.Option(
-        "--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison.")] = False,
+    no_parity: Annotated[
+        bool,
+        typer.Option("--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison."),
+    ] = False,
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
@@ -78,8 +100,9 @@ def experiment(
         from models.hil_experiment import HilOptions
 
         _positive(target_substeps, "--target-substeps", integer=True)
-        hil = HilOptions(transport=transport, target_substeps=target_substeps, parity=not no_parity,
-                         bundle_dir=lmpc_bundles)  # fmt: skip
+        hil = HilOptions(
+            transport=transport, target_substeps=target_substeps, parity=not no_parity, bundle_dir=lmpc_bundles
+        )
     if mismatch not in ("none", "paper"):
         raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
     if gains not in GAIN_SETS:
@@ -97,19 +120,52 @@ def experiment(
     created = not out.exists()
     prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
     try:
-        _experiment(law_list, mode_list, conditions, robot, out, mismatch, gains, dt, substeps, plant_backend,
-                    timing_cycles, no_trajectories, no_plots, lmpc_bundles, hmpc_formulation, hmpc_dt,
-                    hmpc_anchor_scale, hil)
+        _experiment(
+            law_list,
+            mode_list,
+            conditions,
+            robot,
+            out,
+            mismatch,
+            gains,
+            dt,
+            substeps,
+            plant_backend,
+            timing_cycles,
+            no_trajectories,
+            no_plots,
+            lmpc_bundles,
+            hmpc_formulation,
+            hmpc_dt,
+            hmpc_anchor_scale,
+            hil,
+        )
     except BaseException:
         if created:
             remove_if_empty(out)  # nothing was written: leave no empty directory behind
         raise
 
 
-def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], conditions: Optional[str], robot: str, out: Path,
-                mismatch: str, gains: str, dt: float, substeps: int, plant_backend: str, timing_cycles: int,
-                no_trajectories: bool, no_plots: bool, lmpc_bundles: Optional[Path], hmpc_formulation: str,
-                hmpc_dt: Optional[float], hmpc_anchor_scale: float, hil: object = None) -> None:  # fmt: skip
+def _experiment(
+    law_list: tuple[str, ...],
+    mode_list: tuple[str, ...],
+    conditions: str | None,
+    robot: str,
+    out: Path,
+    mismatch: str,
+    gains: str,
+    dt: float,
+    substeps: int,
+    plant_backend: str,
+    timing_cycles: int,
+    no_trajectories: bool,
+    no_plots: bool,
+    lmpc_bundles: Path | None,
+    hmpc_formulation: str,
+    hmpc_dt: float | None,
+    hmpc_anchor_scale: float,
+    hil: object = None,
+) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -129,9 +185,14 @@ def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], condition
     if mismatch == "paper":
         condition_list = [replace(c, mismatch=PAPER_MISMATCH) for c in condition_list]
     config = ExperimentConfig(
-        laws=law_list, modes=mode_list, gain_set=gains, sim=SimConfig(dt_s=dt, substeps=substeps, plant_backend=plant_backend),
-        timing_cycles=timing_cycles, save_trajectories=not no_trajectories, plots=not no_plots,
-    )  # fmt: skip
+        laws=law_list,
+        modes=mode_list,
+        gain_set=gains,
+        sim=SimConfig(dt_s=dt, substeps=substeps, plant_backend=plant_backend),
+        timing_cycles=timing_cycles,
+        save_trajectories=not no_trajectories,
+        plots=not no_plots,
+    )
     console = Console(stderr=True)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console) as bar:
@@ -157,7 +218,9 @@ def _experiment(law_list: tuple[str, ...], mode_list: tuple[str, ...], condition
     from models.experiment import format_table
 
     print(format_hil_table(results) if hil is not None else format_table(results))
-    written = ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
+    written = (
+        ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
+    )
     if hil is not None and getattr(hil, "parity", False):
         written.append("sim/")  # the simulation twin's own outputs
     console.print(f"wrote {out}/{', '.join(written)}", soft_wrap=True, highlight=False)  # one line, even piped

@@ -14,9 +14,10 @@ import os
 import platform
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -43,8 +44,13 @@ class ExperimentConfig:
 
 
 def _machine() -> dict[str, Any]:
-    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__}  # fmt: skip
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+    }
 
 
 def _groups(conditions: list[Condition]) -> list[list[int]]:
@@ -55,15 +61,26 @@ def _groups(conditions: list[Condition]) -> list[list[int]]:
     return list(groups.values())
 
 
-def time_controller(mode: str, law_name: str, robot: RobotModel, condition: Condition, sim: SimConfig,
-                    cycles: int, options: dict[str, Any], gain_set: str = DEFAULT_GAIN_SET) -> dict[str, float]:  # fmt: skip
+def time_controller(
+    mode: str,
+    law_name: str,
+    robot: RobotModel,
+    condition: Condition,
+    sim: SimConfig,
+    cycles: int,
+    options: dict[str, Any],
+    gain_set: str = DEFAULT_GAIN_SET,
+) -> dict[str, float]:
     """Per-cycle wall time (ms) of one controller on a single robot, closed loop, over ``cycles`` periods."""
     controller = make_controller(mode, make_law(law_name, robot, sim.dt_s, gain_set), robot, **options)
     short = replace(condition, duration_s=min(condition.duration_s, cycles * sim.dt_s))
     simulate(robot, controller, [short], sim)
     samples = np.asarray(controller.cycle_times_s[10:] or controller.cycle_times_s) * 1e3
-    return {"median_ms": float(np.median(samples)), "p99_ms": float(np.percentile(samples, 99)),
-            "cycles": int(samples.size)}  # fmt: skip
+    return {
+        "median_ms": float(np.median(samples)),
+        "p99_ms": float(np.percentile(samples, 99)),
+        "cycles": int(samples.size),
+    }
 
 
 def run_experiment(
@@ -89,19 +106,33 @@ def run_experiment(
         for group in _groups(conditions):
             group_conditions = [conditions[i] for i in group]
             # Every law runs side by side in one vectorized plant; HMPC-type modes likewise.
-            controllers = [make_controller(mode, make_law(law, robot, config.sim.dt_s, config.gain_set), robot,
-                                           **options.get(mode, {})) for law in config.laws]  # fmt: skip
+            controllers = [
+                make_controller(
+                    mode, make_law(law, robot, config.sim.dt_s, config.gain_set), robot, **options.get(mode, {})
+                )
+                for law in config.laws
+            ]
             stack = ControllerStack(controllers, [len(group_conditions)] * len(controllers))
             batch = [c for _ in config.laws for c in group_conditions]
             total = steps[group_conditions[0].name]
-            advance = progress(f"{mode}: {len(config.laws)} laws x {len(group)} conditions", total) if progress else None
+            advance = (
+                progress(f"{mode}: {len(config.laws)} laws x {len(group)} conditions", total) if progress else None
+            )
             traj = simulate(robot, stack, batch, config.sim, progress=advance)
             for b, (law, condition) in enumerate((law, c) for law in config.laws for c in group_conditions):
                 runs.append(_run_record(law, mode, condition, traj, b))
                 trajectories[(law, mode, condition.name)] = traj.run(b)
         for law in config.laws:
-            timing[law][mode] = time_controller(mode, law, robot, conditions[0], config.sim, config.timing_cycles,
-                                                options.get(mode, {}), config.gain_set)  # fmt: skip
+            timing[law][mode] = time_controller(
+                mode,
+                law,
+                robot,
+                conditions[0],
+                config.sim,
+                config.timing_cycles,
+                options.get(mode, {}),
+                config.gain_set,
+            )
 
     results = _summarize(runs, timing, config, robot, conditions)
     results["controller_options"] = {m: {k: str(v) for k, v in o.items()} for m, o in options.items()}
@@ -125,16 +156,21 @@ def run_experiment(
 def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: int) -> dict[str, Any]:
     dist_time = None if traj.disturbance is None else traj.disturbance.time_s
     return {
-        "law": law, "mode": mode, "condition": condition.name,
+        "law": law,
+        "mode": mode,
+        "condition": condition.name,
         "metrics": run_metrics(traj.t_s, traj.q[b], traj.q_ref[b], dist_time),
-        "finite": bool(traj.finite[b]), "within_limits": bool(traj.within_limits[b]),
-        "position_limit_ratio": float(traj.position_ratio[b]), "velocity_limit_ratio": float(traj.velocity_ratio[b]),
+        "finite": bool(traj.finite[b]),
+        "within_limits": bool(traj.within_limits[b]),
+        "position_limit_ratio": float(traj.position_ratio[b]),
+        "velocity_limit_ratio": float(traj.velocity_ratio[b]),
         "max_abs_torque_nm": np.abs(traj.tau[b]).max(axis=0).tolist(),
-    }  # fmt: skip
+    }
 
 
-def _summarize(runs: list[dict[str, Any]], timing: dict, config: ExperimentConfig, robot: RobotModel,
-               conditions: list[Condition]) -> dict[str, Any]:  # fmt: skip
+def _summarize(
+    runs: list[dict[str, Any]], timing: dict, config: ExperimentConfig, robot: RobotModel, conditions: list[Condition]
+) -> dict[str, Any]:
     metrics = {(f"{r['law']}/{r['mode']}", r["condition"]): r["metrics"] for r in runs}
     failed = {(f"{r['law']}/{r['mode']}", r["condition"]) for r in runs if not (r["finite"] and r["within_limits"])}
     scores = composite_scores(metrics, failed)
@@ -142,20 +178,35 @@ def _summarize(runs: list[dict[str, Any]], timing: dict, config: ExperimentConfi
     for law in config.laws:
         row: dict[str, Any] = {}
         for mode in config.modes:
-            row[mode] = {"score": scores[f"{law}/{mode}"], "time_per_cycle": timing[law][mode],
-                         "failed_conditions": sorted(k for c, k in failed if c == f"{law}/{mode}")}  # fmt: skip
+            row[mode] = {
+                "score": scores[f"{law}/{mode}"],
+                "time_per_cycle": timing[law][mode],
+                "failed_conditions": sorted(k for c, k in failed if c == f"{law}/{mode}"),
+            }
             if mode != "fb" and "fb" in config.modes:
                 row[mode]["eta"] = improvement(scores[f"{law}/{mode}"], scores[f"{law}/fb"])
         table[law] = row
     return {
         "robot": robot.name,
-        "config": {"laws": list(config.laws), "modes": list(config.modes), "gain_set": config.gain_set,
-                   "sim": asdict(config.sim)},
+        "config": {
+            "laws": list(config.laws),
+            "modes": list(config.modes),
+            "gain_set": config.gain_set,
+            "sim": asdict(config.sim),
+        },
         "law_params": {law: make_law(law, robot, config.sim.dt_s, config.gain_set).params for law in config.laws},
-        "conditions": [{"name": c.name, "amplitude_rad": list(c.amplitude_rad), "frequency_hz": list(c.frequency_hz),
-                        "duration_s": c.duration_s, "initial_state": c.initial_state,
-                        "disturbance": None if c.disturbance is None else asdict(c.disturbance),
-                        "mismatch": asdict(c.mismatch)} for c in conditions],  # fmt: skip
+        "conditions": [
+            {
+                "name": c.name,
+                "amplitude_rad": list(c.amplitude_rad),
+                "frequency_hz": list(c.frequency_hz),
+                "duration_s": c.duration_s,
+                "initial_state": c.initial_state,
+                "disturbance": None if c.disturbance is None else asdict(c.disturbance),
+                "mismatch": asdict(c.mismatch),
+            }
+            for c in conditions
+        ],
         "metric_names": list(METRICS),
         "table": table,
         "all_runs_finite_and_within_limits": all(r["finite"] and r["within_limits"] for r in runs),
@@ -197,8 +248,10 @@ def format_table(results: dict[str, Any]) -> str:
                     etas[mode].append(row[mode]["eta"])
         cells += [f"{row[m]['time_per_cycle']['median_ms']:.4f}" for m in modes]
         lines.append("| " + " | ".join(cells) + " |")
-    notes = [f"Average {_ETA_TITLE[m]} over laws whose runs all stayed inside the limits: {100 * float(np.mean(v)):.1f}"
-             for m, v in etas.items()]  # fmt: skip
+    notes = [
+        f"Average {_ETA_TITLE[m]} over laws whose runs all stayed inside the limits: {100 * float(np.mean(v)):.1f}"
+        for m, v in etas.items()
+    ]
     limits = "yes" if results["all_runs_finite_and_within_limits"] else "NO (see results.json runs)"
     footer = [
         "",

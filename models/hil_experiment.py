@@ -46,17 +46,26 @@ from models.scoring import run_metrics
 HIL_MODES = ("fb", "lmpc")
 #: The paper's Table II (hardware): FB score -> LMPC score per law.
 PAPER_TABLE_II: dict[str, tuple[float, float]] = {
-    "pd": (0.997, 0.661), "pid": (0.728, 0.246), "adrc": (0.278, 0.124),
-    "hinf": (0.234, 0.090), "smc": (0.245, 0.007), "mrac": (0.046, 0.013),
-}  # fmt: skip
+    "pd": (0.997, 0.661),
+    "pid": (0.728, 0.246),
+    "adrc": (0.278, 0.124),
+    "hinf": (0.234, 0.090),
+    "smc": (0.245, 0.007),
+    "mrac": (0.046, 0.013),
+}
 PARITY_TOLERANCE = 0.05  # the issue's budget: HIL within 5 % of the simulation
 # Bounds on waits for frames, not assertions on time: a lock-stepped target does not care about
 # wall time, and on a shared 2-core machine a niced experiment was measured stalled for over 1 s
 # (a feedback timeout of 50 ms and a heartbeat timeout of 1 s then faulted runs that were fine).
 # The drives' own master-loss watch (comm_loss_timeout_s) stays on: a dead experiment process
 # still leaves the arm quick-stopped, after 10 s.
-DRIVER_TIMEOUTS = {"feedback_timeout_s": 2.0, "heartbeat_timeout_s": 10.0, "sdo_timeout_s": 5.0,
-                   "state_change_timeout_s": 10.0, "comm_loss_timeout_s": 10.0}  # fmt: skip
+DRIVER_TIMEOUTS = {
+    "feedback_timeout_s": 2.0,
+    "heartbeat_timeout_s": 10.0,
+    "sdo_timeout_s": 5.0,
+    "state_change_timeout_s": 10.0,
+    "comm_loss_timeout_s": 10.0,
+}
 # Faults of the rig, not of the controller (a lock-stepped run's result cannot depend on them):
 # such a run is run again, up to RIG_RETRIES times, and the retries are counted in results.json.
 RIG_FAULTS = ("feedback_timeout", "heartbeat_lost", "transport", "drive_state", "stale_feedback")
@@ -127,23 +136,37 @@ def run_start(condition: Condition) -> dict[str, Any]:
     return {"kind": "start", "position_rad": q0.tolist(), "velocity_rad_s": qd0.tolist(), "faults": faults}
 
 
-def runtime_config_dict(robot: RobotModel, bundle: Path, mode: str, transport: dict[str, Any], period_s: float,
-                        conditions_file: Path, condition: str) -> dict[str, Any]:  # fmt: skip
+def runtime_config_dict(
+    robot: RobotModel,
+    bundle: Path,
+    mode: str,
+    transport: dict[str, Any],
+    period_s: float,
+    conditions_file: Path,
+    condition: str,
+) -> dict[str, Any]:
     """The runtime's config for one run: lock-step (bus pacing), no ramp (the arm is placed)."""
-    joints = [{"name": name, "node_id": i + 1, "max_torque_nm": float(t)}
-              for i, (name, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm, strict=True))]  # fmt: skip
+    joints = [
+        {"name": name, "node_id": i + 1, "max_torque_nm": float(t)}
+        for i, (name, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm, strict=True))
+    ]
     return {
         "robot": robot.name,
         "bundle": {"path": str(bundle), "mode": mode},
         "bus": {"transport": transport, "period_s": period_s, "joints": joints, **DRIVER_TIMEOUTS},
-        "reference": {"kind": "condition", "conditions_file": str(conditions_file), "condition": condition,
-                      "start": "condition"},  # fmt: skip
+        "reference": {
+            "kind": "condition",
+            "conditions_file": str(conditions_file),
+            "condition": condition,
+            "start": "condition",
+        },
         "loop": {"pacing": "bus", "time_base": "cycles", "stats_interval_s": 3600.0},
     }
 
 
-def check_hil_inputs(robot: RobotModel, conditions: list[Condition], config: ExperimentConfig,
-                     options: HilOptions) -> None:  # fmt: skip
+def check_hil_inputs(
+    robot: RobotModel, conditions: list[Condition], config: ExperimentConfig, options: HilOptions
+) -> None:
     """Refuse what the HIL plant cannot do, with one line each (exit 2)."""
     from models.lmpc.controller import bundle_path
     from models.robots.description import robot_names
@@ -151,8 +174,9 @@ def check_hil_inputs(robot: RobotModel, conditions: list[Condition], config: Exp
 
     bad_modes = [m for m in config.modes if m not in HIL_MODES]
     if bad_modes:
-        raise ModelInputError(f"--modes: '{bad_modes[0]}' cannot run on --plant hil (the runtime runs bundles: "
-                              f"{', '.join(HIL_MODES)})")  # fmt: skip
+        raise ModelInputError(
+            f"--modes: '{bad_modes[0]}' cannot run on --plant hil (the runtime runs bundles: {', '.join(HIL_MODES)})"
+        )
     if options.transport not in TRANSPORTS:
         raise ModelInputError(f"--transport: unknown '{options.transport}' (known: {', '.join(TRANSPORTS)})")
     if options.target_substeps < 1:
@@ -161,8 +185,10 @@ def check_hil_inputs(robot: RobotModel, conditions: list[Condition], config: Exp
         raise ModelInputError(f"--robot: --plant hil needs a built-in robot (known: {', '.join(robot_names())})")
     for c in conditions:
         if not c.mismatch.is_nominal:
-            raise ModelInputError(f"condition {c.name}: plant-model mismatch is not emulated by the HIL target "
-                                  "(it runs the nominal URDF): use --mismatch none")  # fmt: skip
+            raise ModelInputError(
+                f"condition {c.name}: plant-model mismatch is not emulated by the HIL target "
+                "(it runs the nominal URDF): use --mismatch none"
+            )
     for law in config.laws:
         path = bundle_path(robot.name, law, options.bundle_dir)
         manifest = path / "manifest.json"
@@ -170,8 +196,10 @@ def check_hil_inputs(robot: RobotModel, conditions: list[Condition], config: Exp
             raise ModelInputError(f"{manifest}: no bundle for law '{law}' (export one with `hil pipeline`)")
         gain_set = json.loads(manifest.read_text())["law"].get("gain_set")
         if gain_set != config.gain_set:
-            raise ModelInputError(f"{manifest}: bundle exported with gain set '{gain_set}', --gains is "
-                                  f"'{config.gain_set}' (the runtime runs the bundle's law)")  # fmt: skip
+            raise ModelInputError(
+                f"{manifest}: bundle exported with gain set '{gain_set}', --gains is "
+                f"'{config.gain_set}' (the runtime runs the bundle's law)"
+            )
 
 
 def snapshot_bundles(robot: RobotModel, laws: tuple[str, ...], bundle_dir: Path | None, into: Path) -> Path:
@@ -194,9 +222,17 @@ def snapshot_bundles(robot: RobotModel, laws: tuple[str, ...], bundle_dir: Path 
 # --- one run ---------------------------------------------------------------------------------------
 
 
-def run_on_target(target: Any, robot: RobotModel, law: str, mode: str, condition: Condition, period_s: float,
-                  options: HilOptions, conditions_file: Path,
-                  advance: Callable[[int], None] | None = None) -> HilRun:  # fmt: skip
+def run_on_target(
+    target: Any,
+    robot: RobotModel,
+    law: str,
+    mode: str,
+    condition: Condition,
+    period_s: float,
+    options: HilOptions,
+    conditions_file: Path,
+    advance: Callable[[int], None] | None = None,
+) -> HilRun:
     """One run: a fresh runtime on the target's bus, the arm placed on the condition, the loop for
     the condition's duration (or until a fault), the drives stopped. ``target``: a LaunchedTarget.
     A fault of the rig (RIG_FAULTS: the bus, not the controller) runs it again, RIG_RETRIES times."""
@@ -209,8 +245,17 @@ def run_on_target(target: Any, robot: RobotModel, law: str, mode: str, condition
         retries += 1
 
 
-def _run_once(target: Any, robot: RobotModel, law: str, mode: str, condition: Condition, period_s: float,
-              options: HilOptions, conditions_file: Path, advance: Callable[[int], None] | None) -> HilRun:  # fmt: skip
+def _run_once(
+    target: Any,
+    robot: RobotModel,
+    law: str,
+    mode: str,
+    condition: Condition,
+    period_s: float,
+    options: HilOptions,
+    conditions_file: Path,
+    advance: Callable[[int], None] | None,
+) -> HilRun:
     from drivers.drive_bus import DriveBus
     from hil_runtime.config import parse_runtime_config
     from hil_runtime.runtime import Runtime
@@ -218,8 +263,15 @@ def _run_once(target: Any, robot: RobotModel, law: str, mode: str, condition: Co
     from sim_target.config import parse_run_start
 
     steps = int(round(condition.duration_s / period_s))
-    data = runtime_config_dict(robot, bundle_path(robot.name, law, options.bundle_dir), mode, target.transport,
-                               period_s, conditions_file, condition.name)  # fmt: skip
+    data = runtime_config_dict(
+        robot,
+        bundle_path(robot.name, law, options.bundle_dir),
+        mode,
+        target.transport,
+        period_s,
+        conditions_file,
+        condition.name,
+    )
     config = parse_runtime_config(data, f"hil experiment {law}/{mode}/{condition.name}")
     runtime = Runtime(config, DriveBus(config.bus), record_cycles=steps)
     fault: str | None = None
@@ -270,8 +322,9 @@ def _pad(record: dict[str, np.ndarray], steps: int, period_s: float) -> dict[str
     return out
 
 
-def _run_record(robot: RobotModel, law: str, mode: str, condition: Condition, run: HilRun,
-                steps: int) -> dict[str, Any]:  # fmt: skip
+def _run_record(
+    robot: RobotModel, law: str, mode: str, condition: Condition, run: HilRun, steps: int
+) -> dict[str, Any]:
     a = run.arrays
     dist_time = None if condition.disturbance is None else condition.disturbance.time_s
     finite = bool(np.isfinite(a["q"]).all() and np.isfinite(a["qd"]).all())
@@ -280,28 +333,38 @@ def _run_record(robot: RobotModel, law: str, mode: str, condition: Condition, ru
     stats = run.stats
     compute_us = a["compute_s"][1 : run.rows] * 1e6 if run.rows > 1 else np.zeros(1)
     return {
-        "law": law, "mode": mode, "condition": condition.name,
+        "law": law,
+        "mode": mode,
+        "condition": condition.name,
         "metrics": run_metrics(a["t"], a["q"], a["q_ref"], dist_time),
         "finite": finite,
         "within_limits": finite and run.fault is None and position_ratio <= 1.0 and velocity_ratio <= 1.0,
-        "position_limit_ratio": position_ratio, "velocity_limit_ratio": velocity_ratio,
+        "position_limit_ratio": position_ratio,
+        "velocity_limit_ratio": velocity_ratio,
         "max_abs_torque_nm": np.abs(a["tau"]).max(axis=0).tolist(),
         "hil": {
-            "rows": run.rows, "steps": steps, "fault": run.fault, "rig_retries": run.rig_retries,
-            "compute_us": {"median": float(np.median(compute_us)), "p99": float(np.percentile(compute_us, 99)),
-                           "max": float(compute_us.max())},
+            "rows": run.rows,
+            "steps": steps,
+            "fault": run.fault,
+            "rig_retries": run.rig_retries,
+            "compute_us": {
+                "median": float(np.median(compute_us)),
+                "p99": float(np.percentile(compute_us, 99)),
+                "max": float(compute_us.max()),
+            },
             "fallback_cycles": int((a["fallback"][: run.rows] > 0).sum()),
             "saturations": int(stats.get("saturations", 0)),
             "bus": {k[4:]: v for k, v in stats.items() if k.startswith("bus_")},
         },
-    }  # fmt: skip
+    }
 
 
 # --- the experiment ----------------------------------------------------------------------------------
 
 
-def _simulate(robot_name: str, conditions: list[Condition], config: ExperimentConfig, out_dir: Path,
-              bundle_dir: Path | None) -> None:  # fmt: skip
+def _simulate(
+    robot_name: str, conditions: list[Condition], config: ExperimentConfig, out_dir: Path, bundle_dir: Path | None
+) -> None:
     """The simulation twin (``hil experiment --modes fb,lmpc``) in a second process: writes out_dir."""
     from models.robots import load_robot
 
@@ -339,8 +402,11 @@ def run_hil_experiment(
         (sim_dir / "results.json").unlink(missing_ok=True)
         sim_config = replace(config, timing_cycles=min(config.timing_cycles, 200), save_trajectories=True)
         sim_process = get_context("spawn").Process(
-            target=_simulate, args=(robot.name, conditions, sim_config, sim_dir, options.bundle_dir),
-            name="hil-experiment-sim", daemon=True)  # fmt: skip
+            target=_simulate,
+            args=(robot.name, conditions, sim_config, sim_dir, options.bundle_dir),
+            name="hil-experiment-sim",
+            daemon=True,
+        )
         sim_process.start()
         sim_advance = progress("simulation twin (second process)", 1) if progress else None
     started = time.monotonic()
@@ -349,8 +415,9 @@ def run_hil_experiment(
     compute: dict[str, dict[str, list[np.ndarray]]] = {}
     steps = {c.name: int(round(c.duration_s / period_s)) for c in conditions}
     total = len(config.laws) * len(config.modes) * sum(s - 1 for s in steps.values())
-    label = (f"hil ({options.transport}): {len(config.laws)} laws x {len(config.modes)} modes x "
-             f"{len(conditions)} conditions")  # fmt: skip
+    label = (
+        f"hil ({options.transport}): {len(config.laws)} laws x {len(config.modes)} modes x {len(conditions)} conditions"
+    )
     advance = progress(label, total) if progress else None
     try:
         target_config = target_config_dict(robot.name, period_s, options.target_substeps)
@@ -358,8 +425,9 @@ def run_hil_experiment(
             for law in config.laws:
                 for mode in config.modes:
                     for condition in conditions:
-                        run = run_on_target(target, robot, law, mode, condition, period_s, options, conditions_file,
-                                            advance)  # fmt: skip
+                        run = run_on_target(
+                            target, robot, law, mode, condition, period_s, options, conditions_file, advance
+                        )
                         runs.append(_run_record(robot, law, mode, condition, run, steps[condition.name]))
                         trajectories[(law, mode, condition.name)] = run.arrays
                         compute.setdefault(law, {}).setdefault(mode, []).append(run.arrays["compute_s"][1 : run.rows])
@@ -368,8 +436,10 @@ def run_hil_experiment(
         if sim_process is not None:
             sim_process.join()
             if sim_process.exitcode != 0 or not (sim_dir / "results.json").is_file():
-                raise ModelInputError(f"the simulation twin failed (exit {sim_process.exitcode}); rerun with "
-                                      "--no-parity, or run `hil experiment --plant sim` to see why")  # fmt: skip
+                raise ModelInputError(
+                    f"the simulation twin failed (exit {sim_process.exitcode}); rerun with "
+                    "--no-parity, or run `hil experiment --plant sim` to see why"
+                )
             sim_results = json.loads((sim_dir / "results.json").read_text())
             if sim_advance is not None:
                 sim_advance(1)
@@ -378,19 +448,22 @@ def run_hil_experiment(
             sim_process.terminate()
             sim_process.join(10)
 
-    timing = {law: {mode: _timing(np.concatenate(parts)) for mode, parts in modes.items()}
-              for law, modes in compute.items()}  # fmt: skip
+    timing = {
+        law: {mode: _timing(np.concatenate(parts)) for mode, parts in modes.items()} for law, modes in compute.items()
+    }
     results = _summarize(runs, timing, config, robot, conditions)
     results["plant"] = "hil"
     results["hil"] = {
-        "transport": options.transport, "target_substeps": options.target_substeps,
-        "period_s": period_s, "wall_s": round(hil_wall_s, 1),
+        "transport": options.transport,
+        "target_substeps": options.target_substeps,
+        "period_s": period_s,
+        "wall_s": round(hil_wall_s, 1),
         "simulated_s": round(sum(steps.values()) * period_s * len(config.laws) * len(config.modes), 1),
         "time_columns": "runtime compute per cycle (feedback in -> set-points out: supervisor, reference, one "
-                        "onnxruntime call, record), median over every cycle of the law's runs",
+        "onnxruntime call, record), median over every cycle of the law's runs",
         "paper_table_ii": {law: {"fb": v[0], "lmpc": v[1]} for law, v in PAPER_TABLE_II.items()},
         "bundles": {law: _bundle_digest(options.bundle_dir / law) for law in config.laws},  # type: ignore[operator]
-    }  # fmt: skip
+    }
     results["machine"] = _machine()
     if sim_results is not None:
         results["parity"] = parity(results, sim_results, trajectories, sim_dir / "trajectories")
@@ -416,8 +489,12 @@ def _bundle_digest(path: Path) -> dict[str, Any]:
     """Where the snapshot came from and the sha256 of its graph (the manifest lists every file's)."""
     manifest = json.loads((path / "manifest.json").read_text())
     files = manifest.get("files") or manifest.get("sha256") or {}
-    return {"path": str(path), "law": manifest["law"]["name"], "gain_set": manifest["law"].get("gain_set"),
-            "files_sha256": files}  # fmt: skip
+    return {
+        "path": str(path),
+        "law": manifest["law"]["name"],
+        "gain_set": manifest["law"].get("gain_set"),
+        "files_sha256": files,
+    }
 
 
 def _timing(compute_s: np.ndarray) -> dict[str, float]:
@@ -438,8 +515,9 @@ def _json_safe(value: Any) -> Any:
 # --- parity with the simulation ----------------------------------------------------------------------
 
 
-def _per_run_scores(runs: list[dict[str, Any]],
-                    scale: list[dict[str, Any]] | None = None) -> dict[tuple[str, str, str], float]:  # fmt: skip
+def _per_run_scores(
+    runs: list[dict[str, Any]], scale: list[dict[str, Any]] | None = None
+) -> dict[tuple[str, str, str], float]:
     """Composite score of each run (models.scoring's weights), normalized per condition and metric
     by the largest value among the runs of ``scale`` (default: ``runs`` themselves, as the table
     does) that stayed finite and inside the limits."""
@@ -462,8 +540,12 @@ def _relative(a: float, b: float) -> float:
     return (a - b) / abs(b) if b else (0.0 if a == b else math.inf)
 
 
-def parity(hil: dict[str, Any], sim: dict[str, Any], trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]],
-           sim_traj_dir: Path) -> dict[str, Any]:  # fmt: skip
+def parity(
+    hil: dict[str, Any],
+    sim: dict[str, Any],
+    trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]],
+    sim_traj_dir: Path,
+) -> dict[str, Any]:
     """HIL vs simulation, per run and per (law, mode): score difference, trajectory RMS difference."""
     # One scale for both: the simulation's table. Each table's own normalization couples every law
     # to the worst run of its condition (one law that differs would move every other law's score).
@@ -481,19 +563,24 @@ def parity(hil: dict[str, Any], sim: dict[str, Any], trajectories: dict[tuple[st
         sim_rmse = twin["metrics"]["rmse"]
         # The first sample whose difference exceeds 1e-3 deg: where the two plants part.
         apart = np.flatnonzero(np.abs(diff_deg).max(axis=1) > 1e-3)
-        per_run.append({
-            "law": key[0], "mode": key[1], "condition": key[2],
-            "score_hil": hil_scores[key], "score_sim": sim_scores[key],
-            "score_rel": _relative(hil_scores[key], sim_scores[key]),
-            "trajectory_rms_diff_deg": rms_diff,
-            "trajectory_rms_diff_per_joint_deg": np.sqrt(np.mean(diff_deg**2, axis=0)).tolist(),
-            "trajectory_max_diff_deg": float(np.abs(diff_deg).max()),
-            "trajectory_rms_diff_rel_to_sim_rmse": rms_diff / sim_rmse if sim_rmse > 0 else math.inf,
-            "torque_rms_diff_nm": np.sqrt(np.mean((h["tau"] - s["tau"]) ** 2, axis=0)).tolist(),
-            "first_apart_1e-3_deg_s": float(h["t"][apart[0]]) if apart.size else None,
-            "metrics_rel": {m: _relative(r["metrics"][m], twin["metrics"][m]) for m in r["metrics"]},
-            "both_within_limits": bool(r["within_limits"] and twin["within_limits"]),
-        })  # fmt: skip
+        per_run.append(
+            {
+                "law": key[0],
+                "mode": key[1],
+                "condition": key[2],
+                "score_hil": hil_scores[key],
+                "score_sim": sim_scores[key],
+                "score_rel": _relative(hil_scores[key], sim_scores[key]),
+                "trajectory_rms_diff_deg": rms_diff,
+                "trajectory_rms_diff_per_joint_deg": np.sqrt(np.mean(diff_deg**2, axis=0)).tolist(),
+                "trajectory_max_diff_deg": float(np.abs(diff_deg).max()),
+                "trajectory_rms_diff_rel_to_sim_rmse": rms_diff / sim_rmse if sim_rmse > 0 else math.inf,
+                "torque_rms_diff_nm": np.sqrt(np.mean((h["tau"] - s["tau"]) ** 2, axis=0)).tolist(),
+                "first_apart_1e-3_deg_s": float(h["t"][apart[0]]) if apart.size else None,
+                "metrics_rel": {m: _relative(r["metrics"][m], twin["metrics"][m]) for m in r["metrics"]},
+                "both_within_limits": bool(r["within_limits"] and twin["within_limits"]),
+            }
+        )
     table: dict[str, dict[str, Any]] = {}
     for law, row in hil["table"].items():
         table[law] = {}
@@ -502,14 +589,22 @@ def parity(hil: dict[str, Any], sim: dict[str, Any], trajectories: dict[tuple[st
             h_score = float(np.mean([p["score_hil"] for p in mine]))
             s_score = float(np.mean([p["score_sim"] for p in mine]))
             table[law][mode] = {
-                "score_hil": h_score, "score_sim": s_score, "score_rel": _relative(h_score, s_score),
-                "score_hil_own_table": row[mode]["score"], "score_sim_own_table": sim["table"][law][mode]["score"],
+                "score_hil": h_score,
+                "score_sim": s_score,
+                "score_rel": _relative(h_score, s_score),
+                "score_hil_own_table": row[mode]["score"],
+                "score_sim_own_table": sim["table"][law][mode]["score"],
                 "trajectory_rms_diff_deg": float(np.sqrt(np.mean([p["trajectory_rms_diff_deg"] ** 2 for p in mine]))),
                 "trajectory_rms_diff_rel_to_sim_rmse": max(p["trajectory_rms_diff_rel_to_sim_rmse"] for p in mine),
                 "within_tolerance": abs(_relative(h_score, s_score)) <= PARITY_TOLERANCE,
-            }  # fmt: skip
-    return {"tolerance": PARITY_TOLERANCE, "table": table, "runs": per_run,
-            "sim_config": sim["config"], "sim_all_runs_within_limits": sim["all_runs_finite_and_within_limits"]}
+            }
+    return {
+        "tolerance": PARITY_TOLERANCE,
+        "table": table,
+        "runs": per_run,
+        "sim_config": sim["config"],
+        "sim_all_runs_within_limits": sim["all_runs_finite_and_within_limits"],
+    }
 
 
 # --- tables and plots ----------------------------------------------------------------------------------
@@ -567,8 +662,12 @@ def format_parity_table(parity_results: dict[str, Any], modes: list[str]) -> lis
             p = row[mode]
             worst = max(worst, abs(p["score_rel"]))
             mark = "" if p["within_tolerance"] else " ⚠"
-            cells += [f"{p['score_sim']:.3f}", f"{p['score_hil']:.3f}", f"{100 * p['score_rel']:+.1f}{mark}",
-                      f"{p['trajectory_rms_diff_deg']:.4f}"]  # fmt: skip
+            cells += [
+                f"{p['score_sim']:.3f}",
+                f"{p['score_hil']:.3f}",
+                f"{100 * p['score_rel']:+.1f}{mark}",
+                f"{p['trajectory_rms_diff_deg']:.4f}",
+            ]
         lines.append("| " + " | ".join(cells) + " |")
     tol = 100 * parity_results["tolerance"]
     return lines + [
@@ -581,8 +680,12 @@ def format_parity_table(parity_results: dict[str, Any], modes: list[str]) -> lis
     ]
 
 
-def plot_parity(results: dict[str, Any], trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]],
-                sim_traj_dir: Path, out_dir: Path) -> list[Path]:  # fmt: skip
+def plot_parity(
+    results: dict[str, Any],
+    trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]],
+    sim_traj_dir: Path,
+    out_dir: Path,
+) -> list[Path]:
     """Score difference per law and mode; per law, HIL vs simulation error on the worst condition."""
     import matplotlib
 
@@ -629,8 +732,10 @@ def plot_parity(results: dict[str, Any], trajectories: dict[tuple[str, str, str]
             ax.set_yscale("log")
             ax.set_ylim(bottom=1e-5)
             ax.set_ylabel("deg", fontsize=8)
-            ax.set_title(f"{_LAW_TITLE.get(law, law)} {mode.upper()} {cond}: score Δ {100 * worst['score_rel']:+.1f} %",
-                         fontsize=9)  # fmt: skip
+            ax.set_title(
+                f"{_LAW_TITLE.get(law, law)} {mode.upper()} {cond}: score Δ {100 * worst['score_rel']:+.1f} %",
+                fontsize=9,
+            )
             ax.grid(alpha=0.3, which="both")
         axes[0, 0].legend(fontsize=7, ncol=3)
         axes[-1, 0].set_xlabel("t (s)")
@@ -644,5 +749,13 @@ def plot_parity(results: dict[str, Any], trajectories: dict[tuple[str, str, str]
     return written
 
 
-__all__ = ["HIL_MODES", "PAPER_TABLE_II", "HilOptions", "format_hil_table", "parity", "run_hil_experiment",
-           "run_on_target", "conditions_yaml"]  # fmt: skip
+__all__ = [
+    "HIL_MODES",
+    "PAPER_TABLE_II",
+    "HilOptions",
+    "format_hil_table",
+    "parity",
+    "run_hil_experiment",
+    "run_on_target",
+    "conditions_yaml",
+]

@@ -61,6 +61,7 @@ class SpatialRne:
         axis = np.asarray(robot.joint_axis, float)
         r0 = np.asarray(robot.joint_rotation, float)
         p = np.asarray(robot.joint_translation, float)
+
         # R_i(q) = R0 + sin(q) R0 K + (1 - cos q) R0 K^2 (K = skew(axis)); the motion transform parent -> i
         # is X = [[R^T, 0], [-R^T skew(p), R^T]], affine in R, so X^T (what a row multiplies) is
         # XT0 + sin(q) XT1 + (1 - cos q) XT2.
@@ -75,6 +76,7 @@ class SpatialRne:
             k = _skew(axis[i])
             for j, rot in enumerate((r0[i], r0[i] @ k, r0[i] @ k @ k)):
                 parts[j, i] = xt(rot, p[i])
+
         # the forward map on W = [v (6), a (6), 1]: blockdiag(XT, XT, 1) (the constant 1 is added below)
         def forward_block(m6: np.ndarray) -> np.ndarray:
             out = np.zeros(m6.shape[:-2] + (13, 13))
@@ -142,7 +144,9 @@ class SpatialRne:
         self.corner = _t(corner)
         self.corner_row = _t(corner[6:7])
 
-    def inverse_dynamics(self, q: torch.Tensor, qd: torch.Tensor, qdd: torch.Tensor, gravity: bool = True) -> torch.Tensor:
+    def inverse_dynamics(
+        self, q: torch.Tensor, qd: torch.Tensor, qdd: torch.Tensor, gravity: bool = True
+    ) -> torch.Tensor:
         """M(q) qdd + C(q, qd) qd (+ G(q)), (B, N). Reshapes use constant shapes (no Shape nodes)."""
         n = self.n
         sin = torch.sin(q).reshape(-1, n, 1, 1)
@@ -160,7 +164,9 @@ class SpatialRne:
         f = outer @ self.quad  # (B, N, 1, 6)
         # backward: [F_i, 1] = [F_{i+1}, 1] @ [[X_{i+1}, 0], [f_i, 1]], the blocks placed by constant products
         x = self.x0[1:] + sin[:, 1:] * self.x1[1:] + vers[:, 1:] * self.x2[1:]  # (B, N-1, 6, 6)
-        back = self.place_top @ x @ self.place_right + self.last_col @ (f[:, :-1] @ self.place_right) + self.corner  # (B, N-1, 7, 7)
+        back = (
+            self.place_top @ x @ self.place_right + self.last_col @ (f[:, :-1] @ self.place_right) + self.corner
+        )  # (B, N-1, 7, 7)
         r = f[:, n - 1] @ self.place_right + self.corner_row  # (B, 1, 7)
         out = [r]
         for i in range(n - 2, -1, -1):

@@ -15,6 +15,13 @@ from models.hmpc.controller import HMPCController, make_hmpc_controller
 from models.hmpc.solver import STATUS_NAMES, HMPCResult, HMPCSolver
 
 __all__ = [
-    "HMPCConfig", "HMPCController", "HMPCResult", "HMPCSolver", "ProcessPoolBatchExecutor", "STATUS_NAMES",
-    "SerialBatchExecutor", "make_hmpc_controller", "solve_batch",
-]  # fmt: skip
+    "HMPCConfig",
+    "HMPCController",
+    "HMPCResult",
+    "HMPCSolver",
+    "ProcessPoolBatchExecutor",
+    "STATUS_NAMES",
+    "SerialBatchExecutor",
+    "make_hmpc_controller",
+    "solve_batch",
+]

@@ -87,13 +87,18 @@ class ProcessPoolBatchExecutor:
 
 
 def solve_batch(
-    law: FeedbackLaw, robot: RobotModel,
-    q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray,
+    law: FeedbackLaw,
+    robot: RobotModel,
+    q: np.ndarray,
+    qd: np.ndarray,
+    q_d: np.ndarray,
+    qd_d: np.ndarray,
+    qdd_d: np.ndarray,
     law_state: np.ndarray | None = None,
     config: HMPCConfig | None = None,
     executor: BatchExecutor | None = None,
     chunk_states: int = DEFAULT_CHUNK_STATES,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray]:
     """HMPC torques (B, N) and status (B,) for B independent states (cold start, no warm start).
 
     Each state is solved exactly as ``HMPCSolver.solve`` solves it alone (rows never interact), so

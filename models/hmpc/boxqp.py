@@ -18,15 +18,19 @@ from __future__ import annotations
 import numpy as np
 
 
-
 def _objective(hessian: np.ndarray, gradient: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.einsum("ki,ki->k", gradient + 0.5 * (hessian @ x[..., None])[..., 0], x)
 
 
 def solve_box_qp(
-    hessian: np.ndarray, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-    max_iterations: int = 20, tolerance: float = 1e-9, guess: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    hessian: np.ndarray,
+    gradient: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    max_iterations: int = 20,
+    tolerance: float = 1e-9,
+    guess: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """(x (K, n), converged (K,)): the minimizer of each row's QP inside its box.
 
     ``hessian`` (K, n, n) symmetric positive definite, ``gradient``, ``lower``, ``upper`` (K, n) with
@@ -108,7 +112,9 @@ def solve_box_qp(
         direction = target - xt
         # ratio test: the largest fraction of the way to the target that stays inside the box
         with np.errstate(divide="ignore", invalid="ignore"):
-            room = np.where(direction > 0, (hi - xt) / direction, np.where(direction < 0, (lo - xt) / direction, np.inf))
+            room = np.where(
+                direction > 0, (hi - xt) / direction, np.where(direction < 0, (lo - xt) / direction, np.inf)
+            )
         room = np.where(free, np.maximum(room, 0.0), np.inf)
         blocking = np.argmin(room, 1)
         fraction = np.minimum(room[np.arange(todo.size), blocking], 1.0)

@@ -103,14 +103,19 @@ class HMPCConfig:
                 array = np.asarray(value, float)
                 if array.ndim != 1 or np.any(np.isnan(array)) or np.any(array <= 0):
                     fail(name, "infeasible bounds: every limit must be > 0 (|x| <= limit)", value)
-        if self.dt_s is not None and not (isinstance(self.dt_s, int | float) and math.isfinite(self.dt_s) and self.dt_s > 0):
+        if self.dt_s is not None and not (
+            isinstance(self.dt_s, int | float) and math.isfinite(self.dt_s) and self.dt_s > 0
+        ):
             fail("dt_s", "must be a finite number > 0", self.dt_s)
         if self.on_budget_exhausted not in BUDGET_POLICIES:
             fail("on_budget_exhausted", f"must be one of {', '.join(BUDGET_POLICIES)}", self.on_budget_exhausted)
         if self.torque_cost not in TORQUE_COSTS:
             fail("torque_cost", f"must be one of {', '.join(TORQUE_COSTS)}", self.torque_cost)
-        if not (isinstance(self.anchor_weight_scale, int | float) and math.isfinite(self.anchor_weight_scale)
-                and self.anchor_weight_scale > 0):
+        if not (
+            isinstance(self.anchor_weight_scale, int | float)
+            and math.isfinite(self.anchor_weight_scale)
+            and self.anchor_weight_scale > 0
+        ):
             fail("anchor_weight_scale", "must be a finite number > 0", self.anchor_weight_scale)
         if self.kernels not in KERNELS:
             fail("kernels", f"must be one of {', '.join(KERNELS)}", self.kernels)

@@ -52,8 +52,9 @@ class HMPCController:
         self.cycle_times_s, self.iterations = [], []
         self.fallbacks = Counter()
 
-    def __call__(self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray,
-                 qdd_d: np.ndarray) -> np.ndarray:  # fmt: skip
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         start = time.perf_counter()
         if self._law_state is None:
             self.reset(q)

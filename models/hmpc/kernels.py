@@ -273,8 +273,7 @@ def _penalty(x, limit, rho):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, max_qp_iterations,
-               qp_tolerance):  # type: ignore[no-untyped-def]  # fmt: skip
+def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, max_qp_iterations, qp_tolerance):  # type: ignore[no-untyped-def]
     """``HMPCSolver._model_step`` after the condensation, row by row: (step (K, M), predicted
     decrease of J (K,), exact (K,)). The penalty 1/2 rho |x_A + S_A d - b_A|^2 acts on the violated
     set A, re-evaluated at the predicted states up to ``rounds`` times."""
@@ -308,8 +307,9 @@ def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, m
                                 gradient[i] += rho * s[i] * b
                                 for j in range(m):
                                     hessian[i, j] += rho * s[i] * s[j]
-            qp_converged = box_qp_row(hessian, gradient, lower[r], upper[r], max_qp_iterations, qp_tolerance,
-                                      step[r], work, True)  # fmt: skip
+            qp_converged = box_qp_row(
+                hessian, gradient, lower[r], upper[r], max_qp_iterations, qp_tolerance, step[r], work, True
+            )
             if rho == 0:
                 break
             same = True

@@ -50,7 +50,9 @@ class PinocchioPredictor:
         try:
             import pinocchio as pin
         except ImportError as exc:  # pragma: no cover - depends on the install
-            raise ModelInputError("hmpc backend 'pinocchio': the pin package is not installed (pip install pin)") from exc
+            raise ModelInputError(
+                "hmpc backend 'pinocchio': the pin package is not installed (pip install pin)"
+            ) from exc
         from models.dynamics.backends import build_pinocchio_model
 
         self._pin = pin
@@ -104,8 +106,9 @@ class RnePredictor:
         q_rows = np.concatenate([q[:, None, :] + eye, np.broadcast_to(q[:, None, :], (k, n, n))], 1)
         qd_rows = np.concatenate([np.broadcast_to(qd[:, None, :], (k, n, n)), qd[:, None, :] + eye], 1)
         qdd_rows = np.broadcast_to(qdd[:, None, :], (k, 2 * n, n)).astype(complex)
-        tau_rows = rneida(np, self.chain, q_rows.reshape(-1, n), qd_rows.reshape(-1, n), qdd_rows.reshape(-1, n),
-                          self.chain.gravity)  # fmt: skip
+        tau_rows = rneida(
+            np, self.chain, q_rows.reshape(-1, n), qd_rows.reshape(-1, n), qdd_rows.reshape(-1, n), self.chain.gravity
+        )
         partials = tau_rows.imag.reshape(k, 2 * n, n) / COMPLEX_STEP  # row i: d(ID)/d(x_i)
         d_id_dq = np.swapaxes(partials[:, :n], 1, 2)
         d_id_dqd = np.swapaxes(partials[:, n:], 1, 2)

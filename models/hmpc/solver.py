@@ -36,8 +36,12 @@ from models.hmpc.prediction import make_predictor
 from models.robots import RobotModel
 
 CONVERGED, NONFINITE_INPUT, NOT_CONVERGED, NONFINITE_SOLUTION = 0, 1, 2, 3
-STATUS_NAMES = {CONVERGED: "converged", NONFINITE_INPUT: "nonfinite_input", NOT_CONVERGED: "not_converged",
-                NONFINITE_SOLUTION: "nonfinite_solution"}  # fmt: skip
+STATUS_NAMES = {
+    CONVERGED: "converged",
+    NONFINITE_INPUT: "nonfinite_input",
+    NOT_CONVERGED: "not_converged",
+    NONFINITE_SOLUTION: "nonfinite_solution",
+}
 ARMIJO = 1e-4
 LEVENBERG_GROWTH = 1e4  # damping factor after a step the line search rejected
 PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
@@ -113,7 +117,12 @@ class _Rollout:
         return _Rollout(self.q[index], self.qd[index], self.features[index], states, self.cost[index])
 
     def put(self, index: np.ndarray, other: _Rollout) -> None:
-        self.q[index], self.qd[index], self.features[index], self.cost[index] = other.q, other.qd, other.features, other.cost
+        self.q[index], self.qd[index], self.features[index], self.cost[index] = (
+            other.q,
+            other.qd,
+            other.features,
+            other.cost,
+        )
         if self.law_states is not None and other.law_states is not None:
             self.law_states[index] = other.law_states
 
@@ -134,8 +143,9 @@ class HMPCSolver:
         self.predictor = make_predictor(robot, config.backend)
         self.torque_limit_nm = self._limit("torque_limit_nm", config.torque_limit_nm, robot.torque_limit_nm)
         self.position_limit_rad = self._limit("position_limit_rad", config.position_limit_rad, robot.position_limit_rad)
-        self.velocity_limit_rad_s = self._limit("velocity_limit_rad_s", config.velocity_limit_rad_s,
-                                                robot.velocity_limit_rad_s)  # fmt: skip
+        self.velocity_limit_rad_s = self._limit(
+            "velocity_limit_rad_s", config.velocity_limit_rad_s, robot.velocity_limit_rad_s
+        )
         self.state_limit = np.concatenate([self.position_limit_rad, self.velocity_limit_rad_s])
         self.scales = np.asarray(config.candidate_scales, float)
         self.temporal = config.temporal_weights
@@ -159,12 +169,16 @@ class HMPCSolver:
             probe = law.error_features(np, law.initial_state(np.zeros((1, n))), *(np.zeros((1, n)),) * 4)
             n_features = int(np.asarray(probe).shape[-1])
             if n_features < 2 * n:
-                raise ModelInputError(f"hmpc: law '{law.name}' error features have {n_features} entries, expected >= {2 * n}")
-        self.feature_weight = np.concatenate([
-            per_joint("position_error_weight", config.position_error_weight, n),
-            per_joint("velocity_error_weight", config.velocity_error_weight, n),
-            np.full(n_features - 2 * n, config.extra_feature_weight),
-        ])  # fmt: skip
+                raise ModelInputError(
+                    f"hmpc: law '{law.name}' error features have {n_features} entries, expected >= {2 * n}"
+                )
+        self.feature_weight = np.concatenate(
+            [
+                per_joint("position_error_weight", config.position_error_weight, n),
+                per_joint("velocity_error_weight", config.velocity_error_weight, n),
+                np.full(n_features - 2 * n, config.extra_feature_weight),
+            ]
+        )
         self.n_features = n_features
         self.kernels = _load_kernels(config.kernels)
         self.use_kernels = self.kernels is not None
@@ -183,7 +197,9 @@ class HMPCSolver:
     def _limit(self, name: str, override: tuple[float, ...] | None, robot_value: np.ndarray) -> np.ndarray:
         value = per_joint(name, override if override is not None else robot_value, self.n_joints)
         if np.any(np.isnan(value)) or np.any(value <= 0):
-            raise ModelInputError(f"hmpc {name}: infeasible bounds, every limit must be > 0 (|x| <= limit), got {value.tolist()}")
+            raise ModelInputError(
+                f"hmpc {name}: infeasible bounds, every limit must be > 0 (|x| <= limit), got {value.tolist()}"
+            )
         return value
 
     # ------------------------------------------------------------------------------------------
@@ -194,11 +210,15 @@ class HMPCSolver:
 
     def solve(
         self,
-        q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray,
+        q: np.ndarray,
+        qd: np.ndarray,
+        q_d: np.ndarray,
+        qd_d: np.ndarray,
+        qdd_d: np.ndarray,
         law_state: np.ndarray | None = None,
         warm_start_nm: np.ndarray | None = None,
         hold_torque_nm: np.ndarray | None = None,
-    ) -> HMPCResult:  # fmt: skip
+    ) -> HMPCResult:
         """HMPC torques for B independent states (all arrays (B, N); law_state (B, S)).
 
         ``warm_start_nm`` (B, T, N): last cycle's ``sequence_nm``, shifted here by one period.
@@ -216,9 +236,15 @@ class HMPCSolver:
             tau_fb, next_state = self.law.step(np, law_state, q, qd, q_d, qd_d, qdd_d)
             tau_fb, next_state = np.asarray(tau_fb, float), np.asarray(next_state, float).reshape(batch, -1)
             ref_q, ref_qd = self.reference_preview(q_d, qd_d, qdd_d)
-            finite = (np.isfinite(q).all(1) & np.isfinite(qd).all(1) & np.isfinite(ref_q).all((1, 2))
-                      & np.isfinite(ref_qd).all((1, 2)) & np.isfinite(qdd_d).all(1) & np.isfinite(tau_fb).all(1)
-                      & np.isfinite(next_state).all(1))  # fmt: skip
+            finite = (
+                np.isfinite(q).all(1)
+                & np.isfinite(qd).all(1)
+                & np.isfinite(ref_q).all((1, 2))
+                & np.isfinite(ref_qd).all((1, 2))
+                & np.isfinite(qdd_d).all(1)
+                & np.isfinite(tau_fb).all(1)
+                & np.isfinite(next_state).all(1)
+            )
 
             status = np.full(batch, NONFINITE_INPUT)
             sequence = np.full((batch, horizon, n), np.nan)
@@ -241,19 +267,28 @@ class HMPCSolver:
             first = sequence[:, 0]
             bad_solution = finite & ~np.isfinite(first).all(1)
             status[bad_solution] = NONFINITE_SOLUTION
-            use_mpc = (status == CONVERGED) | ((status == NOT_CONVERGED) & (self.config.on_budget_exhausted == "best_iterate"))
-            hold = np.zeros((batch, n)) if hold_torque_nm is None else np.broadcast_to(np.asarray(hold_torque_nm, float), (batch, n))
+            use_mpc = (status == CONVERGED) | (
+                (status == NOT_CONVERGED) & (self.config.on_budget_exhausted == "best_iterate")
+            )
+            hold = (
+                np.zeros((batch, n))
+                if hold_torque_nm is None
+                else np.broadcast_to(np.asarray(hold_torque_nm, float), (batch, n))
+            )
             # the law's torque where its whole row is finite; otherwise the caller's hold torque
             fb_ok = np.isfinite(tau_fb).all(1, keepdims=True)
             fallback = np.where(fb_ok, tau_fb, np.nan_to_num(hold, nan=0.0, posinf=0.0, neginf=0.0))
             tau = np.where(use_mpc[:, None], first, fallback)
-            tau = np.clip(np.nan_to_num(tau, nan=0.0, posinf=0.0, neginf=0.0), -self.torque_limit_nm, self.torque_limit_nm)
+            tau = np.clip(
+                np.nan_to_num(tau, nan=0.0, posinf=0.0, neginf=0.0), -self.torque_limit_nm, self.torque_limit_nm
+            )
             # A law state that went non-finite (NaN measurement) is not carried into the next cycle.
             keep = np.isfinite(next_state).all(1) if next_state.size else np.ones(batch, bool)
             next_state = np.where(keep[:, None], next_state, law_state) if next_state.size else next_state
             next_state = self.law.with_applied_torque(next_state, tau)
-        return HMPCResult(tau, tau_fb, next_state, sequence, status, ~use_mpc, cost, candidate_cost, iterations,
-                          anchor_scale)
+        return HMPCResult(
+            tau, tau_fb, next_state, sequence, status, ~use_mpc, cost, candidate_cost, iterations, anchor_scale
+        )
 
     # ------------------------------------------------------------------------------------------
     def _optimize(self, rows: _Rows, tau_fb: np.ndarray, warm: np.ndarray | None):  # type: ignore[no-untyped-def]
@@ -279,7 +314,9 @@ class HMPCSolver:
             w_star = self.scales[pick]
             rows.anchor = np.ascontiguousarray(candidates[np.arange(k), pick])  # (K, T, N)
             deviation = candidates - rows.anchor[:, None]
-            rolled.cost = (base + np.einsum("kctn,n,t->kc", deviation * deviation, self.anchor_weight, self.temporal)).reshape(-1)
+            rolled.cost = (
+                base + np.einsum("kctn,n,t->kc", deviation * deviation, self.anchor_weight, self.temporal)
+            ).reshape(-1)
         costs = np.where(np.isfinite(rolled.cost), rolled.cost, np.inf).reshape(k, n_candidates)
         candidate_cost = costs[:, : len(self.scales)].min(1)
         best = np.argmin(costs, 1) + np.arange(k) * n_candidates
@@ -317,7 +354,8 @@ class HMPCSolver:
                     # within the tolerance there, so what it leaves to gain is below it too.
                     actual = sub_state.cost[accepted] - trial.cost[ok]
                     agree = exact[accepted] & (
-                        np.abs(actual - predicted[accepted]) <= config.cost_atol + config.cost_rtol * trial.cost[ok])
+                        np.abs(actual - predicted[accepted]) <= config.cost_atol + config.cost_rtol * trial.cost[ok]
+                    )
                     status[active[accepted[agree]]] = CONVERGED
                     finished[accepted[agree]] = True
                 u[active[accepted]] = trial_u[ok]
@@ -348,8 +386,18 @@ class HMPCSolver:
         law_states = None
         if self.use_kernels and not self.law_features:
             rho = self.config.state_bound_weight if self.config.use_state_bounds else 0.0
-            features, cost = self.kernels.stage_cost(q_path, qd_path, rows.ref_q, rows.ref_qd, deviation, self.feature_weight,
-                                                     weight, self.temporal, self.state_limit, float(rho))  # fmt: skip
+            features, cost = self.kernels.stage_cost(
+                q_path,
+                qd_path,
+                rows.ref_q,
+                rows.ref_qd,
+                deviation,
+                self.feature_weight,
+                weight,
+                self.temporal,
+                self.state_limit,
+                float(rho),
+            )
             return _Rollout(q_path, qd_path, features, None, cost)
         if self.law_features:
             features, law_states = self._law_features(rows, u, q_path, qd_path)
@@ -374,7 +422,9 @@ class HMPCSolver:
             args = (q_path[:, j], qd_path[:, j], rows.ref_q[:, j], rows.ref_qd[:, j])
             features.append(np.asarray(law.error_features(np, state, *args), float))
             if j + 1 < horizon:
-                state = law.with_applied_torque(np.asarray(law.step(np, state, *args, rows.qdd_d)[1], float), u[:, j + 1])
+                state = law.with_applied_torque(
+                    np.asarray(law.step(np, state, *args, rows.qdd_d)[1], float), u[:, j + 1]
+                )
         return np.stack(features, 1), np.stack(states, 1)
 
     def _feature_jacobian(self, rows: _Rows, state: _Rollout) -> np.ndarray:
@@ -387,14 +437,24 @@ class HMPCSolver:
         delta = np.eye(2 * n)[None] * h[:, None, :]  # (KT, 2N perturbations, 2N)
         xs = np.concatenate([x[:, None] + delta, x[:, None] - delta], 1).reshape(-1, 2 * n)
         rep = 4 * n
-        values = np.asarray(self.law.error_features(np, np.repeat(law_state, rep, 0), xs[:, :n], xs[:, n:],
-                                                    np.repeat(ref_q, rep, 0), np.repeat(ref_qd, rep, 0)), float)  # fmt: skip
+        values = np.asarray(
+            self.law.error_features(
+                np,
+                np.repeat(law_state, rep, 0),
+                xs[:, :n],
+                xs[:, n:],
+                np.repeat(ref_q, rep, 0),
+                np.repeat(ref_qd, rep, 0),
+            ),
+            float,
+        )
         values = values.reshape(k * horizon, 2, 2 * n, -1)
         jac = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
         return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
 
-    def _model_step(self, rows: _Rows, u: np.ndarray, state: _Rollout,
-                    levenberg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    def _model_step(
+        self, rows: _Rows, u: np.ndarray, state: _Rollout, levenberg: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The Gauss-Newton step (K, T, N) inside the torque box, the decrease of J it predicts, and
         whether the step is the model's exact minimizer (K,) bool.
 
@@ -412,9 +472,19 @@ class HMPCSolver:
         limit = self._state_box
         rho = config.state_bound_weight if config.use_state_bounds else 0.0
         if self.use_kernels:
-            step, predicted, exact = self.kernels.model_step(hessian0, gradient0, sens, x, limit, lower, upper, float(rho),
-                                                        PENALTY_ROUNDS, config.max_qp_iterations,
-                                                        config.qp_tolerance)  # fmt: skip
+            step, predicted, exact = self.kernels.model_step(
+                hessian0,
+                gradient0,
+                sens,
+                x,
+                limit,
+                lower,
+                upper,
+                float(rho),
+                PENALTY_ROUNDS,
+                config.max_qp_iterations,
+                config.qp_tolerance,
+            )
             return step.reshape(k, horizon, n), predicted, exact
 
         def penalty(y: np.ndarray) -> np.ndarray:
@@ -434,9 +504,9 @@ class HMPCSolver:
                 gradient = gradient + rho * np.einsum("kxi,kx->ki", sens_on, x[todo] - side[todo] * limit)
             # warm start: the first round from the torques already on their limits (step = 0 there,
             # i.e. last Gauss-Newton step's active set), later rounds from the last round's step
-            step[todo], qp_converged[todo] = solve_box_qp(hessian, gradient, lower[todo], upper[todo],
-                                                          config.max_qp_iterations, config.qp_tolerance,
-                                                          step[todo])  # fmt: skip
+            step[todo], qp_converged[todo] = solve_box_qp(
+                hessian, gradient, lower[todo], upper[todo], config.max_qp_iterations, config.qp_tolerance, step[todo]
+            )
             if rho == 0:
                 break
             y = x[todo] + np.einsum("kxi,ki->kx", sens[todo], step[todo])
@@ -447,13 +517,16 @@ class HMPCSolver:
             todo = todo[~same]
             if todo.size == 0:
                 break
-        quadratic = np.einsum("ki,ki->k", gradient0, step) + 0.5 * np.einsum("ki,ki->k", step, (hessian0 @ step[..., None])[..., 0])
+        quadratic = np.einsum("ki,ki->k", gradient0, step) + 0.5 * np.einsum(
+            "ki,ki->k", step, (hessian0 @ step[..., None])[..., 0]
+        )
         y = x + np.einsum("kxi,ki->kx", sens, step)
         model_change = quadratic + penalty(y) - penalty(x)
         return step.reshape(k, horizon, n), -2.0 * model_change, settled & qp_converged  # the model is of J / 2
 
-    def _gauss_newton_model(self, rows: _Rows, u: np.ndarray, state: _Rollout,
-                            levenberg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    def _gauss_newton_model(
+        self, rows: _Rows, u: np.ndarray, state: _Rollout, levenberg: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Condensed model of J / 2 without the bound penalty: H (K, TN, TN), g (K, TN), and the
         state sensitivities S = dx/dU (K, T 2N, TN)."""
         dt, n, horizon = self.dt_s, self.n_joints, self.horizon
@@ -463,10 +536,18 @@ class HMPCSolver:
         _, d_q, d_qd, d_tau = self.predictor.acceleration_derivatives(q_prev, qd_prev, u.reshape(-1, n))
         d_q, d_qd, d_tau = (a.reshape(k, horizon, n, n) for a in (d_q, d_qd, d_tau))
         if self.use_kernels and not self.law_features:
-            return self.kernels.condense(np.ascontiguousarray(d_q), np.ascontiguousarray(d_qd), np.ascontiguousarray(d_tau),
-                                    dt, self._stage_feature_weight, np.ascontiguousarray(state.features),
-                                    np.ascontiguousarray(rows.deviation(u).reshape(k, -1)), self._stage_torque_weight,
-                                    float(self.config.damping), np.ascontiguousarray(levenberg, dtype=np.float64))  # fmt: skip
+            return self.kernels.condense(
+                np.ascontiguousarray(d_q),
+                np.ascontiguousarray(d_qd),
+                np.ascontiguousarray(d_tau),
+                dt,
+                self._stage_feature_weight,
+                np.ascontiguousarray(state.features),
+                np.ascontiguousarray(rows.deviation(u).reshape(k, -1)),
+                self._stage_torque_weight,
+                float(self.config.damping),
+                np.ascontiguousarray(levenberg, dtype=np.float64),
+            )
         eye = np.eye(n)
         # x+ = Phi x + Gamma u (linearized semi-implicit Euler), x = (q, qd)
         phi = np.empty((k, horizon, 2 * n, 2 * n))

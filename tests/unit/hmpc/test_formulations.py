@@ -35,7 +35,10 @@ def test_anchored_weights_scale_with_inverse_inertia_squared(robot) -> None:  # 
 
 def test_anchored_compiled_equals_numpy_and_reports_w_star(robot) -> None:  # type: ignore[no-untyped-def]
     law = make_law("pd", robot, 1e-3, "stabilized")
-    results = [HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", kernels=k)).solve(*states(8)) for k in ("numba", "numpy")]
+    results = [
+        HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", kernels=k)).solve(*states(8))
+        for k in ("numba", "numpy")
+    ]
     np.testing.assert_allclose(results[0].tau_nm, results[1].tau_nm, atol=1e-6)
     assert np.all(np.isin(results[0].anchor_scale, HMPCConfig().candidate_scales))
     assert HMPCSolver(law, robot).solve(*states(2)).anchor_scale is None
@@ -53,14 +56,18 @@ def test_the_law_matters_only_with_the_anchored_cost(robot) -> None:  # type: ig
     taus = {}
     for cost in ("absolute", "anchored"):
         for name in ("pd", "smc"):
-            taus[cost, name] = HMPCSolver(make_law(name, robot, 1e-3, "stabilized"), robot,
-                                          HMPCConfig(torque_cost=cost)).solve(*x).tau_nm  # fmt: skip
+            taus[cost, name] = (
+                HMPCSolver(make_law(name, robot, 1e-3, "stabilized"), robot, HMPCConfig(torque_cost=cost))
+                .solve(*x)
+                .tau_nm
+            )
     spread = {cost: np.abs(taus[cost, "pd"] - taus[cost, "smc"]).max() for cost in ("absolute", "anchored")}
     assert spread["anchored"] > 100 * spread["absolute"]
 
 
-@pytest.mark.parametrize("options", [{"torque_cost": "relative"}, {"anchor_weight_scale": 0.0},
-                                     {"anchor_weight_scale": float("nan")}])  # fmt: skip
+@pytest.mark.parametrize(
+    "options", [{"torque_cost": "relative"}, {"anchor_weight_scale": 0.0}, {"anchor_weight_scale": float("nan")}]
+)
 def test_bad_formulation_options_are_model_input_errors(options) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ModelInputError, match="hmpc config"):
         HMPCConfig(**options)

@@ -83,7 +83,9 @@ def test_velocity_bound_holds_on_prediction(law, robot) -> None:  # type: ignore
 
     ref_q, ref_qd = solver.reference_preview(q_d, qd_d, qdd_d)
     rollout = solver._rollout(_Rows(q, qd, ref_q, ref_qd, qdd_d, np.zeros((4, 0))), result.sequence_nm)
-    unconstrained = HMPCSolver(law, robot, HMPCConfig(use_state_bounds=False, max_iterations=10)).solve(q, qd, q_d, qd_d, qdd_d)
+    unconstrained = HMPCSolver(law, robot, HMPCConfig(use_state_bounds=False, max_iterations=10)).solve(
+        q, qd, q_d, qd_d, qdd_d
+    )
     rollout_free = solver._rollout(_Rows(q, qd, ref_q, ref_qd, qdd_d, np.zeros((4, 0))), unconstrained.sequence_nm)
     assert np.abs(rollout_free.qd).max() > 1.5 * limit  # without the bound the optimizer would exceed it
     assert np.abs(rollout.qd).max() <= limit * 1.01  # soft bound: stiff penalty, 1 % slack
@@ -136,8 +138,9 @@ def test_budget_exhausted_falls_back_to_feedback(law, robot) -> None:  # type: i
     result = HMPCSolver(law, robot, config).solve(*args)
     assert np.all(result.status == NOT_CONVERGED)
     np.testing.assert_array_equal(result.tau_nm, result.tau_fb_nm)
-    kept = HMPCSolver(law, robot, HMPCConfig(max_iterations=1, cost_rtol=1e-14, cost_atol=0.0,
-                                             on_budget_exhausted="best_iterate")).solve(*args)  # fmt: skip
+    kept = HMPCSolver(
+        law, robot, HMPCConfig(max_iterations=1, cost_rtol=1e-14, cost_atol=0.0, on_budget_exhausted="best_iterate")
+    ).solve(*args)
     np.testing.assert_array_equal(kept.tau_nm, kept.sequence_nm[:, 0])
 
 
@@ -212,12 +215,18 @@ def test_box_qp_matches_a_reference_solver() -> None:
     assert converged.all()
     assert np.all((x >= lower) & (x <= upper))
     for row in range(k):
+
         def f(z, r=row):  # type: ignore[no-untyped-def]
             return gradient[r] @ z + 0.5 * z @ hessian[r] @ z
 
-        ref = minimize(f, np.zeros(n), jac=lambda z, r=row: gradient[r] + hessian[r] @ z,
-                       bounds=Bounds(lower[row], upper[row]), method="L-BFGS-B",
-                       options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000})  # fmt: skip
+        ref = minimize(
+            f,
+            np.zeros(n),
+            jac=lambda z, r=row: gradient[r] + hessian[r] @ z,
+            bounds=Bounds(lower[row], upper[row]),
+            method="L-BFGS-B",
+            options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000},
+        )
         assert f(x[row]) <= ref.fun + 1e-9
 
 
