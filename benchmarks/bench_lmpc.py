@@ -30,10 +30,15 @@ def main() -> None:
     parser.add_argument("--cycles", type=int, default=3000)
     parser.add_argument("--bundles", type=Path, default=None)
     parser.add_argument("--laws", default="pd,pid,adrc,hinf,smc,mrac")
-    parser.add_argument("--fallbacks", action="store_true", help="also count trust-region fallbacks on the paper's conditions")
+    parser.add_argument(
+        "--fallbacks", action="store_true", help="also count trust-region fallbacks on the paper's conditions"
+    )
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
-    parser.add_argument("--session-sweep", action="store_true",
-                        help="also time each graph under onnxruntime's optimization levels / execution modes")
+    parser.add_argument(
+        "--session-sweep",
+        action="store_true",
+        help="also time each graph under onnxruntime's optimization levels / execution modes",
+    )
     args = parser.parse_args()
 
     from hil_runtime.bundle import PolicyBundle
@@ -48,7 +53,11 @@ def main() -> None:
     condition = load_conditions()[0]
     sim = SimConfig()
     short = replace(condition, duration_s=args.cycles * sim.dt_s)
-    out: dict = {"what": "t_L per control cycle, one arm, onnxruntime 1 intra-op thread", "cycles": args.cycles, "laws": {}}
+    out: dict = {
+        "what": "t_L per control cycle, one arm, onnxruntime 1 intra-op thread",
+        "cycles": args.cycles,
+        "laws": {},
+    }
     for law_name in args.laws.split(","):
         law = make_law(law_name, robot, sim.dt_s)
         controller = make_lmpc_controller(law, robot, bundle_dir=args.bundles)
@@ -66,12 +75,16 @@ def main() -> None:
             bare.append(time.perf_counter() - start)
         bare_us = np.asarray(bare[100:]) * 1e6
         out["laws"][law_name] = {
-            "controller_call_us": {"median": float(np.median(closed)), "p99": float(np.percentile(closed, 99)), "max": float(closed.max())},
+            "controller_call_us": {
+                "median": float(np.median(closed)),
+                "p99": float(np.percentile(closed, 99)),
+                "max": float(closed.max()),
+            },
             "bundle_step_us": {"median": float(np.median(bare_us)), "p99": float(np.percentile(bare_us, 99))},
             "graph_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"]),
             "compute_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"], compute_only=True),
             "design": bundle.manifest.get("training", {}).get("design", "mlp"),
-        }  # fmt: skip
+        }
         if args.session_sweep:
             out["laws"][law_name]["session_sweep_us"] = session_sweep(bundle, args.cycles)
     if args.fallbacks:
@@ -79,8 +92,13 @@ def main() -> None:
     import onnxruntime
 
     out["load_average"] = os.getloadavg()
-    out["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                      "cpu_count": os.cpu_count(), "python": platform.python_version(), "onnxruntime": onnxruntime.__version__}  # fmt: skip
+    out["machine"] = {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "onnxruntime": onnxruntime.__version__,
+    }
     print(json.dumps(out, indent=2))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -104,10 +122,12 @@ def trust_counts(laws: list[str], bundles: Path | None) -> dict:
         with np.errstate(all="ignore"):
             traj = simulate(robot, controller, conditions, sim)
         counts = controller.trust_counters()
-        out[law_name] = {"cycles_per_run": counts["cycles"],
-                         "fallback_cycles": dict(zip([c.name for c in conditions], counts["fallback_cycles"], strict=True)),
-                         "clamped_cycles": dict(zip([c.name for c in conditions], counts["clamped_cycles"], strict=True)),
-                         "within_limits": [bool(v) for v in traj.within_limits]}  # fmt: skip
+        out[law_name] = {
+            "cycles_per_run": counts["cycles"],
+            "fallback_cycles": dict(zip([c.name for c in conditions], counts["fallback_cycles"], strict=True)),
+            "clamped_cycles": dict(zip([c.name for c in conditions], counts["clamped_cycles"], strict=True)),
+            "within_limits": [bool(v) for v in traj.within_limits],
+        }
     return out
 
 
@@ -124,14 +144,21 @@ def session_sweep(bundle, cycles: int) -> dict:  # type: ignore[no-untyped-def]
 
     import onnxruntime as ort
 
-    levels = {"disable_all": ort.GraphOptimizationLevel.ORT_DISABLE_ALL, "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-              "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED, "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL}  # fmt: skip
+    levels = {
+        "disable_all": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+        "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+        "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+        "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+    }
     path = str(bundle.path / bundle.manifest["graph"]["file"])
     x = np.zeros((1, bundle.input_width))
     x[0, : 5 * bundle.n_joints] = 0.1
     out = {}
     for name, level in levels.items():
-        for mode_name, mode in (("sequential", ort.ExecutionMode.ORT_SEQUENTIAL), ("parallel", ort.ExecutionMode.ORT_PARALLEL)):
+        for mode_name, mode in (
+            ("sequential", ort.ExecutionMode.ORT_SEQUENTIAL),
+            ("parallel", ort.ExecutionMode.ORT_PARALLEL),
+        ):
             options = ort.SessionOptions()
             options.intra_op_num_threads, options.inter_op_num_threads = 1, 1
             options.execution_mode, options.graph_optimization_level, options.log_severity_level = mode, level, 3

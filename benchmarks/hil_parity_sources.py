@@ -98,8 +98,12 @@ def _torque_steps_nm(robot: Any) -> np.ndarray:
     from drivers.config import JointDriveConfig
 
     joints = zip(robot.joint_names, robot.torque_limit_nm, strict=True)
-    return np.array([JointDriveConfig(name=n, node_id=i + 1, max_torque_nm=float(t)).effective_rated_torque_mnm * 1e-6
-                     for i, (n, t) in enumerate(joints)])  # fmt: skip
+    return np.array(
+        [
+            JointDriveConfig(name=n, node_id=i + 1, max_torque_nm=float(t)).effective_rated_torque_mnm * 1e-6
+            for i, (n, t) in enumerate(joints)
+        ]
+    )
 
 
 def _simulate(robot: Any, law: str, mode: str, condition: Any, sim: SimConfig, wrap: str | None = None) -> dict:
@@ -120,8 +124,13 @@ def _simulate(robot: Any, law: str, mode: str, condition: Any, sim: SimConfig, w
     elif wrap is not None:
         raise ValueError(f"unknown variant {wrap!r}")
     traj = simulate(robot, controller, [condition], sim)
-    return {"t": traj.t_s, "q": traj.q[0], "q_ref": traj.q_ref[0], "tau": traj.tau[0],
-            "within_limits": bool(traj.within_limits[0])}  # fmt: skip
+    return {
+        "t": traj.t_s,
+        "q": traj.q[0],
+        "q_ref": traj.q_ref[0],
+        "tau": traj.tau[0],
+        "within_limits": bool(traj.within_limits[0]),
+    }
 
 
 def _compare(run: dict, twin: dict, condition: Any) -> dict[str, Any]:
@@ -143,13 +152,20 @@ def main() -> None:
     parser.add_argument("--substeps", default="8,16,32,64")
     parser.add_argument("--plot", type=Path, default=None)
     parser.add_argument("--floor", default="smc", help="laws whose own score spread under a nudge is measured")
-    parser.add_argument("--sim-results", type=Path, default=None,
-                        help="an `hil experiment` results.json: score the floor on its scale (the parity table's)")
+    parser.add_argument(
+        "--sim-results",
+        type=Path,
+        default=None,
+        help="an `hil experiment` results.json: score the floor on its scale (the parity table's)",
+    )
     args = parser.parse_args()
     robot = load_robot("ur5_paper")
     conditions = {c.name: c for c in load_conditions(robot=robot)}
-    out: dict[str, Any] = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
-                           "load_average_start": os.getloadavg(), "runs": {}}  # fmt: skip
+    out: dict[str, Any] = {
+        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
+        "load_average_start": os.getloadavg(),
+        "runs": {},
+    }
     started = time.monotonic()
     work = Path(os.environ.get("TMPDIR", "/tmp")) / f"hil-parity-{os.getpid()}.yaml"
     work.write_text(conditions_yaml(list(conditions.values())))
@@ -159,12 +175,14 @@ def main() -> None:
         condition = conditions[cname]
         twin = _simulate(robot, law, mode, condition, twin_config)
         row: dict[str, Any] = {}
-        row["sim_rk4_16"] = _compare(_simulate(robot, law, mode, condition, replace(twin_config, substeps=16)), twin,
-                                     condition)  # fmt: skip
+        row["sim_rk4_16"] = _compare(
+            _simulate(robot, law, mode, condition, replace(twin_config, substeps=16)), twin, condition
+        )
         for wrap in ("rounded", "rounded_torque_only", "carried_1", "carried_2", "nudged_1e-9", "delayed"):
             row[f"sim_{wrap}"] = _compare(_simulate(robot, law, mode, condition, twin_config, wrap), twin, condition)
-        variants: list[tuple[str, int, Any]] = [(f"hil_substeps_{n}", int(n), condition)
-                                                for n in args.substeps.split(",")]  # fmt: skip
+        variants: list[tuple[str, int, Any]] = [
+            (f"hil_substeps_{n}", int(n), condition) for n in args.substeps.split(",")
+        ]
         d = condition.disturbance
         spread = replace(d, torque_nm=tuple(t * d.duration_s / PERIOD_S for t in d.torque_nm), duration_s=PERIOD_S)
         variants.append(("hil_pulse_spread", 32, replace(condition, disturbance=spread)))
@@ -175,8 +193,9 @@ def main() -> None:
             row[name] = _compare(arrays, twin, condition)
         out["runs"][spec] = row
     work.unlink(missing_ok=True)
-    out["floor"] = _floor(robot, list(conditions.values()), [x for x in args.floor.split(",") if x], twin_config,
-                          args.sim_results)
+    out["floor"] = _floor(
+        robot, list(conditions.values()), [x for x in args.floor.split(",") if x], twin_config, args.sim_results
+    )
     out["wall_s"] = round(time.monotonic() - started, 1)
     out["load_average_end"] = os.getloadavg()
     print(json.dumps(out, indent=1))
@@ -184,8 +203,9 @@ def main() -> None:
         _plot(out, args.plot)
 
 
-def _floor(robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig,
-           sim_results: Path | None) -> dict[str, Any]:  # fmt: skip
+def _floor(
+    robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig, sim_results: Path | None
+) -> dict[str, Any]:
     """The simulation's own reproducibility: each law and mode on every condition with its torques
     rounded to 1e-9 or 1e-6 N·m (a nudge) or quantized as the drives do (``carried_2``), scored
     against the plain simulation. On the scale of ``sim_results`` (an ``hil experiment``
@@ -202,19 +222,31 @@ def _floor(robot: Any, conditions: list[Any], laws: list[str], sim: SimConfig,
                 for c in conditions:
                     dist = c.disturbance.time_s if c.disturbance is not None else None
                     r = _simulate(robot, law, mode, c, sim, wrap)
-                    runs[wrap].append({"law": law, "mode": mode, "condition": c.name, "finite": True,
-                                       "within_limits": r["within_limits"],
-                                       "metrics": run_metrics(r["t"], r["q"], r["q_ref"], dist)})  # fmt: skip
+                    runs[wrap].append(
+                        {
+                            "law": law,
+                            "mode": mode,
+                            "condition": c.name,
+                            "finite": True,
+                            "within_limits": r["within_limits"],
+                            "metrics": run_metrics(r["t"], r["q"], r["q_ref"], dist),
+                        }
+                    )
             for wrap in ("nudged_1e-9", "nudged_1e-6", "carried_2"):
                 pair = runs[None] + runs[wrap]
                 base = _per_run_scores(runs[None], scale=scale or pair)
                 moved = _per_run_scores(runs[wrap], scale=scale or pair)
-                per_condition = {c.name: round(100 * (moved[(law, mode, c.name)] / base[(law, mode, c.name)] - 1), 1)
-                                 for c in conditions}  # fmt: skip
+                per_condition = {
+                    c.name: round(100 * (moved[(law, mode, c.name)] / base[(law, mode, c.name)] - 1), 1)
+                    for c in conditions
+                }
                 a, b = float(np.mean(list(base.values()))), float(np.mean(list(moved.values())))
-                out[f"{law}/{mode}/{wrap}"] = {"score_sim": round(a, 4), "score": round(b, 4),
-                                               "rel_pct": round(100 * (b - a) / a, 1),
-                                               "per_condition_pct": per_condition}  # fmt: skip
+                out[f"{law}/{mode}/{wrap}"] = {
+                    "score_sim": round(a, 4),
+                    "score": round(b, 4),
+                    "rel_pct": round(100 * (b - a) / a, 1),
+                    "per_condition_pct": per_condition,
+                }
     return out
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -15,8 +15,12 @@ STAGES = ("dataset", "label", "train", "augment", "export")
 
 
 def pipeline(
-    stages: Annotated[str, typer.Option(help="Comma-separated stages: dataset, label, train, augment (beyond the paper), export.")] = ",".join(STAGES),
-    work: Annotated[Path, typer.Option(help="Working directory (raw.h5, labels.h5, training, plots).")] = Path("results/lmpc"),
+    stages: Annotated[
+        str, typer.Option(help="Comma-separated stages: dataset, label, train, augment (beyond the paper), export.")
+    ] = ",".join(STAGES),
+    work: Annotated[Path, typer.Option(help="Working directory (raw.h5, labels.h5, training, plots).")] = Path(
+        "results/lmpc"
+    ),
     bundles: Annotated[Path, typer.Option(help="Where bundles go: <bundles>/<robot>/<law>/.")] = Path("models/bundles"),
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
     conditions: Annotated[int, typer.Option(help="Random operating conditions in D_input.")] = 100,
@@ -24,20 +28,36 @@ def pipeline(
     budget: Annotated[int, typer.Option(help="Labeled samples over all laws (Theorem 2 budget).")] = 100_000,
     duration: Annotated[float, typer.Option(help="Run length (s).")] = 5.0,
     epochs: Annotated[int, typer.Option(help="Max training epochs.")] = 150,
-    workers: Annotated[Optional[int], typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
+    workers: Annotated[int | None, typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
     lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
-    rollouts: Annotated[int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")] = 60,
+    rollouts: Annotated[
+        int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")
+    ] = 60,
     dagger_rounds: Annotated[int, typer.Option(help="DAgger rounds in the augment stage.")] = 0,
     force_dataset: Annotated[bool, typer.Option("--force-dataset", help="Regenerate raw.h5 even if present.")] = False,
-    design: Annotated[str, typer.Option(
-        help="'structured' (nominal feed-forward in the graph + bounded residual; docs/lmpc.md section 9; "
-             "its own stages: rollouts, relabel, fit, export) or 'paper' (Eq. 22 MLP, Theorem 2; the stages above).")] = "paper",
-    hmpc_formulation: Annotated[str, typer.Option(help="The HMPC imitated: 'absolute' or 'anchored' (docs/hmpc.md).")] = "absolute",
-    target: Annotated[str, typer.Option(help="Structured design: 'hmpc', or 'law' (the control row: imitate the law itself).")] = "hmpc",
-    ff_point: Annotated[str, typer.Option(help="Structured design: feed-forward at the 'measured' state or along the 'reference'.")] = "measured",
+    design: Annotated[
+        str,
+        typer.Option(
+            help="'structured' (nominal feed-forward in the graph + bounded residual; docs/lmpc.md section 9; "
+            "its own stages: rollouts, relabel, fit, export) or 'paper' (Eq. 22 MLP, Theorem 2; the stages above)."
+        ),
+    ] = "paper",
+    hmpc_formulation: Annotated[
+        str, typer.Option(help="The HMPC imitated: 'absolute' or 'anchored' (docs/hmpc.md).")
+    ] = "absolute",
+    target: Annotated[
+        str, typer.Option(help="Structured design: 'hmpc', or 'law' (the control row: imitate the law itself).")
+    ] = "hmpc",
+    ff_point: Annotated[
+        str, typer.Option(help="Structured design: feed-forward at the 'measured' state or along the 'reference'.")
+    ] = "measured",
     train_conditions: Annotated[int, typer.Option(help="Structured design: paper-range training conditions.")] = 16,
-    residual_bound_scale: Annotated[float, typer.Option(
-        help="Structured design: trust-region residual bound, x the largest |tau* - tau_fb| of the labels.")] = 3.0,
+    residual_bound_scale: Annotated[
+        float,
+        typer.Option(
+            help="Structured design: trust-region residual bound, x the largest |tau* - tau_fb| of the labels."
+        ),
+    ] = 3.0,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     if design not in ("paper", "structured"):
@@ -47,11 +67,27 @@ def pipeline(
     if design == "structured":
         if not residual_bound_scale > 0:
             raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
-        _structured(work, bundles, laws, hmpc_formulation, target, ff_point, train_conditions, dagger_rounds,
-                    residual_bound_scale)  # fmt: skip
+        _structured(
+            work,
+            bundles,
+            laws,
+            hmpc_formulation,
+            target,
+            ff_point,
+            train_conditions,
+            dagger_rounds,
+            residual_bound_scale,
+        )
         return
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     from models.feedback import LAW_NAMES
     from models.lmpc.pipeline import PipelineConfig, run_pipeline
@@ -72,14 +108,24 @@ def pipeline(
     config = replace(
         base,
         dataset=replace(base.dataset, laws=law_list, conditions=conditions, seed=seed, duration_s=duration),
-        budget=budget, pool_conditions=max(1, int(round(0.9 * conditions))),
+        budget=budget,
+        pool_conditions=max(1, int(round(0.9 * conditions))),
         test_per_law=min(base.test_per_law, max(10, budget // (5 * len(law_list)))),
-        train=replace(base.train, max_epochs=epochs), workers=workers, rollout_conditions=rollouts, dagger_rounds=dagger_rounds,
+        train=replace(base.train, max_epochs=epochs),
+        workers=workers,
+        rollout_conditions=rollouts,
+        dagger_rounds=dagger_rounds,
         dagger_conditions=min(base.dagger_conditions, max(1, int(round(0.9 * conditions)))),
         lipschitz_delta="estimate" if lipschitz == "estimate" else (0.0, 0.0, 0.0),
-    )  # fmt: skip
+    )
     console = Console(stderr=True)
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     with Progress(*columns, console=console) as bar:
 
         def progress(label: str, total: int):  # type: ignore[no-untyped-def]
@@ -91,16 +137,28 @@ def pipeline(
     training = summary.get("training")
     if training:
         for law, row in training["per_law"].items():
-            console.print(f"{law:5s} val MSE optimal {row['optimal']['val_mse_mean']:.4f} uniform {row['uniform']['val_mse_mean']:.4f} | "
-                          f"test MSE optimal {row['optimal']['test_mse_mean']:.4f} uniform {row['uniform']['test_mse_mean']:.4f}")  # fmt: skip
+            console.print(
+                f"{law:5s} val MSE optimal {row['optimal']['val_mse_mean']:.4f} "
+                f"uniform {row['uniform']['val_mse_mean']:.4f} | "
+                f"test MSE optimal {row['optimal']['test_mse_mean']:.4f} uniform {row['uniform']['test_mse_mean']:.4f}"
+            )
         console.print(f"mean optimal/uniform ratio: {json.dumps(training['mean_ratio_optimal_over_uniform'])}")
-    for law, info in summary.get("bundles", {}).items():
+    for info in summary.get("bundles", {}).values():
         console.print(f"bundle {info['path']} (onnx vs torch {info['onnx_vs_torch_max_abs_nm']:.1e} N m)")
     console.print(f"wrote {work}/pipeline.json")
 
 
-def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: str, ff_point: str, conditions: int,
-                dagger_rounds: int, bound_scale: float = 3.0) -> None:  # fmt: skip
+def _structured(
+    work: Path,
+    bundles: Path,
+    laws: str,
+    formulation: str,
+    target: str,
+    ff_point: str,
+    conditions: int,
+    dagger_rounds: int,
+    bound_scale: float = 3.0,
+) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
     from rich.console import Console
@@ -115,9 +173,18 @@ def _structured(work: Path, bundles: Path, laws: str, formulation: str, target: 
     torch.set_num_threads(1)
     options = {} if formulation == "absolute" else {"torque_cost": formulation}
     sigma_e, sigma_rate = PERTURBATION[formulation]
-    config = StructuredConfig(laws=law_list, hmpc_options=options, target=target, ff_point=ff_point, train_conditions=conditions,
-                              perturb_error_rad=sigma_e, perturb_rate_rad_s=sigma_rate, dagger_rounds=dagger_rounds,
-                              c_fixed=C_FIXED[formulation] if target == "hmpc" else None, bound_scale=bound_scale)  # fmt: skip
+    config = StructuredConfig(
+        laws=law_list,
+        hmpc_options=options,
+        target=target,
+        ff_point=ff_point,
+        train_conditions=conditions,
+        perturb_error_rad=sigma_e,
+        perturb_rate_rad_s=sigma_rate,
+        dagger_rounds=dagger_rounds,
+        c_fixed=C_FIXED[formulation] if target == "hmpc" else None,
+        bound_scale=bound_scale,
+    )
     console = Console(stderr=True)
     summary = run_structured(config, bundles, work, log=console.print)
     console.print(f"wrote {bundles}/<robot>/<law>/ and {work}/structured.json ({summary['wall_s']:.0f} s)")

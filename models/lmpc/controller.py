@@ -45,7 +45,10 @@ def params_difference(bundle: Any, law: Any, where: str = "params") -> str | Non
     if isinstance(a, list) and isinstance(b, list):
         if len(a) != len(b):
             return f"{where}: {len(a)} values vs {len(b)}"
-        return next((d for i, (x, y) in enumerate(zip(a, b)) if (d := params_difference(x, y, f"{where}[{i}]"))), None)
+        return next(
+            (d for i, (x, y) in enumerate(zip(a, b, strict=True)) if (d := params_difference(x, y, f"{where}[{i}]"))),
+            None,
+        )
     numbers = (int, float)
     if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
         return None if abs(a - b) <= PARAMS_ATOL + PARAMS_RTOL * max(abs(a), abs(b)) else f"{where}: {a!r} vs {b!r}"
@@ -87,8 +90,12 @@ class LMPCController:
 
     def trust_counters(self) -> dict[str, object]:
         """Trust-region counters since the last reset (per arm): what the runtime's supervisor counts."""
-        return {"cycles": self.cycles, "fallback_cycles": self.fallbacks.tolist(), "blended_cycles": self.blended.tolist(),
-                "clamped_cycles": self.clamped.tolist()}
+        return {
+            "cycles": self.cycles,
+            "fallback_cycles": self.fallbacks.tolist(),
+            "blended_cycles": self.blended.tolist(),
+            "clamped_cycles": self.clamped.tolist(),
+        }
 
     def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         start = time.perf_counter()
@@ -116,24 +123,33 @@ class LMPCController:
         return tau
 
 
-def make_lmpc_controller(law: FeedbackLaw, robot: RobotModel, bundle_dir: str | Path | None = None,
-                         **options: Any) -> LMPCController:  # fmt: skip
+def make_lmpc_controller(
+    law: FeedbackLaw, robot: RobotModel, bundle_dir: str | Path | None = None, **options: Any
+) -> LMPCController:
     """The LMPC controller for ``law`` on ``robot`` from its bundle (default: the shipped ones)."""
     if options:
         raise ModelInputError(f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir)")
     path = bundle_path(robot.name, law.name, bundle_dir)
     if bundle_dir is not None and not (path / "manifest.json").is_file():  # name what the user typed
         root = Path(bundle_dir)
-        raise BundleError(f"bundle directory {bundle_dir}: no bundle for law '{law.name}' (looked for "
-                          f"{root / law.name / 'manifest.json'} and {root / robot.name / law.name / 'manifest.json'})")  # fmt: skip
-    bundle = PolicyBundle.load(path, expected_joints=robot.n_joints, expected_period_s=law.dt_s,
-                               expected_joint_names=list(robot.joint_names),
-                               expected_urdf_sha256=sha256_file(robot.urdf_path))  # fmt: skip
+        raise BundleError(
+            f"bundle directory {bundle_dir}: no bundle for law '{law.name}' (looked for "
+            f"{root / law.name / 'manifest.json'} and {root / robot.name / law.name / 'manifest.json'})"
+        )
+    bundle = PolicyBundle.load(
+        path,
+        expected_joints=robot.n_joints,
+        expected_period_s=law.dt_s,
+        expected_joint_names=list(robot.joint_names),
+        expected_urdf_sha256=sha256_file(robot.urdf_path),
+    )
     if bundle.law_name != law.name:
         raise BundleError(f"bundle {path / 'manifest.json'}: law '{bundle.law_name}', asked for '{law.name}'")
     difference = params_difference(bundle.manifest["law"]["params"], law.params)
     if difference is not None:
-        raise BundleError(f"bundle {path / 'manifest.json'}: law '{law.name}' parameters differ from the bundle's "
-                          f"(gain set {bundle.manifest['law'].get('gain_set')!r}; bundle vs law {difference}); "
-                          "re-export with `hil pipeline`")  # fmt: skip
+        raise BundleError(
+            f"bundle {path / 'manifest.json'}: law '{law.name}' parameters differ from the bundle's "
+            f"(gain set {bundle.manifest['law'].get('gain_set')!r}; bundle vs law {difference}); "
+            "re-export with `hil pipeline`"
+        )
     return LMPCController(bundle, law.name)

@@ -57,7 +57,9 @@ def git_commit() -> str:
     try:
         root = Path(__file__).resolve().parents[2]
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5)
-        dirty = subprocess.run(["git", "status", "--porcelain", "models"], cwd=root, capture_output=True, text=True, timeout=5)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "models"], cwd=root, capture_output=True, text=True, timeout=5
+        )
         return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -97,8 +99,15 @@ class _LoggingController:
         if self.k % self.stride == 0:
             row, log = self.k // self.stride, self.log
             log["t_s"][row] = t_s
-            for key, value in (("q", q), ("qd", qd), ("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d), ("tau_fb", tau),
-                               ("law_state", state_before)):  # fmt: skip
+            for key, value in (
+                ("q", q),
+                ("qd", qd),
+                ("q_d", q_d),
+                ("qd_d", qd_d),
+                ("qdd_d", qdd_d),
+                ("tau_fb", tau),
+                ("law_state", state_before),
+            ):
                 log[key][:, row] = value
         self.k += 1
         self.last_tau_fb = tau
@@ -110,7 +119,9 @@ def _simulate_chunk(task: tuple) -> dict[str, Any]:
     robot_name, laws, gain_set, conditions, first_index, sim, stride = task
     robot = load_robot(robot_name)
     steps = int(round(conditions[0].duration_s / sim.dt_s))
-    loggers = [_LoggingController(make_law(law, robot, sim.dt_s, gain_set), len(conditions), steps, stride) for law in laws]
+    loggers = [
+        _LoggingController(make_law(law, robot, sim.dt_s, gain_set), len(conditions), steps, stride) for law in laws
+    ]
     stack = ControllerStack(loggers, [len(conditions)] * len(laws))
     traj = simulate(robot, stack, [c for _ in laws for c in conditions], sim)
     out: dict[str, Any] = {"first_index": first_index, "laws": {}}
@@ -121,13 +132,18 @@ def _simulate_chunk(task: tuple) -> dict[str, Any]:
             "t_s": np.tile(logger.log["t_s"], len(conditions)),
             "run": np.repeat(np.arange(first_index, first_index + len(conditions)), rows),
             **{k: v.reshape(len(conditions) * rows, -1) for k, v in logger.log.items() if k != "t_s"},
-            "finite": traj.finite[part], "within_limits": traj.within_limits[part],
-        }  # fmt: skip
+            "finite": traj.finite[part],
+            "within_limits": traj.within_limits[part],
+        }
     return out
 
 
-def generate_raw_dataset(spec: RawDatasetSpec, out_path: Path, executor: Executor | None = None,
-                         progress: Callable[[int], None] | None = None) -> Path:  # fmt: skip
+def generate_raw_dataset(
+    spec: RawDatasetSpec,
+    out_path: Path,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Path:
     """Simulate, log and write D_input to ``out_path`` (HDF5). ``progress(chunks_done)``."""
     import h5py
 
@@ -135,7 +151,10 @@ def generate_raw_dataset(spec: RawDatasetSpec, out_path: Path, executor: Executo
     conditions = make_conditions(spec, robot)
     sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
     bounds = np.linspace(0, len(conditions), min(spec.chunks, len(conditions)) + 1).astype(int)
-    tasks = [(spec.robot, spec.laws, spec.gain_set, conditions[a:b], int(a), sim, spec.stride) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    tasks = [
+        (spec.robot, spec.laws, spec.gain_set, conditions[a:b], int(a), sim, spec.stride)
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+    ]
     started = time.perf_counter()
     parts: list[dict[str, Any]] = []
     for part in (executor or SerialExecutor()).map(_simulate_chunk, tasks):
@@ -143,17 +162,32 @@ def generate_raw_dataset(spec: RawDatasetSpec, out_path: Path, executor: Executo
         if progress is not None:
             progress(1)
     built = {law: make_law(law, robot, spec.dt_s, spec.gain_set) for law in spec.laws}
-    laws_params = {law: {"state_size": built[law].state_size, "params": jsonable(built[law].params)} for law in spec.laws}
+    laws_params = {
+        law: {"state_size": built[law].state_size, "params": jsonable(built[law].params)} for law in spec.laws
+    }
     manifest = {
-        "schema": SCHEMA, "spec": asdict(spec), "git_commit": git_commit(), "robot": robot.name,
-        "urdf_sha256": _sha256(robot.urdf_path), "joint_names": list(robot.joint_names),
-        "sim": asdict(sim), "laws": laws_params,
-        "conditions": [{"name": c.name, "amplitude_rad": list(c.amplitude_rad), "frequency_hz": list(c.frequency_hz),
-                        "phase_s": c.phase_s, "duration_s": c.duration_s,
-                        "disturbance": None if c.disturbance is None else asdict(c.disturbance)} for c in conditions],
+        "schema": SCHEMA,
+        "spec": asdict(spec),
+        "git_commit": git_commit(),
+        "robot": robot.name,
+        "urdf_sha256": _sha256(robot.urdf_path),
+        "joint_names": list(robot.joint_names),
+        "sim": asdict(sim),
+        "laws": laws_params,
+        "conditions": [
+            {
+                "name": c.name,
+                "amplitude_rad": list(c.amplitude_rad),
+                "frequency_hz": list(c.frequency_hz),
+                "phase_s": c.phase_s,
+                "duration_s": c.duration_s,
+                "disturbance": None if c.disturbance is None else asdict(c.disturbance),
+            }
+            for c in conditions
+        ],
         "generation_wall_s": round(time.perf_counter() - started, 2),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-    }  # fmt: skip
+    }
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(out_path.name + f".tmp{os.getpid()}")

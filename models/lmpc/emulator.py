@@ -55,7 +55,12 @@ class Emulator(nn.Module):
             width = size
         layers.append(nn.Linear(width, n_outputs))
         self.net = nn.Sequential(*layers)
-        for name, size in (("in_mean", n_inputs), ("in_std", n_inputs), ("out_mean", n_outputs), ("out_std", n_outputs)):
+        for name, size in (
+            ("in_mean", n_inputs),
+            ("in_std", n_inputs),
+            ("out_mean", n_outputs),
+            ("out_std", n_outputs),
+        ):
             self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
 
     def set_normalization(self, features: np.ndarray, targets: np.ndarray, center_targets: bool = True) -> None:
@@ -92,13 +97,24 @@ class TrainResult:
     wall_s: float = 0.0
 
     def summary(self) -> dict:
-        return {"config": asdict(self.config), "best_epoch": self.best_epoch, "epochs_run": len(self.val_mse),
-                "best_val_mse_normalized": self.best_val_mse, "val_rmse_nm": self.val_rmse_nm,
-                "samples_train": self.samples_train, "samples_val": self.samples_val, "wall_s": round(self.wall_s, 2)}  # fmt: skip
+        return {
+            "config": asdict(self.config),
+            "best_epoch": self.best_epoch,
+            "epochs_run": len(self.val_mse),
+            "best_val_mse_normalized": self.best_val_mse,
+            "val_rmse_nm": self.val_rmse_nm,
+            "samples_train": self.samples_train,
+            "samples_val": self.samples_val,
+            "wall_s": round(self.wall_s, 2),
+        }
 
 
-def train_emulator(features: np.ndarray, targets: np.ndarray, config: TrainConfig = TrainConfig(),
-                   normalization: tuple[np.ndarray, np.ndarray] | None = None) -> TrainResult:  # fmt: skip
+def train_emulator(
+    features: np.ndarray,
+    targets: np.ndarray,
+    config: TrainConfig = TrainConfig(),
+    normalization: tuple[np.ndarray, np.ndarray] | None = None,
+) -> TrainResult:
     """Fit an Emulator to (features (M, F), targets (M, N)); early stopping keeps the best epoch.
 
     ``normalization``: (features, targets) to compute the normalization from (default: the training
@@ -106,8 +122,9 @@ def train_emulator(features: np.ndarray, targets: np.ndarray, config: TrainConfi
     """
     features, targets = np.asarray(features, np.float64), np.asarray(targets, np.float64)
     if features.ndim != 2 or targets.ndim != 2 or features.shape[0] != targets.shape[0] or features.shape[0] < 10:
-        raise ModelInputError(f"emulator: need (M, F) features and (M, N) targets with M >= 10, got "
-                              f"{features.shape} and {targets.shape}")  # fmt: skip
+        raise ModelInputError(
+            f"emulator: need (M, F) features and (M, N) targets with M >= 10, got {features.shape} and {targets.shape}"
+        )
     if not (np.isfinite(features).all() and np.isfinite(targets).all()):
         raise ModelInputError("emulator: features or targets contain NaN/inf")
     started = time.perf_counter()

@@ -23,8 +23,16 @@ from models.sim import ControllerStack, SimConfig, simulate
 
 
 def _expert_logger(inner: Any, batch: int, steps: int, stride: int) -> StateLogger:
-    return StateLogger(inner, batch, steps, stride, inner.law.n_joints, inner.law.state_size,
-                       law_state=lambda c: c._law_state, log_applied=True)  # fmt: skip
+    return StateLogger(
+        inner,
+        batch,
+        steps,
+        stride,
+        inner.law.n_joints,
+        inner.law.state_size,
+        law_state=lambda c: c._law_state,
+        log_applied=True,
+    )
 
 
 class StateLogger:
@@ -34,8 +42,17 @@ class StateLogger:
     controller applied is logged too (as ``tau_star``: the expert's label).
     """
 
-    def __init__(self, inner: Any, batch: int, steps: int, stride: int, n_joints: int, state_size: int,
-                 law_state: Callable[[Any], np.ndarray], log_applied: bool) -> None:  # fmt: skip
+    def __init__(
+        self,
+        inner: Any,
+        batch: int,
+        steps: int,
+        stride: int,
+        n_joints: int,
+        state_size: int,
+        law_state: Callable[[Any], np.ndarray],
+        log_applied: bool,
+    ) -> None:
         self.inner, self.stride, self.law_state, self.log_applied = inner, stride, law_state, log_applied
         self.name = inner.name + "-log"
         self.cycle_times_s: list[float] = []
@@ -57,8 +74,15 @@ class StateLogger:
         if self.k % self.stride == 0:
             row, log = self.k // self.stride, self.log
             log["t_s"][row] = t_s
-            values = [("q", q), ("qd", qd), ("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d),
-                      ("tau_fb", self.last_tau_fb), ("law_state", before)]  # fmt: skip
+            values = [
+                ("q", q),
+                ("qd", qd),
+                ("q_d", q_d),
+                ("qd_d", qd_d),
+                ("qdd_d", qdd_d),
+                ("tau_fb", self.last_tau_fb),
+                ("law_state", before),
+            ]
             if self.log_applied:
                 values.append(("tau_star", tau))
             for key, value in values:
@@ -73,20 +97,36 @@ def _rollout_chunk(task: tuple) -> dict[str, Any]:
     robot_name, laws, gain_set, conditions, sim, stride = task
     robot = load_robot(robot_name)
     steps = int(round(conditions[0].duration_s / sim.dt_s))
-    loggers = [_expert_logger(make_hmpc_controller(make_law(law, robot, sim.dt_s, gain_set), robot), len(conditions), steps, stride)
-               for law in laws]  # fmt: skip
+    loggers = [
+        _expert_logger(
+            make_hmpc_controller(make_law(law, robot, sim.dt_s, gain_set), robot), len(conditions), steps, stride
+        )
+        for law in laws
+    ]
     simulate(robot, ControllerStack(loggers, [len(conditions)] * len(laws)), [c for _ in laws for c in conditions], sim)
     out = {}
     for law, logger in zip(laws, loggers, strict=True):
         rows = logger.log["t_s"].size
-        out[law] = {"t_s": np.tile(logger.log["t_s"], len(conditions)),
-                    **{k: v.reshape(len(conditions) * rows, -1) for k, v in logger.log.items() if k != "t_s"}}  # fmt: skip
+        out[law] = {
+            "t_s": np.tile(logger.log["t_s"], len(conditions)),
+            **{k: v.reshape(len(conditions) * rows, -1) for k, v in logger.log.items() if k != "t_s"},
+        }
     return out
 
 
-def hmpc_rollouts(robot_name: str, laws: tuple[str, ...], gain_set: str, conditions: list[Condition], sim: SimConfig,
-                  stride: int = 5, chunks: int = 2, executor: Executor | None = None) -> dict[str, dict[str, np.ndarray]]:  # fmt: skip
+def hmpc_rollouts(
+    robot_name: str,
+    laws: tuple[str, ...],
+    gain_set: str,
+    conditions: list[Condition],
+    sim: SimConfig,
+    stride: int = 5,
+    chunks: int = 2,
+    executor: Executor | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
     bounds = np.linspace(0, len(conditions), min(chunks, len(conditions)) + 1).astype(int)
-    tasks = [(robot_name, laws, gain_set, conditions[a:b], sim, stride) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    tasks = [
+        (robot_name, laws, gain_set, conditions[a:b], sim, stride) for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+    ]
     parts = list((executor or SerialExecutor()).map(_rollout_chunk, tasks))
     return {law: {k: np.concatenate([p[law][k] for p in parts]) for k in parts[0][law]} for law in laws}

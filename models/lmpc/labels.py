@@ -27,8 +27,9 @@ Labeler = Callable[[FeedbackLaw, RobotModel, RawLaw, Any], tuple[np.ndarray, np.
 LABEL_HMPC_OPTIONS: dict[str, Any] = {"on_budget_exhausted": "best_iterate"}
 
 
-def hmpc_labeler(law: FeedbackLaw, robot: RobotModel, rows: RawLaw, executor: Any = None,
-                 **hmpc_options: Any) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def hmpc_labeler(
+    law: FeedbackLaw, robot: RobotModel, rows: RawLaw, executor: Any = None, **hmpc_options: Any
+) -> tuple[np.ndarray, np.ndarray]:
     """The project's HMPC on every row (models.hmpc.solve_batch)."""
     from models.hmpc import HMPCConfig, solve_batch
 
@@ -36,8 +37,9 @@ def hmpc_labeler(law: FeedbackLaw, robot: RobotModel, rows: RawLaw, executor: An
     state = rows.law_state if rows.law_state.shape[1] else None
     if executor is not None and hasattr(executor, "start"):
         executor = _StartedPool(executor, law, robot, config)
-    return solve_batch(law, robot, rows.q, rows.qd, rows.q_d, rows.qd_d, rows.qdd_d, state, config=config,
-                       executor=executor)  # fmt: skip
+    return solve_batch(
+        law, robot, rows.q, rows.qd, rows.q_d, rows.qd_d, rows.qdd_d, state, config=config, executor=executor
+    )
 
 
 _SPECS: dict[tuple, tuple] = {}

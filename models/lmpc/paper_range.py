@@ -38,8 +38,15 @@ def paper_range_conditions(robot: RobotModel, count: int, seed: int, prefix: str
         cap = np.minimum(np.minimum(pos_limit, PAPER_AMPLITUDE_RAD), vel_limit / (math.pi * freq))
         amp = rng.uniform(-1.0, 1.0, size=n) * cap
         phase = float(rng.uniform(0.0, template.duration_s))
-        out.append(replace(template, name=f"{prefix}{seed}-{k:02d}", amplitude_rad=tuple(float(a) for a in amp),
-                           frequency_hz=(freq,) * n, phase_s=phase))  # fmt: skip
+        out.append(
+            replace(
+                template,
+                name=f"{prefix}{seed}-{k:02d}",
+                amplitude_rad=tuple(float(a) for a in amp),
+                frequency_hz=(freq,) * n,
+                phase_s=phase,
+            )
+        )
     return out
 
 

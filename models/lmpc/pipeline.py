@@ -24,15 +24,22 @@ from typing import Any
 
 import numpy as np
 
+from hil_runtime.bundle import FEATURE_SETS, GUARD_FEATURES
 from models.errors import ModelInputError
 from models.feedback import make_law
-from hil_runtime.bundle import FEATURE_SETS, GUARD_FEATURES
 from models.lmpc.dataset import RawDatasetSpec, RawLaw, generate_raw_dataset, git_commit, load_raw_dataset
 from models.lmpc.emulator import TrainConfig, train_emulator
 from models.lmpc.executor import Executor, SerialExecutor
 from models.lmpc.labels import LABEL_HMPC_OPTIONS, Labeler, hmpc_labeler
-from models.lmpc.sampling import (PAPER_REGIONS, estimate_lipschitz_delta, optimal_sample, optimal_weights,
-                                  region_index, time_proportions, uniform_sample)  # fmt: skip
+from models.lmpc.sampling import (
+    PAPER_REGIONS,
+    estimate_lipschitz_delta,
+    optimal_sample,
+    optimal_weights,
+    region_index,
+    time_proportions,
+    uniform_sample,
+)
 from models.robots import load_robot
 
 LABELS_SCHEMA = "hil-lmpc-labels/1"
@@ -56,7 +63,9 @@ class PipelineConfig:
     rollout_conditions: int = 60  # pool conditions run under the HMPC itself (0: skip the stage)
     rollout_duration_s: float = 3.0  # 0 .. 3 s: the start-up transient and the disturbance at 2 s
     rollout_stride: int = 3
-    rollout_initial_state: str = "reference"  # start on the reference, as the paper's conditions do ("home": from zeros)
+    rollout_initial_state: str = (
+        "reference"  # start on the reference, as the paper's conditions do ("home": from zeros)
+    )
     dagger_rounds: int = 0  # the shipped bundles: 0 (docs/lmpc.md); --dagger-rounds N
     dagger_conditions: int = 16  # pool conditions (after the rollout ones) run under the intermediate LMPC
     dagger_duration_s: float = 3.0
@@ -68,12 +77,18 @@ class PipelineConfig:
     deploy_use_d_sample: bool = False  # also train the deployed emulator on D_sample (feedback-only states)
     on_policy_max_error_rad: float = 0.0175  # on-policy samples kept where every |e_j| is below this (1 deg)
     residual_percentile: float = 100.0  # trust region: per-joint bound on |tau_L - tau_fb|
-    box_margin: float = 0.5  # trust region: alpha fades from 1 at the box edge to 0 at this fraction of its range outside
+    box_margin: float = (
+        0.5  # trust region: alpha fades from 1 at the box edge to 0 at this fraction of its range outside
+    )
     # per law, the trust region (box, margin) is chosen among these by closed-loop runs on pool
     # conditions (never the paper's); box "on_policy": the on-policy training states, "labeled": those
     # and every HMPC-labeled D_sample state (feedback-only states with errors of degrees)
-    trust_candidates: tuple[tuple[str, float], ...] = (("on_policy", 0.5), ("on_policy", 32.0), ("on_policy", 256.0),
-                                                       ("labeled", 0.1))
+    trust_candidates: tuple[tuple[str, float], ...] = (
+        ("on_policy", 0.5),
+        ("on_policy", 32.0),
+        ("on_policy", 256.0),
+        ("labeled", 0.1),
+    )
     selection_conditions: int = 6  # pool conditions after the rollout and DAgger ones
     selection_duration_s: float = 3.0
     workers: int | None = None  # processes; None = one per CPU
@@ -88,16 +103,21 @@ def _progress(progress: Progress | None, label: str, total: int) -> Callable[[in
 
 
 # --- stage 1 ----------------------------------------------------------------------------------
-def stage_dataset(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None,
-                  force: bool = False) -> Path:  # fmt: skip
+def stage_dataset(
+    config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None, force: bool = False
+) -> Path:
     path = work / "raw.h5"
     if path.exists() and not force:
         raw = load_raw_dataset(path)  # a corrupt file is an error here, never silently regenerated over
         if raw.manifest.get("spec") != json.loads(json.dumps(asdict(config.dataset))):
-            raise ModelInputError(f"dataset {path}: made with other settings than asked ({raw.manifest.get('spec')}); "
-                                  "use --force-dataset to regenerate it")  # fmt: skip
+            raise ModelInputError(
+                f"dataset {path}: made with other settings than asked ({raw.manifest.get('spec')}); "
+                "use --force-dataset to regenerate it"
+            )
         return path
-    return generate_raw_dataset(config.dataset, path, executor, _progress(progress, "dataset: simulate chunks", config.dataset.chunks))
+    return generate_raw_dataset(
+        config.dataset, path, executor, _progress(progress, "dataset: simulate chunks", config.dataset.chunks)
+    )
 
 
 # --- stage 2 ----------------------------------------------------------------------------------
@@ -118,14 +138,25 @@ def choose_samples(raw: RawLaw, config: PipelineConfig, budget: int, seed: int) 
         "optimal": pool[optimal_sample(t_pool, budget, weights, rng)],
         "uniform": pool[uniform_sample(pool.size, budget, rng)],
         "test": np.sort(rng.choice(held, size=config.test_per_law, replace=False)),
-        "theorem2": {"proportions": proportions.tolist(), "tolerances": tolerances.tolist(),
-                     "lipschitz_delta_used": np.asarray(ldelta).tolist(), "lipschitz_delta_estimated": estimated.tolist(),
-                     "weights": weights.tolist(), "epsilon": config.epsilon, "power": config.power},
-    }  # fmt: skip
+        "theorem2": {
+            "proportions": proportions.tolist(),
+            "tolerances": tolerances.tolist(),
+            "lipschitz_delta_used": np.asarray(ldelta).tolist(),
+            "lipschitz_delta_estimated": estimated.tolist(),
+            "weights": weights.tolist(),
+            "epsilon": config.epsilon,
+            "power": config.power,
+        },
+    }
 
 
-def stage_label(config: PipelineConfig, work: Path, labeler: Labeler | None = None, progress: Progress | None = None,
-                hmpc_executor: Any = None) -> Path:  # fmt: skip
+def stage_label(
+    config: PipelineConfig,
+    work: Path,
+    labeler: Labeler | None = None,
+    progress: Progress | None = None,
+    hmpc_executor: Any = None,
+) -> Path:
     """Sample every law and label the union of its optimal, uniform and test states."""
     import h5py
 
@@ -162,12 +193,21 @@ def stage_label(config: PipelineConfig, work: Path, labeler: Labeler | None = No
                 for key in ("optimal", "uniform", "test"):
                     group.create_dataset(key, data=chosen[law_name][key])
                 group.attrs["theorem2"] = json.dumps(chosen[law_name]["theorem2"])
-            h5.attrs["manifest"] = json.dumps({
-                "schema": LABELS_SCHEMA, "raw": str(raw_path), "raw_manifest_created": raw.manifest.get("created"),
-                "git_commit": git_commit(), "labeler": getattr(labeler, "__name__", repr(labeler)),
-                "hmpc_options": LABEL_HMPC_OPTIONS if labeler is hmpc_labeler else None,
-                "budget": config.budget, "per_law": per_law, "wall_s": round(time.perf_counter() - started, 1),
-                "wall_s_per_law": wall, "config": _config_json(config)})  # fmt: skip
+            h5.attrs["manifest"] = json.dumps(
+                {
+                    "schema": LABELS_SCHEMA,
+                    "raw": str(raw_path),
+                    "raw_manifest_created": raw.manifest.get("created"),
+                    "git_commit": git_commit(),
+                    "labeler": getattr(labeler, "__name__", repr(labeler)),
+                    "hmpc_options": LABEL_HMPC_OPTIONS if labeler is hmpc_labeler else None,
+                    "budget": config.budget,
+                    "per_law": per_law,
+                    "wall_s": round(time.perf_counter() - started, 1),
+                    "wall_s_per_law": wall,
+                    "config": _config_json(config),
+                }
+            )
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
@@ -200,8 +240,13 @@ def load_labels(path: Path) -> tuple[dict[str, Any], dict[str, LawLabels]]:
             out = {}
             for law in h5:
                 g = h5[law]
-                out[law] = LawLabels(g["index"][...], g["tau_star"][...], g["status"][...],
-                                     {k: g[k][...] for k in ("optimal", "uniform", "test")}, json.loads(g.attrs["theorem2"]))  # fmt: skip
+                out[law] = LawLabels(
+                    g["index"][...],
+                    g["tau_star"][...],
+                    g["status"][...],
+                    {k: g[k][...] for k in ("optimal", "uniform", "test")},
+                    json.loads(g.attrs["theorem2"]),
+                )
     except ModelInputError:
         raise
     except (OSError, KeyError, ValueError) as exc:
@@ -220,12 +265,21 @@ def _train_task(task: tuple) -> dict[str, Any]:
     for i, region in enumerate(PAPER_REGIONS):
         mask = region_test == i
         test[region.name] = evaluate_mse(result.emulator, x_test[mask], y_test[mask])
-    return {"law": law, "strategy": strategy, "seed": seed, "summary": result.summary(), "train_mse": result.train_mse,
-            "val_mse": result.val_mse, "test_mse": test,
-            "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()}}  # fmt: skip
+    return {
+        "law": law,
+        "strategy": strategy,
+        "seed": seed,
+        "summary": result.summary(),
+        "train_mse": result.train_mse,
+        "val_mse": result.val_mse,
+        "test_mse": test,
+        "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()},
+    }
 
 
-def stage_train(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None) -> dict[str, Any]:
+def stage_train(
+    config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None
+) -> dict[str, Any]:
     raw = load_raw_dataset(work / "raw.h5", config.laws)
     _, labels = load_labels(work / "labels.h5")
     tasks = []
@@ -239,14 +293,19 @@ def stage_train(config: PipelineConfig, work: Path, executor: Executor, progress
         for strategy in ("optimal", "uniform"):
             idx = lab.sets[strategy]
             for seed in config.seeds:
-                tasks.append((law, strategy, seed, x_all[idx], lab.targets(idx), x_test, y_test, region_test, norm, config.train))
+                tasks.append(
+                    (law, strategy, seed, x_all[idx], lab.targets(idx), x_test, y_test, region_test, norm, config.train)
+                )
     advance = _progress(progress, "train: emulators (law x sampling x seed)", len(tasks))
     runs = []
     for result in executor.map(_train_task, tasks):
         runs.append(result)
         advance(1)
-    return {"runs": runs, "labels_theorem2": {law: labels[law].theorem2 for law in config.laws},
-            "label_status": {law: np.bincount(labels[law].status, minlength=4).tolist() for law in config.laws}}  # fmt: skip
+    return {
+        "runs": runs,
+        "labels_theorem2": {law: labels[law].theorem2 for law in config.laws},
+        "label_status": {law: np.bincount(labels[law].status, minlength=4).tolist() for law in config.laws},
+    }
 
 
 def summarize_training(trained: dict[str, Any], laws: tuple[str, ...]) -> dict[str, Any]:
@@ -259,14 +318,19 @@ def summarize_training(trained: dict[str, Any], laws: tuple[str, ...]) -> dict[s
             row[strategy] = {
                 "val_mse_mean": float(np.mean([r["summary"]["best_val_mse_normalized"] for r in runs])),
                 "test_mse_mean": float(np.mean([r["test_mse"]["all"] for r in runs])),
-                "test_mse_by_region": {k: float(np.mean([r["test_mse"][k] for r in runs])) for k in runs[0]["test_mse"] if k != "all"},
+                "test_mse_by_region": {
+                    k: float(np.mean([r["test_mse"][k] for r in runs])) for k in runs[0]["test_mse"] if k != "all"
+                },
                 "val_rmse_nm_mean": np.mean([r["summary"]["val_rmse_nm"] for r in runs], 0).tolist(),
                 "seeds": [r["seed"] for r in runs],
-            }  # fmt: skip
+            }
         for key in ("val_mse_mean", "test_mse_mean"):
             row[f"{key}_optimal_over_uniform"] = row["optimal"][key] / row["uniform"][key]
         table[law] = row
-    overall = {key: float(np.mean([table[law][f"{key}_optimal_over_uniform"] for law in laws])) for key in ("val_mse_mean", "test_mse_mean")}
+    overall = {
+        key: float(np.mean([table[law][f"{key}_optimal_over_uniform"] for law in laws]))
+        for key in ("val_mse_mean", "test_mse_mean")
+    }
     return {"per_law": table, "mean_ratio_optimal_over_uniform": overall}
 
 
@@ -303,7 +367,11 @@ def plot_sampling_curves(trained: dict[str, Any], laws: tuple[str, ...], path: P
 def _augmented_task(task: tuple) -> dict[str, Any]:
     law, x, y, train_config = task
     result = train_emulator(x, y, train_config)
-    return {"law": law, "summary": result.summary(), "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()}}
+    return {
+        "law": law,
+        "summary": result.summary(),
+        "state_dict": {k: v.numpy() for k, v in result.emulator.state_dict().items()},
+    }
 
 
 def theorem2_repeats(t_s: np.ndarray, weights: np.ndarray, base: int) -> np.ndarray:
@@ -331,8 +399,9 @@ def _rows(raw_law: RawLaw) -> dict[str, np.ndarray]:
     return {k: getattr(raw_law, k) for k in ("t_s", "q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb", "law_state")}
 
 
-def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None,
-                  hmpc_executor: Any = None) -> dict[str, Any]:  # fmt: skip
+def stage_augment(
+    config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None, hmpc_executor: Any = None
+) -> dict[str, Any]:
     """The deployed emulators: residual target, on-policy data (HMPC rollouts + DAgger rounds), trust region.
 
     1. HMPC closed-loop rollouts on ``rollout_conditions`` pool conditions (0 .. ``rollout_duration_s``,
@@ -357,15 +426,27 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     _, labels = load_labels(work / "labels.h5")
     pool = make_conditions(spec, robot)[: config.pool_conditions]
     sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
-    train_config = replace(config.train, hidden=config.deploy_hidden, max_epochs=config.augment_epochs, seed=config.seeds[0],
-                           center_targets=False)  # fmt: skip
+    train_config = replace(
+        config.train,
+        hidden=config.deploy_hidden,
+        max_epochs=config.augment_epochs,
+        seed=config.seeds[0],
+        center_targets=False,
+    )
     steps = 2 + 2 * config.dagger_rounds
     advance = _progress(progress, "augment: HMPC rollouts, DAgger rounds, training", steps)
     wall: dict[str, float] = {}
     started = time.perf_counter()
-    key = {"robot": spec.robot, "laws": list(config.laws), "gain_set": spec.gain_set, "seed": spec.seed,
-           "conditions": config.rollout_conditions, "duration_s": config.rollout_duration_s, "stride": config.rollout_stride,
-           "initial_state": config.rollout_initial_state}  # fmt: skip
+    key = {
+        "robot": spec.robot,
+        "laws": list(config.laws),
+        "gain_set": spec.gain_set,
+        "seed": spec.seed,
+        "conditions": config.rollout_conditions,
+        "duration_s": config.rollout_duration_s,
+        "stride": config.rollout_stride,
+        "initial_state": config.rollout_initial_state,
+    }
     cache = work / "expert_rollouts.pkl"
     rollouts = None
     if cache.is_file():
@@ -374,10 +455,20 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
         if isinstance(cached, dict) and cached.get("key") == key:
             rollouts, wall["rollouts_cached_s"] = cached["data"], cached["wall_s"]
     if rollouts is None:
-        conditions = [replace(c, duration_s=config.rollout_duration_s, initial_state=config.rollout_initial_state)
-                      for c in pool[: config.rollout_conditions]]  # fmt: skip
-        rollouts = hmpc_rollouts(spec.robot, config.laws, spec.gain_set, conditions, sim, stride=config.rollout_stride,
-                                 chunks=max(2, config.workers or os.cpu_count() or 1), executor=executor)  # fmt: skip
+        conditions = [
+            replace(c, duration_s=config.rollout_duration_s, initial_state=config.rollout_initial_state)
+            for c in pool[: config.rollout_conditions]
+        ]
+        rollouts = hmpc_rollouts(
+            spec.robot,
+            config.laws,
+            spec.gain_set,
+            conditions,
+            sim,
+            stride=config.rollout_stride,
+            chunks=max(2, config.workers or os.cpu_count() or 1),
+            executor=executor,
+        )
         wall["rollouts_s"] = round(time.perf_counter() - started, 1)
         with open(cache, "wb") as handle:
             pickle.dump({"key": key, "data": rollouts, "wall_s": wall["rollouts_s"]}, handle)
@@ -406,7 +497,9 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
             data[law][1].append(y0)
 
     def train(parts: dict[str, tuple[list, list]]) -> dict[str, Any]:
-        tasks = [(law, np.concatenate(parts[law][0]), np.concatenate(parts[law][1]), train_config) for law in config.laws]
+        tasks = [
+            (law, np.concatenate(parts[law][0]), np.concatenate(parts[law][1]), train_config) for law in config.laws
+        ]
         results = {r["law"]: r for r in executor.map(_augmented_task, tasks)}
         for law, r in results.items():
             y, g = np.concatenate(parts[law][1]), np.concatenate(guards[law])
@@ -428,8 +521,10 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     for round_ in range(config.dagger_rounds):
         out = work / f"bundles_dagger{round_}"
         export(results, out)
-        conditions = [replace(c, duration_s=config.dagger_duration_s, initial_state=config.rollout_initial_state)
-                      for c in pool[config.rollout_conditions : config.rollout_conditions + config.dagger_conditions]]  # fmt: skip
+        conditions = [
+            replace(c, duration_s=config.dagger_duration_s, initial_state=config.rollout_initial_state)
+            for c in pool[config.rollout_conditions : config.rollout_conditions + config.dagger_conditions]
+        ]
         visited = lmpc_visited_states(out, robot, config.laws, conditions, sim, spec.stride, spec.gain_set)
         advance(1)
         counts = {}
@@ -449,8 +544,10 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     selection = {}
     first = config.rollout_conditions + config.dagger_conditions
     if config.trust_candidates and first < len(pool):
-        conditions = [replace(c, duration_s=config.selection_duration_s, initial_state=config.rollout_initial_state)
-                      for c in pool[first : first + config.selection_conditions]]  # fmt: skip
+        conditions = [
+            replace(c, duration_s=config.selection_duration_s, initial_state=config.rollout_initial_state)
+            for c in pool[first : first + config.selection_conditions]
+        ]
         selection = select_margins(config, robot, results, conditions, sim, work / "bundles_select")
         for law, r in results.items():
             kind, r["box_margin"] = selection[law]["chosen"]
@@ -460,16 +557,24 @@ def stage_augment(config: PipelineConfig, work: Path, executor: Executor, progre
     wall["total_s"] = round(time.perf_counter() - started, 1)
     with open(work / "augmented.pkl", "wb") as handle:
         pickle.dump(results, handle)
-    return {"rollout_conditions": config.rollout_conditions, "rollout_duration_s": config.rollout_duration_s,
-            "rollout_states_per_law": {k: int(len(v["t_s"])) for k, v in rollouts.items()},
-            "rollout_states_kept": kept, "feature_set": fs,
-            "dagger": dagger_counts, "wall_s": wall, "margin_selection": selection, "samples": {law: r["samples"] for law, r in results.items()},
-            "val_mse": {law: r["summary"]["best_val_mse_normalized"] for law, r in results.items()},
-            "residual_bound_nm": {law: r["residual_bound_nm"].tolist() for law, r in results.items()}}  # fmt: skip
+    return {
+        "rollout_conditions": config.rollout_conditions,
+        "rollout_duration_s": config.rollout_duration_s,
+        "rollout_states_per_law": {k: int(len(v["t_s"])) for k, v in rollouts.items()},
+        "rollout_states_kept": kept,
+        "feature_set": fs,
+        "dagger": dagger_counts,
+        "wall_s": wall,
+        "margin_selection": selection,
+        "samples": {law: r["samples"] for law, r in results.items()},
+        "val_mse": {law: r["summary"]["best_val_mse_normalized"] for law, r in results.items()},
+        "residual_bound_nm": {law: r["residual_bound_nm"].tolist() for law, r in results.items()},
+    }
 
 
-def select_margins(config: PipelineConfig, robot: Any, results: dict[str, Any], conditions: list, sim: Any,
-                   out: Path) -> dict[str, Any]:  # fmt: skip
+def select_margins(
+    config: PipelineConfig, robot: Any, results: dict[str, Any], conditions: list, sim: Any, out: Path
+) -> dict[str, Any]:
     """Per law, the trust region (box kind, margin) with the lowest closed-loop tracking RMSE on
     ``conditions`` (pool conditions: never the paper's) among the candidates whose runs all stay
     finite and inside the limits; the first candidate (mostly the feedback law) when none does."""
@@ -483,25 +588,42 @@ def select_margins(config: PipelineConfig, robot: Any, results: dict[str, Any], 
             path = out / f"m{i}" / robot.name / law
             candidate = {**r, "box": r["box_labeled"] if kind == "labeled" else r["box"]}
             candidate.pop("box_margin", None)
-            _export_deployed(replace(config, box_margin=margin), robot, law, candidate, path, {"stage": "trust selection"}, {})
-            controller = make_lmpc_controller(make_law(law, robot, spec.dt_s, spec.gain_set), robot, bundle_dir=path.parent.parent)
+            _export_deployed(
+                replace(config, box_margin=margin), robot, law, candidate, path, {"stage": "trust selection"}, {}
+            )
+            controller = make_lmpc_controller(
+                make_law(law, robot, spec.dt_s, spec.gain_set), robot, bundle_dir=path.parent.parent
+            )
             with np.errstate(all="ignore"):
                 traj = simulate(robot, controller, conditions, sim)
             ok = bool(np.all(traj.finite) and np.all(traj.within_limits))
             err = traj.q - traj.q_ref
             rmse = float(np.sqrt(np.mean(err**2))) if ok else float("inf")
             counts = controller.trust_counters()
-            table[law]["candidates"][f"{kind}:{margin}"] = {"box": kind, "margin": margin, "rmse_rad": rmse, "inside_limits": ok,
-                                                     "fallback_share": float(np.mean(counts["fallback_cycles"])) / max(1, counts["cycles"])}  # fmt: skip
-    for law, row in table.items():
+            table[law]["candidates"][f"{kind}:{margin}"] = {
+                "box": kind,
+                "margin": margin,
+                "rmse_rad": rmse,
+                "inside_limits": ok,
+                "fallback_share": float(np.mean(counts["fallback_cycles"])) / max(1, counts["cycles"]),
+            }
+    for row in table.values():
         scores = [(c["rmse_rad"], i, (c["box"], c["margin"])) for i, c in enumerate(row["candidates"].values())]
         best = min(scores)
         row["chosen"] = best[2] if np.isfinite(best[0]) else tuple(config.trust_candidates[0])
     return table
 
 
-def _export_deployed(config: PipelineConfig, robot: Any, law_name: str, result: dict[str, Any], out: Path,
-                     training: dict[str, Any], validation: dict[str, Any], parity_inputs: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
+def _export_deployed(
+    config: PipelineConfig,
+    robot: Any,
+    law_name: str,
+    result: dict[str, Any],
+    out: Path,
+    training: dict[str, Any],
+    validation: dict[str, Any],
+    parity_inputs: np.ndarray | None = None,
+) -> dict[str, Any]:
     import torch
 
     from models.lmpc.bundle_export import export_bundle
@@ -513,19 +635,42 @@ def _export_deployed(config: PipelineConfig, robot: Any, law_name: str, result: 
     width = len(FEATURE_SETS[config.feature_set]) * robot.n_joints
     emulator = Emulator(width, robot.n_joints, config.deploy_hidden)
     emulator.load_state_dict({k: torch.as_tensor(v) for k, v in result["state_dict"].items()})
-    training = {"gain_set": spec.gain_set, **training, "trust": {"residual_percentile": config.residual_percentile,
-                "box": result.get("box_kind", "on_policy"), "box_margin": config.box_margin,
-                "box_note": "on_policy: min/max of the guard features over the on-policy training states; labeled: "
-                            "those and the HMPC-labeled D_sample states; chosen per law (augment stage, docs/lmpc.md)"}}  # fmt: skip
-    return export_bundle(out, make_law(law_name, robot, spec.dt_s, spec.gain_set), robot, emulator, training, validation,
-                         trust_region=result["box"], parity_inputs=parity_inputs, residual=True,
-                         residual_bound_nm=result["residual_bound_nm"], box_margin=config.box_margin,
-                         feature_set=config.feature_set)  # fmt: skip
+    training = {
+        "gain_set": spec.gain_set,
+        **training,
+        "trust": {
+            "residual_percentile": config.residual_percentile,
+            "box": result.get("box_kind", "on_policy"),
+            "box_margin": config.box_margin,
+            "box_note": "on_policy: min/max of the guard features over the on-policy training states; labeled: "
+            "those and the HMPC-labeled D_sample states; chosen per law (augment stage, docs/lmpc.md)",
+        },
+    }
+    return export_bundle(
+        out,
+        make_law(law_name, robot, spec.dt_s, spec.gain_set),
+        robot,
+        emulator,
+        training,
+        validation,
+        trust_region=result["box"],
+        parity_inputs=parity_inputs,
+        residual=True,
+        residual_bound_nm=result["residual_bound_nm"],
+        box_margin=config.box_margin,
+        feature_set=config.feature_set,
+    )
 
 
 # --- stage 4 ----------------------------------------------------------------------------------
-def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bundles: Path,
-                 strategy: str = "optimal", seed: int | None = None) -> dict[str, Any]:  # fmt: skip
+def stage_export(
+    config: PipelineConfig,
+    work: Path,
+    trained: dict[str, Any],
+    bundles: Path,
+    strategy: str = "optimal",
+    seed: int | None = None,
+) -> dict[str, Any]:
     import torch
 
     from models.lmpc.bundle_export import export_bundle
@@ -543,41 +688,90 @@ def stage_export(config: PipelineConfig, work: Path, trained: dict[str, Any], bu
             augmented = pickle.load(handle)
     out = {}
     for law_name in config.laws:
-        run = next(r for r in trained["runs"] if r["law"] == law_name and r["strategy"] == strategy and r["seed"] == seed)
+        run = next(
+            r for r in trained["runs"] if r["law"] == law_name and r["strategy"] == strategy and r["seed"] == seed
+        )
         if augmented is not None:
-            run = {**run, "state_dict": augmented[law_name]["state_dict"], "augmented_summary": augmented[law_name]["summary"]}
+            run = {
+                **run,
+                "state_dict": augmented[law_name]["state_dict"],
+                "augmented_summary": augmented[law_name]["summary"],
+            }
         law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
         rows, lab = raw.laws[law_name], labels[law_name]
         x_train = rows.features(GUARD_FEATURES)[lab.sets[strategy]]  # the trust box is over the guard features
         parity = rows.take(lab.sets["test"][:256])
         parity_x = np.concatenate([parity.q, parity.qd, parity.q_d, parity.qd_d, parity.qdd_d, parity.law_state], 1)
-        training = {"dataset": {"file": "raw.h5", "spec": raw.manifest["spec"], "git_commit": raw.manifest["git_commit"],
-                                "created": raw.manifest["created"]},
-                    "labels": {"labeler": labels_manifest["labeler"], "hmpc_options": labels_manifest["hmpc_options"],
-                               "status_counts": np.bincount(lab.status, minlength=4).tolist()},
-                    "sampling": {"strategy": strategy, "samples": int(lab.sets[strategy].size), "theorem2": lab.theorem2},
-                    "emulator": run.get("augmented_summary", run["summary"]),
-                    "augmentation": None if augmented is None else {"hmpc_rollout_conditions": config.rollout_conditions,
-                                    "rollout_duration_s": config.rollout_duration_s, "dagger_rounds": config.dagger_rounds,
-                                    "dagger_conditions": config.dagger_conditions, "repeat": config.augment_repeat,
-                                    "samples": augmented[law_name].get("samples"), "feature_set": config.feature_set,
-                                    "note": "D_sample (Theorem 2) + HMPC closed-loop states + DAgger rounds, residual target "
-                                            "tau* - tau_fb, Theorem 2 region weights on the on-policy samples; docs/lmpc.md"},
-                    "seed": seed, "gain_set": config.dataset.gain_set, "git_commit": git_commit()}  # fmt: skip
-        validation = {"val_mse_normalized": run["summary"]["best_val_mse_normalized"], "val_rmse_nm": run["summary"]["val_rmse_nm"],
-                      "test_mse_normalized": run["test_mse"], "test_set": "uniform over held-out conditions"}  # fmt: skip
+        training = {
+            "dataset": {
+                "file": "raw.h5",
+                "spec": raw.manifest["spec"],
+                "git_commit": raw.manifest["git_commit"],
+                "created": raw.manifest["created"],
+            },
+            "labels": {
+                "labeler": labels_manifest["labeler"],
+                "hmpc_options": labels_manifest["hmpc_options"],
+                "status_counts": np.bincount(lab.status, minlength=4).tolist(),
+            },
+            "sampling": {"strategy": strategy, "samples": int(lab.sets[strategy].size), "theorem2": lab.theorem2},
+            "emulator": run.get("augmented_summary", run["summary"]),
+            "augmentation": None
+            if augmented is None
+            else {
+                "hmpc_rollout_conditions": config.rollout_conditions,
+                "rollout_duration_s": config.rollout_duration_s,
+                "dagger_rounds": config.dagger_rounds,
+                "dagger_conditions": config.dagger_conditions,
+                "repeat": config.augment_repeat,
+                "samples": augmented[law_name].get("samples"),
+                "feature_set": config.feature_set,
+                "note": "D_sample (Theorem 2) + HMPC closed-loop states + DAgger rounds, residual target "
+                "tau* - tau_fb, Theorem 2 region weights on the on-policy samples; docs/lmpc.md",
+            },
+            "seed": seed,
+            "gain_set": config.dataset.gain_set,
+            "git_commit": git_commit(),
+        }
+        validation = {
+            "val_mse_normalized": run["summary"]["best_val_mse_normalized"],
+            "val_rmse_nm": run["summary"]["val_rmse_nm"],
+            "test_mse_normalized": run["test_mse"],
+            "test_set": "uniform over held-out conditions",
+        }
         if augmented is not None:
-            validation["note"] = ("val/test MSE above: the paper-recipe emulator of the train stage; the deployed one's "
-                                  "validation is training.emulator (residual target, normalized by its RMS)")
-            manifest = _export_deployed(config, robot, law_name, augmented[law_name], bundles / robot.name / law_name,
-                                        {k: v for k, v in training.items() if k != "gain_set"}, validation, parity_x)  # fmt: skip
+            validation["note"] = (
+                "val/test MSE above: the paper-recipe emulator of the train stage; the deployed one's "
+                "validation is training.emulator (residual target, normalized by its RMS)"
+            )
+            manifest = _export_deployed(
+                config,
+                robot,
+                law_name,
+                augmented[law_name],
+                bundles / robot.name / law_name,
+                {k: v for k, v in training.items() if k != "gain_set"},
+                validation,
+                parity_x,
+            )
         else:
             emulator = Emulator(5 * robot.n_joints, robot.n_joints, config.train.hidden)
             emulator.load_state_dict({k: torch.as_tensor(v) for k, v in run["state_dict"].items()})
-            manifest = export_bundle(bundles / robot.name / law_name, law, robot, emulator, training, validation,
-                                     trust_region=(x_train.min(0), x_train.max(0)), parity_inputs=parity_x,
-                                     box_margin=config.box_margin)  # fmt: skip
-        out[law_name] = {"path": str(bundles / robot.name / law_name), "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"]}
+            manifest = export_bundle(
+                bundles / robot.name / law_name,
+                law,
+                robot,
+                emulator,
+                training,
+                validation,
+                trust_region=(x_train.min(0), x_train.max(0)),
+                parity_inputs=parity_x,
+                box_margin=config.box_margin,
+            )
+        out[law_name] = {
+            "path": str(bundles / robot.name / law_name),
+            "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"],
+        }
     return out
 
 
@@ -585,9 +779,16 @@ def _config_json(config: PipelineConfig) -> dict[str, Any]:
     return json.loads(json.dumps(asdict(config), default=str))
 
 
-def run_pipeline(config: PipelineConfig, work: Path, bundles: Path, stages: tuple[str, ...] = ("dataset", "label", "train", "augment", "export"),
-                 executor: Executor | None = None, labeler: Labeler | None = None, progress: Progress | None = None,
-                 force_dataset: bool = False) -> dict[str, Any]:  # fmt: skip
+def run_pipeline(
+    config: PipelineConfig,
+    work: Path,
+    bundles: Path,
+    stages: tuple[str, ...] = ("dataset", "label", "train", "augment", "export"),
+    executor: Executor | None = None,
+    labeler: Labeler | None = None,
+    progress: Progress | None = None,
+    force_dataset: bool = False,
+) -> dict[str, Any]:
     """Run the stages; write <work>/pipeline.json (timings, Theorem 2 weights, training figures)."""
     from models.lmpc.executor import make_executor
 
@@ -622,7 +823,10 @@ def run_pipeline(config: PipelineConfig, work: Path, bundles: Path, stages: tupl
         summary["theorem2"] = trained["labels_theorem2"]
         summary["label_status"] = trained["label_status"]
         plot_sampling_curves(trained, config.laws, work / "sampling_curves.png")
-        curves = [{k: r[k] for k in ("law", "strategy", "seed", "summary", "train_mse", "val_mse", "test_mse")} for r in trained["runs"]]
+        curves = [
+            {k: r[k] for k in ("law", "strategy", "seed", "summary", "train_mse", "val_mse", "test_mse")}
+            for r in trained["runs"]
+        ]
         (work / "training.json").write_text(json.dumps(curves))
         import pickle
 

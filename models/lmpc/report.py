@@ -16,8 +16,14 @@ from typing import Any
 
 import numpy as np
 
-METRIC_TITLES = {"rmse": "RMSE (°)", "mae": "MAE (°)", "p95": "P95 (°)", "peak": "Peak (°)", "settle_s": "settling (s)",
-                 "dedt_rms": "dE/dt RMS (°/s)"}  # fmt: skip
+METRIC_TITLES = {
+    "rmse": "RMSE (°)",
+    "mae": "MAE (°)",
+    "p95": "P95 (°)",
+    "peak": "Peak (°)",
+    "settle_s": "settling (s)",
+    "dedt_rms": "dE/dt RMS (°/s)",
+}
 LAW_TITLES = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
 
 
@@ -25,8 +31,10 @@ def breakdown(results: dict[str, Any], modes: tuple[str, ...] | None = None) -> 
     """Markdown table: per law and mode, mean raw metrics over the conditions, score, eta, runs out of limits."""
     modes = modes or tuple(results["config"]["modes"])
     metrics = list(METRIC_TITLES)
-    lines = ["| law | mode | " + " | ".join(METRIC_TITLES[m] for m in metrics) + " | score | η (%) | runs out of limits |",
-             "|" + "---|" * (len(metrics) + 5)]  # fmt: skip
+    lines = [
+        "| law | mode | " + " | ".join(METRIC_TITLES[m] for m in metrics) + " | score | η (%) | runs out of limits |",
+        "|" + "---|" * (len(metrics) + 5),
+    ]
     for law, row in results["table"].items():
         for mode in modes:
             runs = [r for r in results["runs"] if r["law"] == law and r["mode"] == mode]
@@ -37,8 +45,11 @@ def breakdown(results: dict[str, Any], modes: tuple[str, ...] | None = None) -> 
             eta = row[mode].get("eta")
             eta_text = "" if eta is None or row[mode].get("failed_conditions") else f"{100 * eta:.1f}"
             cells = [f"{means[m]:.3f}" for m in metrics]
-            lines.append(f"| {LAW_TITLES.get(law, law)} | {mode} | " + " | ".join(cells)
-                         + f" | {row[mode]['score']:.3f} | {eta_text} | {out}/{len(runs)} |")  # fmt: skip
+            lines.append(
+                f"| {LAW_TITLES.get(law, law)} | {mode} | "
+                + " | ".join(cells)
+                + f" | {row[mode]['score']:.3f} | {eta_text} | {out}/{len(runs)} |"
+            )
     return "\n".join(lines)
 
 
@@ -62,8 +73,10 @@ def main() -> None:
     print(breakdown(results, modes))
     kept = gain_kept(results)
     if any(v is not None for v in kept.values()):
-        print("\nshare of the HMPC's gain kept (eta_L / eta_H): "
-              + ", ".join(f"{LAW_TITLES.get(k, k)} {v:.2f}" for k, v in kept.items() if v is not None))  # fmt: skip
+        print(
+            "\nshare of the HMPC's gain kept (eta_L / eta_H): "
+            + ", ".join(f"{LAW_TITLES.get(k, k)} {v:.2f}" for k, v in kept.items() if v is not None)
+        )
 
 
 if __name__ == "__main__":

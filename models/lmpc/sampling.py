@@ -88,8 +88,14 @@ def time_proportions(t_s: np.ndarray, regions: tuple[Region, ...] = PAPER_REGION
     return counts / counts.sum()
 
 
-def estimate_lipschitz_delta(t_s: np.ndarray, run: np.ndarray, features: np.ndarray, target: np.ndarray,
-                             regions: tuple[Region, ...] = PAPER_REGIONS, quantile: float = 0.5) -> np.ndarray:  # fmt: skip
+def estimate_lipschitz_delta(
+    t_s: np.ndarray,
+    run: np.ndarray,
+    features: np.ndarray,
+    target: np.ndarray,
+    regions: tuple[Region, ...] = PAPER_REGIONS,
+    quantile: float = 0.5,
+) -> np.ndarray:
     """L Delta_i from the data, in the units of the normalized target (the tolerance's units).
 
     Along each logged run, consecutive samples give |d target| / |d features| (normalized units):
@@ -115,8 +121,13 @@ def estimate_lipschitz_delta(t_s: np.ndarray, run: np.ndarray, features: np.ndar
     return lipschitz * spacing
 
 
-def optimal_sample(t_s: np.ndarray, budget: int, weights: np.ndarray, rng: np.random.Generator,
-                   regions: tuple[Region, ...] = PAPER_REGIONS) -> np.ndarray:  # fmt: skip
+def optimal_sample(
+    t_s: np.ndarray,
+    budget: int,
+    weights: np.ndarray,
+    rng: np.random.Generator,
+    regions: tuple[Region, ...] = PAPER_REGIONS,
+) -> np.ndarray:
     """Indices of ``budget`` samples: round(w_i budget) from region i, uniformly inside it."""
     index = region_index(t_s, regions)
     counts = _allocate(budget, np.asarray(weights, float))
@@ -124,8 +135,10 @@ def optimal_sample(t_s: np.ndarray, budget: int, weights: np.ndarray, rng: np.ra
     for i, count in enumerate(counts):
         members = np.flatnonzero(index == i)
         if count > members.size:
-            raise ModelInputError(f"sampling: region '{regions[i].name}' has {members.size} samples, "
-                                  f"{count} asked (budget {budget}, w={weights[i]:.4f})")  # fmt: skip
+            raise ModelInputError(
+                f"sampling: region '{regions[i].name}' has {members.size} samples, "
+                f"{count} asked (budget {budget}, w={weights[i]:.4f})"
+            )
         chosen.append(rng.choice(members, size=count, replace=False))
     return np.sort(np.concatenate(chosen))
 

@@ -11,9 +11,9 @@ not generalize. Here the physics is computed, not learned:
     c in [-1.05, c_max = 0], g in [0, 1.2] per joint; Kp, Kd (N x N): learned
     tau_L  = tau_fb + r = (1 + c) tau_fb + g tau_id + residual, then the trust region and saturation
 
-i.e. the law (kept, reduced or removed) plus a share of the model's computed torque. The bounds keep a fit on thin data (the expert's closed loop
-has e ~ 0, tau_fb ~ 0) from producing negative damping or terms that cancel each other (an
-unconstrained fit did both on the wrists: c = 8.7, g = -9.7, kd = -378).
+i.e. the law (kept, reduced or removed) plus a share of the model's computed torque. The bounds
+keep a fit on thin data (the expert's closed loop has e ~ 0, tau_fb ~ 0) from producing negative
+damping or terms that cancel each other (an unconstrained fit did both on the wrists: c = 8.7, g = -9.7, kd = -378).
 
 so the learned part is 4N numbers plus a small residual whose size is bounded by construction. With
 g -> 0, w -> 1 and the MLP at zero the emulator is the feedback law itself (the control row). The RNE is
@@ -119,15 +119,24 @@ class StructuredConfig:
         if self.target not in TARGETS:
             raise ModelInputError(f"structured lmpc target: unknown {self.target!r} (known: {', '.join(TARGETS)})")
         if self.ff_point not in FF_POINTS:
-            raise ModelInputError(f"structured lmpc ff_point: unknown {self.ff_point!r} (known: {', '.join(FF_POINTS)})")
+            raise ModelInputError(
+                f"structured lmpc ff_point: unknown {self.ff_point!r} (known: {', '.join(FF_POINTS)})"
+            )
         if self.train_conditions < 1 or self.stride < 1:
             raise ModelInputError("structured lmpc: train_conditions and stride must be >= 1")
 
 
 # --- data ------------------------------------------------------------------------------------
-def _logged_rollouts(robot: RobotModel, controllers: list[Any], conditions: list[Any], sim: SimConfig, stride: int,
-                     excite: tuple[np.ndarray, np.ndarray] | None = None, hold: int = 1,
-                     seed: int = 0) -> list[dict[str, np.ndarray]]:  # fmt: skip
+def _logged_rollouts(
+    robot: RobotModel,
+    controllers: list[Any],
+    conditions: list[Any],
+    sim: SimConfig,
+    stride: int,
+    excite: tuple[np.ndarray, np.ndarray] | None = None,
+    hold: int = 1,
+    seed: int = 0,
+) -> list[dict[str, np.ndarray]]:
     """Run controllers side by side on ``conditions``; per controller the logged states and torques."""
     from models.lmpc.expert_rollouts import StateLogger
 
@@ -136,19 +145,26 @@ def _logged_rollouts(robot: RobotModel, controllers: list[Any], conditions: list
     for c in controllers:
         law = c.law
         state_of = (lambda ctl: ctl._law_state) if hasattr(c, "_law_state") else (lambda ctl: ctl.state)
-        loggers.append(StateLogger(c, len(conditions), steps, stride, law.n_joints, law.state_size, law_state=state_of,
-                                   log_applied=True))  # fmt: skip
+        loggers.append(
+            StateLogger(
+                c, len(conditions), steps, stride, law.n_joints, law.state_size, law_state=state_of, log_applied=True
+            )
+        )
     runners: list[Any] = loggers
     if excite is not None:
         runners = [_Excited(lg, excite[0], hold, excite[1], seed + 1000 * k) for k, lg in enumerate(loggers)]
-    traj = simulate(robot, ControllerStack(runners, [len(conditions)] * len(runners)), [x for _ in loggers for x in conditions], sim)
+    traj = simulate(
+        robot, ControllerStack(runners, [len(conditions)] * len(runners)), [x for _ in loggers for x in conditions], sim
+    )
     out = []
     for k, logger in enumerate(loggers):
         rows = logger.log["t_s"].size
         part = slice(k * len(conditions), (k + 1) * len(conditions))
         ok = np.repeat(traj.finite[part] & traj.within_limits[part], rows)
-        data = {"t_s": np.tile(logger.log["t_s"], len(conditions)),
-                **{key: v.reshape(len(conditions) * rows, -1) for key, v in logger.log.items() if key != "t_s"}}  # fmt: skip
+        data = {
+            "t_s": np.tile(logger.log["t_s"], len(conditions)),
+            **{key: v.reshape(len(conditions) * rows, -1) for key, v in logger.log.items() if key != "t_s"},
+        }
         out.append({key: v[ok] for key, v in data.items()})
     return out
 
@@ -176,8 +192,12 @@ class _Excited:
         return tau + self.noise
 
 
-def collect(config: StructuredConfig, conditions: list[Any], law_names: tuple[str, ...] | None = None,
-            policy_dir: Path | None = None) -> dict[str, dict[str, np.ndarray]]:  # fmt: skip
+def collect(
+    config: StructuredConfig,
+    conditions: list[Any],
+    law_names: tuple[str, ...] | None = None,
+    policy_dir: Path | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
     """Per law: logged states with the label ``tau_star``.
 
     Expert (policy_dir None): the HMPC's own closed loop, label = the torque it applied (target
@@ -207,7 +227,9 @@ def collect(config: StructuredConfig, conditions: list[Any], law_names: tuple[st
         inertia0 = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n))).reshape(n, n))
         rows_on = (np.arange(len(conditions)) < round(config.noise_fraction * len(conditions))).astype(float)
         excite = (config.accel_noise_rad_s2 * inertia0, rows_on)
-    logs = _logged_rollouts(robot, controllers, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed)
+    logs = _logged_rollouts(
+        robot, controllers, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed
+    )
     data = {}
     for name, law, log in zip(laws, made, logs, strict=True):
         if policy_dir is not None and config.target == "hmpc":
@@ -215,18 +237,27 @@ def collect(config: StructuredConfig, conditions: list[Any], law_names: tuple[st
         elif config.target == "law":
             log["tau_star"] = log["tau_fb"].copy()
         if policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc":
-            extra = perturbed(log, config.perturbed_copies, config.perturb_error_rad, config.perturb_rate_rad_s,
-                              config.seed + 17)  # fmt: skip
+            extra = perturbed(
+                log, config.perturbed_copies, config.perturb_error_rad, config.perturb_rate_rad_s, config.seed + 17
+            )
             with np.errstate(all="ignore"):
-                extra["tau_fb"] = np.asarray(law.step(np, extra["law_state"], extra["q"], extra["qd"], extra["q_d"],
-                                                      extra["qd_d"], extra["qdd_d"])[0], float)  # fmt: skip
-            extra["tau_star"] = extra["tau_fb"].copy() if config.target == "law" else relabel(law, robot, extra, config.hmpc_options)
+                extra["tau_fb"] = np.asarray(
+                    law.step(
+                        np, extra["law_state"], extra["q"], extra["qd"], extra["q_d"], extra["qd_d"], extra["qdd_d"]
+                    )[0],
+                    float,
+                )
+            extra["tau_star"] = (
+                extra["tau_fb"].copy() if config.target == "law" else relabel(law, robot, extra, config.hmpc_options)
+            )
             log = {k: np.concatenate([log[k], extra[k]]) for k in log}
         data[name] = log
     return data
 
 
-def perturbed(log: dict[str, np.ndarray], copies: int, sigma_e: float, sigma_rate: float, seed: int) -> dict[str, np.ndarray]:
+def perturbed(
+    log: dict[str, np.ndarray], copies: int, sigma_e: float, sigma_rate: float, seed: int
+) -> dict[str, np.ndarray]:
     """``copies`` perturbed copies of logged rows (module StructuredConfig.perturbed_copies); labels not set."""
     rng = np.random.default_rng(seed)
     rows = {k: np.concatenate([v] * copies) for k, v in log.items() if k != "tau_star"}
@@ -245,8 +276,14 @@ def relabel(law: Any, robot: RobotModel, log: dict[str, np.ndarray], hmpc_option
     out = np.empty_like(log["q"])
     for a in range(0, len(out), 1024):
         part = slice(a, a + 1024)
-        res = solver.solve(log["q"][part], log["qd"][part], log["q_d"][part], log["qd_d"][part], log["qdd_d"][part],
-                           log["law_state"][part])  # fmt: skip
+        res = solver.solve(
+            log["q"][part],
+            log["qd"][part],
+            log["q_d"][part],
+            log["qd_d"][part],
+            log["qdd_d"][part],
+            log["law_state"][part],
+        )
         out[part] = res.tau_nm
     return out
 
@@ -264,8 +301,14 @@ class StructuredEmulator(nn.Module):
     bundle exporter reads).
     """
 
-    def __init__(self, robot: RobotModel, hidden: tuple[int, ...], bound_nm: np.ndarray, ff_point: str = "measured",
-                 c_max: float = 0.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        robot: RobotModel,
+        hidden: tuple[int, ...],
+        bound_nm: np.ndarray,
+        ff_point: str = "measured",
+        c_max: float = 0.0,
+    ) -> None:
         super().__init__()
         self.c_max = float(c_max)
         from models.dynamics.torch_rne import SpatialRne
@@ -327,8 +370,9 @@ class StructuredEmulator(nn.Module):
             tau_id = self.rne.inverse_dynamics(q + e, qd + e_dot, accel)
         return c * tau_fb + g * tau_id
 
-    def feedforward_point(self, q: torch.Tensor, e: torch.Tensor, qd: torch.Tensor, e_dot: torch.Tensor,
-                          qdd_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    def feedforward_point(
+        self, q: torch.Tensor, e: torch.Tensor, qd: torch.Tensor, e_dot: torch.Tensor, qdd_d: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(position, velocity, acceleration) the feed-forward's ID is evaluated at."""
         _, _, kp, kd = self.coefficients()
         gains = torch.cat([kp.T, kd.T], 0)  # (2N, N): one MatMul for Kp e + Kd e_dot (constant-folded)
@@ -337,8 +381,17 @@ class StructuredEmulator(nn.Module):
             return q, qd, accel
         return q + e, qd + e_dot, accel
 
-    def from_parts(self, q: torch.Tensor, e: torch.Tensor, qd: torch.Tensor, e_dot: torch.Tensor, qdd_d: torch.Tensor,
-                   tau_fb: torch.Tensor, s: torch.Tensor, tau_id: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+    def from_parts(
+        self,
+        q: torch.Tensor,
+        e: torch.Tensor,
+        qd: torch.Tensor,
+        e_dot: torch.Tensor,
+        qdd_d: torch.Tensor,
+        tau_fb: torch.Tensor,
+        s: torch.Tensor,
+        tau_id: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """forward() from the named parts (s their concatenation): fewer graph nodes than slicing s again.
         ``tau_id``: the feed-forward's ID when already computed (batched with the law's own RNE)."""
         c, g, _, _ = self.coefficients()
@@ -379,9 +432,13 @@ def _structured_policy_class() -> type:
             guard = torch.cat([q, e, qd, e_dot, qdd_d, tau_fb], 1)  # GUARD_FEATURES order = the emulator's s
             r = self.emulator.from_parts(q, e, qd, e_dot, qdd_d, tau_fb, guard, tau_id)
             # the trust region, as FusedPolicy.forward (hil_runtime.bundle.trust_filter is the reference)
-            excess = torch.clamp(torch.maximum(self.box_low - guard, guard - self.box_high), min=0.0) * self.box_inv_span
+            excess = (
+                torch.clamp(torch.maximum(self.box_low - guard, guard - self.box_high), min=0.0) * self.box_inv_span
+            )
             alpha = torch.clamp(1.0 - torch.amax(excess, 1, keepdim=True) * self.inv_margin, 0.0, 1.0)
-            clamped = torch.sum((torch.abs(r) > self.bound).to(torch.float64), 1, keepdim=True) * (alpha > 0).to(torch.float64)
+            clamped = torch.sum((torch.abs(r) > self.bound).to(torch.float64), 1, keepdim=True) * (alpha > 0).to(
+                torch.float64
+            )
             r = torch.minimum(torch.maximum(r, -self.bound), self.bound)
             tau = torch.minimum(torch.maximum(tau_fb + alpha * r, -self.limit), self.limit)
             if self.applied is not None:
@@ -402,19 +459,28 @@ def _physics_terms(robot: RobotModel, s: np.ndarray, ff_point: str) -> tuple[np.
     if ff_point == "reference":
         q, qd = q + e, qd + e_dot
     dyn = make_dynamics(robot, "pinocchio")
-    mass = np.concatenate([np.asarray(dyn.mass_matrix(q[a : a + 4096])).reshape(-1, n, n) for a in range(0, len(q), 4096)])
-    bias = np.concatenate([np.asarray(dyn.nonlinear_effects(q[a : a + 4096], qd[a : a + 4096])).reshape(-1, n)
-                           for a in range(0, len(q), 4096)])  # fmt: skip
+    mass = np.concatenate(
+        [np.asarray(dyn.mass_matrix(q[a : a + 4096])).reshape(-1, n, n) for a in range(0, len(q), 4096)]
+    )
+    bias = np.concatenate(
+        [
+            np.asarray(dyn.nonlinear_effects(q[a : a + 4096], qd[a : a + 4096])).reshape(-1, n)
+            for a in range(0, len(q), 4096)
+        ]
+    )
     return mass, bias
 
 
 def features(log: dict[str, np.ndarray]) -> np.ndarray:
     """s = (q, e, qd, e_dot, qdd_d, tau_fb) of logged rows."""
-    return np.concatenate([log["q"], log["q_d"] - log["q"], log["qd"], log["qd_d"] - log["qd"], log["qdd_d"], log["tau_fb"]], 1)
+    return np.concatenate(
+        [log["q"], log["q_d"] - log["q"], log["qd"], log["qd_d"] - log["qd"], log["qdd_d"], log["tau_fb"]], 1
+    )
 
 
-def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig,
-                     log: Callable[[str], None] = print) -> tuple[StructuredEmulator, dict[str, Any]]:  # fmt: skip
+def train_structured(
+    robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig, log: Callable[[str], None] = print
+) -> tuple[StructuredEmulator, dict[str, Any]]:
     """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb."""
     torch.manual_seed(config.seed)
     n = robot.n_joints
@@ -448,7 +514,9 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
     # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the bounds:
     # the control row's optimum c = g = 0 sits on them)
     optimizer = torch.optim.Adam(params, lr=config.physics_learning_rate)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.physics_steps, eta_min=1e-3 * config.physics_learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimizer, config.physics_steps, eta_min=1e-3 * config.physics_learning_rate
+    )
     for _ in range(config.physics_steps):
         optimizer.zero_grad()
         loss = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
@@ -457,8 +525,15 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
         schedule.step()
         model.project()
     # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior)
-    polish = torch.optim.LBFGS([model.theta_kp, model.theta_kd], lr=1.0, max_iter=200, tolerance_grad=1e-12,
-                               tolerance_change=1e-14, history_size=50, line_search_fn="strong_wolfe")  # fmt: skip
+    polish = torch.optim.LBFGS(
+        [model.theta_kp, model.theta_kd],
+        lr=1.0,
+        max_iter=200,
+        tolerance_grad=1e-12,
+        tolerance_change=1e-14,
+        history_size=50,
+        line_search_fn="strong_wolfe",
+    )
 
     def closure() -> torch.Tensor:
         polish.zero_grad()
@@ -472,8 +547,11 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
         physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)
         remainder = (yt - physics_fast()).detach()
     coef = [t.detach().numpy() for t in model.coefficients()]
-    log(f"  physics fit: relative loss {physics_loss:.4f}; c {np.round(coef[0], 3).tolist()} g {np.round(coef[1], 3).tolist()} "
-        f"diag Kp {np.round(np.diag(coef[2]), 1).tolist()} diag Kd {np.round(np.diag(coef[3]), 1).tolist()}")
+    log(
+        f"  physics fit: relative loss {physics_loss:.4f}; c {np.round(coef[0], 3).tolist()} "
+        f"g {np.round(coef[1], 3).tolist()} "
+        f"diag Kp {np.round(np.diag(coef[2]), 1).tolist()} diag Kd {np.round(np.diag(coef[3]), 1).tolist()}"
+    )
     # residual MLP on what the physics leaves, bounded by construction
     model.in_mean.copy_(st.mean(0))
     model.in_std.copy_(st.std(0).clamp_min(1e-6))
@@ -514,39 +592,78 @@ def train_structured(robot: RobotModel, s: np.ndarray, y: np.ndarray, config: St
     model.use_residual = best < (1.0 - config.residual_min_gain) * before
     log(f"  residual MLP: val relative loss {before:.4g} -> {best:.4g} ({'kept' if model.use_residual else 'dropped'})")
     summary = {
-        "physics": {"c": coef[0].tolist(), "g": coef[1].tolist(), "kp_1_s2": coef[2].tolist(), "kd_1_s": coef[3].tolist(),
-                    "relative_loss": physics_loss},
-        "residual": {"hidden": list(config.hidden), "bound_nm": bound.tolist(), "used": bool(model.use_residual),
-                     "val_relative_loss_before": before,
-                     "val_relative_loss": best, "history": residual_history},
+        "physics": {
+            "c": coef[0].tolist(),
+            "g": coef[1].tolist(),
+            "kp_1_s2": coef[2].tolist(),
+            "kd_1_s": coef[3].tolist(),
+            "relative_loss": physics_loss,
+        },
+        "residual": {
+            "hidden": list(config.hidden),
+            "bound_nm": bound.tolist(),
+            "used": bool(model.use_residual),
+            "val_relative_loss_before": before,
+            "val_relative_loss": best,
+            "history": residual_history,
+        },
         "loss": "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_fb) / M_ii(0))^2)",
-        "samples": int(len(s)), "train_s": time.perf_counter() - started,
-    }  # fmt: skip
+        "samples": int(len(s)),
+        "train_s": time.perf_counter() - started,
+    }
     return model.eval(), summary
 
 
 # --- export ------------------------------------------------------------------------------------
-def export_structured(out_dir: Path, law_name: str, robot: RobotModel, model: StructuredEmulator, s: np.ndarray,
-                      y: np.ndarray, config: StructuredConfig, summary: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+def export_structured(
+    out_dir: Path,
+    law_name: str,
+    robot: RobotModel,
+    model: StructuredEmulator,
+    s: np.ndarray,
+    y: np.ndarray,
+    config: StructuredConfig,
+    summary: dict[str, Any],
+) -> dict[str, Any]:
     """A policy bundle through models.lmpc.bundle_export (trust region: the training states' box)."""
     from models.lmpc.bundle_export import export_bundle
 
     law = make_law(law_name, robot, config.dt_s, config.gain_set)
     low, high = trust_box(s, robot, config)
     bound = config.bound_scale * np.abs(y).max(0) + 1e-3
-    training = {"design": "structured (models/lmpc/structured.py, docs/lmpc.md section 9)", "gain_set": config.gain_set,
-                "config": jsonable_config(config), "summary": summary,
-                "structure": "r = c*tau_fb + g*ID(p, qdd_d + kp*e + kd*e_dot) + b*tanh(MLP(s)/b); p = "
-                             + ("(q, qd) measured" if config.ff_point == "measured" else "(q_d, qd_d) reference"),
-                "trust": {"box": "min/max of the training states, at least the paper's range (q, qd, qdd_d) 10 % beyond, "
-                                 "e, e_dot +-error/rate envelopes, tau_fb the torque limits", "box_margin": config.box_margin,
-                          "residual_bound": f"{config.bound_scale} x max |tau* - tau_fb| over the training labels"}}  # fmt: skip
-    validation = {"physics_relative_loss": summary["physics"]["relative_loss"],
-                  "residual_val_relative_loss": summary["residual"]["val_relative_loss"]}  # fmt: skip
+    training = {
+        "design": "structured (models/lmpc/structured.py, docs/lmpc.md section 9)",
+        "gain_set": config.gain_set,
+        "config": jsonable_config(config),
+        "summary": summary,
+        "structure": "r = c*tau_fb + g*ID(p, qdd_d + kp*e + kd*e_dot) + b*tanh(MLP(s)/b); p = "
+        + ("(q, qd) measured" if config.ff_point == "measured" else "(q_d, qd_d) reference"),
+        "trust": {
+            "box": "min/max of the training states, at least the paper's range (q, qd, qdd_d) 10 % beyond, "
+            "e, e_dot +-error/rate envelopes, tau_fb the torque limits",
+            "box_margin": config.box_margin,
+            "residual_bound": f"{config.bound_scale} x max |tau* - tau_fb| over the training labels",
+        },
+    }
+    validation = {
+        "physics_relative_loss": summary["physics"]["relative_loss"],
+        "residual_val_relative_loss": summary["residual"]["val_relative_loss"],
+    }
     # onnxruntime-vs-torch parity on the exporter's seeded random rows; probes recorded by the exporter
-    return export_bundle(out_dir, law, robot, model, training, validation, trust_region=(low, high), residual=True,
-                         residual_bound_nm=bound, box_margin=config.box_margin, feature_set="eq22+qdd_d",
-                         policy_class=_structured_policy_class())  # fmt: skip
+    return export_bundle(
+        out_dir,
+        law,
+        robot,
+        model,
+        training,
+        validation,
+        trust_region=(low, high),
+        residual=True,
+        residual_bound_nm=bound,
+        box_margin=config.box_margin,
+        feature_set="eq22+qdd_d",
+        policy_class=_structured_policy_class(),
+    )
 
 
 def trust_box(s: np.ndarray, robot: RobotModel, config: StructuredConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -557,10 +674,19 @@ def trust_box(s: np.ndarray, robot: RobotModel, config: StructuredConfig) -> tup
     low, high = s.min(0).copy(), s.max(0).copy()
     # the paper's range (models.lmpc.paper_range), 10 % beyond: where the physics part was trained to hold
     omega = 2.0 * np.pi * PAPER_FREQUENCY_RANGE_HZ[1]
-    reference = (1.1 * PAPER_AMPLITUDE_RAD, 1.1 * 0.5 * PAPER_AMPLITUDE_RAD * omega * 2.0, 1.1 * 0.5 * PAPER_AMPLITUDE_RAD * omega**2)
-    for block, envelope in ((0, reference[0]), (2, reference[1]), (4, reference[2]),
-                            (1, config.error_envelope_rad), (3, config.rate_envelope_rad_s),
-                            (5, np.asarray(robot.torque_limit_nm, float))):  # fmt: skip
+    reference = (
+        1.1 * PAPER_AMPLITUDE_RAD,
+        1.1 * 0.5 * PAPER_AMPLITUDE_RAD * omega * 2.0,
+        1.1 * 0.5 * PAPER_AMPLITUDE_RAD * omega**2,
+    )
+    for block, envelope in (
+        (0, reference[0]),
+        (2, reference[1]),
+        (4, reference[2]),
+        (1, config.error_envelope_rad),
+        (3, config.rate_envelope_rad_s),
+        (5, np.asarray(robot.torque_limit_nm, float)),
+    ):
         part = slice(block * n, (block + 1) * n)
         low[part] = np.minimum(low[part], -envelope)
         high[part] = np.maximum(high[part], envelope)
@@ -572,9 +698,25 @@ def jsonable_config(config: StructuredConfig) -> dict[str, Any]:
 
 
 # --- the whole stage ---------------------------------------------------------------------------
-_DATA_FIELDS = ("robot", "gain_set", "hmpc_options", "target", "train_conditions", "train_seed", "duration_s", "stride",
-                "dt_s", "substeps", "accel_noise_rad_s2", "noise_hold_steps", "noise_fraction", "perturbed_copies",
-                "perturb_error_rad", "perturb_rate_rad_s", "seed")  # fmt: skip
+_DATA_FIELDS = (
+    "robot",
+    "gain_set",
+    "hmpc_options",
+    "target",
+    "train_conditions",
+    "train_seed",
+    "duration_s",
+    "stride",
+    "dt_s",
+    "substeps",
+    "accel_noise_rad_s2",
+    "noise_hold_steps",
+    "noise_fraction",
+    "perturbed_copies",
+    "perturb_error_rad",
+    "perturb_rate_rad_s",
+    "seed",
+)
 
 
 def _data_key(config: StructuredConfig) -> str:
@@ -582,7 +724,9 @@ def _data_key(config: StructuredConfig) -> str:
     return json.dumps({k: jsonable_config(config)[k] for k in _DATA_FIELDS}, sort_keys=True)
 
 
-def _cached_rollouts(work: Path, config: StructuredConfig, conditions: list[Any], log: Callable[[str], None]) -> dict[str, Any]:
+def _cached_rollouts(
+    work: Path, config: StructuredConfig, conditions: list[Any], log: Callable[[str], None]
+) -> dict[str, Any]:
     """Per law, <work>/rollouts_<law>.pkl when made with the same settings; the missing laws are run
     (side by side in one plant) and cached."""
     import pickle
@@ -596,7 +740,7 @@ def _cached_rollouts(work: Path, config: StructuredConfig, conditions: list[Any]
                 stored_key, value = pickle.loads(path.read_bytes())
                 if stored_key == key:
                     data[name] = value
-            except Exception:  # noqa: BLE001 - an unreadable cache is regenerated, never trusted
+            except Exception:  # noqa: BLE001, S110 - an unreadable cache is regenerated, never trusted
                 pass
     if data:
         log(f"rollouts: reusing {', '.join(sorted(data))} from {work}")
@@ -612,7 +756,9 @@ def _cached_rollouts(work: Path, config: StructuredConfig, conditions: list[Any]
     return {name: data[name] for name in config.laws}
 
 
-def run_structured(config: StructuredConfig, bundles: Path, work: Path, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run_structured(
+    config: StructuredConfig, bundles: Path, work: Path, log: Callable[[str], None] = print
+) -> dict[str, Any]:
     """Rollouts -> fit -> export (-> DAgger rounds); returns a summary (also written to work/structured.json)."""
     from models.lmpc.paper_range import paper_range_conditions
 

@@ -38,7 +38,12 @@ def test_lmpc_with_a_feedback_emulator_reproduces_the_feedback_run(tmp_path, law
     c = simulate(robot, single, [condition], SimConfig())  # the runtime's single-row path
     np.testing.assert_allclose(c.q[0], b.q[0], atol=1e-9)
     assert len(single.cycle_times_s) == 300
-    assert single.trust_counters() == {"cycles": 300, "fallback_cycles": [0], "blended_cycles": [0], "clamped_cycles": [0]}
+    assert single.trust_counters() == {
+        "cycles": 300,
+        "fallback_cycles": [0],
+        "blended_cycles": [0],
+        "clamped_cycles": [0],
+    }
 
 
 def test_a_bundle_with_other_law_parameters_is_refused(tmp_path):
@@ -66,9 +71,15 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
 
     config = PipelineConfig(
         dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
-        budget=90, pool_conditions=3, test_per_law=30, seeds=(0,),
-        train=TrainConfig(hidden=(16,), max_epochs=3, patience=2), label_chunk=128, workers=1, rollout_conditions=0,
-    )  # fmt: skip
+        budget=90,
+        pool_conditions=3,
+        test_per_law=30,
+        seeds=(0,),
+        train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
+        label_chunk=128,
+        workers=1,
+        rollout_conditions=0,
+    )
     summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
     assert "augment" not in summary["wall_s"]
     assert set(summary["wall_s"]) >= {"dataset", "label", "train", "export", "total"}
@@ -88,11 +99,26 @@ def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
 
     config = PipelineConfig(
         dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
-        budget=90, pool_conditions=3, test_per_law=30, seeds=(0,), train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
-        label_chunk=128, workers=1, rollout_conditions=1, rollout_duration_s=2.5, rollout_stride=25, dagger_rounds=1,
-        dagger_conditions=1, dagger_duration_s=0.5, dagger_states_per_law=50, augment_epochs=3, deploy_hidden=(16,),
-        on_policy_max_error_rad=10.0, trust_candidates=(("on_policy", 0.5), ("labeled", 0.1)), selection_duration_s=0.3,
-    )  # fmt: skip
+        budget=90,
+        pool_conditions=3,
+        test_per_law=30,
+        seeds=(0,),
+        train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
+        label_chunk=128,
+        workers=1,
+        rollout_conditions=1,
+        rollout_duration_s=2.5,
+        rollout_stride=25,
+        dagger_rounds=1,
+        dagger_conditions=1,
+        dagger_duration_s=0.5,
+        dagger_states_per_law=50,
+        augment_epochs=3,
+        deploy_hidden=(16,),
+        on_policy_max_error_rad=10.0,
+        trust_candidates=(("on_policy", 0.5), ("labeled", 0.1)),
+        selection_duration_s=0.3,
+    )
     summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
     assert summary["augment"]["rollout_states_per_law"]["pd"] == 100
     assert summary["augment"]["dagger"][0]["pd"]["labeled"] > 0

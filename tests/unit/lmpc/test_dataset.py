@@ -62,8 +62,12 @@ def test_cli_refuses_a_corrupt_dataset_with_exit_2_and_leaves_it_alone(tmp_path)
     bad = tmp_path / "raw.h5"
     bad.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 100)
     before = bad.read_bytes()
-    done = subprocess.run([sys.executable, "-m", "hil_runtime.cli", "pipeline", "--stages", "dataset", "--work", str(tmp_path)],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", "pipeline", "--stages", "dataset", "--work", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 2, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and str(bad) in lines[0]

@@ -4,8 +4,16 @@ import numpy as np
 import pytest
 
 from models.errors import ModelInputError
-from models.lmpc.sampling import (PAPER_REGIONS, PAPER_WEIGHTS, estimate_lipschitz_delta, optimal_sample,
-                                  optimal_weights, region_index, time_proportions, uniform_sample)
+from models.lmpc.sampling import (
+    PAPER_REGIONS,
+    PAPER_WEIGHTS,
+    estimate_lipschitz_delta,
+    optimal_sample,
+    optimal_weights,
+    region_index,
+    time_proportions,
+    uniform_sample,
+)
 
 TOL = [r.tolerance for r in PAPER_REGIONS]
 

@@ -62,10 +62,25 @@ def test_the_main_job_lmpc_path_runs_every_shipped_bundle(tmp_path: Path, hil_co
     )
     out = tmp_path / "out"
     done = subprocess.run(
-        [*hil_command, "experiment", "--modes", "lmpc", "--conditions", str(conditions), "--timing-cycles", "20",
-         "--no-plots", "--no-trajectories", "--out", str(out)],
-        capture_output=True, text=True, check=False, timeout=600,
-    )  # fmt: skip
+        [
+            *hil_command,
+            "experiment",
+            "--modes",
+            "lmpc",
+            "--conditions",
+            str(conditions),
+            "--timing-cycles",
+            "20",
+            "--no-plots",
+            "--no-trajectories",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert f"wrote {out}/results.json, table.md" in done.stderr and "plots/" not in done.stderr  # only what it wrote
     assert sorted(p.name for p in out.iterdir()) == ["results.json", "table.md"]

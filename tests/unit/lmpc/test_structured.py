@@ -37,13 +37,23 @@ def test_spatial_rne_is_a_small_onnx_graph(tmp_path) -> None:  # type: ignore[no
             return rne.inverse_dynamics(x[:, :6], x[:, 6:12], x[:, 12:])
 
     path = tmp_path / "rne.onnx"
-    torch.onnx.export(Wrap(), (torch.zeros(2, 18, dtype=torch.float64),), str(path), input_names=["x"], output_names=["y"],
-                      dynamic_axes={"x": {0: "b"}, "y": {0: "b"}}, opset_version=17, dynamo=False)  # fmt: skip
+    torch.onnx.export(
+        Wrap(),
+        (torch.zeros(2, 18, dtype=torch.float64),),
+        str(path),
+        input_names=["x"],
+        output_names=["y"],
+        dynamic_axes={"x": {0: "b"}, "y": {0: "b"}},
+        opset_version=17,
+        dynamo=False,
+    )
     compute = [n for n in onnx.load(str(path)).graph.node if n.op_type != "Constant"]
     assert len(compute) <= 80
     x = np.random.default_rng(0).normal(size=(5, 18))
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
-    np.testing.assert_allclose(got, make_dynamics(robot, "rne").inverse_dynamics(x[:, :6], x[:, 6:12], x[:, 12:]), atol=1e-10)
+    np.testing.assert_allclose(
+        got, make_dynamics(robot, "rne").inverse_dynamics(x[:, :6], x[:, 6:12], x[:, 12:]), atol=1e-10
+    )
 
 
 def test_paper_range_conditions_are_seeded_in_range_and_parsed() -> None:
@@ -52,7 +62,9 @@ def test_paper_range_conditions_are_seeded_in_range_and_parsed() -> None:
     robot = load_robot("ur5_paper")
     a, b = paper_range_conditions(robot, 20, 5), paper_range_conditions(robot, 20, 5)
     assert a == b and a != paper_range_conditions(robot, 20, 6)
-    assert all(max(abs(x) for x in c.amplitude_rad) <= np.pi / 2 + 1e-12 and 0.05 <= c.frequency_hz[0] <= 0.1 for c in a)
+    assert all(
+        max(abs(x) for x in c.amplitude_rad) <= np.pi / 2 + 1e-12 and 0.05 <= c.frequency_hz[0] <= 0.1 for c in a
+    )
     assert len({c.name for c in a}) == 20
     assert parse_random_spec("random:20:7") == (20, 7) and parse_random_spec("my.yaml") is None
     for bad in ("random:0:1", "random:x:1", "random:3", "random:3:1:2"):
@@ -64,18 +76,31 @@ def _tiny(target: str, **extra):  # type: ignore[no-untyped-def]
     from models.lmpc.structured import StructuredConfig
 
     extra.setdefault("laws", ("pd",))
-    return StructuredConfig(target=target, train_conditions=2, duration_s=0.3, stride=10, residual_epochs=2,
-                            physics_steps=200, perturb_error_rad=1e-4, perturb_rate_rad_s=1e-2, **extra)  # fmt: skip
+    return StructuredConfig(
+        target=target,
+        train_conditions=2,
+        duration_s=0.3,
+        stride=10,
+        residual_epochs=2,
+        physics_steps=200,
+        perturb_error_rad=1e-4,
+        perturb_rate_rad_s=1e-2,
+        **extra,
+    )
 
 
 def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.structured import run_structured
 
-    summary = run_structured(_tiny("hmpc", laws=("pd", "smc")), tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
+    summary = run_structured(
+        _tiny("hmpc", laws=("pd", "smc")), tmp_path / "bundles", tmp_path / "work", log=lambda _: None
+    )
     fit = summary["rounds"][0]["pd"]
     assert fit["onnx_vs_torch_max_abs_nm"] <= 1e-5
-    assert summary["rounds"][0]["smc"]["onnx_vs_torch_max_abs_nm"] <= 1e-5  # the law's RNE batched with the feed-forward's
+    assert (
+        summary["rounds"][0]["smc"]["onnx_vs_torch_max_abs_nm"] <= 1e-5
+    )  # the law's RNE batched with the feed-forward's
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
     assert bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
     assert bundle.manifest["training"]["design"].startswith("structured")
@@ -95,7 +120,12 @@ def test_control_row_the_law_imitated_is_the_law(tmp_path) -> None:  # type: ign
     law = make_law("pd", robot, 1e-3, "stabilized")
     rng = np.random.default_rng(0)
     q_d = rng.uniform(-0.3, 0.3, (16, 6))
-    q, qd, qd_d, qdd_d = q_d + rng.normal(0, 0.01, (16, 6)), rng.normal(0, 0.05, (16, 6)), rng.normal(0, 0.05, (16, 6)), np.zeros((16, 6))
+    q, qd, qd_d, qdd_d = (
+        q_d + rng.normal(0, 0.01, (16, 6)),
+        rng.normal(0, 0.05, (16, 6)),
+        rng.normal(0, 0.05, (16, 6)),
+        np.zeros((16, 6)),
+    )
     state = bundle.initial_state(q)
     tau, tau_fb, _ = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, state)
     expected = np.asarray(law.step(np, state, q, qd, q_d, qd_d, qdd_d)[0])
@@ -126,7 +156,9 @@ def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
     torch.testing.assert_close(both, alone_law, rtol=0, atol=1e-12)
     torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
     nominal.pending = (pq, pqd, pa)
-    torch.testing.assert_close(nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11)
+    torch.testing.assert_close(
+        nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11
+    )
     torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
 
 
