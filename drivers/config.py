@@ -176,6 +176,31 @@ class DriveBusConfig(_Frozen):
         )
 
 
+MAX_CONFIG_FILE_BYTES = 1 << 20  # config and conditions files are a few kB: refuse what plainly is not one
+
+
+def read_config_text(path: Path, error: type[Exception], what: str, max_bytes: int = MAX_CONFIG_FILE_BYTES) -> str:
+    """The text of a config-like file; ``error`` with one line naming ``path`` for a missing, unreadable,
+    oversized or binary file (shared by the drive, runtime, target and conditions loaders)."""
+    if not path.exists():
+        raise error(f"{path}: file not found")
+    if not path.is_file():
+        raise error(f"{path}: not a regular file")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(data) > max_bytes:
+        raise error(f"{path}: {len(data)} bytes, not {what} (limit {max_bytes})")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
+    if "\x00" in text:
+        raise error(f"{path}: not a text file (contains NUL bytes)")
+    return text
+
+
 def format_validation_error(source: str, exc: ValidationError) -> str:
     """One line naming the file and the first failing field (pydantic's own message is multi-line)."""
     errors = exc.errors()
@@ -197,10 +222,9 @@ def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
 
 def load_drive_bus_config(path: Path | str) -> DriveBusConfig:
     path = Path(path)
+    text = read_config_text(path, DriveConfigError, "a drive-bus config")
     try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise DriveConfigError(f"{path}: cannot read ({exc.strerror})") from None
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise DriveConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     return parse_drive_bus_config(data, str(path))

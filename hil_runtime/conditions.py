@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING, Any, Protocol, Self
 import numpy as np
 import yaml
 
+from drivers.config import read_config_text
+
 if TYPE_CHECKING:  # only for the type of Mismatch.apply; never imported at run time
     from typing import TypeVar
 
@@ -33,7 +35,6 @@ if TYPE_CHECKING:  # only for the type of Mismatch.apply; never imported at run 
 PAPER_CONDITIONS = Path(__file__).resolve().parent / "data" / "paper_conditions.yaml"
 SHAPES = ("raised_sine", "sine", "constant")
 INITIAL_STATES = ("home", "reference")
-MAX_FILE_BYTES = 1 << 20  # a conditions file is a few kB; refuse anything that is plainly not one
 
 
 class ConditionError(ValueError):
@@ -345,22 +346,7 @@ def _parse_condition(raw: Any, defaults: dict[str, Any], where: str) -> Conditio
 
 def _read_yaml(path: Path) -> Any:
     """The YAML document in ``path``; a one-line error for missing, binary or malformed files."""
-    if not path.exists():
-        raise ConditionError(f"{path}: file not found")
-    if not path.is_file():
-        raise ConditionError(f"{path}: not a regular file")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise ConditionError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if len(data) > MAX_FILE_BYTES:
-        raise ConditionError(f"{path.name}: {len(data)} bytes, not a conditions file (limit {MAX_FILE_BYTES})")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConditionError(f"{path.name}: not a UTF-8 text file (byte {exc.start})") from None
-    if "\x00" in text:
-        raise ConditionError(f"{path.name}: not a text file (contains NUL bytes)")
+    text = read_config_text(path, ConditionError, "a conditions file")
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -49,7 +49,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from drivers.config import DriveBusConfig, format_validation_error
+from drivers.config import DriveBusConfig, format_validation_error, read_config_text
 from drivers.errors import DriveConfigError
 from hil_runtime.telemetry.config import TelemetryConfig
 
@@ -195,12 +195,7 @@ def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | Non
 
 def load_runtime_config(path: Path | str) -> RuntimeConfig:
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise RuntimeConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except UnicodeDecodeError:
-        raise RuntimeConfigError(f"{path}: not a UTF-8 text file") from None
+    text = read_config_text(path, RuntimeConfigError, "a runtime config")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

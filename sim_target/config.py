@@ -42,6 +42,7 @@ from drivers.config import (
     TransportConfig,
     format_validation_error,
     is_loopback_host,
+    read_config_text,
 )
 from drivers.errors import BusLoadError
 from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
@@ -216,8 +217,6 @@ class TargetConfig(_Frozen):
 
 # --- loading ---------------------------------------------------------------------------------------
 
-MAX_CONFIG_BYTES = 1 << 20  # a target config is a few hundred bytes
-
 
 def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
     """Validate a mapping, then check it against its URDF and the drive bus (``check_target_config``)."""
@@ -233,26 +232,10 @@ def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
     return config
 
 
-def _read_text(path: Path) -> str:
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise TargetConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if len(data) > MAX_CONFIG_BYTES:
-        raise TargetConfigError(f"{path}: {len(data)} bytes, not a target config (limit {MAX_CONFIG_BYTES})")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise TargetConfigError(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
-    if "\x00" in text:
-        raise TargetConfigError(f"{path}: not a text file (contains NUL bytes)")
-    return text
-
-
 def load_target_config(path: Path | str) -> TargetConfig:
     """Read a YAML (.yaml/.yml) or TOML (.toml) target configuration."""
     path = Path(path)
-    text = _read_text(path)
+    text = read_config_text(path, TargetConfigError, "a target config")
     try:
         data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
     except (yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
