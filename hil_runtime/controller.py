@@ -29,13 +29,10 @@ class Controller:
         self.bundle = bundle
         self.mode = mode
         self.n_joints = bundle.n_joints
-        self.torque_limit_nm = np.asarray(bundle.torque_limit_nm, float)
-        self._neg_limit = -self.torque_limit_nm
         applied = bundle.manifest["law"].get("applied_torque_slice")
         self._applied = slice(int(applied[0]), int(applied[1])) if applied else None
         self.state = np.zeros(bundle.state_size)
         self._next = np.zeros(bundle.state_size)
-        self._tau_fb_sat = np.zeros(self.n_joints)
         self._trust = bundle.last_trust  # a view of the graph's output row
 
     def reset(self, q0: np.ndarray) -> None:
@@ -52,9 +49,8 @@ class Controller:
         """
         tau, tau_fb, nxt = self.bundle.step(q, qd, q_d, qd_d, qdd_d, self.state)
         self._next[:] = nxt
-        if self.mode == "fb":
-            np.clip(tau_fb, self._neg_limit, self.torque_limit_nm, out=self._tau_fb_sat)
-            return self._tau_fb_sat, tau_fb, 0.0
+        if self.mode == "fb":  # the supervisor saturates it, as it does every candidate
+            return tau_fb, tau_fb, 0.0
         return tau, tau_fb, float(self._trust[0])
 
     def commit(self, applied_torque_nm: np.ndarray) -> None:
