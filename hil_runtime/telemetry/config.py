@@ -3,7 +3,7 @@
     telemetry:
       enabled: true
       listen: ["tcp/127.0.0.1:7447"]      # where subscribers connect (peer mode)
-      connect: []                         # e.g. a router: ["tcp/10.0.0.5:7447"] (allow_remote: true)
+      connect: []                         # e.g. a router: ["tcp/192.0.2.5:7447"] (allow_remote: true)
       zenoh_config: null                  # optional json5 file (access control, TLS, routers)
       state_decimation: 1                 # publish every k-th cycle's state
       queue_size: 1024                    # state samples held for the publisher thread

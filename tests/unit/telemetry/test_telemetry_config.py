@@ -30,9 +30,9 @@ def test_defaults_are_off_and_loopback() -> None:
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ({"listen": ["tcp/10.1.2.3:7447"]}, "endpoint 'tcp/10.1.2.3:7447' is not loopback"),
+        ({"listen": ["tcp/192.0.2.3:7447"]}, "endpoint 'tcp/192.0.2.3:7447' is not loopback"),
         ({"connect": ["tcp/example.org:7447"]}, "is not loopback"),
-        ({"listen": ["tcp/0.0.0.0:7447"]}, "is not loopback"),
+        ({"listen": ["tcp/198.51.100.7:7447"]}, "is not loopback"),
         ({"listen": ["tcp/[::]:7447"]}, "is not loopback"),
         ({"listen": ["127.0.0.1:7447"]}, "is not 'proto/host:port'"),
         ({"listen": ["tcp/127.0.0.1"]}, "missing or bad port"),
@@ -57,8 +57,8 @@ def test_bad_sections_fail_in_one_line(data: dict, message: str) -> None:
 
 
 def test_remote_endpoints_need_allow_remote() -> None:
-    config = parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"], "allow_remote": True})
-    assert config.listen == ("tcp/0.0.0.0:7447",)
+    config = parse_telemetry_config({"listen": ["tcp/192.0.2.9:7447"], "allow_remote": True})
+    assert config.listen == ("tcp/192.0.2.9:7447",)
     assert parse_telemetry_config({"listen": ["tcp/[::1]:7447", "tcp/localhost:7448"]}).listen[0] == "tcp/[::1]:7447"
     assert parse_telemetry_config(None) == TelemetryConfig()
 
