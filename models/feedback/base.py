@@ -21,9 +21,9 @@ class FeedbackLaw(ABC):
 
     name: str = ""
 
-    def __init__(self, n_joints: int, dt_s: float, torque_limit_nm: np.ndarray) -> None:
+    def __init__(self, n_joints: int, period_s: float, torque_limit_nm: np.ndarray) -> None:
         self.n_joints = n_joints
-        self.dt_s = float(dt_s)
+        self.period_s = float(period_s)
         self.torque_limit_nm = np.asarray(torque_limit_nm, dtype=np.float64)
 
     # --- what every law declares -------------------------------------------------------------
