@@ -18,12 +18,12 @@ class PDLaw(FeedbackLaw):
     def __init__(
         self,
         n_joints: int,
-        dt_s: float,
+        period_s: float,
         torque_limit_nm: np.ndarray,
         kp: np.ndarray = PAPER_KP,
         kd: np.ndarray = PAPER_KD,
     ) -> None:
-        super().__init__(n_joints, dt_s, torque_limit_nm)
+        super().__init__(n_joints, period_s, torque_limit_nm)
         self.kp, self.kd = np.asarray(kp, float), np.asarray(kd, float)
 
     @property
