@@ -28,13 +28,13 @@ class PIDLaw(FeedbackLaw):
     def __init__(
         self,
         n_joints: int,
-        dt_s: float,
+        period_s: float,
         torque_limit_nm: np.ndarray,
         kp: np.ndarray = PAPER_KP,
         kd: np.ndarray = PAPER_KD,
         ki: np.ndarray = PAPER_KI,
     ) -> None:
-        super().__init__(n_joints, dt_s, torque_limit_nm)
+        super().__init__(n_joints, period_s, torque_limit_nm)
         self.kp, self.kd, self.ki = (np.asarray(g, float) for g in (kp, kd, ki))
         # Anti-windup bound on the integral (rad*s); a large finite number where Ki = 0 keeps ONNX finite.
         self.integral_limit_rad_s = np.where(self.ki > 0, self.torque_limit_nm / np.maximum(self.ki, 1e-12), 1e6)
@@ -56,6 +56,6 @@ class PIDLaw(FeedbackLaw):
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         kp, kd, ki, limit = (const(xp, a) for a in (self.kp, self.kd, self.ki, self.integral_limit_rad_s))
         e = q_d - q
-        integral = xp.minimum(xp.maximum(state + self.dt_s * e, -limit), limit)
+        integral = xp.minimum(xp.maximum(state + self.period_s * e, -limit), limit)
         tau = kp * e + kd * (qd_d - qd) + ki * integral
         return self.saturate(xp, tau), integral
