@@ -39,13 +39,13 @@ class SMCLaw(FeedbackLaw):
     def __init__(
         self,
         robot: RobotModel,
-        dt_s: float,
+        period_s: float,
         lam: np.ndarray = PAPER_LAMBDA,
         k: np.ndarray = PAPER_K,
         epsilon: float = PAPER_EPSILON,
         switching_units: str = "torque",
     ) -> None:
-        super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
+        super().__init__(robot.n_joints, period_s, robot.torque_limit_nm)
         if switching_units not in ("acceleration", "torque"):
             raise ModelInputError(
                 f"law 'smc': switching_units must be 'acceleration' or 'torque', got '{switching_units}'"
