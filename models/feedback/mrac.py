@@ -42,13 +42,13 @@ class MRACLaw(FeedbackLaw):
     def __init__(
         self,
         robot: RobotModel,
-        dt_s: float,
+        period_s: float,
         alpha: np.ndarray = PAPER_ALPHA,
         gamma: np.ndarray = PAPER_GAMMA,
         lam: np.ndarray = PAPER_LAMBDA,
         inertia_bound_scale: float = 10.0,
     ) -> None:
-        super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
+        super().__init__(robot.n_joints, period_s, robot.torque_limit_nm)
         self.alpha, self.gamma, self.lam = (np.asarray(g, float) for g in (alpha, gamma, lam))
         self.nominal_inertia_kg_m2 = NominalModel(robot).mass_matrix_diagonal(np.zeros(robot.n_joints))
         n = robot.n_joints
@@ -92,5 +92,5 @@ class MRACLaw(FeedbackLaw):
         inertia, viscous, offset = state[:, :n], state[:, n : 2 * n], state[:, 2 * n :]
         tau = inertia * qdd_r + viscous * qd_r + offset + alpha * s
         gradient = xp.concatenate([qdd_r * s, qd_r * s, s], -1) * xp.concatenate([gamma, gamma, gamma], -1)
-        theta = xp.minimum(xp.maximum(state + self.dt_s * gradient, lo), hi)
+        theta = xp.minimum(xp.maximum(state + self.period_s * gradient, lo), hi)
         return self.saturate(xp, tau), theta
