@@ -36,14 +36,14 @@ PAPER_OMEGA_O = 50.0
 PAPER_OMEGA_C = 20.0
 
 
-def eso_matrices(omega_o: float, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def eso_matrices(omega_o: float, period_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zero-order-hold discretization of the 3rd-order linear ESO: (Ad 3x3, Bq 3, Bu 3)."""
     b1, b2, b3 = 3 * omega_o, 3 * omega_o**2, omega_o**3
     a = np.array([[-b1, 1.0, 0.0], [-b2, 0.0, 1.0], [-b3, 0.0, 0.0]])
     b = np.array([[b1, 0.0], [b2, 1.0], [b3, 0.0]])
     block = np.zeros((5, 5))
     block[:3, :3], block[:3, 3:] = a, b
-    discrete = expm(block * dt_s)
+    discrete = expm(block * period_s)
     return discrete[:3, :3], discrete[:3, 3], discrete[:3, 4]
 
 
@@ -53,21 +53,21 @@ class ADRCLaw(FeedbackLaw):
     def __init__(
         self,
         n_joints: int,
-        dt_s: float,
+        period_s: float,
         torque_limit_nm: np.ndarray,
         b0: np.ndarray = PAPER_B0,
         omega_o: float = PAPER_OMEGA_O,
         omega_c: float = PAPER_OMEGA_C,
         b0_reading: str = "inertia",
     ) -> None:
-        super().__init__(n_joints, dt_s, torque_limit_nm)
+        super().__init__(n_joints, period_s, torque_limit_nm)
         if b0_reading not in ("inertia", "gain"):
             raise ModelInputError(f"law 'adrc': b0_reading must be 'inertia' or 'gain', got '{b0_reading}'")
         self.b0 = np.asarray(b0, float)
         if np.any(self.b0 <= 0):
             raise ModelInputError(f"law 'adrc': b0 must be positive, got {self.b0.tolist()}")
         self.omega_o, self.omega_c, self.b0_reading = float(omega_o), float(omega_c), b0_reading
-        self.eso_ad, self.eso_bq, self.eso_bu = eso_matrices(self.omega_o, self.dt_s)
+        self.eso_ad, self.eso_bq, self.eso_bu = eso_matrices(self.omega_o, self.period_s)
         # torque = torque_per_accel * u and u_applied = tau_applied / torque_per_accel, for either reading.
         self.torque_per_accel = self.b0 if b0_reading == "inertia" else 1.0 / self.b0
         n = n_joints
