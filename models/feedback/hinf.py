@@ -11,7 +11,7 @@ weight W_T on the complementary sensitivity (robustness to multiplicative model 
 double integrator has its poles on the imaginary axis, which hinfsyn's rank conditions reject, so
 they are moved to -delta (no visible effect above 0.01 rad/s). The controller's very fast pole
 (|p| > 0.2 * 2/dt, an artefact of the near-improper optimum, ~1e7 rad/s) is residualized (DC kept)
-before the Tustin discretization at dt_s, since Tustin would put it at z = -1.
+before the Tustin discretization at period_s, since Tustin would put it at z = -1.
 
 Gravity: the linear design cannot hold gravity (the loop's bandwidth is ~1-10 rad/s; its
 low-frequency gain is far below the ~1 N*m gravity torque per rad), so the nominal gravity G^(q)
@@ -85,7 +85,7 @@ def residualize_fast_modes(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.nd
 
 def design_joint(
     inertia_kg_m2: float,
-    dt_s: float,
+    period_s: float,
     alpha: float = PAPER_ALPHA,
     ws: tuple[float, float, float] = PAPER_WS,
     wu: tuple[float, float, float] = PAPER_WU,
@@ -109,8 +109,8 @@ def design_joint(
     if np.any(np.real(closed_loop.poles()) >= 0):
         raise ModelInputError(f"law 'hinf': synthesized loop unstable for inertia {inertia_kg_m2:.3g}")
     k = ct.ss(controller)
-    a, b, c, d = residualize_fast_modes(k.A, k.B, k.C, k.D, max_rad_s=0.2 * 2.0 / dt_s)
-    ad, bd, cd, dd, _ = cont2discrete((a, b, c, d), dt_s, method="bilinear")
+    a, b, c, d = residualize_fast_modes(k.A, k.B, k.C, k.D, max_rad_s=0.2 * 2.0 / period_s)
+    ad, bd, cd, dd, _ = cont2discrete((a, b, c, d), period_s, method="bilinear")
     return JointDesign(float(info[0]), float(inertia_kg_m2), k.nstates, ad, bd, cd, dd)
 
 
@@ -118,14 +118,18 @@ class HinfLaw(FeedbackLaw):
     name = "hinf"
 
     def __init__(
-        self, robot: RobotModel, dt_s: float, alpha: np.ndarray | float = PAPER_ALPHA, gravity_compensation: bool = True
+        self,
+        robot: RobotModel,
+        period_s: float,
+        alpha: np.ndarray | float = PAPER_ALPHA,
+        gravity_compensation: bool = True,
     ) -> None:
-        super().__init__(robot.n_joints, dt_s, robot.torque_limit_nm)
+        super().__init__(robot.n_joints, period_s, robot.torque_limit_nm)
         self.alpha = np.broadcast_to(np.asarray(alpha, float), (robot.n_joints,)).copy()
         self.gravity_compensation = gravity_compensation
         self.nominal = NominalModel(robot)
         inertia = self.nominal.mass_matrix_diagonal(np.zeros(robot.n_joints))
-        self.designs = [design_joint(m, self.dt_s, a) for m, a in zip(inertia, self.alpha, strict=True)]
+        self.designs = [design_joint(m, self.period_s, a) for m, a in zip(inertia, self.alpha, strict=True)]
         orders = [j.a.shape[0] for j in self.designs]
         nx, n = sum(orders), robot.n_joints
         self.ad, self.bd, self.cd, self.dd = np.zeros((nx, nx)), np.zeros((nx, n)), np.zeros((n, nx)), np.zeros((n, n))
