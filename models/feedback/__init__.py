@@ -1,7 +1,7 @@
 """The paper's six feedback laws behind one interface (base.FeedbackLaw) and a registry.
 
     from models.feedback import LAW_NAMES, make_law
-    law = make_law("adrc", load_robot("ur5_paper"), dt_s=1e-3)
+    law = make_law("adrc", load_robot("ur5_paper"), period_s=1e-3)
     state = law.initial_state(q0[None])
     tau, state = law.step(np, state, q, qd, q_d, qd_d, qdd_d)   # (B, N) arrays
 
@@ -23,20 +23,20 @@ from models.robots import RobotModel
 LAW_NAMES = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
 
 
-def _pd(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None) -> FeedbackLaw:
+def _pd(robot: RobotModel, period_s: float, kp: Any = None, kd: Any = None) -> FeedbackLaw:
     from models.feedback.pd import PAPER_KD, PAPER_KP, PDLaw
 
     n = robot.n_joints
     return PDLaw(
         n,
-        dt_s,
+        period_s,
         robot.torque_limit_nm,
         joint_vector("pd", "kp", kp, n, PAPER_KP),
         joint_vector("pd", "kd", kd, n, PAPER_KD),
     )
 
 
-def _pid(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None, ki: Any = None) -> FeedbackLaw:
+def _pid(robot: RobotModel, period_s: float, kp: Any = None, kd: Any = None, ki: Any = None) -> FeedbackLaw:
     from models.feedback.pd import PAPER_KD, PAPER_KP
     from models.feedback.pid import PAPER_KI, PIDLaw
 
@@ -45,12 +45,12 @@ def _pid(robot: RobotModel, dt_s: float, kp: Any = None, kd: Any = None, ki: Any
         joint_vector("pid", f, v, n, p)
         for f, v, p in (("kp", kp, PAPER_KP), ("kd", kd, PAPER_KD), ("ki", ki, PAPER_KI))
     ]
-    return PIDLaw(n, dt_s, robot.torque_limit_nm, *gains)
+    return PIDLaw(n, period_s, robot.torque_limit_nm, *gains)
 
 
 def _adrc(
     robot: RobotModel,
-    dt_s: float,
+    period_s: float,
     b0: Any = None,
     omega_o: float | None = None,
     omega_c: float | None = None,
@@ -60,7 +60,7 @@ def _adrc(
 
     return ADRCLaw(
         robot.n_joints,
-        dt_s,
+        period_s,
         robot.torque_limit_nm,
         joint_vector("adrc", "b0", b0, robot.n_joints, PAPER_B0),
         PAPER_OMEGA_O if omega_o is None else omega_o,
@@ -69,16 +69,16 @@ def _adrc(
     )
 
 
-def _hinf(robot: RobotModel, dt_s: float, alpha: Any = None, gravity_compensation: bool = True) -> FeedbackLaw:
+def _hinf(robot: RobotModel, period_s: float, alpha: Any = None, gravity_compensation: bool = True) -> FeedbackLaw:
     from models.feedback.hinf import PAPER_ALPHA, HinfLaw
 
     # alpha is uniform in the paper, so it fits any joint count.
-    return HinfLaw(robot, dt_s, PAPER_ALPHA if alpha is None else alpha, gravity_compensation)
+    return HinfLaw(robot, period_s, PAPER_ALPHA if alpha is None else alpha, gravity_compensation)
 
 
 def _smc(
     robot: RobotModel,
-    dt_s: float,
+    period_s: float,
     lam: Any = None,
     k: Any = None,
     epsilon: float | None = None,
@@ -89,7 +89,7 @@ def _smc(
     n = robot.n_joints
     return SMCLaw(
         robot,
-        dt_s,
+        period_s,
         joint_vector("smc", "lam", lam, n, PAPER_LAMBDA),
         joint_vector("smc", "k", k, n, PAPER_K),
         PAPER_EPSILON if epsilon is None else epsilon,
@@ -99,7 +99,7 @@ def _smc(
 
 def _mrac(
     robot: RobotModel,
-    dt_s: float,
+    period_s: float,
     alpha: Any = None,
     gamma: Any = None,
     lam: Any = None,
@@ -112,7 +112,7 @@ def _mrac(
         joint_vector("mrac", f, v, n, p)
         for f, v, p in (("alpha", alpha, PAPER_ALPHA), ("gamma", gamma, PAPER_GAMMA), ("lam", lam, PAPER_LAMBDA))
     ]
-    return MRACLaw(robot, dt_s, *gains, inertia_bound_scale=inertia_bound_scale)
+    return MRACLaw(robot, period_s, *gains, inertia_bound_scale=inertia_bound_scale)
 
 
 _FACTORIES: dict[str, Callable[..., FeedbackLaw]] = {
@@ -140,19 +140,19 @@ DEFAULT_GAIN_SET = "stabilized"
 
 
 def make_law(
-    name: str, robot: RobotModel, dt_s: float = 1e-3, gain_set: str = DEFAULT_GAIN_SET, **gains: Any
+    name: str, robot: RobotModel, period_s: float = 1e-3, gain_set: str = DEFAULT_GAIN_SET, **gains: Any
 ) -> FeedbackLaw:
-    """The named law for ``robot`` at control period ``dt_s``, from ``gain_set`` unless gains are given."""
+    """The named law for ``robot`` at control period ``period_s``, from ``gain_set`` unless gains are given."""
     if name not in _FACTORIES:
         raise ModelInputError(f"feedback law: unknown '{name}' (known: {', '.join(LAW_NAMES)})")
     if gain_set not in GAIN_SETS:
         raise ModelInputError(f"gain set: unknown '{gain_set}' (known: {', '.join(GAIN_SETS)})")
     if robot.n_joints == 6:  # the gain sets are for the paper's 6-joint arm
         gains = {**GAIN_SETS[gain_set].get(name, {}), **gains}
-    if not (dt_s > 0 and dt_s < 1.0):
-        raise ModelInputError(f"feedback law '{name}': dt_s must be in (0, 1) s, got {dt_s}")
+    if not (period_s > 0 and period_s < 1.0):
+        raise ModelInputError(f"feedback law '{name}': period_s must be in (0, 1) s, got {period_s}")
     try:
-        return _FACTORIES[name](robot, dt_s, **gains)
+        return _FACTORIES[name](robot, period_s, **gains)
     except TypeError as exc:
         raise ModelInputError(f"feedback law '{name}': bad parameter ({exc})") from exc
 
