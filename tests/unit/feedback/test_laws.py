@@ -77,7 +77,7 @@ def test_pid_integrator_accumulates_error_and_is_clamped() -> None:
     state = law.initial_state(q)
     for _ in range(10):
         tau, state = law.step(np, state, q, q, q + e, q, q)
-    np.testing.assert_allclose(state, 10 * law.dt_s * e)
+    np.testing.assert_allclose(state, 10 * law.period_s * e)
     np.testing.assert_allclose(tau, law.kp * e + law.ki * state)
     _, state = law.step(np, np.full((1, 6), 1e9), q, q, q + e, q, q)
     np.testing.assert_allclose(state[0], law.integral_limit_rad_s)
@@ -141,15 +141,15 @@ def test_mrac_adapts_along_the_gradient_and_stays_in_its_box() -> None:
     theta0 = law.initial_state(q)
     _, theta = law.step(np, theta0, q, q, q + e, q, q)  # qdd_r = 0, qd_r = Lambda e, s = Lambda e
     s = law.lam * e[0]
-    np.testing.assert_allclose(theta[0, n : 2 * n] - theta0[0, n : 2 * n], law.dt_s * law.gamma * s * s)
-    np.testing.assert_allclose(theta[0, 2 * n :], law.dt_s * law.gamma * s)
+    np.testing.assert_allclose(theta[0, n : 2 * n] - theta0[0, n : 2 * n], law.period_s * law.gamma * s * s)
+    np.testing.assert_allclose(theta[0, 2 * n :], law.period_s * law.gamma * s)
     _, theta = law.step(np, theta0, q, q, q + 1e6, q, q)
     assert np.all(theta <= law.theta_max) and np.all(theta >= law.theta_min)
 
 
 def _rk4_hold(law, q_ref: np.ndarray, q0: np.ndarray, periods: int) -> np.ndarray:
     """Closed loop on ur5_paper: zero-order hold over each period, one RK4 step per period."""
-    dyn, dt = make_dynamics(ROBOT, "pinocchio"), law.dt_s
+    dyn, dt = make_dynamics(ROBOT, "pinocchio"), law.period_s
     q, qd = q0[None].copy(), np.zeros((1, 6))
     state, zero = law.initial_state(q), np.zeros((1, 6))
     errors = []
