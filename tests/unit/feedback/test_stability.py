@@ -61,7 +61,7 @@ def test_law_jacobians_of_pid_and_smc() -> None:
     q, qd, qdd = (0.3 * rng.normal(size=(2, 6)) for _ in range(3))
     pid = make_law("pid", ROBOT)
     d_e, d_edot = law_jacobians(pid, np.zeros((2, 6)), q, qd, q, qd, qdd)
-    np.testing.assert_allclose(d_e[0], np.diag(pid.kp + pid.ki * pid.dt_s), atol=1e-12)
+    np.testing.assert_allclose(d_e[0], np.diag(pid.kp + pid.ki * pid.period_s), atol=1e-12)
     np.testing.assert_allclose(d_edot[1], np.diag(pid.kd), atol=1e-12)
     smc = make_law("smc", ROBOT)  # central differences of the numpy law as the reference
     d_e, _ = law_jacobians(smc, np.zeros((2, 0)), q, qd, q + 1e-3, qd, qdd)
