@@ -25,13 +25,13 @@ COULOMB_SMOOTHING_RAD_S = 0.01  # tanh(qd / v) stands in for sign(qd), keeping R
 
 @dataclass(frozen=True)
 class SimConfig:
-    dt_s: float = 1e-3  # control period (the paper: 1 kHz)
+    period_s: float = 1e-3  # control period (the paper: 1 kHz)
     substeps: int = 2  # RK4 steps per control period
     plant_backend: str = "pinocchio"  # "pinocchio" (C++ ABA, fast) or "rne" (the paper's RNEFDA)
 
     def __post_init__(self) -> None:
-        if not (self.dt_s > 0 and math.isfinite(self.dt_s)):
-            raise ModelInputError(f"simulation dt_s: must be a positive number, got {self.dt_s}")
+        if not (self.period_s > 0 and math.isfinite(self.period_s)):
+            raise ModelInputError(f"simulation period_s: must be a positive number, got {self.period_s}")
         if self.substeps < 1:
             raise ModelInputError(f"simulation substeps: must be >= 1, got {self.substeps}")
 
@@ -91,7 +91,7 @@ class Plant:
         self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, duration_s: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """RK4 over ``duration_s`` with torque held, in steps no longer than dt / substeps."""
-        steps = max(1, math.ceil(duration_s / (self.config.dt_s / self.config.substeps) - 1e-9))
+        steps = max(1, math.ceil(duration_s / (self.config.period_s / self.config.substeps) - 1e-9))
         h = duration_s / steps
         for _ in range(steps):
             k1v, k1a = qd, self.acceleration(q, qd, tau)
@@ -128,7 +128,7 @@ def simulate(
         raise ModelInputError("simulate: conditions in one batch must share duration, disturbance and mismatch")
     first = conditions[0]
     plant = Plant(robot, first.mismatch, config)
-    n, batch, dt = robot.n_joints, len(conditions), config.dt_s
+    n, batch, dt = robot.n_joints, len(conditions), config.period_s
     steps = int(round(first.duration_s / dt))
     t = np.arange(steps) * dt
 
