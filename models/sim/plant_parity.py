@@ -41,7 +41,7 @@ def torque_law(dynamics: Any, amplitude_nm: np.ndarray) -> TorqueLaw:
 
 def models_trajectory(robot: Any, backend: str, torque_nm: TorqueLaw, n_periods: int) -> np.ndarray:
     """The models simulator's plant (RK4, torque held over each period), nominal robot."""
-    sim = SimPlant(robot, Mismatch(), SimConfig(dt_s=PERIOD_S, plant_backend=backend))
+    sim = SimPlant(robot, Mismatch(), SimConfig(period_s=PERIOD_S, plant_backend=backend))
     q, qd = Q0_RAD.copy(), np.zeros_like(Q0_RAD)
     out = [q]
     for k in range(n_periods):
