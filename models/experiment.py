@@ -72,8 +72,8 @@ def time_controller(
     gain_set: str = DEFAULT_GAIN_SET,
 ) -> dict[str, float]:
     """Per-cycle wall time (ms) of one controller on a single robot, closed loop, over ``cycles`` periods."""
-    controller = make_controller(mode, make_law(law_name, robot, sim.dt_s, gain_set), robot, **options)
-    short = replace(condition, duration_s=min(condition.duration_s, cycles * sim.dt_s))
+    controller = make_controller(mode, make_law(law_name, robot, sim.period_s, gain_set), robot, **options)
+    short = replace(condition, duration_s=min(condition.duration_s, cycles * sim.period_s))
     simulate(robot, controller, [short], sim)
     samples = np.asarray(controller.cycle_times_s[10:] or controller.cycle_times_s) * 1e3
     return {
@@ -100,7 +100,7 @@ def run_experiment(
     runs: list[dict[str, Any]] = []
     trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]] = {}
     timing: dict[str, dict[str, dict[str, float]]] = defaultdict(dict)
-    steps = {c.name: int(round(c.duration_s / config.sim.dt_s)) for c in conditions}
+    steps = {c.name: int(round(c.duration_s / config.sim.period_s)) for c in conditions}
 
     for mode in config.modes:
         for group in _groups(conditions):
@@ -108,7 +108,7 @@ def run_experiment(
             # Every law runs side by side in one vectorized plant; HMPC-type modes likewise.
             controllers = [
                 make_controller(
-                    mode, make_law(law, robot, config.sim.dt_s, config.gain_set), robot, **options.get(mode, {})
+                    mode, make_law(law, robot, config.sim.period_s, config.gain_set), robot, **options.get(mode, {})
                 )
                 for law in config.laws
             ]
@@ -194,7 +194,7 @@ def _summarize(
             "gain_set": config.gain_set,
             "sim": asdict(config.sim),
         },
-        "law_params": {law: make_law(law, robot, config.sim.dt_s, config.gain_set).params for law in config.laws},
+        "law_params": {law: make_law(law, robot, config.sim.period_s, config.gain_set).params for law in config.laws},
         "conditions": [
             {
                 "name": c.name,
@@ -256,7 +256,7 @@ def format_table(results: dict[str, Any]) -> str:
     footer = [
         "",
         f"Robot {results['robot']}; conditions: {', '.join(c['name'] for c in results['conditions'])}; "
-        f"control period {results['config']['sim']['dt_s'] * 1e3:g} ms; gain set '{results['config']['gain_set']}'.",
+        f"control period {results['config']['sim']['period_s'] * 1e3:g} ms; gain set '{results['config']['gain_set']}'.",
         "Scores: composite of the six metrics, each normalized per condition by its largest value among the "
         "configurations in this table (docs/scoring.md). Times: median wall time per control cycle, one robot.",
         f"Every run finite and inside the joint limits: {limits}. ✗k: k conditions diverged or left the limits "
