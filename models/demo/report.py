@@ -82,7 +82,7 @@ def simulate_twin(
 
     sim = SimConfig()
     started = time.monotonic()
-    controller = make_controller(mode, make_law(law, robot, sim.dt_s, gain_set), robot)
+    controller = make_controller(mode, make_law(law, robot, sim.period_s, gain_set), robot)
     traj = simulate(robot, controller, [condition], sim)
     run = traj.run(0)
     run["within_limits"] = np.asarray(bool(traj.finite[0] and traj.within_limits[0]))
