@@ -391,7 +391,7 @@ def run_hil_experiment(
     # One snapshot of the bundles for the HIL runs and the simulation twin alike: a bundle
     # re-exported while the experiment runs (it happened) must not mix two versions in one table.
     options = replace(options, bundle_dir=snapshot_bundles(robot, config.laws, options.bundle_dir, out_dir / "bundles"))
-    period_s = config.sim.dt_s
+    period_s = config.sim.period_s
     conditions_file = out_dir / "conditions.yaml"
     write_text_atomic(conditions_file, conditions_yaml(conditions))
     sim_dir = out_dir / "sim"
