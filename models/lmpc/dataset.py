@@ -47,7 +47,7 @@ class RawDatasetSpec:
     conditions: int = 100
     seed: int = 20240601  # random_conditions seed; names R<seed>-<k>
     stride: int = 5  # log every 5th 1 ms period: 1000 samples per 5 s run, 600,000 in all
-    dt_s: float = 1e-3
+    period_s: float = 1e-3
     substeps: int = 2
     duration_s: float = 5.0
     chunks: int = 4  # tasks handed to the executor (conditions split across them)
@@ -118,9 +118,9 @@ def _simulate_chunk(task: tuple) -> dict[str, Any]:
     """Worker: every law on a slice of the conditions, in one vectorized plant."""
     robot_name, laws, gain_set, conditions, first_index, sim, stride = task
     robot = load_robot(robot_name)
-    steps = int(round(conditions[0].duration_s / sim.dt_s))
+    steps = int(round(conditions[0].duration_s / sim.period_s))
     loggers = [
-        _LoggingController(make_law(law, robot, sim.dt_s, gain_set), len(conditions), steps, stride) for law in laws
+        _LoggingController(make_law(law, robot, sim.period_s, gain_set), len(conditions), steps, stride) for law in laws
     ]
     stack = ControllerStack(loggers, [len(conditions)] * len(laws))
     traj = simulate(robot, stack, [c for _ in laws for c in conditions], sim)
@@ -149,7 +149,7 @@ def generate_raw_dataset(
 
     robot = load_robot(spec.robot)
     conditions = make_conditions(spec, robot)
-    sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
+    sim = SimConfig(period_s=spec.period_s, substeps=spec.substeps)
     bounds = np.linspace(0, len(conditions), min(spec.chunks, len(conditions)) + 1).astype(int)
     tasks = [
         (spec.robot, spec.laws, spec.gain_set, conditions[a:b], int(a), sim, spec.stride)
@@ -161,7 +161,7 @@ def generate_raw_dataset(
         parts.append(part)
         if progress is not None:
             progress(1)
-    built = {law: make_law(law, robot, spec.dt_s, spec.gain_set) for law in spec.laws}
+    built = {law: make_law(law, robot, spec.period_s, spec.gain_set) for law in spec.laws}
     laws_params = {
         law: {"state_size": built[law].state_size, "params": jsonable(built[law].params)} for law in spec.laws
     }
