@@ -139,7 +139,7 @@ def make_lmpc_controller(
     bundle = PolicyBundle.load(
         path,
         expected_joints=robot.n_joints,
-        expected_period_s=law.dt_s,
+        expected_period_s=law.period_s,
         expected_joint_names=list(robot.joint_names),
         expected_urdf_sha256=sha256_file(robot.urdf_path),
     )
