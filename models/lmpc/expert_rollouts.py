@@ -96,10 +96,10 @@ def _rollout_chunk(task: tuple) -> dict[str, Any]:
 
     robot_name, laws, gain_set, conditions, sim, stride = task
     robot = load_robot(robot_name)
-    steps = int(round(conditions[0].duration_s / sim.dt_s))
+    steps = int(round(conditions[0].duration_s / sim.period_s))
     loggers = [
         _expert_logger(
-            make_hmpc_controller(make_law(law, robot, sim.dt_s, gain_set), robot), len(conditions), steps, stride
+            make_hmpc_controller(make_law(law, robot, sim.period_s, gain_set), robot), len(conditions), steps, stride
         )
         for law in laws
     ]
