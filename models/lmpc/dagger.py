@@ -33,10 +33,10 @@ def lmpc_visited_states(
 ) -> dict[str, RawLaw]:
     """Run every law's LMPC bundle on ``conditions``; the logged states inside the limits, per law."""
     sim = SimConfig() if sim is None else sim
-    steps = int(round(conditions[0].duration_s / sim.dt_s))
+    steps = int(round(conditions[0].duration_s / sim.period_s))
     kwargs = {} if gain_set is None else {"gain_set": gain_set}
     controllers = [
-        make_lmpc_controller(make_law(law, robot, sim.dt_s, **kwargs), robot, bundle_dir=bundle_dir) for law in laws
+        make_lmpc_controller(make_law(law, robot, sim.period_s, **kwargs), robot, bundle_dir=bundle_dir) for law in laws
     ]
     loggers = [
         StateLogger(
