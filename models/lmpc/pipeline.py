@@ -175,7 +175,7 @@ def stage_label(
     try:
         with h5py.File(tmp, "w") as h5:
             for law_name in config.laws:
-                law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
+                law = make_law(law_name, robot, config.dataset.period_s, config.dataset.gain_set)
                 rows, index = raw.laws[law_name], unions[law_name]
                 taus, statuses = [], []
                 law_start = time.perf_counter()
@@ -425,7 +425,7 @@ def stage_augment(
     raw = load_raw_dataset(work / "raw.h5", config.laws)
     _, labels = load_labels(work / "labels.h5")
     pool = make_conditions(spec, robot)[: config.pool_conditions]
-    sim = SimConfig(dt_s=spec.dt_s, substeps=spec.substeps)
+    sim = SimConfig(period_s=spec.period_s, substeps=spec.substeps)
     train_config = replace(
         config.train,
         hidden=config.deploy_hidden,
@@ -534,7 +534,7 @@ def stage_augment(
                 rows = rows.take(np.sort(rng.choice(len(rows), config.dagger_states_per_law, replace=False)))
             counts[law] = {"visited_in_limits": len(visited[law]), "labeled": len(rows)}
             if len(rows):
-                tau, _ = hmpc_labeler(make_law(law, robot, spec.dt_s, spec.gain_set), robot, rows, hmpc_executor)
+                tau, _ = hmpc_labeler(make_law(law, robot, spec.period_s, spec.gain_set), robot, rows, hmpc_executor)
                 x, y, counts[law]["kept"] = on_policy(_rows(rows), tau, law)
                 data[law][0].append(x)
                 data[law][1].append(y)
@@ -592,7 +592,7 @@ def select_margins(
                 replace(config, box_margin=margin), robot, law, candidate, path, {"stage": "trust selection"}, {}
             )
             controller = make_lmpc_controller(
-                make_law(law, robot, spec.dt_s, spec.gain_set), robot, bundle_dir=path.parent.parent
+                make_law(law, robot, spec.period_s, spec.gain_set), robot, bundle_dir=path.parent.parent
             )
             with np.errstate(all="ignore"):
                 traj = simulate(robot, controller, conditions, sim)
@@ -648,7 +648,7 @@ def _export_deployed(
     }
     return export_bundle(
         out,
-        make_law(law_name, robot, spec.dt_s, spec.gain_set),
+        make_law(law_name, robot, spec.period_s, spec.gain_set),
         robot,
         emulator,
         training,
@@ -697,7 +697,7 @@ def stage_export(
                 "state_dict": augmented[law_name]["state_dict"],
                 "augmented_summary": augmented[law_name]["summary"],
             }
-        law = make_law(law_name, robot, config.dataset.dt_s, config.dataset.gain_set)
+        law = make_law(law_name, robot, config.dataset.period_s, config.dataset.gain_set)
         rows, lab = raw.laws[law_name], labels[law_name]
         x_train = rows.features(GUARD_FEATURES)[lab.sets[strategy]]  # the trust box is over the guard features
         parity = rows.take(lab.sets["test"][:256])
