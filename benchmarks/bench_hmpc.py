@@ -129,7 +129,7 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
     for condition in conditions:
         law = make()
         controller, cpu = _timed_controller(law, robot, options)
-        simulate(robot, controller, [condition], SimConfig(dt_s=dt))
+        simulate(robot, controller, [condition], SimConfig(period_s=dt))
         wall_ms, cpu_ms = np.asarray(controller.cycle_times_s) * 1e3, np.asarray(cpu) * 1e3
         walls.append(wall_ms), cpus.append(cpu_ms), iterations.extend(controller.iterations)
         hard = list(range(2000, min(2030, wall_ms.size)))
