@@ -52,14 +52,14 @@ def main() -> None:
     robot = load_robot("ur5_paper")
     condition = load_conditions()[0]
     sim = SimConfig()
-    short = replace(condition, duration_s=args.cycles * sim.dt_s)
+    short = replace(condition, duration_s=args.cycles * sim.period_s)
     out: dict = {
         "what": "t_L per control cycle, one arm, onnxruntime 1 intra-op thread",
         "cycles": args.cycles,
         "laws": {},
     }
     for law_name in args.laws.split(","):
-        law = make_law(law_name, robot, sim.dt_s)
+        law = make_law(law_name, robot, sim.period_s)
         controller = make_lmpc_controller(law, robot, bundle_dir=args.bundles)
         simulate(robot, controller, [short], sim)
         closed = np.asarray(controller.cycle_times_s[100:]) * 1e6
@@ -118,7 +118,7 @@ def trust_counts(laws: list[str], bundles: Path | None) -> dict:
     sim = SimConfig()
     out = {}
     for law_name in laws:
-        controller = make_lmpc_controller(make_law(law_name, robot, sim.dt_s), robot, bundle_dir=bundles)
+        controller = make_lmpc_controller(make_law(law_name, robot, sim.period_s), robot, bundle_dir=bundles)
         with np.errstate(all="ignore"):
             traj = simulate(robot, controller, conditions, sim)
         counts = controller.trust_counters()
