@@ -169,7 +169,7 @@ def main() -> None:
     started = time.monotonic()
     work = Path(os.environ.get("TMPDIR", "/tmp")) / f"hil-parity-{os.getpid()}.yaml"
     work.write_text(conditions_yaml(list(conditions.values())))
-    twin_config = SimConfig(dt_s=PERIOD_S, substeps=2, plant_backend="pinocchio")
+    twin_config = SimConfig(period_s=PERIOD_S, substeps=2, plant_backend="pinocchio")
     for spec in [x for x in args.runs.split(",") if x]:
         law, mode, cname = spec.split("/")
         condition = conditions[cname]
