@@ -75,7 +75,7 @@ def _gravity_plus_sinusoid():  # type: ignore[no-untyped-def]
 
 def _models_replay(q0: np.ndarray, qd0: np.ndarray, commanded_nm: np.ndarray, period_s: float) -> np.ndarray:
     """The models simulator's plant (RK4, zero-order hold) driven by the torques that went on the bus."""
-    sim = SimPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(dt_s=period_s, substeps=4, plant_backend="rne"))
+    sim = SimPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(period_s=period_s, substeps=4, plant_backend="rne"))
     q, qd = q0, qd0
     out = []
     for tau in commanded_nm:
