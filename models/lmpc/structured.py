@@ -59,14 +59,16 @@ class StructuredConfig:
     robot: str = "ur5_paper"
     laws: tuple[str, ...] = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
     gain_set: str = "stabilized"
-    hmpc_options: dict[str, Any] = field(default_factory=dict)  # HMPCConfig fields (torque_cost, dt_s, ...)
+    hmpc_options: dict[str, Any] = field(
+        default_factory=dict
+    )  # HMPCConfig fields (torque_cost, prediction_step_s, ...)
     target: str = "hmpc"
     ff_point: str = "measured"
     train_conditions: int = 16
     train_seed: int = 7101  # paper-range conditions for training; the held-out experiment uses other seeds
     duration_s: float = 5.0
     stride: int = 5  # log every 5th period
-    dt_s: float = 1e-3
+    period_s: float = 1e-3
     substeps: int = 2
     hidden: tuple[int, ...] = (32, 32)
     residual_bound_fraction: float = 0.02  # b_j = fraction * torque limit_j
@@ -140,7 +142,7 @@ def _logged_rollouts(
     """Run controllers side by side on ``conditions``; per controller the logged states and torques."""
     from models.lmpc.expert_rollouts import StateLogger
 
-    steps = int(round(conditions[0].duration_s / sim.dt_s))
+    steps = int(round(conditions[0].duration_s / sim.period_s))
     loggers = []
     for c in controllers:
         law = c.law
@@ -208,9 +210,9 @@ def collect(
     from models.sim import FeedbackController
 
     robot = load_robot(config.robot)
-    sim = SimConfig(dt_s=config.dt_s, substeps=config.substeps)
+    sim = SimConfig(period_s=config.period_s, substeps=config.substeps)
     laws = law_names or config.laws
-    made = [make_law(name, robot, config.dt_s, config.gain_set) for name in laws]
+    made = [make_law(name, robot, config.period_s, config.gain_set) for name in laws]
     if policy_dir is not None:
         from models.lmpc import make_lmpc_controller
 
@@ -628,7 +630,7 @@ def export_structured(
     """A policy bundle through models.lmpc.bundle_export (trust region: the training states' box)."""
     from models.lmpc.bundle_export import export_bundle
 
-    law = make_law(law_name, robot, config.dt_s, config.gain_set)
+    law = make_law(law_name, robot, config.period_s, config.gain_set)
     low, high = trust_box(s, robot, config)
     bound = config.bound_scale * np.abs(y).max(0) + 1e-3
     training = {
@@ -707,7 +709,7 @@ _DATA_FIELDS = (
     "train_seed",
     "duration_s",
     "stride",
-    "dt_s",
+    "period_s",
     "substeps",
     "accel_noise_rad_s2",
     "noise_hold_steps",
