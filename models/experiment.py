@@ -256,7 +256,8 @@ def format_table(results: dict[str, Any]) -> str:
     footer = [
         "",
         f"Robot {results['robot']}; conditions: {', '.join(c['name'] for c in results['conditions'])}; "
-        f"control period {results['config']['sim']['period_s'] * 1e3:g} ms; gain set '{results['config']['gain_set']}'.",
+        f"control period {results['config']['sim']['period_s'] * 1e3:g} ms; "
+        f"gain set '{results['config']['gain_set']}'.",
         "Scores: composite of the six metrics, each normalized per condition by its largest value among the "
         "configurations in this table (docs/scoring.md). Times: median wall time per control cycle, one robot.",
         f"Every run finite and inside the joint limits: {limits}. ✗k: k conditions diverged or left the limits "
