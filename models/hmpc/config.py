@@ -53,7 +53,7 @@ class HMPCConfig:
     position_limit_rad: tuple[float, ...] | None = None  # None: the robot's (Sec. IV-C) limits
     velocity_limit_rad_s: tuple[float, ...] | None = None
     torque_limit_nm: tuple[float, ...] | None = None
-    dt_s: float | None = None  # prediction step; None: the law's control period
+    prediction_step_s: float | None = None  # prediction step; None: the law's control period
     backend: str = "pinocchio"  # "pinocchio" (C++ ABA + analytic derivatives) or "rne" (own RNEFDA)
     max_iterations: int = 4  # Gauss-Newton iterations (derivative evaluations) per solve
     max_qp_iterations: int = 20  # projected-Newton iterations per box QP
@@ -103,10 +103,12 @@ class HMPCConfig:
                 array = np.asarray(value, float)
                 if array.ndim != 1 or np.any(np.isnan(array)) or np.any(array <= 0):
                     fail(name, "infeasible bounds: every limit must be > 0 (|x| <= limit)", value)
-        if self.dt_s is not None and not (
-            isinstance(self.dt_s, int | float) and math.isfinite(self.dt_s) and self.dt_s > 0
+        if self.prediction_step_s is not None and not (
+            isinstance(self.prediction_step_s, int | float)
+            and math.isfinite(self.prediction_step_s)
+            and self.prediction_step_s > 0
         ):
-            fail("dt_s", "must be a finite number > 0", self.dt_s)
+            fail("prediction_step_s", "must be a finite number > 0", self.prediction_step_s)
         if self.on_budget_exhausted not in BUDGET_POLICIES:
             fail("on_budget_exhausted", f"must be one of {', '.join(BUDGET_POLICIES)}", self.on_budget_exhausted)
         if self.torque_cost not in TORQUE_COSTS:
