@@ -137,9 +137,11 @@ class HMPCSolver:
             raise ModelInputError(f"hmpc: law '{law.name}' has {law.n_joints} joints, robot '{robot.name}' has {n}")
         self.law, self.robot, self.config = law, robot, config
         self.n_joints, self.horizon = n, config.horizon_steps
-        self.dt_s = float(config.dt_s if config.dt_s is not None else law.dt_s)
-        if not (np.isfinite(self.dt_s) and self.dt_s > 0):
-            raise ModelInputError(f"hmpc: prediction step dt_s must be > 0, got {self.dt_s}")
+        self.prediction_step_s = float(
+            config.prediction_step_s if config.prediction_step_s is not None else law.period_s
+        )
+        if not (np.isfinite(self.prediction_step_s) and self.prediction_step_s > 0):
+            raise ModelInputError(f"hmpc: prediction_step_s must be > 0, got {self.prediction_step_s}")
         self.predictor = make_predictor(robot, config.backend)
         self.torque_limit_nm = self._limit("torque_limit_nm", config.torque_limit_nm, robot.torque_limit_nm)
         self.position_limit_rad = self._limit("position_limit_rad", config.position_limit_rad, robot.position_limit_rad)
@@ -159,7 +161,7 @@ class HMPCSolver:
             from models.dynamics import make_dynamics
 
             inertia = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n)), float).reshape(n, n))
-            self.anchor_weight = config.anchor_weight_scale * self.dt_s**2 / inertia**2
+            self.anchor_weight = config.anchor_weight_scale * self.prediction_step_s**2 / inertia**2
             self.cost_torque_weight = self.anchor_weight
         # A law that overrides error_features gets its own E (and its state propagated along the
         # preview); the base E = [e, e_dot] does not depend on the law's state, which saves the work.
@@ -184,7 +186,7 @@ class HMPCSolver:
         self.use_kernels = self.kernels is not None
         # Constant pieces of the condensed model.
         self._stage_torque_weight = (self.temporal[:, None] * self.cost_torque_weight).reshape(-1)  # (T N,)
-        self._preview_s = self.dt_s * np.arange(1, self.horizon + 1)
+        self._preview_s = self.prediction_step_s * np.arange(1, self.horizon + 1)
         self._stage_feature_weight = np.ascontiguousarray(self.temporal[:, None] * self.feature_weight)  # (T, nE)
         self._torque_box = np.tile(self.torque_limit_nm, self.horizon)
         self._state_box = np.tile(self.state_limit, self.horizon)
@@ -373,7 +375,7 @@ class HMPCSolver:
         """Predicted states, error features and cost of torque sequences u (K, T, N).
 
         ``torque_weight``: W2 (N,) for this call (default: the optimized cost's), on rows.deviation(u)."""
-        dt, predictor = self.dt_s, self.predictor
+        dt, predictor = self.prediction_step_s, self.predictor
         weight = self.cost_torque_weight if torque_weight is None else torque_weight
         deviation = rows.deviation(u)
         k, horizon, n = u.shape
@@ -529,7 +531,7 @@ class HMPCSolver:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Condensed model of J / 2 without the bound penalty: H (K, TN, TN), g (K, TN), and the
         state sensitivities S = dx/dU (K, T 2N, TN)."""
-        dt, n, horizon = self.dt_s, self.n_joints, self.horizon
+        dt, n, horizon = self.prediction_step_s, self.n_joints, self.horizon
         k = u.shape[0]
         q_prev = np.concatenate([rows.q0[:, None], state.q[:, :-1]], 1).reshape(-1, n)
         qd_prev = np.concatenate([rows.qd0[:, None], state.qd[:, :-1]], 1).reshape(-1, n)
