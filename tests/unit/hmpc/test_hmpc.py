@@ -184,7 +184,7 @@ def test_process_pool_equals_serial(law, robot) -> None:  # type: ignore[no-unty
         {"torque_limit_nm": (10.0, 10.0, 10.0, -1.0, 10.0, 10.0)},
         {"velocity_limit_rad_s": (math.nan,) * 6},
         {"temporal_decay": 0.3},  # the 5th temporal weight would be negative
-        {"dt_s": 0.0},
+        {"prediction_step_s": 0.0},
         {"max_iterations": 0},
         {"backend": "matlab"},
         {"kernels": "fortran"},
