@@ -29,7 +29,7 @@ def test_anchored_weights_scale_with_inverse_inertia_squared(robot) -> None:  # 
     solver = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", anchor_weight_scale=10.0))
     inertia = np.array([0.048, 0.383, 0.124, 0.0168, 0.0024, 0.000125])  # M_ii(0), docs/hmpc.md
     np.testing.assert_allclose(solver.anchor_weight * inertia**2 / (10.0 * 1e-6), 1.0, rtol=0.05)
-    coarse = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", dt_s=0.01))  # prediction step 10 ms
+    coarse = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", prediction_step_s=0.01))  # prediction step 10 ms
     np.testing.assert_allclose(coarse.anchor_weight / solver.anchor_weight, 100.0)
 
 
