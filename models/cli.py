@@ -53,7 +53,7 @@ def experiment(
     gains: Annotated[
         str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper' (docs/feedback_laws.md).")
     ] = "stabilized",
-    dt: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
+    period_s: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
     substeps: Annotated[int, typer.Option(help="RK4 plant steps per control period.")] = 2,
     plant_backend: Annotated[str, typer.Option(help="Plant dynamics: pinocchio or rne (own RNEFDA).")] = "pinocchio",
     timing_cycles: Annotated[int, typer.Option(help="Single-robot cycles timed per law and mode.")] = 1000,
@@ -66,10 +66,12 @@ def experiment(
             help="HMPC torque cost: 'absolute' (W2 on tau) or 'anchored' (W2 on tau - w* tau_fb, docs/hmpc.md)."
         ),
     ] = "absolute",
-    hmpc_dt: Annotated[
+    hmpc_prediction_step_s: Annotated[
         float | None, typer.Option(help="HMPC prediction step (s); default: the control period.")
     ] = None,
-    hmpc_anchor_scale: Annotated[float, typer.Option(help="Anchored cost: c in W2_i = c dt^2 / M_ii(0)^2.")] = 10.0,
+    hmpc_anchor_scale: Annotated[
+        float, typer.Option(help="Anchored cost: c in W2_i = c h^2 / M_ii(0)^2, h the prediction step.")
+    ] = 10.0,
     plant: Annotated[
         str,
         typer.Option(
@@ -107,11 +109,11 @@ def experiment(
         raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
     if gains not in GAIN_SETS:
         raise ModelInputError(f"--gains: unknown '{gains}' (known: {', '.join(GAIN_SETS)})")
-    _positive(dt, "--dt")
+    _positive(period_s, "--period-s")
     _positive(substeps, "--substeps", integer=True)
     _positive(timing_cycles, "--timing-cycles", integer=True)
-    if hmpc_dt is not None:
-        _positive(hmpc_dt, "--hmpc-dt")
+    if hmpc_prediction_step_s is not None:
+        _positive(hmpc_prediction_step_s, "--hmpc-prediction-step-s")
     _positive(hmpc_anchor_scale, "--hmpc-anchor-scale")
     if plant_backend not in ("pinocchio", "rne"):
         raise ModelInputError(f"--plant-backend: unknown '{plant_backend}' (known: pinocchio, rne)")
@@ -128,7 +130,7 @@ def experiment(
             out,
             mismatch,
             gains,
-            dt,
+            period_s,
             substeps,
             plant_backend,
             timing_cycles,
@@ -136,7 +138,7 @@ def experiment(
             no_plots,
             lmpc_bundles,
             hmpc_formulation,
-            hmpc_dt,
+            hmpc_prediction_step_s,
             hmpc_anchor_scale,
             hil,
         )
@@ -154,7 +156,7 @@ def _experiment(
     out: Path,
     mismatch: str,
     gains: str,
-    dt: float,
+    period_s: float,
     substeps: int,
     plant_backend: str,
     timing_cycles: int,
@@ -162,7 +164,7 @@ def _experiment(
     no_plots: bool,
     lmpc_bundles: Path | None,
     hmpc_formulation: str,
-    hmpc_dt: float | None,
+    hmpc_prediction_step_s: float | None,
     hmpc_anchor_scale: float,
     hil: object = None,
 ) -> None:
@@ -188,7 +190,7 @@ def _experiment(
         laws=law_list,
         modes=mode_list,
         gain_set=gains,
-        sim=SimConfig(dt_s=dt, substeps=substeps, plant_backend=plant_backend),
+        sim=SimConfig(period_s=period_s, substeps=substeps, plant_backend=plant_backend),
         timing_cycles=timing_cycles,
         save_trajectories=not no_trajectories,
         plots=not no_plots,
@@ -205,8 +207,8 @@ def _experiment(
         hmpc_options: dict = {}
         if hmpc_formulation != "absolute":
             hmpc_options.update(torque_cost=hmpc_formulation, anchor_weight_scale=hmpc_anchor_scale)
-        if hmpc_dt is not None:
-            hmpc_options["dt_s"] = hmpc_dt
+        if hmpc_prediction_step_s is not None:
+            hmpc_options["prediction_step_s"] = hmpc_prediction_step_s
         if hmpc_options:
             options["hmpc"] = hmpc_options
         if hil is not None:  # --plant hil: models/hil_experiment.py
