@@ -21,7 +21,7 @@ def stability(
     conditions: Annotated[Path | None, typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
     condition: Annotated[int, typer.Option(help="1-based index of the condition in the file.")] = 1,
     robot: Annotated[str, typer.Option(help="Robot: ur5_paper, ur5, panda, or a URDF path.")] = "ur5_paper",
-    dt: Annotated[float, typer.Option(help="Control period (s); also the sampling of the reference.")] = 1e-3,
+    period_s: Annotated[float, typer.Option(help="Control period (s); also the sampling of the reference.")] = 1e-3,
     beta: Annotated[float, typer.Option(help="Lyapunov cross-term weight beta.")] = 1e-6,
     epsilon: Annotated[float, typer.Option(help="Margin epsilon of Eqs. 19-20.")] = 1e-3,
     stride: Annotated[int, typer.Option(help="Evaluate every stride-th control period.")] = 10,
@@ -41,8 +41,8 @@ def stability(
     if not 1 <= condition <= len(condition_list):
         raise ModelInputError(f"--condition: {condition} is outside 1..{len(condition_list)}")
     chosen = condition_list[condition - 1]
-    feedback = make_law(law, arm, dt_s=dt, gain_set=gains)
-    t = np.arange(int(round(chosen.duration_s / dt))) * dt
+    feedback = make_law(law, arm, period_s=period_s, gain_set=gains)
+    t = np.arange(int(round(chosen.duration_s / period_s))) * period_s
     q_d, qd_d, qdd_d = chosen.reference(t)
     states = roll_states(feedback, q_d, qd_d, q_d, qd_d, qdd_d)[::stride]
     pick = slice(None, None, stride)
