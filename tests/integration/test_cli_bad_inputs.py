@@ -109,7 +109,7 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
     # options
     ("timing-cycles=0", ["experiment", "--timing-cycles", "0"], {}, ["--timing-cycles", "positive"]),
     ("timing-cycles<0", ["experiment", "--timing-cycles", "-3"], {}, ["--timing-cycles", "positive"]),
-    ("dt=0", ["experiment", "--dt", "0"], {}, ["--dt", "positive"]),
+    ("period_s=0", ["experiment", "--period-s", "0"], {}, ["--period-s", "positive"]),
     ("unknown-option", ["experiment", "--colour", "red"], {}, ["No such option: --colour"]),
     ("unknown-robot", ["experiment", "--robot", "r2d2"], {}, ["robot: unknown name 'r2d2'", "ur5_paper"]),
     # --out
