@@ -104,7 +104,7 @@ def bundle_at(period_s: float) -> Iterator[Path]:
         path = Path(tmp) / "pd"
         shutil.copytree(PD_BUNDLE, path)
         manifest = json.loads((path / "manifest.json").read_text())
-        manifest["control_period_s"] = period_s
+        manifest["period_s"] = period_s
         (path / "manifest.json").write_text(json.dumps(manifest))
         yield path
 

@@ -126,7 +126,7 @@ class PolicyBundle:
         self.outputs = {s.name: s for s in outputs}
         self.n_joints = int(manifest["robot"]["n_joints"])
         self.joint_names = tuple(manifest["robot"]["joint_names"])
-        self.period_s = float(manifest["control_period_s"])
+        self.period_s = float(manifest["period_s"])
         self.law_name = str(manifest["law"]["name"])
         self.state_size = int(manifest["law"]["state_size"])
         self.torque_limit_nm = np.asarray(manifest["limits"]["torque_nm"], float)
@@ -194,7 +194,7 @@ class PolicyBundle:
             )
         manifest = raw
         n_joints, joint_names = parsed.robot.n_joints, list(parsed.robot.joint_names)
-        period_s, graph_file = parsed.control_period_s, parsed.graph.file
+        period_s, graph_file = parsed.period_s, parsed.graph.file
         for name, digest in sorted(parsed.files.items()):
             file = path / name
             if not file.is_file():
@@ -297,9 +297,16 @@ class PolicyBundle:
         self.saturation_checked = plateau
         if bound is None:
             return
-        inside = (trust[:, 0] == 0.0)[:, None] & (np.abs(tau) < limit - SATURATION_TOLERANCE_NM)
-        residual = np.abs(tau - tau_fb)
-        tol = 1e-9 + 1e-9 * np.abs(tau_fb)
+        # Where the emulator acts (alpha > 0) and the joint is not saturated, tau - tau_fb = alpha clip(r):
+        # divided by alpha (1 - trust[:, 0]) it is the clipped residual, which must stay within the bound,
+        # and every joint the graph reports clamped (trust[:, 1]) must sit exactly at it. The writer records
+        # probes that clamp each joint (clamp_probe_inputs), so a changed bound shows whatever its size.
+        alpha = 1.0 - trust[:, 0]
+        acting = alpha > 0.0
+        inside = acting[:, None] & (np.abs(tau) < limit - SATURATION_TOLERANCE_NM)
+        scale = 1.0 / np.where(acting, alpha, 1.0)[:, None]
+        residual = np.abs(tau - tau_fb) * scale
+        tol = (1e-9 + 1e-9 * np.abs(tau_fb)) * scale
         beyond = inside & (residual > bound + tol)
         if beyond.any():
             j = int(np.argwhere(beyond)[0][1])
@@ -307,9 +314,9 @@ class PolicyBundle:
                 f"bundle {manifest_path}: trust_region.residual_bound_nm[{j}] is {bound[j]:g} but the graph "
                 f"passes a residual of {residual[beyond[:, j], j].max():g} N m"
             )
-        clamped_rows = inside.all(axis=1) & (trust[:, 1] > 0.5)
         at_bound = np.abs(residual - bound) <= 1e-7 * np.maximum(1.0, bound)
-        unexplained = clamped_rows & ~at_bound.any(axis=1)
+        clamped_rows = inside.all(axis=1) & (trust[:, 1] > 0.5)
+        unexplained = clamped_rows & (at_bound.sum(axis=1) < np.rint(trust[:, 1]))
         if unexplained.any():
             raise BundleError(
                 f"bundle {manifest_path}: trust_region.residual_bound_nm does not match the graph's clamp "
@@ -463,10 +470,69 @@ def make_probe_inputs(bundle: PolicyBundle, count: int = 12, seed: int = PROBE_S
     return np.asarray(rows)
 
 
+#: trust weights alpha at which clamp_probe_inputs tries each direction beyond the box (1: its edge)
+CLAMP_PROBE_ALPHAS = (1.0, 0.9, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002)
+CLAMP_PROBE_INSIDE = (0.0, 0.25, 0.5)  # fractions of the half box, inside it (alpha = 1)
+
+
+def _guard_rows(bundle: PolicyBundle, g: np.ndarray) -> np.ndarray:
+    """Graph input rows from guard features g (B, 5N) = (q, e, qd, e_dot, qdd_d), the law at its
+    initial state for q."""
+    n = bundle.n_joints
+    q, e, qd, e_dot, qdd_d = (g[:, i * n : (i + 1) * n] for i in range(5))
+    return np.concatenate([q, qd, q + e, qd + e_dot, qdd_d, _probe_state(bundle, q)], 1)
+
+
+def clamp_probe_inputs(bundle: PolicyBundle) -> np.ndarray:
+    """Rows that exercise the residual clamp, for the writer to record (the loader then sees a changed
+    ``residual_bound_nm`` whatever its size): per joint, a row where that joint's residual is clamped
+    and no joint saturates, and one row at the box centre where none is clamped. Found by running the
+    graph: from the trust box's centre, one guard feature (q, e, qd, e_dot, qdd_d) of one joint moved at a
+    time, both signs, inside the box and beyond it at the trust weights CLAMP_PROBE_ALPHAS (a small alpha
+    keeps tau_fb + alpha * bound below the torque limit when the bound is larger than it). Per joint the
+    row with the largest alpha is kept; a joint whose residual no row clamps gets none. Empty without a
+    trust region or a bound."""
+    trust, bound = bundle.manifest.get("trust_region"), bundle.residual_bound_nm
+    n = bundle.n_joints
+    if trust is None or bound is None:
+        return np.zeros((0, bundle.input_width))
+    width = 5 * n  # the guard features the graph's inputs set (tau_fb is the law's output)
+    low, high = np.asarray(trust["feature_low"], float)[:width], np.asarray(trust["feature_high"], float)[:width]
+    span = np.clip(high - low, TRUST_MIN_SPAN, 1e6)
+    centre, margin = 0.5 * (low + high), float(trust["box_margin"])
+    offsets = [f * 0.5 * span for f in CLAMP_PROBE_INSIDE] + [
+        0.5 * span + (1.0 - a) * margin * span for a in CLAMP_PROBE_ALPHAS
+    ]
+    g = [centre]
+    for k in range(width):
+        for offset in offsets[1:]:
+            for sign in (1.0, -1.0):
+                row = centre.copy()
+                row[k] += sign * offset[k]
+                g.append(row)
+    x = _guard_rows(bundle, np.asarray(g))
+    y = bundle._run_rows(x)
+    s = bundle.state_size
+    tau, tau_fb, fallback, clamped = y[:, :n], y[:, n : 2 * n], y[:, 2 * n + s], y[:, 2 * n + s + 1]
+    alpha = 1.0 - fallback
+    ok = np.isfinite(y).all(axis=1) & (alpha > 0) & (np.abs(tau) < bundle.torque_limit_nm - 1e-6).all(axis=1)
+    residual = np.abs(tau - tau_fb) / np.where(ok, alpha, 1.0)[:, None]
+    at_bound = ok[:, None] & (clamped > 0.5)[:, None] & (np.abs(residual - bound) <= 1e-9 * np.maximum(1.0, bound))
+    chosen = []
+    for j in range(n):
+        rows = np.flatnonzero(at_bound[:, j])
+        if rows.size:
+            chosen.append(int(rows[np.argmax(alpha[rows])]))
+    free = np.flatnonzero(ok & (alpha == 1.0) & (clamped == 0.0))
+    if free.size:
+        chosen.append(int(free[0]))
+    return x[sorted(set(chosen))]
+
+
 def record_probes(path: str | Path, count: int = 12) -> dict[str, Any]:
     """The ``probes`` section for the bundle at ``path`` (the writer's step; graph and files final)."""
     bundle = PolicyBundle.load(path, check_behaviour=False)
-    x = make_probe_inputs(bundle, count)
+    x = np.concatenate([make_probe_inputs(bundle, count), clamp_probe_inputs(bundle)])
     y = bundle._run_rows(x)
     if not np.isfinite(y).all():
         raise BundleError(f"bundle {path}: the graph gives non-finite outputs on probe inputs")
@@ -474,7 +540,8 @@ def record_probes(path: str | Path, count: int = 12) -> dict[str, Any]:
         "inputs": x.tolist(),
         "outputs": y.tolist(),
         "atol": 1e-6,
-        "note": "graph inputs (hil_runtime.bundle.make_probe_inputs) and the exporter's onnxruntime outputs; "
+        "note": "graph inputs (hil_runtime.bundle.make_probe_inputs, clamp_probe_inputs) and the exporter's "
+        "onnxruntime outputs; "
         "the loader reruns them (atol + 1e-6 relative)",
     }
 

@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-SCHEMA = "hil-policy-bundle/2"
+SCHEMA = "hil-policy-bundle/3"  # 3: the control period is period_s (2 called it control_period_s)
 SUPPORTED_SCHEMAS = (SCHEMA,)
 MANIFEST = "manifest.json"
 INPUT_LAYOUT = ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state")
@@ -109,9 +109,9 @@ class Probes(_Strict):
 
 
 class Manifest(_Strict):
-    schema_id: Literal["hil-policy-bundle/2"] = Field(alias="schema")
+    schema_id: Literal["hil-policy-bundle/3"] = Field(alias="schema")
     robot: Robot
-    control_period_s: float = Field(gt=0)
+    period_s: float = Field(gt=0)
     limits: Limits
     law: Law
     graph: Graph

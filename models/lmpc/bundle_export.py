@@ -224,7 +224,7 @@ def export_bundle(
                 "n_joints": n,
                 "joint_names": list(robot.joint_names),
             },
-            "control_period_s": law.dt_s,
+            "period_s": law.period_s,
             "limits": {
                 "position_rad": robot.position_limit_rad.tolist(),
                 "velocity_rad_s": robot.velocity_limit_rad_s.tolist(),

@@ -43,7 +43,7 @@ def test_params_difference_tolerates_solver_noise_and_catches_real_changes() -> 
 @pytest.mark.parametrize("law_name", LAW_NAMES)
 def test_every_shipped_bundle_matches_the_law_of_its_gain_set(law_name: str) -> None:
     manifest = json.loads((SHIPPED_BUNDLES / ROBOT.name / law_name / "manifest.json").read_text())
-    law = make_law(law_name, ROBOT, manifest["control_period_s"], manifest["law"]["gain_set"])
+    law = make_law(law_name, ROBOT, manifest["period_s"], manifest["law"]["gain_set"])
     assert params_difference(manifest["law"]["params"], law.params) is None
     make_lmpc_controller(law, ROBOT)  # loads and checks exactly as the experiment does
 
