@@ -57,7 +57,7 @@ def pipeline(
         typer.Option(
             help="Structured design: trust-region residual bound, x the largest |tau* - tau_fb| of the labels."
         ),
-    ] = 3.0,
+    ] = 10.0,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     if design not in ("paper", "structured"):
@@ -157,7 +157,7 @@ def _structured(
     ff_point: str,
     conditions: int,
     dagger_rounds: int,
-    bound_scale: float = 3.0,
+    bound_scale: float = 10.0,
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
