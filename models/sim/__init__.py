@@ -1,6 +1,6 @@
 """Closed-loop simulation: fixed period, zero-order hold, RK4 plant, batched runs."""
 
-from models.sim.closed_loop import Plant, SimConfig, Trajectory, simulate
+from models.sim.closed_loop import ModelPlant, SimConfig, Trajectory, simulate
 from models.sim.controllers import MODES, Controller, ControllerStack, FeedbackController, make_controller
 
 __all__ = [
@@ -8,7 +8,7 @@ __all__ = [
     "Controller",
     "ControllerStack",
     "FeedbackController",
-    "Plant",
+    "ModelPlant",
     "SimConfig",
     "Trajectory",
     "make_controller",

@@ -72,8 +72,11 @@ class Trajectory:
         return out
 
 
-class Plant:
-    """The simulated arm: the (possibly mismatched) robot, friction, RK4 with substeps."""
+class ModelPlant:
+    """The models' simulated arm: the (possibly mismatched) robot, friction, RK4 with substeps.
+
+    Not the HIL target's physics (``sim_target.plant.TargetPlant``, pybullet behind emulated drives).
+    """
 
     def __init__(self, robot: RobotModel, mismatch: Mismatch, config: SimConfig) -> None:
         self.robot = robot
@@ -90,7 +93,7 @@ class Plant:
     def integrate(
         self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, duration_s: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """RK4 over ``duration_s`` with torque held, in steps no longer than dt / substeps."""
+        """RK4 over ``duration_s`` with torque held, in steps no longer than period_s / substeps."""
         steps = max(1, math.ceil(duration_s / (self.config.period_s / self.config.substeps) - 1e-9))
         h = duration_s / steps
         for _ in range(steps):
@@ -127,7 +130,7 @@ def simulate(
     if len({_group_key(c) for c in conditions}) != 1:
         raise ModelInputError("simulate: conditions in one batch must share duration, disturbance and mismatch")
     first = conditions[0]
-    plant = Plant(robot, first.mismatch, config)
+    plant = ModelPlant(robot, first.mismatch, config)
     n, batch, dt = robot.n_joints, len(conditions), config.period_s
     steps = int(round(first.duration_s / dt))
     t = np.arange(steps) * dt
@@ -184,7 +187,7 @@ def simulate(
 
 
 def _advance(
-    plant: Plant,
+    plant: ModelPlant,
     q: np.ndarray,
     qd: np.ndarray,
     tau: np.ndarray,

@@ -16,8 +16,7 @@ from typing import Any
 import numpy as np
 
 from models.conditions import Mismatch
-from models.sim.closed_loop import Plant as SimPlant
-from models.sim.closed_loop import SimConfig
+from models.sim.closed_loop import ModelPlant, SimConfig
 
 PERIOD_S = 1e-3
 DURATION_S = 2.0
@@ -41,7 +40,7 @@ def torque_law(dynamics: Any, amplitude_nm: np.ndarray) -> TorqueLaw:
 
 def models_trajectory(robot: Any, backend: str, torque_nm: TorqueLaw, n_periods: int) -> np.ndarray:
     """The models simulator's plant (RK4, torque held over each period), nominal robot."""
-    sim = SimPlant(robot, Mismatch(), SimConfig(period_s=PERIOD_S, plant_backend=backend))
+    sim = ModelPlant(robot, Mismatch(), SimConfig(period_s=PERIOD_S, plant_backend=backend))
     q, qd = Q0_RAD.copy(), np.zeros_like(Q0_RAD)
     out = [q]
     for k in range(n_periods):

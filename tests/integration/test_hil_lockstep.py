@@ -30,8 +30,7 @@ from drivers.transport import socketcan_unavailable
 from models.conditions import Mismatch
 from models.dynamics import make_dynamics
 from models.robots import load_robot
-from models.sim.closed_loop import Plant as SimPlant
-from models.sim.closed_loop import SimConfig
+from models.sim.closed_loop import ModelPlant, SimConfig
 from sim_target.config import DriveFault, FrameFault, HeartbeatFault
 from sim_target.server import send_control
 from sim_target.testing.hil_target import (
@@ -75,7 +74,7 @@ def _gravity_plus_sinusoid():  # type: ignore[no-untyped-def]
 
 def _models_replay(q0: np.ndarray, qd0: np.ndarray, commanded_nm: np.ndarray, period_s: float) -> np.ndarray:
     """The models simulator's plant (RK4, zero-order hold) driven by the torques that went on the bus."""
-    sim = SimPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(period_s=period_s, substeps=4, plant_backend="rne"))
+    sim = ModelPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(period_s=period_s, substeps=4, plant_backend="rne"))
     q, qd = q0, qd0
     out = []
     for tau in commanded_nm:
