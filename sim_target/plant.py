@@ -54,7 +54,10 @@ class JointState(NamedTuple):
 
 
 @runtime_checkable
-class Plant(Protocol):
+class TargetPlant(Protocol):
+    """The HIL target's physics, stepped by the emulated drives once per SYNC (``PybulletPlant``,
+    ``sim_target.testing.fake_plant.FakePlant``); not the models' RK4 plant ``models.sim.ModelPlant``."""
+
     n_joints: int
     period_s: float
 
@@ -263,7 +266,7 @@ class PybulletPlant:
             raise PlantError(f"{name}: non-finite value in {array.tolist()}")
         return array
 
-    # --- the Plant protocol ---------------------------------------------------------------------
+    # --- the TargetPlant protocol ---------------------------------------------------------------
 
     def reset(
         self,
