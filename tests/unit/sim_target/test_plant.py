@@ -12,7 +12,7 @@ from models.robots import load_robot
 from sim_target.plant import (
     PAPER_DISTURBANCE,
     JointState,
-    Plant,
+    TargetPlant,
     PlantError,
     PybulletPlant,
     TorqueImpulse,
@@ -35,8 +35,8 @@ def plant():
         yield p
 
 
-def test_implements_the_plant_protocol(plant: PybulletPlant) -> None:
-    assert isinstance(plant, Plant)
+def test_implements_the_target_plant_protocol(plant: PybulletPlant) -> None:
+    assert isinstance(plant, TargetPlant)
     assert plant.n_joints == 6
     state = plant.state()
     assert isinstance(state, JointState)
