@@ -1,6 +1,6 @@
 """A tiny plant for the drive-bus tests and benchmarks: independent joints, one inertia.
 
-Implements the Plant protocol of docs/TEAM_CONTRACTS.md without pybullet: each joint is a double
+Implements sim_target.plant.TargetPlant without pybullet: each joint is a double
 integrator (torque / inertia), a braked joint is held still. Deterministic, microseconds per step.
 """
 
