@@ -12,9 +12,9 @@ from models.robots import load_robot
 from sim_target.plant import (
     PAPER_DISTURBANCE,
     JointState,
-    TargetPlant,
     PlantError,
     PybulletPlant,
+    TargetPlant,
     TorqueImpulse,
     load_arm,
 )
