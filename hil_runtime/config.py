@@ -6,6 +6,7 @@
     bundle:
       path: ../models/bundles/ur5_paper/pd   # relative paths are relative to this file
       mode: lmpc                         # lmpc: the fused law + emulator; fb: the law alone
+      urdf_sha256: null                  # the arm's URDF hash: the bundle's must match; null: unchecked
     bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
       transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
                   fd: true, data_bitrate: 5000000}
@@ -36,7 +37,7 @@
 
 Bad input raises :class:`RuntimeConfigError` (exit code 2) with one line naming the file and the
 field. Whether the bundle matches the drives (joint count, order, period) is checked when the
-bundle is loaded (:func:`hil_runtime.runtime.load_bundle_for`), before the bus is touched.
+bundle is loaded (:func:`hil_runtime.loading.load_bundle_for`), before the bus is touched.
 """
 
 from __future__ import annotations
@@ -67,6 +68,10 @@ class _Frozen(BaseModel):
 class BundleSection(_Frozen):
     path: Path  # the bundle directory (manifest.json + policy.onnx)
     mode: Literal["lmpc", "fb"] = "lmpc"  # lmpc: fused law + emulator; fb: the law's torque alone
+    # The sha256 of the arm's URDF, when the operator pins it: the bundle's robot.urdf_sha256 must
+    # be the same (a bundle exported for another description of the arm is refused). None: the
+    # robot's name is checked only (the runtime reads no URDF; real drives report none).
+    urdf_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
 
 
 class ReferenceSection(_Frozen):

@@ -27,14 +27,11 @@ reads: any thread (signal handler, control socket, Zenoh queryable) may call the
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,10 +39,11 @@ import numpy as np
 from drivers.errors import DriveError
 from drivers.joint_bus import JointBus, JointFeedback
 from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle
-from hil_runtime.conditions import Condition, ConditionError, load_conditions
+from hil_runtime.conditions import ConditionError
 from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.controller import Controller
 from hil_runtime.lifecycle import Lifecycle, LifecycleError, LifecycleState, Transition
+from hil_runtime.loading import condition_for, load_bundle_for, safety_limits_for
 from hil_runtime.pacer import Pacer
 from hil_runtime.realtime import (
     GcQuiet,
@@ -54,16 +52,12 @@ from hil_runtime.realtime import (
     set_thread_affinity,
     set_thread_fifo,
 )
+from hil_runtime.record import RunRecord, RunResult
 from hil_runtime.reference import Reference
+from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, finite
 from hil_runtime.sdnotify import Notifier
-from hil_runtime.supervisor import (
-    Fault,
-    FaultKind,
-    SafetyLimits,
-    Supervisor,
-    classify_bus_error,
-)
-from hil_runtime.telemetry.sink import NullTelemetry, TelemetrySink
+from hil_runtime.supervisor import Fault, FaultKind, Supervisor, classify_bus_error
+from hil_runtime.telemetry.sink import NullTelemetry, StateSample, TelemetrySink
 
 log = logging.getLogger(__name__)
 
@@ -72,170 +66,6 @@ class StartupError(RuntimeError):
     """The daemon could not start (bus unreachable, drives silent): one line, exit 2, never enabled."""
 
     exit_code = 2
-
-
-# --- what the config names, loaded and cross-checked before any I/O ---------------------------------
-
-
-def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
-    """The config's bundle, refused unless it matches the drives: robot, joint count/order, period."""
-    bundle = PolicyBundle.load(
-        config.bundle.path,
-        expected_joints=len(config.bus.joints),
-        expected_period_s=config.period_s,
-        expected_joint_names=config.joint_names,
-    )
-    robot = bundle.manifest["robot"].get("name")
-    if robot != config.robot:
-        raise RuntimeConfigError(
-            f"{config.source}: robot: '{config.robot}' but bundle {config.bundle.path} is for '{robot}'"
-        )
-    return bundle
-
-
-def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimits:
-    """Soft limits: the config's, else the bundle manifest's; torque: the tighter of bundle and drives."""
-    limits = bundle.manifest["limits"]
-    n = bundle.n_joints
-    position = np.asarray(limits.get("position_rad", [math.pi] * n), float)
-    velocity = np.asarray(limits.get("velocity_rad_s", [math.inf] * n), float)
-    safety = config.safety
-    lower = np.asarray(safety.position_lower_rad, float) if safety.position_lower_rad is not None else -position
-    upper = np.asarray(safety.position_upper_rad, float) if safety.position_upper_rad is not None else position
-    vmax = np.asarray(safety.velocity_limit_rad_s, float) if safety.velocity_limit_rad_s is not None else velocity
-    drives = np.array([j.max_torque_nm for j in config.bus.joints])
-    torque = np.minimum(np.asarray(bundle.torque_limit_nm, float), drives)
-    try:
-        return SafetyLimits(lower, upper, vmax, torque, safety.max_stale_cycles)
-    except ValueError as exc:
-        raise RuntimeConfigError(f"{config.source}: safety: {exc}") from None
-
-
-@dataclass
-class _Limits:
-    """The JointLimits view of the safety limits that a condition is checked against."""
-
-    name: str
-    n_joints: int
-    position_lower_rad: np.ndarray
-    position_upper_rad: np.ndarray
-    velocity_limit_rad_s: np.ndarray
-
-
-def condition_for(config: RuntimeConfig, limits: SafetyLimits) -> Condition | None:
-    """The configured condition (None for hold), checked against the soft limits."""
-    ref = config.reference
-    if ref.kind == "hold":
-        return None
-    view = _Limits(
-        config.robot, limits.n_joints, limits.position_lower_rad, limits.position_upper_rad, limits.velocity_limit_rad_s
-    )
-    conditions = load_conditions(ref.conditions_file, view)
-    for condition in conditions:
-        if condition.name == ref.condition:
-            return condition
-    names = ", ".join(c.name for c in conditions)
-    where = ref.conditions_file or "the paper's conditions"
-    raise RuntimeConfigError(
-        f"{config.source}: reference.condition: no condition '{ref.condition}' in {where} (known: {names})"
-    )
-
-
-# --- the record of a run -----------------------------------------------------------------------------
-
-
-class RunRecord:
-    """Preallocated per-cycle arrays (``capacity`` rows); rows past it are counted, not kept."""
-
-    FIELDS = ("q", "qd", "q_ref", "qd_ref", "tau", "tau_fb")
-
-    def __init__(self, capacity: int, n_joints: int) -> None:
-        self.capacity = capacity
-        self.n = 0
-        self.overflow = 0
-        self.t_s = np.zeros(capacity)  # reference time of the row: period index x period
-        self.wall_s = np.zeros(capacity)  # monotonic clock at the cycle's start, from activation
-        self.q = np.zeros((capacity, n_joints))
-        self.qd = np.zeros((capacity, n_joints))
-        self.q_ref = np.zeros((capacity, n_joints))
-        self.qd_ref = np.zeros((capacity, n_joints))
-        self.tau = np.zeros((capacity, n_joints))  # the command the supervisor chose
-        self.tau_fb = np.zeros((capacity, n_joints))
-        self.fallback = np.zeros(capacity)
-        self.compute_s = np.zeros(capacity)  # this cycle's loop work, policy call included
-        self.exchange_s = np.zeros(capacity)  # this cycle's wait on the bus
-
-    def add(
-        self,
-        t_s: float,
-        wall_s: float,
-        q: np.ndarray,
-        qd: np.ndarray,
-        q_ref: np.ndarray,
-        qd_ref: np.ndarray,
-        tau: np.ndarray,
-        tau_fb: np.ndarray,
-        fallback: float,
-        exchange_s: float,
-    ) -> int:
-        """Store one row; returns its index (-1 when full). The loop fills compute_s at the cycle's end."""
-        i = self.n
-        if i >= self.capacity:
-            self.overflow += 1
-            return -1
-        self.t_s[i] = t_s
-        self.wall_s[i] = wall_s
-        self.q[i] = q
-        self.qd[i] = qd
-        self.q_ref[i] = q_ref
-        self.qd_ref[i] = qd_ref
-        self.tau[i] = tau
-        self.tau_fb[i] = tau_fb
-        self.fallback[i] = fallback
-        self.exchange_s[i] = exchange_s
-        self.n = i + 1
-        return i
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The filled rows (views)."""
-        n = self.n
-        names = ("t_s", "wall_s", *self.FIELDS, "fallback", "compute_s", "exchange_s")
-        return {name: getattr(self, name)[:n] for name in names}
-
-    def save_npz(self, path: Path | str) -> None:
-        """Written whole or not at all (a temporary name, then a rename): never half a file."""
-        from hil_runtime.outputs import atomic_path
-
-        with atomic_path(path) as tmp:
-            np.savez_compressed(tmp, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
-
-
-@dataclass
-class RunResult:
-    """What :meth:`Runtime.run` returns: why it ended and the counters of the run."""
-
-    reason: str  # "stop", "cycles", "duration", "fault"
-    state: LifecycleState
-    fault: str | None
-    cycles: int
-    stats: dict[str, Any]
-    fault_cycle: int | None = None  # exchanges in ACTIVE when the last fault was entered
-
-
-# Counters of anomalies the loop rides through; a rise is reported as a ``warning`` telemetry event.
-WARNING_COUNTERS = (
-    "overruns",
-    "skipped_periods",
-    "law_substitutions",
-    "nonfinite_fallbacks",
-    "saturations",
-    "stale_cycles",
-    "bus_dropped",
-    "bus_late",
-    "bus_malformed",
-    "bus_unknown_cob_id",
-    "bus_emcy",
-)
 
 
 # --- the runtime ---------------------------------------------------------------------------------------
@@ -295,11 +125,11 @@ class Runtime:
         self._activations = 0
         self._faults = 0
         self.total_cycles = 0  # exchanges in ACTIVE
-        self._seq = 0  # telemetry state samples offered (activation rows included)
+        self._sample = StateSample.zeros(n)  # this cycle's state, handed to telemetry and the record
         self.last_fault: Fault | None = None
         self.fault_cycle: int | None = None  # total_cycles when the last fault was entered
         self._last_stats: dict[str, Any] = {}
-        self._warned: dict[str, Any] = {}  # WARNING_COUNTERS at the last stats
+        self._rises = CounterRises()
 
     # --- requests from any thread -------------------------------------------------------------
     def request_stop(self) -> None:
@@ -548,23 +378,20 @@ class Runtime:
             return fault
         controller.commit(command)
         # compute_s here: this cycle's work up to the hand-off (the pacer's stats hold the full cycle's)
-        self._seq += 1
-        self.telemetry.offer_state(
-            self._seq, time.monotonic_ns(), q, qd, q_d, qd_d, command, tau_fb, fallback, self._clock() - received_s
-        )
+        sample = self._sample
+        sample.seq += 1
+        sample.t_ns = time.monotonic_ns()
+        sample.q = q
+        sample.qd = qd
+        sample.q_ref = q_d
+        sample.qd_ref = qd_d
+        sample.tau = command
+        sample.tau_fb = tau_fb
+        sample.fallback = fallback
+        sample.compute_s = self._clock() - received_s
+        self.telemetry.offer_state(sample)
         if self.record.capacity:
-            self.record.add(
-                k * self.pacer.period_s,
-                start_s - self._t0_s,
-                q,
-                qd,
-                q_d,
-                qd_d,
-                command,
-                tau_fb,
-                fallback,
-                received_s - start_s,
-            )
+            self.record.add(sample, k * self.pacer.period_s, start_s - self._t0_s, received_s - start_s)
         return None
 
     # --- faults, reset -------------------------------------------------------------------------------
@@ -673,14 +500,9 @@ class Runtime:
         self.notifier.status(self.status_line(stats))
         # Anomalies the loop rides through (a late or malformed frame, an overrun, a substituted
         # torque) are counted where they happen and reported here, one event per stats interval.
-        rose = [
-            f"{name} +{stats[name] - self._warned.get(name, 0)}"
-            for name in WARNING_COUNTERS
-            if stats.get(name, 0) > self._warned.get(name, 0)
-        ]
-        self._warned = {name: stats.get(name, 0) for name in WARNING_COUNTERS}
+        rose = self._rises.since_last(stats)
         if rose:
-            self.telemetry.event("warning", self.total_cycles, ", ".join(rose))
+            self.telemetry.event("warning", self.total_cycles, rose)
 
     # --- reporting (any thread) ----------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
@@ -691,10 +513,8 @@ class Runtime:
         out["fallbacks"] = counters.pop("fallback_cycles")
         out["saturations"] = counters.pop("saturated_cycles")
         out.update(counters)
-        bus_counters = self.bus.counters
-        if dataclasses.is_dataclass(bus_counters):
-            for field in dataclasses.fields(bus_counters):
-                out[f"bus_{field.name}"] = getattr(bus_counters, field.name)
+        for name, value in counters_dict(self.bus.counters).items():
+            out[f"bus_{name}"] = value
         out["nonfinite_fallbacks"] = self.bundle.nonfinite_fallbacks
         out["activations"] = self._activations
         out["faults"] = self._faults
@@ -728,30 +548,15 @@ class Runtime:
             "reference": self.reference.name,
             "ramp_cycles": self.reference.ramp_cycles,
             "cycles": self.total_cycles,
-            "rate_hz": _finite(stats.get("rate_hz")),
+            "rate_hz": finite(stats.get("rate_hz")),
             "overruns": self.pacer.overruns,
-            "compute_median_s": _finite(stats.get("compute_median_s")),
-            "compute_p99_s": _finite(stats.get("compute_p99_s")),
+            "compute_median_s": finite(stats.get("compute_median_s")),
+            "compute_p99_s": finite(stats.get("compute_p99_s")),
             "supervisor": self.supervisor.counters(),
             "nonfinite_fallbacks": self.bundle.nonfinite_fallbacks,
-            "bus": _counters_dict(self.bus.counters),
+            "bus": counters_dict(self.bus.counters),
             "realtime": {"applied": self.realtime.applied, "refused": self.realtime.refused},
         }
-
-
-def _counters_dict(counters: object) -> dict[str, Any]:
-    """The bus's counters (a dataclass instance, JointBus.counters) as a dict; {} for anything else."""
-    if dataclasses.is_dataclass(counters) and not isinstance(counters, type):
-        return dataclasses.asdict(counters)
-    return {}
-
-
-def _finite(value: Any) -> float | None:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return None
-    return number if math.isfinite(number) else None
 
 
 def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
@@ -769,6 +574,9 @@ __all__ = [
     "RunResult",
     "Runtime",
     "StartupError",
+    "WARNING_COUNTERS",
     "build_runtime",
+    "condition_for",
     "load_bundle_for",
+    "safety_limits_for",
 ]

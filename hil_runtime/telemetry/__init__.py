@@ -9,10 +9,11 @@ its one public decoder are in :mod:`hil_runtime.telemetry.codec`.
 
 from hil_runtime.telemetry.config import TelemetryConfig, TelemetryConfigError, parse_telemetry_config
 from hil_runtime.telemetry.factory import make_sink
-from hil_runtime.telemetry.sink import NullTelemetry, TelemetrySink
+from hil_runtime.telemetry.sink import NullTelemetry, StateSample, TelemetrySink
 
 __all__ = [
     "NullTelemetry",
+    "StateSample",
     "TelemetryConfig",
     "TelemetryConfigError",
     "TelemetrySink",

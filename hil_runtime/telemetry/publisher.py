@@ -31,8 +31,6 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol, runtime_checkable
 
-import numpy as np
-
 from hil_runtime.telemetry.codec import (
     FLAG_GAP,
     FLAG_WARMUP,
@@ -48,6 +46,7 @@ from hil_runtime.telemetry.codec import (
     state_size,
 )
 from hil_runtime.telemetry.config import TelemetryConfig, TelemetryConfigError, publisher_zenoh_config, zenoh_reason
+from hil_runtime.telemetry.sink import StateSample
 
 log = logging.getLogger(__name__)
 
@@ -170,20 +169,8 @@ class ZenohTelemetry:
         self._thread = threading.Thread(target=self._run, name=f"telemetry-{self.robot}", daemon=True)
         self._thread.start()
 
-    def offer_state(
-        self,
-        seq: int,
-        t_ns: int,
-        q: np.ndarray,
-        qd: np.ndarray,
-        q_ref: np.ndarray,
-        qd_ref: np.ndarray,
-        tau: np.ndarray,
-        tau_fb: np.ndarray,
-        fallback: float,
-        compute_s: float,
-    ) -> None:
-        self._last_seq = seq
+    def offer_state(self, sample: StateSample) -> None:
+        self._last_seq = sample.seq
         if self._decimation > 1:
             self._skipped += 1
             if self._skipped < self._decimation:
@@ -192,17 +179,18 @@ class ZenohTelemetry:
         states = self._states
         if len(states) == self._cap:
             self.dropped += 1  # append below pushes the oldest out
+        s = sample
         try:
             states.append(
                 b"".join(
                     (
-                        STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, _STATE, 0, seq, t_ns, fallback, compute_s),
-                        q.tobytes(),
-                        qd.tobytes(),
-                        q_ref.tobytes(),
-                        qd_ref.tobytes(),
-                        tau.tobytes(),
-                        tau_fb.tobytes(),
+                        STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, _STATE, 0, s.seq, s.t_ns, s.fallback, s.compute_s),
+                        s.q.tobytes(),
+                        s.qd.tobytes(),
+                        s.q_ref.tobytes(),
+                        s.qd_ref.tobytes(),
+                        s.tau.tobytes(),
+                        s.tau_fb.tobytes(),
                     )
                 )
             )

@@ -1,43 +1,55 @@
-"""The contract between the control loop and telemetry: :class:`TelemetrySink`.
+"""The contract between the control loop and telemetry: :class:`TelemetrySink` and the one
+per-cycle :class:`StateSample` that the loop hands on (to telemetry and to its run record).
 
 Call order, all from the loop's thread:
 
     sink.start()                                   # before ACTIVE: session open, publishers warm
     sink.set_status("ACTIVE", fault=None)          # on every lifecycle change
-    sink.offer_state(seq, t_ns, q, qd, q_ref, qd_ref, tau, tau_fb, fallback, compute_s)  # per cycle
+    sink.offer_state(sample)                       # per cycle (a StateSample)
     sink.offer_stats(stats)                        # about 1 Hz
     sink.event("fault", cycle, "heartbeat lost: node 3")
     sink.close()                                   # on shutdown (drains briefly, never hangs)
 
-``offer_state`` copies the arrays (the caller reuses its buffers) and never blocks: when the
-publisher falls behind, the oldest sample is dropped and counted.
+``offer_state`` copies what it keeps (the loop reuses one sample and its buffers) and never
+blocks: when the publisher falls behind, the oldest sample is dropped and counted.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+
+@dataclass(slots=True)
+class StateSample:
+    """One cycle's state as the loop hands it on. Arrays: float64, one value per joint (the
+    telemetry ``state`` layout, hil_runtime.telemetry.codec.STATE_FIELDS)."""
+
+    seq: int  # state samples offered since start (activation rows included)
+    t_ns: int  # monotonic clock when the sample was made
+    q: np.ndarray  # measured position [rad]
+    qd: np.ndarray  # measured velocity [rad/s]
+    q_ref: np.ndarray  # reference position [rad]
+    qd_ref: np.ndarray  # reference velocity [rad/s]
+    tau: np.ndarray  # the torque command the supervisor chose [N*m]
+    tau_fb: np.ndarray  # the feedback law's torque [N*m]
+    fallback: float  # share of joints on the law's torque (emulator not trusted)
+    compute_s: float  # the cycle's work up to the hand-off
+
+    @classmethod
+    def zeros(cls, n_joints: int) -> StateSample:
+        z = np.zeros(n_joints)
+        return cls(0, 0, z, z, z, z, z, z, 0.0, 0.0)
 
 
 @runtime_checkable
 class TelemetrySink(Protocol):
     def start(self) -> None: ...
 
-    def offer_state(
-        self,
-        seq: int,
-        t_ns: int,
-        q: np.ndarray,
-        qd: np.ndarray,
-        q_ref: np.ndarray,
-        qd_ref: np.ndarray,
-        tau: np.ndarray,
-        tau_fb: np.ndarray,
-        fallback: float,
-        compute_s: float,
-    ) -> None: ...
+    def offer_state(self, sample: StateSample) -> None: ...
 
     def offer_stats(self, stats: Mapping[str, float]) -> None: ...
 
@@ -54,19 +66,7 @@ class NullTelemetry:
     def start(self) -> None:
         pass
 
-    def offer_state(
-        self,
-        seq: int,
-        t_ns: int,
-        q: np.ndarray,
-        qd: np.ndarray,
-        q_ref: np.ndarray,
-        qd_ref: np.ndarray,
-        tau: np.ndarray,
-        tau_fb: np.ndarray,
-        fallback: float,
-        compute_s: float,
-    ) -> None:
+    def offer_state(self, sample: StateSample) -> None:
         pass
 
     def offer_stats(self, stats: Mapping[str, float]) -> None:

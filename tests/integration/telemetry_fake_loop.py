@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--off", action="store_true", help="telemetry disabled (NullTelemetry)")
     args = parser.parse_args(argv)
 
-    from hil_runtime.telemetry import TelemetryConfig, make_sink
+    from hil_runtime.telemetry import StateSample, TelemetryConfig, make_sink
 
     config = TelemetryConfig(
         enabled=not args.off, listen=(f"tcp/127.0.0.1:{args.port}",), controls_enabled=args.controls
@@ -100,8 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             deadline += period_s * int((now - deadline) / period_s)
         s = expected_state(seq)
         begin = time.perf_counter_ns()
-        sink.offer_state(seq, time.monotonic_ns(), s["q"], s["qd"], s["q_ref"], s["qd_ref"], s["tau"], s["tau_fb"],
-                         s["fallback"], s["compute_s"])  # fmt: skip
+        sink.offer_state(StateSample(seq, time.monotonic_ns(), **s))  # type: ignore[arg-type]  # values typed loosely
         offer_ns[seq] = time.perf_counter_ns() - begin
         starts[seq] = now
         lateness[seq] = now - deadline

@@ -3,6 +3,7 @@ not match the drives refused before any I/O; ``hil run`` with bad input exits 2,
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -129,6 +130,20 @@ def test_a_bundle_that_does_not_match_the_drives_is_refused_before_any_io(
         Runtime(config, bus)
     assert info.value.exit_code == 2 and fragment in str(info.value) and "\n" not in str(info.value)
     assert bus.events == []  # nothing was touched
+
+
+def test_a_pinned_urdf_sha256_must_be_the_bundles(tmp_path: Path) -> None:
+    bundle_sha = json.loads((PD_BUNDLE / "manifest.json").read_text())["robot"]["urdf_sha256"]
+    same = parse_runtime_config(config_dict(bundle={"path": str(PD_BUNDLE), "urdf_sha256": bundle_sha}), "rt.yaml")
+    Runtime(same, FakeJointBus(6))  # the arm's description is the bundle's: accepted
+    other = parse_runtime_config(config_dict(bundle={"path": str(PD_BUNDLE), "urdf_sha256": "0" * 64}), "rt.yaml")
+    bus = FakeJointBus(6)
+    with pytest.raises(RuntimeConfigError) as info:
+        Runtime(other, bus)
+    text = str(info.value)
+    assert text.startswith("rt.yaml: bundle.urdf_sha256: 000000000000") and bundle_sha[:12] in text, text
+    assert info.value.exit_code == 2 and "\n" not in text and bus.events == []
+    _refused(tmp_path, config_dict(bundle={"path": str(PD_BUNDLE), "urdf_sha256": "abc"}), "bundle.urdf_sha256")
 
 
 def test_a_tampered_bundle_is_refused(tmp_path: Path) -> None:

@@ -16,7 +16,8 @@ from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
-from hil_runtime.telemetry.sink import NullTelemetry
+from hil_runtime.telemetry.codec import STATS_FIELDS
+from hil_runtime.telemetry.sink import NullTelemetry, StateSample
 
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 
@@ -38,9 +39,9 @@ class RecordingSink(NullTelemetry):
     def start(self) -> None:
         self.calls.append("start")
 
-    def offer_state(self, *args: object) -> None:
+    def offer_state(self, sample: StateSample) -> None:
         self.states += 1
-        assert len(args) == 10
+        assert isinstance(sample, StateSample) and sample.q.shape == sample.tau.shape == (6,)
 
     def offer_stats(self, stats: object) -> None:
         self.stats.append(dict(stats))
@@ -262,21 +263,8 @@ def test_duration_ends_the_run_and_stats_carry_the_telemetry_fields() -> None:
     result = rt.run()
     assert result.reason == "duration" and result.cycles == 200  # 200 exchanges: the arm reached period 200 = 0.2 s
     stats = result.stats
-    for name in (
-        "rate_hz",
-        "period_median_s",
-        "period_p99_s",
-        "period_max_s",
-        "compute_median_s",
-        "compute_p99_s",
-        "compute_max_s",
-        "cycles",
-        "overruns",
-        "fallbacks",
-        "saturations",
-        "bus_frames_sent",
-        "bus_dropped",
-    ):
+    # Every stats field of the telemetry schema but the two the sink fills itself.
+    for name in (f for f in STATS_FIELDS if not f.startswith("telemetry_")):
         assert name in stats, name
     assert rt.telemetry.states == 201  # the activation row + one per exchange
     assert rt.telemetry.stats

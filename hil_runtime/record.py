@@ -1,0 +1,83 @@
+"""The record of a run: what :meth:`hil_runtime.runtime.Runtime.run` kept per cycle and returns.
+
+:class:`RunRecord` is preallocated (``capacity`` rows, one row per ACTIVE cycle, written from the
+loop's :class:`~hil_runtime.telemetry.sink.StateSample`); ``hil run --record`` saves it as .npz.
+:class:`RunResult` says why a run ended, with its counters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_runtime.lifecycle import LifecycleState
+from hil_runtime.telemetry.sink import StateSample
+
+
+class RunRecord:
+    """Preallocated per-cycle arrays (``capacity`` rows); rows past it are counted, not kept."""
+
+    FIELDS = ("q", "qd", "q_ref", "qd_ref", "tau", "tau_fb")
+
+    def __init__(self, capacity: int, n_joints: int) -> None:
+        self.capacity = capacity
+        self.n = 0
+        self.overflow = 0
+        self.t_s = np.zeros(capacity)  # reference time of the row: period index x period
+        self.wall_s = np.zeros(capacity)  # monotonic clock at the cycle's start, from activation
+        self.q = np.zeros((capacity, n_joints))
+        self.qd = np.zeros((capacity, n_joints))
+        self.q_ref = np.zeros((capacity, n_joints))
+        self.qd_ref = np.zeros((capacity, n_joints))
+        self.tau = np.zeros((capacity, n_joints))  # the command the supervisor chose
+        self.tau_fb = np.zeros((capacity, n_joints))
+        self.fallback = np.zeros(capacity)
+        self.compute_s = np.zeros(capacity)  # this cycle's loop work, policy call included
+        self.exchange_s = np.zeros(capacity)  # this cycle's wait on the bus
+
+    def add(self, sample: StateSample, t_s: float, wall_s: float, exchange_s: float) -> int:
+        """Store one row; returns its index (-1 when full). The loop fills compute_s at the cycle's end."""
+        i = self.n
+        if i >= self.capacity:
+            self.overflow += 1
+            return -1
+        self.t_s[i] = t_s
+        self.wall_s[i] = wall_s
+        self.q[i] = sample.q
+        self.qd[i] = sample.qd
+        self.q_ref[i] = sample.q_ref
+        self.qd_ref[i] = sample.qd_ref
+        self.tau[i] = sample.tau
+        self.tau_fb[i] = sample.tau_fb
+        self.fallback[i] = sample.fallback
+        self.exchange_s[i] = exchange_s
+        self.n = i + 1
+        return i
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The filled rows (views)."""
+        n = self.n
+        names = ("t_s", "wall_s", *self.FIELDS, "fallback", "compute_s", "exchange_s")
+        return {name: getattr(self, name)[:n] for name in names}
+
+    def save_npz(self, path: Path | str) -> None:
+        """Written whole or not at all (a temporary name, then a rename): never half a file."""
+        from hil_runtime.outputs import atomic_path
+
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+
+
+@dataclass
+class RunResult:
+    """What :meth:`Runtime.run` returns: why it ended and the counters of the run."""
+
+    reason: str  # "stop", "cycles", "duration", "fault"
+    state: LifecycleState
+    fault: str | None
+    cycles: int
+    stats: dict[str, Any]
+    fault_cycle: int | None = None  # exchanges in ACTIVE when the last fault was entered

@@ -1,0 +1,58 @@
+"""What the runtime reports about itself: the anomaly counters it rides through and how their
+rises become ``warning`` events, and the helpers that turn counters into JSON-able numbers."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+# Counters of anomalies the loop rides through; a rise is reported as a ``warning`` telemetry event.
+WARNING_COUNTERS = (
+    "overruns",
+    "skipped_periods",
+    "law_substitutions",
+    "nonfinite_fallbacks",
+    "saturations",
+    "stale_cycles",
+    "bus_dropped",
+    "bus_late",
+    "bus_malformed",
+    "bus_unknown_cob_id",
+    "bus_emcy",
+)
+
+
+class CounterRises:
+    """The WARNING_COUNTERS that rose since the last look: one ``warning`` line per stats interval."""
+
+    def __init__(self) -> None:
+        self._seen: dict[str, Any] = {}
+
+    def since_last(self, stats: Mapping[str, Any]) -> str | None:
+        """``"overruns +3, bus_late +1"`` for the counters that rose, None when none did."""
+        seen = self._seen
+        rose = [
+            f"{name} +{stats[name] - seen.get(name, 0)}"
+            for name in WARNING_COUNTERS
+            if stats.get(name, 0) > seen.get(name, 0)
+        ]
+        self._seen = {name: stats.get(name, 0) for name in WARNING_COUNTERS}
+        return ", ".join(rose) if rose else None
+
+
+def counters_dict(counters: object) -> dict[str, Any]:
+    """The bus's counters (a dataclass instance, JointBus.counters) as a dict; {} for anything else."""
+    if dataclasses.is_dataclass(counters) and not isinstance(counters, type):
+        return dataclasses.asdict(counters)
+    return {}
+
+
+def finite(value: Any) -> float | None:
+    """``value`` as a float when it is a finite number, else None (JSON has no NaN)."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return number if math.isfinite(number) else None
