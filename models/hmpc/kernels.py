@@ -1,43 +1,35 @@
-"""Compiled (numba) kernels for the HMPC's inner loops, row by row; numpy fallbacks elsewhere.
+"""Compiled (numba) kernels for the HMPC's inner loops, row by row.
 
-The solver spends its time, per Gauss-Newton iteration, in three places outside pinocchio:
-condensing the linearized rollout into H, g, S (`condense`); the box QP over the torque box, with
-the state-bound penalty's semismooth rounds around it (`model_step`); and, for batch labeling,
-hundreds of those per call. In numpy every one of them is tens of small array operations, each
-with microseconds of overhead, and the active-set loops run until the slowest row finishes. Here
-each row is solved on its own in compiled code (no per-operation overhead, no waiting on other
-rows), with the same algorithms as ``models.hmpc.boxqp`` and ``HMPCSolver._model_step``:
+``models.hmpc.inner_loops.NumbaInnerLoops`` calls them; ``NumpyInnerLoops`` beside it runs the
+same algorithms vectorized in numpy. The solver spends its time, per Gauss-Newton iteration, in
+three places outside pinocchio: condensing the linearized rollout into S, H, g
+(`sensitivities`, `normal_equations`); the box QP over the torque box, with the state-bound
+penalty's semismooth rounds around it (`model_step`); and, for batch labeling, hundreds of those
+per call. In numpy every one of them is tens of small array operations, each with microseconds of
+overhead, and the active-set loops run until the slowest row finishes. Here each row is solved on
+its own in compiled code (no per-operation overhead, no waiting on other rows), with the same
+algorithms as ``models.hmpc.boxqp`` and ``NumpyInnerLoops``:
 
 - box QP: primal-dual active set (Hintermueller-Ito-Kunisch), and where it cycles the primal
   active-set method (feasible, monotone, finite); the equality-constrained solves on the free set
   by Cholesky (H is symmetric positive definite: Gauss-Newton plus the Levenberg floor).
-- model step: the state-bound penalty's active set iterated (<= PENALTY_ROUNDS QP solves).
-- condense: S = dx/dU by the block recursion S_j = Phi_j S_{j-1} + [.. Gamma_j], using that S is
-  block lower triangular; H = S' W S + diag(W2) + damping, g = S' W r + W2 U.
+- model step: the state-bound penalty's active set iterated (<= ``rounds`` QP solves).
+- sensitivities: S = dx/dU by the block recursion S_j = Phi_j S_{j-1} + [.. Gamma_j], using that S
+  is block lower triangular; normal equations: H = F' W F + diag(W2) + damping, g = F' W r + W2 U.
 
-``AVAILABLE`` is False when numba is not installed; the solver then uses the numpy paths
-(same algorithms, same results to round-off). The kernels compile on first use and are cached
-on disk (``cache=True``), so a fresh process pays the compile once per machine, not per call.
+The kernels compile on first use and are cached on disk (``cache=True``), so a fresh process pays
+the compile once per machine, not per call. Importing this module needs numba.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
-
-try:  # numba is optional: the `models` extra installs it; without it the numpy paths run
-    import numba
-
-    AVAILABLE = True
-except ImportError:  # pragma: no cover - depends on the install
-    numba = None
-    AVAILABLE = False
 
 # This module is imported lazily, by the first solver that uses it (numba's import takes ~0.5 s).
 
 
 def _jit(fn):  # type: ignore[no-untyped-def]
-    if not AVAILABLE:
-        return fn
     return numba.njit(cache=True, fastmath={"reassoc", "contract"}, nogil=True)(fn)
 
 
@@ -76,6 +68,21 @@ def _solve_free(h, rhs, free, out, work):  # type: ignore[no-untyped-def]
     for a in range(nf):
         out[index[a]] = y[a]
     return True
+
+
+@_jit
+def _solve_free_set(h, g, free, fixed, out, rhs, work):  # type: ignore[no-untyped-def]
+    """out[free] = argmin g'x + 1/2 x'Hx over the free variables, the others held at fixed[~free]
+    (rhs: (m,) scratch); False if H[free, free] is not positive definite. ``out`` may be ``fixed``."""
+    m = g.shape[0]
+    for i in range(m):
+        if free[i]:
+            s = -g[i]
+            for j in range(m):
+                if not free[j]:
+                    s -= h[i, j] * fixed[j]
+            rhs[i] = s
+    return _solve_free(h, rhs, free, out, work)
 
 
 @_jit
@@ -126,9 +133,7 @@ def box_qp_row(h, g, lo, hi, max_iterations, tolerance, x, work, warm=False):  #
             at_lower[i] = (x[i] <= lo[i] + 1e-12 * (1 + abs(lo[i]))) and not at_upper[i]
             preset = preset or at_upper[i] or at_lower[i]
     if not preset:
-        for i in range(m):
-            rhs[i] = -g[i]
-        ok = _solve_free(h, rhs, free, x, work)
+        ok = _solve_free_set(h, g, free, x, x, rhs, work)  # every variable free: the unconstrained minimizer
         inside = ok
         if ok:
             for i in range(m):
@@ -165,14 +170,7 @@ def box_qp_row(h, g, lo, hi, max_iterations, tolerance, x, work, warm=False):  #
         for i in range(m):
             free[i] = not (at_upper[i] or at_lower[i])
             x[i] = hi[i] if at_upper[i] else (lo[i] if at_lower[i] else 0.0)
-        for i in range(m):
-            if free[i]:
-                s = -g[i]
-                for j in range(m):
-                    if not free[j]:
-                        s -= h[i, j] * x[j]
-                rhs[i] = s
-        if not _solve_free(h, rhs, free, x, work):
+        if not _solve_free_set(h, g, free, x, x, rhs, work):
             break
         _hx_plus_g(h, x, g, grad)
         for i in range(m):
@@ -199,16 +197,9 @@ def box_qp_row(h, g, lo, hi, max_iterations, tolerance, x, work, warm=False):  #
     for _ in range(4 * max_iterations):
         for i in range(m):
             free[i] = not (at_lo[i] or at_hi[i])
-        for i in range(m):
-            if free[i]:
-                s = -g[i]
-                for j in range(m):
-                    if not free[j]:
-                        s -= h[i, j] * x[j]
-                rhs[i] = s
-            else:
+            if not free[i]:
                 target[i] = x[i]
-        if not _solve_free(h, rhs, free, target, work):
+        if not _solve_free_set(h, g, free, x, target, rhs, work):
             break
         best_room = np.inf
         blocking = 0
@@ -273,10 +264,16 @@ def _penalty(x, limit, rho):  # type: ignore[no-untyped-def]
 
 
 @_jit
+def _side(value, limit):  # type: ignore[no-untyped-def]
+    """Which bound of |value| <= limit is violated: +1 upper, -1 lower, 0 none."""
+    return (1.0 if value > 0 else -1.0) if abs(value) > limit else 0.0
+
+
+@_jit
 def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, max_qp_iterations, qp_tolerance):  # type: ignore[no-untyped-def]
-    """``HMPCSolver._model_step`` after the condensation, row by row: (step (K, M), predicted
-    decrease of J (K,), exact (K,)). The penalty 1/2 rho |x_A + S_A d - b_A|^2 acts on the violated
-    set A, re-evaluated at the predicted states up to ``rounds`` times."""
+    """``NumpyInnerLoops.model_step`` row by row: (step (K, M), predicted decrease of J (K,),
+    exact (K,)). The penalty 1/2 rho |x_A + S_A d - b_A|^2 acts on the violated set A,
+    re-evaluated at the predicted states up to ``rounds`` times."""
     k, m = gradient0.shape
     nx = x.shape[1]
     step = np.zeros((k, m))
@@ -289,7 +286,7 @@ def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, m
     y = np.empty(nx)
     for r in range(k):
         for a in range(nx):
-            side[a] = (1.0 if x[r, a] > 0 else -1.0) if abs(x[r, a]) > limit[a] else 0.0
+            side[a] = _side(x[r, a], limit[a])
         settled = rho == 0.0
         qp_converged = False
         # step[r] = 0: the first QP's guess is the torques already on their limits (lower or
@@ -313,31 +310,20 @@ def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, m
             if rho == 0:
                 break
             same = True
-            for a in range(nx):
+            for a in range(nx):  # y = x + S d: the predicted states, and the bounds they violate
                 v = x[r, a]
                 for i in range(m):
                     v += sens[r, a, i] * step[r, i]
                 y[a] = v
-                new = (1.0 if v > 0 else -1.0) if abs(v) > limit[a] else 0.0
+                new = _side(v, limit[a])
                 if new != side[a]:
                     same = False
                 side[a] = new
             if same:
                 settled = True
                 break
-        quadratic = 0.0
-        for i in range(m):
-            s = 0.0
-            for j in range(m):
-                s += hessian0[r, i, j] * step[r, j]
-            quadratic += (gradient0[r, i] + 0.5 * s) * step[r, i]
-        for a in range(nx):
-            v = x[r, a]
-            for i in range(m):
-                v += sens[r, a, i] * step[r, i]
-            y[a] = v
-        change = quadratic
-        if rho > 0:
+        change = _objective(hessian0[r], gradient0[r], step[r])
+        if rho > 0:  # y holds the predicted states of the final step
             change += _penalty(y, limit, rho) - _penalty(x[r], limit, rho)
         predicted[r] = -2.0 * change  # the model is of J / 2
         exact[r] = settled and qp_converged
@@ -345,14 +331,12 @@ def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, m
 
 
 @_jit
-def condense(d_q, d_qd, d_tau, dt, weights, features, u, torque_weight, damping, levenberg):  # type: ignore[no-untyped-def]
-    """Condensed Gauss-Newton model of J / 2 (features E = ref - x): H (K, TN, TN), g (K, TN) and
-    S = dx/dU (K, T 2N, TN), from the per-step dynamics derivatives (K, T, N, N)."""
+def sensitivities(d_q, d_qd, d_tau, dt):  # type: ignore[no-untyped-def]
+    """S = dx/dU (K, T 2N, TN) of the linearized semi-implicit Euler rollout, from the per-step
+    dynamics derivatives (K, T, N, N); block lower triangular (x_j depends on u_1..u_j only)."""
     k, horizon, n = d_q.shape[0], d_q.shape[1], d_q.shape[2]
     m, nx = horizon * n, horizon * 2 * n
     sens = np.zeros((k, nx, m))
-    hessian = np.zeros((k, m, m))
-    gradient = np.zeros((k, m))
     phi = np.empty((2 * n, 2 * n))
     for r in range(k):
         s = sens[r]
@@ -379,40 +363,55 @@ def condense(d_q, d_qd, d_tau, dt, weights, features, u, torque_weight, damping,
                 for b in range(n):
                     s[row0 + a, j * n + b] = dt * dt * d_tau[r, j, a, b]
                     s[row0 + n + a, j * n + b] = dt * d_tau[r, j, a, b]
+    return sens
+
+
+@_jit
+def normal_equations(feature_sens, weights, residual, deviation, torque_weight, damping, levenberg):  # type: ignore[no-untyped-def]
+    """H (K, TN, TN), g (K, TN) of the Gauss-Newton model of J / 2 (without the bound penalty):
+    1/2 sum w (r + F d)^2 + 1/2 sum W2 (dev + d)^2, F = dE/dU (K, T nE, TN) block lower triangular,
+    weights (T, nE), residual r (K, T, nE), deviation (K, TN); plus the Levenberg damping."""
+    k, horizon, n_features = residual.shape
+    m = feature_sens.shape[2]
+    n = m // horizon
+    hessian = np.zeros((k, m, m))
+    gradient = np.zeros((k, m))
+    for r in range(k):
+        f = feature_sens[r]
         h = hessian[r]
         g = gradient[r]
         for j in range(horizon):
-            cols = (j + 1) * n  # S is block lower triangular: stage j depends on u_1..u_j only
-            for a in range(2 * n):
-                row = j * 2 * n + a
+            cols = (j + 1) * n  # stage j depends on u_1..u_j only
+            for a in range(n_features):
+                row = j * n_features + a
                 w = weights[j, a]
-                res = -w * features[r, j, a]
+                res = w * residual[r, j, a]
                 for c in range(cols):
-                    sc = s[row, c]
-                    if sc != 0.0:
-                        g[c] += sc * res
-                        wsc = w * sc
+                    fc = f[row, c]
+                    if fc != 0.0:
+                        g[c] += fc * res
+                        wfc = w * fc
                         for d in range(c + 1):
-                            h[c, d] += wsc * s[row, d]
+                            h[c, d] += wfc * f[row, d]
         total = 0.0
         for c in range(m):
             for d in range(c):
                 h[d, c] = h[c, d]
             h[c, c] += torque_weight[c]
-            g[c] += torque_weight[c] * u[r, c]
+            g[c] += torque_weight[c] * deviation[r, c]
             total += h[c, c]
         extra = damping * levenberg[r] * (total / m) + 1e-300
         for c in range(m):
             h[c, c] += extra
-    return hessian, gradient, sens
+    return hessian, gradient
 
 
 @_jit
-def stage_cost(q_path, qd_path, ref_q, ref_qd, u, feature_weight, torque_weight, temporal, state_limit, rho):  # type: ignore[no-untyped-def]
-    """Error features E = ref - x (K, T, 2N) and the cost J (K,) of predicted paths (K, T, N):
+def stage_cost(features, q_path, qd_path, deviation, feature_weight, torque_weight, temporal, state_limit, rho):  # type: ignore[no-untyped-def]
+    """J (K,) of predicted paths (K, T, N) with error features E (K, T, nE), E[..., :2N] = [e, e_dot]:
     sum_j w_j [E_j' W1 E_j + u_j' W2 u_j] + rho |x - clip(x, -limit, limit)|^2."""
     k, horizon, n = q_path.shape
-    features = np.empty((k, horizon, 2 * n))
+    n_features = features.shape[2]
     cost = np.empty(k)
     for r in range(k):
         total = 0.0
@@ -420,16 +419,16 @@ def stage_cost(q_path, qd_path, ref_q, ref_qd, u, feature_weight, torque_weight,
         for j in range(horizon):
             stage = 0.0
             for i in range(n):
-                e = ref_q[r, j, i] - q_path[r, j, i]
-                ed = ref_qd[r, j, i] - qd_path[r, j, i]
-                features[r, j, i] = e
-                features[r, j, n + i] = ed
+                e = features[r, j, i]
+                ed = features[r, j, n + i]
                 stage += feature_weight[i] * (e * e) + feature_weight[n + i] * (ed * ed)
-                stage += torque_weight[i] * (u[r, j, i] * u[r, j, i])
+                stage += torque_weight[i] * (deviation[r, j, i] * deviation[r, j, i])
                 if rho > 0:
                     v = q_path[r, j, i] - min(max(q_path[r, j, i], -state_limit[i]), state_limit[i])
                     vd = qd_path[r, j, i] - min(max(qd_path[r, j, i], -state_limit[n + i]), state_limit[n + i])
                     violation += v * v + vd * vd
+            for a in range(2 * n, n_features):  # a law's own features beyond [e, e_dot]
+                stage += feature_weight[a] * (features[r, j, a] * features[r, j, a])
             total += temporal[j] * stage
         cost[r] = total + rho * violation
-    return features, cost
+    return cost

@@ -23,15 +23,14 @@ outside them (e.g. just after the impulse) still gives a feasible problem; torqu
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
 
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
-from models.hmpc.boxqp import solve_box_qp
 from models.hmpc.config import HMPCConfig, per_joint
+from models.hmpc.inner_loops import make_inner_loops
 from models.hmpc.prediction import make_predictor
 from models.robots import RobotModel
 
@@ -46,19 +45,6 @@ ARMIJO = 1e-4
 LEVENBERG_GROWTH = 1e4  # damping factor after a step the line search rejected
 PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
 FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
-
-
-def _load_kernels(choice: str):  # type: ignore[no-untyped-def]
-    """The compiled kernels module (models.hmpc.kernels) or None for the numpy paths."""
-    if choice == "numpy":
-        return None
-    if importlib.util.find_spec("numba") is None:
-        if choice == "numba":
-            raise ModelInputError("hmpc config kernels: 'numba' needs the numba package (pip install numba)")
-        return None
-    from models.hmpc import kernels
-
-    return kernels
 
 
 @dataclass
@@ -182,15 +168,16 @@ class HMPCSolver:
             ]
         )
         self.n_features = n_features
-        self.kernels = _load_kernels(config.kernels)
-        self.use_kernels = self.kernels is not None
+        # The array work of each iteration (numpy, or the compiled kernels): chosen here, once.
+        self.inner_loops = make_inner_loops(config.kernels)
+        self._rho = float(config.state_bound_weight) if config.use_state_bounds else 0.0
         # Constant pieces of the condensed model.
         self._stage_torque_weight = (self.temporal[:, None] * self.cost_torque_weight).reshape(-1)  # (T N,)
         self._preview_s = self.prediction_step_s * np.arange(1, self.horizon + 1)
         self._stage_feature_weight = np.ascontiguousarray(self.temporal[:, None] * self.feature_weight)  # (T, nE)
         self._torque_box = np.tile(self.torque_limit_nm, self.horizon)
         self._state_box = np.tile(self.state_limit, self.horizon)
-        if self.use_kernels:
+        if self.inner_loops.needs_warm_up:
             # Load the compiled kernels now (numba's on-disk cache, ~0.3-0.5 s once per process), not
             # in the first control cycle: one solve at rest exercises every kernel signature.
             zero = np.zeros((1, n))
@@ -385,36 +372,32 @@ class HMPCSolver:
             qd = qd + dt * predictor.acceleration(q, qd, u[:, j])
             q = q + dt * qd
             q_path[:, j], qd_path[:, j] = q, qd
-        law_states = None
-        if self.use_kernels and not self.law_features:
-            rho = self.config.state_bound_weight if self.config.use_state_bounds else 0.0
-            features, cost = self.kernels.stage_cost(
-                q_path,
-                qd_path,
-                rows.ref_q,
-                rows.ref_qd,
-                deviation,
-                self.feature_weight,
-                weight,
-                self.temporal,
-                self.state_limit,
-                float(rho),
-            )
-            return _Rollout(q_path, qd_path, features, None, cost)
-        if self.law_features:
-            features, law_states = self._law_features(rows, u, q_path, qd_path)
-        else:
-            features = np.concatenate([rows.ref_q - q_path, rows.ref_qd - qd_path], -1)
-        stage = np.einsum("ktf,f->kt", features * features, self.feature_weight)
-        stage = stage + np.einsum("ktn,n->kt", deviation * deviation, weight)
-        cost = stage @ self.temporal
-        if self.config.use_state_bounds:
-            x = np.concatenate([q_path, qd_path], -1)
-            violation = x - np.clip(x, -self.state_limit, self.state_limit)
-            cost = cost + self.config.state_bound_weight * np.einsum("ktx,ktx->k", violation, violation)
+        features, law_states = self._features(rows, u, q_path, qd_path)
+        cost = self.inner_loops.stage_cost(
+            features,
+            q_path,
+            qd_path,
+            deviation,
+            self.feature_weight,
+            weight,
+            self.temporal,
+            self.state_limit,
+            self._rho,
+        )
         return _Rollout(q_path, qd_path, features, law_states, cost)
 
-    def _law_features(self, rows: _Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray):  # type: ignore[no-untyped-def]
+    def _features(
+        self, rows: _Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """E (K, T, nE) along the predicted paths, and the law's state at every step (law-specific
+        features; None for the base E = [e, e_dot], which does not depend on it)."""
+        if not self.law_features:
+            return np.concatenate([rows.ref_q - q_path, rows.ref_qd - qd_path], -1), None
+        return self._law_features(rows, u, q_path, qd_path)
+
+    def _law_features(
+        self, rows: _Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The law's own E along the preview, its state stepped with the predicted measurements."""
         law, horizon = self.law, self.horizon
         state = law.with_applied_torque(rows.law_state, u[:, 0])
@@ -468,63 +451,20 @@ class HMPCSolver:
         k = u.shape[0]
         hessian0, gradient0, sens = self._gauss_newton_model(rows, u, state, levenberg)
         flat_u = u.reshape(k, -1)
-        bound = self._torque_box
-        lower, upper = -bound - flat_u, bound - flat_u
-        x = np.concatenate([state.q, state.qd], -1).reshape(k, -1)
-        limit = self._state_box
-        rho = config.state_bound_weight if config.use_state_bounds else 0.0
-        if self.use_kernels:
-            step, predicted, exact = self.kernels.model_step(
-                hessian0,
-                gradient0,
-                sens,
-                x,
-                limit,
-                lower,
-                upper,
-                float(rho),
-                PENALTY_ROUNDS,
-                config.max_qp_iterations,
-                config.qp_tolerance,
-            )
-            return step.reshape(k, horizon, n), predicted, exact
-
-        def penalty(y: np.ndarray) -> np.ndarray:
-            violation = y - np.clip(y, -limit, limit)
-            return 0.5 * rho * np.einsum("kx,kx->k", violation, violation)
-
-        step = np.zeros_like(flat_u)
-        qp_converged = np.zeros(k, bool)
-        settled = np.zeros(k, bool) if rho > 0 else np.ones(k, bool)
-        side = np.sign(x) * (np.abs(x) > limit)  # the bounds violated now: the first guess of A
-        todo = np.arange(k)
-        for _ in range(PENALTY_ROUNDS if rho > 0 else 1):
-            hessian, gradient = hessian0[todo], gradient0[todo]
-            if rho > 0:  # penalty 1/2 rho |x_A + S_A d - b_A|^2 on the violated set A
-                sens_on = sens[todo] * (side[todo] != 0)[..., None]
-                hessian = hessian + rho * np.swapaxes(sens_on, 1, 2) @ sens_on
-                gradient = gradient + rho * np.einsum("kxi,kx->ki", sens_on, x[todo] - side[todo] * limit)
-            # warm start: the first round from the torques already on their limits (step = 0 there,
-            # i.e. last Gauss-Newton step's active set), later rounds from the last round's step
-            step[todo], qp_converged[todo] = solve_box_qp(
-                hessian, gradient, lower[todo], upper[todo], config.max_qp_iterations, config.qp_tolerance, step[todo]
-            )
-            if rho == 0:
-                break
-            y = x[todo] + np.einsum("kxi,ki->kx", sens[todo], step[todo])
-            new_side = np.sign(y) * (np.abs(y) > limit)
-            same = np.all(new_side == side[todo], 1)
-            settled[todo[same]] = True
-            side[todo] = new_side
-            todo = todo[~same]
-            if todo.size == 0:
-                break
-        quadratic = np.einsum("ki,ki->k", gradient0, step) + 0.5 * np.einsum(
-            "ki,ki->k", step, (hessian0 @ step[..., None])[..., 0]
+        step, predicted, exact = self.inner_loops.model_step(
+            hessian0,
+            gradient0,
+            sens,
+            np.concatenate([state.q, state.qd], -1).reshape(k, -1),
+            self._state_box,
+            -self._torque_box - flat_u,
+            self._torque_box - flat_u,
+            self._rho,
+            PENALTY_ROUNDS,
+            config.max_qp_iterations,
+            config.qp_tolerance,
         )
-        y = x + np.einsum("kxi,ki->kx", sens, step)
-        model_change = quadratic + penalty(y) - penalty(x)
-        return step.reshape(k, horizon, n), -2.0 * model_change, settled & qp_converged  # the model is of J / 2
+        return step.reshape(k, horizon, n), predicted, exact
 
     def _gauss_newton_model(
         self, rows: _Rows, u: np.ndarray, state: _Rollout, levenberg: np.ndarray
@@ -537,54 +477,20 @@ class HMPCSolver:
         qd_prev = np.concatenate([rows.qd0[:, None], state.qd[:, :-1]], 1).reshape(-1, n)
         _, d_q, d_qd, d_tau = self.predictor.acceleration_derivatives(q_prev, qd_prev, u.reshape(-1, n))
         d_q, d_qd, d_tau = (a.reshape(k, horizon, n, n) for a in (d_q, d_qd, d_tau))
-        if self.use_kernels and not self.law_features:
-            return self.kernels.condense(
-                np.ascontiguousarray(d_q),
-                np.ascontiguousarray(d_qd),
-                np.ascontiguousarray(d_tau),
-                dt,
-                self._stage_feature_weight,
-                np.ascontiguousarray(state.features),
-                np.ascontiguousarray(rows.deviation(u).reshape(k, -1)),
-                self._stage_torque_weight,
-                float(self.config.damping),
-                np.ascontiguousarray(levenberg, dtype=np.float64),
-            )
-        eye = np.eye(n)
-        # x+ = Phi x + Gamma u (linearized semi-implicit Euler), x = (q, qd)
-        phi = np.empty((k, horizon, 2 * n, 2 * n))
-        velocity_block = eye + dt * d_qd
-        phi[:, :, :n, :n] = eye + dt * dt * d_q
-        phi[:, :, :n, n:] = dt * velocity_block
-        phi[:, :, n:, :n] = dt * d_q
-        phi[:, :, n:, n:] = velocity_block
-        gamma = np.concatenate([dt * dt * d_tau, dt * d_tau], 2)  # (K, T, 2N, N)
-        sens = np.zeros((k, horizon, 2 * n, horizon * n))  # d x_{k+j} / d U
-        sens[:, 0, :, :n] = gamma[:, 0]
-        for j in range(1, horizon):
-            sens[:, j, :, : j * n] = phi[:, j] @ sens[:, j - 1, :, : j * n]
-            sens[:, j, :, j * n : (j + 1) * n] = gamma[:, j]
-
-        weights = self.temporal[None, :, None] * self.feature_weight  # (1, T, nE)
-        if self.law_features:
+        sens = self.inner_loops.sensitivities(d_q, d_qd, d_tau, dt)  # (K, T 2N, TN)
+        if self.law_features:  # E(U + d) = E + (dE/dx) S d
             jac = self._feature_jacobian(rows, state)  # (K, T, nE, 2N)
-            weighted = weights[..., None] * jac
-            block = np.einsum("ktfa,ktfb->ktab", jac, weighted)  # J' W1 J per stage
-            residual = np.einsum("ktfa,ktf->kta", weighted, state.features)
-        else:  # E = ref - x: dE/dx = -I
-            block = None
-            diag = np.broadcast_to(weights, (k, horizon, 2 * n)).copy()
-            residual = -weights * state.features
-        flat_sens = sens.reshape(k, horizon * 2 * n, horizon * n)
-        if block is None:
-            weighted_sens = flat_sens * diag.reshape(k, -1, 1)
-        else:
-            weighted_sens = (block @ sens).reshape(k, horizon * 2 * n, horizon * n)
-        hessian = np.swapaxes(flat_sens, 1, 2) @ weighted_sens
-        gradient = np.einsum("kxi,kx->ki", flat_sens, residual.reshape(k, -1))
-        hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += self._stage_torque_weight
-        gradient = gradient + self._stage_torque_weight * rows.deviation(u).reshape(k, -1)
-        diagonal = hessian[:, np.arange(horizon * n), np.arange(horizon * n)]
-        damping = self.config.damping * levenberg[:, None] * diagonal.mean(1, keepdims=True)
-        hessian[:, np.arange(horizon * n), np.arange(horizon * n)] += damping + 1e-300
-        return hessian, gradient, flat_sens
+            feature_sens = (jac @ sens.reshape(k, horizon, 2 * n, -1)).reshape(k, -1, horizon * n)
+            residual = state.features
+        else:  # E = ref - x: E(U + d) = E - S d, i.e. the residual -E with sensitivity S
+            feature_sens, residual = sens, -state.features
+        hessian, gradient = self.inner_loops.normal_equations(
+            feature_sens,
+            self._stage_feature_weight,
+            residual,
+            rows.deviation(u).reshape(k, -1),
+            self._stage_torque_weight,
+            float(self.config.damping),
+            levenberg,
+        )
+        return hessian, gradient, sens
