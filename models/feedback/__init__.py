@@ -5,9 +5,10 @@
     state = law.initial_state(q0[None])
     tau, state = law.step(np, state, q, qd, q_d, qd_d, qdd_d)   # (B, N) arrays
 
-Gains default to the paper's values (Sec. IV-B), which are 6-vectors; for a robot with another joint
-count pass them as keyword arguments, else make_law raises ModelInputError. docs/feedback_laws.md
-gives each law's equations and readings.
+Gains default to the paper's values (Sec. IV-B), tuned for its UR5 (``ur5_paper``); the gain sets
+hold that arm's gains too. For any other robot pass every gain of the law as keyword arguments
+(``ROBOT_GAINS``), else make_law raises ModelInputError naming the robot and the gain set.
+docs/feedback_laws.md gives each law's equations and readings.
 """
 
 from __future__ import annotations
@@ -137,6 +138,17 @@ GAIN_SETS: dict[str, dict[str, dict[str, Any]]] = {
     },
 }
 DEFAULT_GAIN_SET = "stabilized"
+#: The robot the paper's gains and every gain set were tuned for.
+GAIN_SET_ROBOT = "ur5_paper"
+#: The gains of each law that belong to a robot: another robot must be given all of them.
+ROBOT_GAINS: dict[str, tuple[str, ...]] = {
+    "pd": ("kp", "kd"),
+    "pid": ("kp", "kd", "ki"),
+    "adrc": ("b0", "omega_o", "omega_c"),
+    "hinf": ("alpha",),
+    "smc": ("lam", "k", "epsilon"),
+    "mrac": ("alpha", "gamma", "lam"),
+}
 
 
 def make_law(
@@ -147,8 +159,15 @@ def make_law(
         raise ModelInputError(f"feedback law: unknown '{name}' (known: {', '.join(LAW_NAMES)})")
     if gain_set not in GAIN_SETS:
         raise ModelInputError(f"gain set: unknown '{gain_set}' (known: {', '.join(GAIN_SETS)})")
-    if robot.n_joints == 6:  # the gain sets are for the paper's 6-joint arm
+    if robot.name == GAIN_SET_ROBOT:
         gains = {**GAIN_SETS[gain_set].get(name, {}), **gains}
+    else:  # the paper's gains on another arm would run silently and mean nothing there
+        missing = [g for g in ROBOT_GAINS[name] if gains.get(g) is None]
+        if missing:
+            raise ModelInputError(
+                f"feedback law '{name}': gain set '{gain_set}' holds the gains of '{GAIN_SET_ROBOT}', not of robot "
+                f"'{robot.name}' ({robot.n_joints} joints); pass {', '.join(missing)} for it"
+            )
     if not (period_s > 0 and period_s < 1.0):
         raise ModelInputError(f"feedback law '{name}': period_s must be in (0, 1) s, got {period_s}")
     try:
@@ -157,4 +176,4 @@ def make_law(
         raise ModelInputError(f"feedback law '{name}': bad parameter ({exc})") from exc
 
 
-__all__ = ["DEFAULT_GAIN_SET", "GAIN_SETS", "LAW_NAMES", "FeedbackLaw", "make_law"]
+__all__ = ["DEFAULT_GAIN_SET", "GAIN_SETS", "GAIN_SET_ROBOT", "LAW_NAMES", "ROBOT_GAINS", "FeedbackLaw", "make_law"]

@@ -8,7 +8,7 @@ import torch
 
 from models.dynamics import make_dynamics
 from models.errors import ModelInputError
-from models.feedback import LAW_NAMES, make_law
+from models.feedback import GAIN_SETS, LAW_NAMES, ROBOT_GAINS, make_law
 from models.feedback.adrc import ADRCLaw
 from models.feedback.hinf import makeweight_coefficients
 from models.robots import load_robot
@@ -35,6 +35,21 @@ def test_registry_rejects_unknown_law_and_wrong_joint_count() -> None:
     assert make_law("pd", panda, kp=np.ones(7), kd=0.1).n_joints == 7
     with pytest.raises(ModelInputError):
         make_law("pd", ROBOT, kp=[1.0, 2.0])
+
+
+@pytest.mark.parametrize("name", LAW_NAMES)
+def test_gain_sets_refuse_another_robot(name: str) -> None:
+    """The real UR5 has six joints too: the paper's UR5 gains must not reach it silently."""
+    ur5 = load_robot("ur5")
+    for gain_set in GAIN_SETS:
+        with pytest.raises(ModelInputError, match=f"gain set '{gain_set}'.*robot 'ur5' \\(6 joints\\); pass"):
+            make_law(name, ur5, gain_set=gain_set)
+    own = {gain: np.ones(6) for gain in ROBOT_GAINS[name]}  # every gain given: the caller's own set
+    if name == "adrc":
+        own.update(omega_o=50.0, omega_c=10.0)
+    if name in ("hinf", "smc"):
+        own = {g: (0.5 if g in ("alpha", "epsilon") else v) for g, v in own.items()}
+    assert make_law(name, ur5, **own).n_joints == 6
 
 
 @pytest.mark.parametrize("name", LAW_NAMES)
