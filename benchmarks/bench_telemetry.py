@@ -85,7 +85,7 @@ def run(
     publish_period_s: float = 0.001,
     express: bool | None = None,
 ) -> dict[str, Any]:
-    from hil_runtime.telemetry import NullTelemetry, StateSample, TelemetryConfig, make_sink
+    from hil_runtime.telemetry import CycleState, NullTelemetry, TelemetryConfig, make_sink
 
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -133,7 +133,7 @@ def run(
         q, qd, q_ref, qd_ref, tau, tau_fb = state[:n], state[n:2 * n], state[2 * n:3 * n], state[3 * n:4 * n], \
             state[4 * n:5 * n], state[5 * n:]  # fmt: skip
         middle = time.perf_counter_ns()
-        target.offer_state(StateSample(k, time.monotonic_ns(), q, qd, q_ref, qd_ref, tau, tau_fb, 0.0, 2e-5))
+        target.offer_state(CycleState(k, time.monotonic_ns(), q, qd, q_ref, qd_ref, tau, tau_fb, 0.0, 2e-5))
         end = time.perf_counter_ns()
         offer_ns[k] = end - middle
         cycle_ns[k] = end - begin

@@ -1,7 +1,7 @@
 """The record of a run: what :meth:`hil_runtime.runtime.Runtime.run` kept per cycle and returns.
 
 :class:`RunRecord` is preallocated (``capacity`` rows, one row per ACTIVE cycle, written from the
-loop's :class:`~hil_runtime.telemetry.sink.StateSample`); ``hil run --record`` saves it as .npz.
+loop's :class:`~hil_runtime.telemetry.sink.CycleState`); ``hil run --record`` saves it as .npz.
 :class:`RunResult` says why a run ended, with its counters.
 """
 
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from hil_runtime.lifecycle import LifecycleState
-from hil_runtime.telemetry.sink import StateSample
+from hil_runtime.telemetry.sink import CycleState
 
 
 class RunRecord:
@@ -38,7 +38,7 @@ class RunRecord:
         self.compute_s = np.zeros(capacity)  # this cycle's loop work, policy call included
         self.exchange_s = np.zeros(capacity)  # this cycle's wait on the bus
 
-    def add(self, sample: StateSample, t_s: float, wall_s: float, exchange_s: float) -> int:
+    def add(self, sample: CycleState, t_s: float, wall_s: float, exchange_s: float) -> int:
         """Store one row; returns its index (-1 when full). The loop fills compute_s at the cycle's end."""
         i = self.n
         if i >= self.capacity:

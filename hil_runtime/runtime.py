@@ -57,7 +57,7 @@ from hil_runtime.reference import Reference
 from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, finite
 from hil_runtime.sdnotify import Notifier
 from hil_runtime.supervisor import Fault, FaultKind, Supervisor, classify_bus_error
-from hil_runtime.telemetry.sink import NullTelemetry, StateSample, TelemetrySink
+from hil_runtime.telemetry.sink import CycleState, NullTelemetry, TelemetrySink
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ class Runtime:
         self._activations = 0
         self._faults = 0
         self.total_cycles = 0  # exchanges in ACTIVE
-        self._sample = StateSample.zeros(n)  # this cycle's state, handed to telemetry and the record
+        self._sample = CycleState.zeros(n)  # this cycle's state, handed to telemetry and the record
         self.last_fault: Fault | None = None
         self.fault_cycle: int | None = None  # total_cycles when the last fault was entered
         self._last_stats: dict[str, Any] = {}

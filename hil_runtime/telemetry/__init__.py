@@ -9,11 +9,11 @@ its one public decoder are in :mod:`hil_runtime.telemetry.codec`.
 
 from hil_runtime.telemetry.config import TelemetryConfig, TelemetryConfigError, parse_telemetry_config
 from hil_runtime.telemetry.factory import make_sink
-from hil_runtime.telemetry.sink import NullTelemetry, StateSample, TelemetrySink
+from hil_runtime.telemetry.sink import CycleState, NullTelemetry, TelemetrySink
 
 __all__ = [
     "NullTelemetry",
-    "StateSample",
+    "CycleState",
     "TelemetryConfig",
     "TelemetryConfigError",
     "TelemetrySink",

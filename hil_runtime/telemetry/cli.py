@@ -15,6 +15,7 @@ import math
 import sys
 import threading
 import time
+from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
@@ -253,58 +254,47 @@ def attach_watch(client: Any, schema: Any) -> _WatchState:
 
     state = _WatchState()
 
-    def refused(exc: TelemetryDecodeError) -> None:
-        state.refused += 1
-        state.last_refusal = str(exc)
+    def subscribe(key: str, decode: Callable[[bytes], tuple[Any, Any]], use: Callable[[Any], None]) -> None:
+        # One handler shape for every key: decode, count a refusal, skip WARMUP puts, hand on.
+        def on_payload(payload: bytes) -> None:
+            try:
+                header, body = decode(payload)
+            except TelemetryDecodeError as exc:
+                state.refused += 1
+                state.last_refusal = str(exc)
+                return
+            if not header.warmup:
+                use(body)
 
-    def on_state(payload: bytes) -> None:
-        try:
-            sample = schema.decode_state(payload)
-        except TelemetryDecodeError as exc:
-            refused(exc)
-            return
-        if sample.header.warmup:
-            return
+        client.subscribe(key, on_payload)
+
+    def decode_state(payload: bytes) -> tuple[Any, Any]:
+        sample = schema.decode_state(payload)
+        return sample.header, sample
+
+    def on_sample(sample: Any) -> None:
         state.gaps += sample.header.gap
         state.sample = sample
         state.arrivals.append((time.monotonic(), float(sample["fallback"]) > 0.0))
 
-    def on_stats(payload: bytes) -> None:
-        try:
-            header, values = schema.decode_stats(payload)
-        except TelemetryDecodeError as exc:
-            refused(exc)
-            return
-        if not header.warmup:
-            state.stats = values
+    def on_stats(values: dict[str, float]) -> None:
+        state.stats = values
 
-    def on_status(payload: bytes) -> None:
-        try:
-            header, body = schema.decode_status(payload)
-        except TelemetryDecodeError as exc:
-            refused(exc)
-            return
-        if not header.warmup:
-            state.status = body
+    def on_status(body: dict[str, Any]) -> None:
+        state.status = body
 
-    def on_event(payload: bytes) -> None:
-        try:
-            header, body = schema.decode_event(payload)
-        except TelemetryDecodeError as exc:
-            refused(exc)
-            return
-        if not header.warmup:
-            state.events.append(f"{time.strftime('%H:%M:%S')} cycle {body['cycle']}: {body['kind']} {body['detail']}")
+    def on_event(body: dict[str, Any]) -> None:
+        state.events.append(f"{time.strftime('%H:%M:%S')} cycle {body['cycle']}: {body['kind']} {body['detail']}")
 
     def on_alive(alive: bool) -> None:
         if alive != state.alive:
             state.alive = alive
             state.alive_changed_s = time.monotonic()
 
-    client.subscribe("state", on_state)
-    client.subscribe("stats", on_stats)
-    client.subscribe("status", on_status)
-    client.subscribe("events", on_event)
+    subscribe("state", decode_state, on_sample)
+    subscribe("stats", schema.decode_stats, on_stats)
+    subscribe("status", schema.decode_status, on_status)
+    subscribe("events", schema.decode_event, on_event)
     client.watch_alive(on_alive)
     return state
 

@@ -46,7 +46,7 @@ from hil_runtime.telemetry.codec import (
     state_size,
 )
 from hil_runtime.telemetry.config import TelemetryConfig, TelemetryConfigError, publisher_zenoh_config, zenoh_reason
-from hil_runtime.telemetry.sink import StateSample
+from hil_runtime.telemetry.sink import CycleState
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ class ZenohTelemetry:
         self._thread = threading.Thread(target=self._run, name=f"telemetry-{self.robot}", daemon=True)
         self._thread.start()
 
-    def offer_state(self, sample: StateSample) -> None:
+    def offer_state(self, sample: CycleState) -> None:
         self._last_seq = sample.seq
         if self._decimation > 1:
             self._skipped += 1

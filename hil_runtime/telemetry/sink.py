@@ -1,11 +1,11 @@
 """The contract between the control loop and telemetry: :class:`TelemetrySink` and the one
-per-cycle :class:`StateSample` that the loop hands on (to telemetry and to its run record).
+per-cycle :class:`CycleState` that the loop hands on (to telemetry and to its run record).
 
 Call order, all from the loop's thread:
 
     sink.start()                                   # before ACTIVE: session open, publishers warm
     sink.set_status("ACTIVE", fault=None)          # on every lifecycle change
-    sink.offer_state(sample)                       # per cycle (a StateSample)
+    sink.offer_state(sample)                       # per cycle (a CycleState)
     sink.offer_stats(stats)                        # about 1 Hz
     sink.event("fault", cycle, "heartbeat lost: node 3")
     sink.close()                                   # on shutdown (drains briefly, never hangs)
@@ -24,7 +24,7 @@ import numpy as np
 
 
 @dataclass(slots=True)
-class StateSample:
+class CycleState:
     """One cycle's state as the loop hands it on. Arrays: float64, one value per joint (the
     telemetry ``state`` layout, hil_runtime.telemetry.codec.STATE_FIELDS)."""
 
@@ -40,7 +40,7 @@ class StateSample:
     compute_s: float  # the cycle's work up to the hand-off
 
     @classmethod
-    def zeros(cls, n_joints: int) -> StateSample:
+    def zeros(cls, n_joints: int) -> CycleState:
         z = np.zeros(n_joints)
         return cls(0, 0, z, z, z, z, z, z, 0.0, 0.0)
 
@@ -49,7 +49,7 @@ class StateSample:
 class TelemetrySink(Protocol):
     def start(self) -> None: ...
 
-    def offer_state(self, sample: StateSample) -> None: ...
+    def offer_state(self, sample: CycleState) -> None: ...
 
     def offer_stats(self, stats: Mapping[str, float]) -> None: ...
 
@@ -66,7 +66,7 @@ class NullTelemetry:
     def start(self) -> None:
         pass
 
-    def offer_state(self, sample: StateSample) -> None:
+    def offer_state(self, sample: CycleState) -> None:
         pass
 
     def offer_stats(self, stats: Mapping[str, float]) -> None:

@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--off", action="store_true", help="telemetry disabled (NullTelemetry)")
     args = parser.parse_args(argv)
 
-    from hil_runtime.telemetry import StateSample, TelemetryConfig, make_sink
+    from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink
 
     config = TelemetryConfig(
         enabled=not args.off, listen=(f"tcp/127.0.0.1:{args.port}",), controls_enabled=args.controls
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             deadline += period_s * int((now - deadline) / period_s)
         s = expected_state(seq)
         begin = time.perf_counter_ns()
-        sink.offer_state(StateSample(seq, time.monotonic_ns(), **s))  # type: ignore[arg-type]  # values typed loosely
+        sink.offer_state(CycleState(seq, time.monotonic_ns(), **s))  # type: ignore[arg-type]  # values typed loosely
         offer_ns[seq] = time.perf_counter_ns() - begin
         starts[seq] = now
         lateness[seq] = now - deadline

@@ -28,7 +28,7 @@ pytest.importorskip("zenoh")
 
 from telemetry_fake_loop import JOINTS, expected_state
 
-from hil_runtime.telemetry import StateSample, TelemetryConfig, make_sink
+from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink
 from hil_runtime.telemetry.codec import Schema
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
 
@@ -370,7 +370,7 @@ def test_close_is_bounded_with_a_stalled_subscriber() -> None:
     def feed() -> None:
         seq = 0
         while not stop.is_set():
-            sink.offer_state(StateSample(seq, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
+            sink.offer_state(CycleState(seq, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
             seq += 1
             time.sleep(0.001)
 

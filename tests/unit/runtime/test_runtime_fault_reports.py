@@ -18,7 +18,7 @@ from hil_runtime.bundle import NonFiniteOutputError, PolicyBundle
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import RunRecord, Runtime
-from hil_runtime.telemetry.sink import NullTelemetry, StateSample
+from hil_runtime.telemetry.sink import CycleState, NullTelemetry
 
 
 class Events(NullTelemetry):
@@ -93,7 +93,7 @@ def test_nonfinite_fallbacks_of_the_bundle_are_in_stats_and_status() -> None:
 
 def test_the_record_is_written_whole_or_not_at_all(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     record = RunRecord(4, 6)
-    record.add(StateSample.zeros(6), 0.0, 0.0, 0.0)
+    record.add(CycleState.zeros(6), 0.0, 0.0, 0.0)
     path = tmp_path / "run.npz"
     record.save_npz(path)
     with np.load(path) as data:

@@ -17,7 +17,7 @@ from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.codec import STATS_FIELDS
-from hil_runtime.telemetry.sink import NullTelemetry, StateSample
+from hil_runtime.telemetry.sink import CycleState, NullTelemetry
 
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 
@@ -39,9 +39,9 @@ class RecordingSink(NullTelemetry):
     def start(self) -> None:
         self.calls.append("start")
 
-    def offer_state(self, sample: StateSample) -> None:
+    def offer_state(self, sample: CycleState) -> None:
         self.states += 1
-        assert isinstance(sample, StateSample) and sample.q.shape == sample.tau.shape == (6,)
+        assert isinstance(sample, CycleState) and sample.q.shape == sample.tau.shape == (6,)
 
     def offer_stats(self, stats: object) -> None:
         self.stats.append(dict(stats))

@@ -9,7 +9,7 @@ import logging
 import numpy as np
 import pytest
 
-from hil_runtime.telemetry import StateSample, TelemetryConfig, TelemetrySink, make_sink
+from hil_runtime.telemetry import CycleState, TelemetryConfig, TelemetrySink, make_sink
 from hil_runtime.telemetry.codec import FLAG_GAP, Schema, build_schema, encode_state
 from hil_runtime.telemetry.publisher import ZenohTelemetry
 
@@ -38,7 +38,7 @@ def _sink(**overrides: object) -> tuple[ZenohTelemetry, _FakePublisher]:
 
 def _offer(sink: TelemetrySink, seq: int) -> list[np.ndarray]:
     blocks = [np.full(3, seq + 0.1 * b) for b in range(6)]
-    sink.offer_state(StateSample(seq, 1000 * seq, *blocks, 0.5, 2e-6))
+    sink.offer_state(CycleState(seq, 1000 * seq, *blocks, 0.5, 2e-6))
     return blocks
 
 
@@ -62,7 +62,7 @@ def test_the_caller_may_reuse_its_buffers() -> None:
     zeros = np.zeros(3)
     for seq in range(3):
         q[:] = seq
-        sink.offer_state(StateSample(seq, 0, q, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
+        sink.offer_state(CycleState(seq, 0, q, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
     sink._drain_state()
     schema = Schema(build_schema("arm", JOINTS))
     assert [float(schema.decode_state(p)["q"][0]) for p in publisher.payloads] == [0.0, 1.0, 2.0]
@@ -95,11 +95,11 @@ def test_caller_bugs_are_counted_never_raised(caplog: pytest.LogCaptureFixture) 
     sink, publisher = _sink()
     zeros = np.zeros(3)
     caplog.set_level(logging.ERROR)
-    sink.offer_state(StateSample(-1, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # negative seq: u64
-    sink.offer_state(StateSample(1, 0, [0.0] * 3, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # type: ignore[arg-type]
+    sink.offer_state(CycleState(-1, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # negative seq: u64
+    sink.offer_state(CycleState(1, 0, [0.0] * 3, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # type: ignore[arg-type]
     short = np.zeros(2)
-    sink.offer_state(StateSample(2, 0, short, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # wrong joint count
-    sink.offer_state(StateSample(3, 0, zeros.astype(np.float32), zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
+    sink.offer_state(CycleState(2, 0, short, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # wrong joint count
+    sink.offer_state(CycleState(3, 0, zeros.astype(np.float32), zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
     sink._drain_state()
     assert publisher.payloads == [] and sink.offer_errors == 4
     assert len([r for r in caplog.records if "refused" in r.getMessage()]) == 1  # said once, then counted
