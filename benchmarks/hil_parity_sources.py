@@ -39,9 +39,10 @@ import numpy as np
 from models.conditions import load_conditions
 from models.feedback import make_law
 from models.hil_experiment import HilOptions, conditions_yaml, run_on_target
+from models.modes import make_controller
 from models.robots import load_robot
 from models.scoring import run_metrics
-from models.sim import SimConfig, make_controller, simulate
+from models.sim import SimConfig, simulate
 from sim_target.launch import launch_target, target_config_dict
 
 PERIOD_S = 1e-3

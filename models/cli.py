@@ -90,7 +90,7 @@ def experiment(
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
     from models.feedback import GAIN_SETS, LAW_NAMES
-    from models.sim import MODES
+    from models.modes import MODES
 
     law_list = _split(laws, LAW_NAMES, "laws")
     if plant not in ("sim", "hil"):

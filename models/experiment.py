@@ -24,9 +24,10 @@ import numpy as np
 from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition, Mismatch
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
+from models.modes import make_controller
 from models.robots import RobotModel
 from models.scoring import METRICS, composite_scores, improvement, run_metrics
-from models.sim import ControllerStack, SimConfig, Trajectory, make_controller, simulate
+from models.sim import ControllerStack, SimConfig, Trajectory, simulate
 
 #: Plant-model mismatch of issue 3: +0.5 kg on the flange, link inertias alternately +/-20 %.
 PAPER_MISMATCH = Mismatch(payload_kg=0.5, inertia_scale=(1.2, 0.8, 1.2, 0.8, 1.2, 0.8))

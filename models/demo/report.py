@@ -78,7 +78,8 @@ def simulate_twin(
 ) -> tuple[dict[str, np.ndarray], float]:
     """The models simulator on the same bundle and condition; (trajectory, wall seconds)."""
     from models.feedback import make_law
-    from models.sim import SimConfig, make_controller, simulate
+    from models.modes import make_controller
+    from models.sim import SimConfig, simulate
 
     sim = SimConfig()
     started = time.monotonic()

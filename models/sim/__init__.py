@@ -1,10 +1,19 @@
-"""Closed-loop simulation: fixed period, zero-order hold, RK4 plant, batched runs."""
+"""Closed-loop simulation: fixed period, zero-order hold, RK4 plant, batched runs.
+
+The controller modes beyond ``fb`` are registered by ``models.modes``.
+"""
 
 from models.sim.closed_loop import ModelPlant, SimConfig, Trajectory, simulate
-from models.sim.controllers import MODES, Controller, ControllerStack, FeedbackController, make_controller
+from models.sim.controllers import (
+    Controller,
+    ControllerStack,
+    FeedbackController,
+    make_controller,
+    mode_names,
+    register_mode,
+)
 
 __all__ = [
-    "MODES",
     "Controller",
     "ControllerStack",
     "FeedbackController",
@@ -12,5 +21,7 @@ __all__ = [
     "SimConfig",
     "Trajectory",
     "make_controller",
+    "mode_names",
+    "register_mode",
     "simulate",
 ]

@@ -1,12 +1,18 @@
-"""Controllers the closed-loop simulator can run: the protocol, the feedback-only one, a stack.
+"""Controllers the closed-loop simulator can run: the protocol, the feedback-only one, a stack, and
+the registry of modes.
 
 A controller maps a batch of measured states and references to the torques to apply for the next
-control period. Modes: ``fb`` (the law alone), ``hmpc`` (models.hmpc), ``lmpc`` (models.lmpc).
+control period. A mode is a name -> factory ``(law, robot, **options) -> Controller`` entry, filled
+in by the package that implements it, as Gymnasium's ``register``/``make``: this module registers
+``fb`` (the law alone); ``models.modes`` registers ``hmpc`` and ``lmpc`` by entry point
+("module:attribute", imported when first made), so the simulator never imports the MPC packages.
 """
 
 from __future__ import annotations
 
+import importlib
 import time
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -14,8 +20,6 @@ import numpy as np
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
-
-MODES = ("fb", "hmpc", "lmpc")
 
 
 class Controller(Protocol):
@@ -85,16 +89,39 @@ class ControllerStack:
         return out
 
 
+#: (law, robot, **options) -> Controller
+ControllerFactory = Callable[..., Controller]
+_MODES: dict[str, ControllerFactory | str] = {}
+
+
+def register_mode(name: str, factory: ControllerFactory | str) -> None:
+    """Register mode ``name``: a factory, or its entry point "module:attribute" (imported when first made)."""
+    if isinstance(factory, str) and factory.count(":") != 1:
+        raise ValueError(f"mode '{name}': entry point must be 'module:attribute', got {factory!r}")
+    known = _MODES.get(name)
+    if known is not None and known != factory:
+        raise ValueError(f"mode '{name}' is already registered ({known!r})")
+    _MODES[name] = factory
+
+
+def mode_names() -> tuple[str, ...]:
+    """The registered modes, in registration order."""
+    return tuple(_MODES)
+
+
 def make_controller(mode: str, law: FeedbackLaw, robot: RobotModel, **options: Any) -> Controller:
     """The controller of ``mode`` built on ``law`` for ``robot`` (the nominal model)."""
-    if mode == "fb":
-        return FeedbackController(law)
-    if mode == "hmpc":
-        from models.hmpc import make_hmpc_controller
+    factory = _MODES.get(mode)
+    if factory is None:
+        raise ModelInputError(f"mode: unknown '{mode}' (known: {', '.join(_MODES)})")
+    if isinstance(factory, str):
+        module, attribute = factory.split(":")
+        factory = _MODES[mode] = getattr(importlib.import_module(module), attribute)
+    return factory(law, robot, **options)
 
-        return make_hmpc_controller(law, robot, **options)
-    if mode == "lmpc":
-        from models.lmpc import make_lmpc_controller  # type: ignore[import-not-found]
 
-        return make_lmpc_controller(law, robot, **options)
-    raise ModelInputError(f"mode: unknown '{mode}' (known: {', '.join(MODES)})")
+def _feedback_only(law: FeedbackLaw, robot: RobotModel) -> FeedbackController:
+    return FeedbackController(law)  # the law already holds what it needs of the robot
+
+
+register_mode("fb", _feedback_only)
