@@ -100,6 +100,14 @@ def _expect_refused(bus: JointBus, torque: Any, what: str) -> None:
     _require(bus.enabled, f"exchange({what}) was refused but left the bus disabled (nothing was sent)")
 
 
+def _expect_not_enabled(bus: JointBus, hold: np.ndarray, when: str) -> None:
+    try:
+        bus.exchange(hold)
+    except DriveStateError:
+        return
+    raise JointBusCheckError(f"exchange() {when} was accepted; it must raise DriveStateError")
+
+
 def check_joint_bus(bus: JointBus, hold_torque_nm: np.ndarray | None = None, cycles: int = 5) -> None:
     """Walk ``bus`` (not yet connected) through its life cycle; :class:`JointBusCheckError` on a
     broken promise. The bus is closed at the end, also when a check fails."""
@@ -114,12 +122,7 @@ def check_joint_bus(bus: JointBus, hold_torque_nm: np.ndarray | None = None, cyc
         _require(not bus.enabled, "enabled is true before connect()")
         bus.connect()
         _require(not bus.enabled, "connect() enabled the drives (it must leave them without torque)")
-        try:
-            bus.exchange(hold)
-        except DriveStateError:
-            pass
-        else:
-            raise JointBusCheckError("exchange() before enable() was accepted; it must raise DriveStateError")
+        _expect_not_enabled(bus, hold, "before enable()")
 
         feedback = bus.enable(hold)
         check_feedback(feedback, n, "enable()")
@@ -155,12 +158,7 @@ def check_joint_bus(bus: JointBus, hold_torque_nm: np.ndarray | None = None, cyc
             isinstance(states, tuple) and len(states) == n and all(s in _STOPPED for s in states),
             f"quick_stop() returned {states!r}, expected {n} quick-stop/switch-on-disabled states",
         )
-        try:
-            bus.exchange(hold)
-        except DriveStateError:
-            pass
-        else:
-            raise JointBusCheckError("exchange() after quick_stop() was accepted; it must raise DriveStateError")
+        _expect_not_enabled(bus, hold, "after quick_stop()")
 
         feedback = bus.enable(hold)
         check_feedback(feedback, n, "enable() after quick_stop()")

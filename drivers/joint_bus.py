@@ -23,11 +23,8 @@ from drivers.cia402.state_machine import State
 
 
 @runtime_checkable
-class JointFeedback(Protocol):
-    """One cycle's feedback (``DriveFeedback`` satisfies it)."""
-
-    @property
-    def cycle(self) -> int: ...
+class JointReadings(Protocol):
+    """What a drive measures per joint (a plant's ``JointState`` and ``DriveFeedback`` satisfy it)."""
 
     @property
     def position_rad(self) -> np.ndarray: ...
@@ -37,6 +34,14 @@ class JointFeedback(Protocol):
 
     @property
     def torque_nm(self) -> np.ndarray: ...
+
+
+@runtime_checkable
+class JointFeedback(JointReadings, Protocol):
+    """One cycle's feedback (``DriveFeedback`` satisfies it)."""
+
+    @property
+    def cycle(self) -> int: ...
 
     @property
     def commanded_torque_nm(self) -> np.ndarray: ...

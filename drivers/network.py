@@ -119,6 +119,7 @@ class DriveNetwork:
             self.errors.append(TransportError(f"frame handler failed: {exc!r}"))
 
     def recv(self, timeout_s: float) -> can.Message | None:
+        """One frame or None after ``timeout_s``; any failure of the backend is a TransportError."""
         try:
             return self.bus.recv(timeout_s)
         except TransportError:
@@ -129,15 +130,10 @@ class DriveNetwork:
     def drain(self) -> None:
         """Under rx_lock: handle every frame already queued, without waiting."""
         monotonic = time.monotonic
-        recv = self.bus.recv
+        recv = self.recv
         dispatch = self.dispatch
         while True:
-            try:
-                msg = recv(0.0)
-            except TransportError:
-                raise
-            except Exception as exc:  # any backend failure is a transport error
-                raise TransportError(f"receiving failed: {exc}") from exc
+            msg = recv(0.0)
             if msg is None:
                 return
             dispatch(msg, monotonic())

@@ -26,7 +26,6 @@ import numpy as np
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State, decode_statusword_fast
-from drivers.errors import TransportError
 from drivers.feedback import DriveFeedback
 from drivers.network import DriveNetwork
 from drivers.node import DriveNode
@@ -118,17 +117,12 @@ class CyclicExchange:
                 network.send_batch(self._frames)
                 deadline = sync_time + self.feedback_timeout_s
                 dispatch = network.dispatch
-                recv = network.bus.recv
+                recv = network.recv
                 while self._pending > 0:
                     remaining = deadline - monotonic()
                     if remaining <= 0:
                         break
-                    try:
-                        msg = recv(remaining)
-                    except TransportError:
-                        raise
-                    except Exception as exc:  # any backend failure is a transport error
-                        raise TransportError(f"receiving failed: {exc}") from exc
+                    msg = recv(remaining)
                     if msg is None:
                         break
                     dispatch(msg, monotonic())

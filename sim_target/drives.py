@@ -46,7 +46,7 @@ import random
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import can
 import canopen
@@ -56,6 +56,7 @@ from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.scaling import counts_per_rad_from_resolution
 from drivers.cia402.state_machine import State
+from drivers.joint_bus import JointReadings
 from sim_target.emulated import p402, pdo
 from sim_target.emulated.link import FrameLink
 from sim_target.emulated.nmt import NmtSlave
@@ -77,18 +78,6 @@ log = logging.getLogger(__name__)
 _POLL_S = 0.01  # longest receive wait: heartbeats and delayed frames are serviced at least this often
 _CHECK_PERIOD_S = 0.005  # the master watches are checked at least this often while frames flow
 _DRAIN_MAX = 1000  # frames handled before a check gives up waiting for an empty queue
-
-
-class JointStateLike(Protocol):
-    # Read-only: a NamedTuple (the plants' JointState) satisfies it.
-    @property
-    def position_rad(self) -> np.ndarray: ...
-
-    @property
-    def velocity_rad_s(self) -> np.ndarray: ...
-
-    @property
-    def torque_nm(self) -> np.ndarray: ...
 
 
 class _EmuNetwork(canopen.Network):
@@ -194,7 +183,7 @@ class EmulatedDrives:
         """Every reaction of a drive to a silent master, in order (see sim_target.emulated.supervision)."""
         return tuple(self._watch.events)
 
-    def publish_feedback(self, state: JointStateLike) -> None:
+    def publish_feedback(self, state: JointReadings) -> None:
         """The joint state the TPDOs answering the current (inside the SYNC handler) or next SYNC
         carry. Sync TPDOs only ever go out on SYNC (CiA 301)."""
         self._feedback = (

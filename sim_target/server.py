@@ -36,7 +36,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from stat import S_ISSOCK
-from typing import Any, Protocol, cast
+from typing import Any, Protocol
 
 import can
 import numpy as np
@@ -387,9 +387,7 @@ def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBa
     node_ids = config.drives.node_ids or tuple(range(1, n_joints + 1))
     if len(node_ids) != n_joints:
         raise TargetConfigError(f"drives.node_ids: {len(node_ids)} ids for {n_joints} joints")
-    # cast: EmulatedDrives.publish_feedback takes a JointStateLike protocol whose members are settable,
-    # which the read-only JointState of the plant satisfies at run time but not for mypy.
-    return cast("DriveBank", drive_module.make_drive_bank(bus, node_ids, config))
+    return drive_module.make_drive_bank(bus, node_ids, config)
 
 
 def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]]:

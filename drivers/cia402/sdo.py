@@ -144,33 +144,50 @@ def _payload(command: int, data: bytes) -> bytes:
     return bytes(data[4 : 8 - unused])
 
 
-def decode_request(data: bytes) -> SdoFrame:
-    """A client -> server frame (COB-ID 0x600 + node)."""
+class _Direction(NamedTuple):
+    """One direction's command specifiers: the one that carries no data and the transfer's."""
+
+    name: str
+    plain_cs: int
+    plain: SdoKind
+    transfer_cs: int
+    expedited: SdoKind
+    segmented: SdoKind
+
+
+_REQUEST: Final = _Direction(
+    "request",
+    _CCS_UPLOAD,
+    SdoKind.UPLOAD_REQUEST,
+    _CCS_DOWNLOAD,
+    SdoKind.DOWNLOAD_EXPEDITED,
+    SdoKind.DOWNLOAD_SEGMENTED,
+)
+_RESPONSE: Final = _Direction(
+    "response", _SCS_DOWNLOAD, SdoKind.DOWNLOAD_ACK, _SCS_UPLOAD, SdoKind.UPLOAD_EXPEDITED, SdoKind.UPLOAD_SEGMENTED
+)
+
+
+def _decode(data: bytes, direction: _Direction) -> SdoFrame:
     command, index, subindex = _split(data)
     if command == _ABORT_CS:
         return SdoFrame(SdoKind.ABORT, index, subindex, b"", _ABORT.unpack(data)[3])
-    ccs = command & 0xE0
-    if ccs == _CCS_UPLOAD:
-        return SdoFrame(SdoKind.UPLOAD_REQUEST, index, subindex, b"", 0)
-    if ccs == _CCS_DOWNLOAD:
+    cs = command & 0xE0
+    if cs == direction.plain_cs:
+        return SdoFrame(direction.plain, index, subindex, b"", 0)
+    if cs == direction.transfer_cs:
         if command & _EXPEDITED:
-            return SdoFrame(SdoKind.DOWNLOAD_EXPEDITED, index, subindex, _payload(command, data), 0)
+            return SdoFrame(direction.expedited, index, subindex, _payload(command, data), 0)
         size = _SIZE.unpack(data)[3] if command & _SIZE_INDICATED else 0
-        return SdoFrame(SdoKind.DOWNLOAD_SEGMENTED, index, subindex, b"", size)
-    raise MalformedFrameError(f"SDO request with unsupported command 0x{command:02X}")
+        return SdoFrame(direction.segmented, index, subindex, b"", size)
+    raise MalformedFrameError(f"SDO {direction.name} with unsupported command 0x{command:02X}")
+
+
+def decode_request(data: bytes) -> SdoFrame:
+    """A client -> server frame (COB-ID 0x600 + node)."""
+    return _decode(data, _REQUEST)
 
 
 def decode_response(data: bytes) -> SdoFrame:
     """A server -> client frame (COB-ID 0x580 + node)."""
-    command, index, subindex = _split(data)
-    if command == _ABORT_CS:
-        return SdoFrame(SdoKind.ABORT, index, subindex, b"", _ABORT.unpack(data)[3])
-    scs = command & 0xE0
-    if scs == _SCS_DOWNLOAD:
-        return SdoFrame(SdoKind.DOWNLOAD_ACK, index, subindex, b"", 0)
-    if scs == _SCS_UPLOAD:
-        if command & _EXPEDITED:
-            return SdoFrame(SdoKind.UPLOAD_EXPEDITED, index, subindex, _payload(command, data), 0)
-        size = _SIZE.unpack(data)[3] if command & _SIZE_INDICATED else 0
-        return SdoFrame(SdoKind.UPLOAD_SEGMENTED, index, subindex, b"", size)
-    raise MalformedFrameError(f"SDO response with unsupported command 0x{command:02X}")
+    return _decode(data, _RESPONSE)
