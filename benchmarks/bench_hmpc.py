@@ -162,8 +162,9 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
 
 def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
     from models.conditions import load_conditions
+    from models.executors import LocalProcessExecutor
     from models.feedback import make_law
-    from models.hmpc import HMPCConfig, ProcessPoolBatchExecutor, solve_batch
+    from models.hmpc import HMPCConfig, solve_batch
     from models.lmpc.labels import LABEL_HMPC_OPTIONS
     from models.robots import load_robot
     from models.sim import SimConfig, make_controller, simulate
@@ -197,7 +198,7 @@ def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
     out["serial_states_per_s"] = states / (time.perf_counter() - start)
     out["load_average_1min_serial"].append(load())
     out["status_counts"] = {str(k): int(v) for k, v in zip(*np.unique(status, return_counts=True), strict=True)}
-    with ProcessPoolBatchExecutor(workers) as executor:
+    with LocalProcessExecutor(workers) as executor:
         solve_batch(
             law, robot, *(a[:workers] for a in args), config=config, executor=executor, chunk_states=1
         )  # start workers

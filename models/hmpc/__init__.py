@@ -4,12 +4,13 @@
 - ``HMPCSolver``: the optimizer for a batch of states (candidates w * tau_fb, then Gauss-Newton
   with a box-constrained QP over the torque sequence).
 - ``make_hmpc_controller``: the closed-loop controller the simulator runs (mode ``hmpc``).
-- ``solve_batch``: many independent states, spread over processes (labeling).
+- ``solve_batch``: many independent states, spread over an executor's workers (labeling;
+  ``models.executors``).
 
 See docs/hmpc.md.
 """
 
-from models.hmpc.batch import ProcessPoolBatchExecutor, SerialBatchExecutor, solve_batch
+from models.hmpc.batch import solve_batch
 from models.hmpc.config import HMPCConfig
 from models.hmpc.controller import HMPCController, make_hmpc_controller
 from models.hmpc.solver import STATUS_NAMES, HMPCResult, HMPCSolver
@@ -19,9 +20,7 @@ __all__ = [
     "HMPCController",
     "HMPCResult",
     "HMPCSolver",
-    "ProcessPoolBatchExecutor",
     "STATUS_NAMES",
-    "SerialBatchExecutor",
     "make_hmpc_controller",
     "solve_batch",
 ]

@@ -1,89 +1,39 @@
-"""Batch labeling: many independent states solved by the HMPC, spread over worker processes.
+"""Batch labeling: many independent states solved by the HMPC, spread over an executor's workers.
 
-The science code sees one small interface, ``BatchExecutor.map(fn, chunks)``; a serial and a
-process-pool executor are here, and a distributed engine (e.g. Ray) can implement the same method
-later. The solver is rebuilt once per worker from its picklable spec (law, robot, config): the
-pinocchio model lives in C++ and is not shipped between processes.
+The work goes through the models' one executor interface (``models.executors``: serial, local
+processes, Ray). Each chunk carries the solver's picklable spec (law, robot, config) and its hash;
+a worker builds the solver once per spec (``worker_cached``): the pinocchio model lives in C++
+and is not shipped between processes, only the description it is built from.
 
-    tau = solve_batch(law, robot, q, qd, q_d, qd_d, qdd_d, law_state, executor=ProcessPoolBatchExecutor(2))
+    with make_executor("local", 2) as executor:
+        tau, status = solve_batch(law, robot, q, qd, q_d, qd_d, qdd_d, law_state, executor=executor)
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from typing import Any, Protocol
+import hashlib
+import pickle
 
 import numpy as np
 
 from models.errors import ModelInputError
+from models.executors import Executor, SerialExecutor, worker_cached
 from models.feedback.base import FeedbackLaw
 from models.hmpc.config import HMPCConfig
-from models.hmpc.solver import HMPCResult, HMPCSolver
+from models.hmpc.solver import HMPCSolver
 from models.robots import RobotModel
 
 DEFAULT_CHUNK_STATES = 256  # rows per vectorized solve: amortizes numpy overhead, bounded memory
 
-
-class BatchExecutor(Protocol):
-    def map(self, fn: Callable[[Any], Any], chunks: Sequence[Any]) -> list[Any]:
-        """fn applied to every chunk, results in order."""
+SolverSpec = tuple[FeedbackLaw, RobotModel, HMPCConfig]
 
 
-class SerialBatchExecutor:
-    """In this process (tests, small batches)."""
-
-    def map(self, fn: Callable[[Any], Any], chunks: Sequence[Any]) -> list[Any]:
-        return [fn(chunk) for chunk in chunks]
-
-
-_WORKER_SOLVER: HMPCSolver | None = None
-
-
-def _init_worker(spec: tuple[FeedbackLaw, RobotModel, HMPCConfig]) -> None:
-    global _WORKER_SOLVER
-    # One BLAS thread per process: the cores are already shared by the processes.
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _WORKER_SOLVER = HMPCSolver(*spec)
-
-
-def _solve_chunk(arrays: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    assert _WORKER_SOLVER is not None, "worker not initialized"
-    result = _WORKER_SOLVER.solve(*arrays)
-    return result.tau_nm, result.status, result.tau_fb_nm
-
-
-class ProcessPoolBatchExecutor:
-    """A pool of worker processes, each holding its own solver (default: one per CPU)."""
-
-    def __init__(self, workers: int | None = None) -> None:
-        self.workers = workers or os.cpu_count() or 1
-        self._pool: ProcessPoolExecutor | None = None
-        self._spec: Any = None
-
-    def start(self, spec: tuple[FeedbackLaw, RobotModel, HMPCConfig]) -> None:
-        if self._pool is not None and self._spec is spec:
-            return
-        self.close()
-        self._pool = ProcessPoolExecutor(self.workers, initializer=_init_worker, initargs=(spec,))
-        self._spec = spec
-
-    def map(self, fn: Callable[[Any], Any], chunks: Sequence[Any]) -> list[Any]:
-        if self._pool is None:
-            raise RuntimeError("ProcessPoolBatchExecutor.start(spec) first")
-        return list(self._pool.map(fn, chunks))
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
-
-    def __enter__(self) -> ProcessPoolBatchExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+def _solve_chunk(task: tuple[str, SolverSpec, tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.ndarray]:
+    """Worker: the HMPC on one chunk of states, with this worker's solver for the spec."""
+    key, spec, arrays = task
+    solver: HMPCSolver = worker_cached(key, lambda: HMPCSolver(*spec))
+    result = solver.solve(*arrays)
+    return result.tau_nm, result.status
 
 
 def solve_batch(
@@ -96,7 +46,7 @@ def solve_batch(
     qdd_d: np.ndarray,
     law_state: np.ndarray | None = None,
     config: HMPCConfig | None = None,
-    executor: BatchExecutor | None = None,
+    executor: Executor | None = None,
     chunk_states: int = DEFAULT_CHUNK_STATES,
 ) -> tuple[np.ndarray, np.ndarray]:
     """HMPC torques (B, N) and status (B,) for B independent states (cold start, no warm start).
@@ -116,15 +66,8 @@ def solve_batch(
         raise ModelInputError(f"solve_batch chunk_states: must be >= 1, got {chunk_states}")
     bounds = list(range(0, batch, chunk_states)) + [batch]
     chunks = [tuple(a[lo:hi] for a in arrays) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
-    if executor is None or isinstance(executor, SerialBatchExecutor):
-        solver = HMPCSolver(law, robot, config)
-        results: list[Any] = []
-        for chunk in chunks:
-            result: HMPCResult = solver.solve(*chunk)
-            results.append((result.tau_nm, result.status, result.tau_fb_nm))
-    else:
-        start = getattr(executor, "start", None)
-        if start is not None:
-            start((law, robot, config))
-        results = executor.map(_solve_chunk, chunks)
+    spec: SolverSpec = (law, robot, config)
+    key = hashlib.sha256(pickle.dumps(spec)).hexdigest()  # equal specs share a worker's solver
+    tasks = [(key, spec, chunk) for chunk in chunks]
+    results = list((executor or SerialExecutor()).map(_solve_chunk, tasks))
     return np.concatenate([r[0] for r in results]), np.concatenate([r[1] for r in results])

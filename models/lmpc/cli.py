@@ -28,7 +28,14 @@ def pipeline(
     budget: Annotated[int, typer.Option(help="Labeled samples over all laws (Theorem 2 budget).")] = 100_000,
     duration: Annotated[float, typer.Option(help="Run length (s).")] = 5.0,
     epochs: Annotated[int, typer.Option(help="Max training epochs.")] = 150,
-    workers: Annotated[int | None, typer.Option(help="Processes (default: one per CPU; 1: serial).")] = None,
+    workers: Annotated[int | None, typer.Option(help="Workers (default: one per CPU; 1: serial).")] = None,
+    executor: Annotated[
+        str,
+        typer.Option(
+            help="Where the workers run (paper design): 'local' processes, 'serial' (this process) or 'ray' "
+            "(a local Ray on 127.0.0.1; the ray extra)."
+        ),
+    ] = "local",
     lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
     rollouts: Annotated[
         int, typer.Option(help="Pool conditions run under the HMPC for the augment stage (0: paper's recipe only).")
@@ -60,6 +67,12 @@ def pipeline(
     ] = 10.0,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
+    from models.executors import EXECUTORS
+
+    if executor not in EXECUTORS:
+        raise ModelInputError(f"--executor: unknown '{executor}' (known: {', '.join(EXECUTORS)})")
+    if workers is not None and workers < 1:
+        raise ModelInputError(f"--workers: must be >= 1, got {workers}")
     if design not in ("paper", "structured"):
         raise ModelInputError(f"--design: unknown '{design}' (known: paper, structured)")
     if hmpc_formulation not in ("absolute", "anchored"):
@@ -113,6 +126,7 @@ def pipeline(
         test_per_law=min(base.test_per_law, max(10, budget // (5 * len(law_list)))),
         train=replace(base.train, max_epochs=epochs),
         workers=workers,
+        executor=executor,
         rollout_conditions=rollouts,
         dagger_rounds=dagger_rounds,
         dagger_conditions=min(base.dagger_conditions, max(1, int(round(0.9 * conditions)))),

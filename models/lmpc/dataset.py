@@ -30,8 +30,8 @@ import numpy as np
 
 from models.conditions import Condition, load_conditions, random_conditions
 from models.errors import ModelInputError
+from models.executors import Executor, SerialExecutor
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
-from models.lmpc.executor import Executor, SerialExecutor
 from models.robots import RobotModel, load_robot
 from models.sim import ControllerStack, SimConfig, simulate
 

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 
 from models.conditions import Condition
+from models.executors import Executor, SerialExecutor
 from models.feedback import make_law
-from models.lmpc.executor import Executor, SerialExecutor
 from models.robots import load_robot
 from models.sim import ControllerStack, SimConfig, simulate
 

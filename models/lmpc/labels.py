@@ -15,11 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from models.executors import Executor
 from models.feedback.base import FeedbackLaw
 from models.lmpc.dataset import RawLaw
 from models.robots import RobotModel
 
-Labeler = Callable[[FeedbackLaw, RobotModel, RawLaw, Any], tuple[np.ndarray, np.ndarray]]
+Labeler = Callable[[FeedbackLaw, RobotModel, RawLaw, Executor | None], tuple[np.ndarray, np.ndarray]]
 
 #: HMPC settings for labeling. A cold solve of a state gets the best iterate when the iteration
 #: budget runs out (the closed-loop HMPC, warm-started, rarely runs out; a cold solve often does,
@@ -28,35 +29,13 @@ LABEL_HMPC_OPTIONS: dict[str, Any] = {"on_budget_exhausted": "best_iterate"}
 
 
 def hmpc_labeler(
-    law: FeedbackLaw, robot: RobotModel, rows: RawLaw, executor: Any = None, **hmpc_options: Any
+    law: FeedbackLaw, robot: RobotModel, rows: RawLaw, executor: Executor | None = None, **hmpc_options: Any
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The project's HMPC on every row (models.hmpc.solve_batch)."""
+    """The project's HMPC on every row (models.hmpc.solve_batch), on ``executor``'s workers."""
     from models.hmpc import HMPCConfig, solve_batch
 
     config = HMPCConfig.from_options(**{**LABEL_HMPC_OPTIONS, **hmpc_options})
     state = rows.law_state if rows.law_state.shape[1] else None
-    if executor is not None and hasattr(executor, "start"):
-        executor = _StartedPool(executor, law, robot, config)
     return solve_batch(
         law, robot, rows.q, rows.qd, rows.q_d, rows.qd_d, rows.qdd_d, state, config=config, executor=executor
     )
-
-
-_SPECS: dict[tuple, tuple] = {}
-
-
-class _StartedPool:
-    """The HMPC's process pool started once per (law, robot, config) and reused across calls.
-
-    solve_batch restarts a pool whose spec is not the very same object; labeling calls it once per
-    chunk (for progress), so the spec object is kept here and the pool is not rebuilt per chunk.
-    """
-
-    def __init__(self, pool: Any, law: FeedbackLaw, robot: RobotModel, config: Any) -> None:
-        key = (id(law), id(robot), config)
-        spec = _SPECS.setdefault(key, (law, robot, config))
-        pool.start(spec)
-        self.pool = pool
-
-    def map(self, fn: Callable[[Any], Any], chunks: Any) -> list[Any]:
-        return self.pool.map(fn, chunks)

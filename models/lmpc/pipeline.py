@@ -26,10 +26,10 @@ import numpy as np
 
 from hil_runtime.bundle import FEATURE_SETS, GUARD_FEATURES
 from models.errors import ModelInputError
+from models.executors import DEFAULT_EXECUTOR, Executor, make_executor
 from models.feedback import make_law
 from models.lmpc.dataset import RawDatasetSpec, RawLaw, generate_raw_dataset, git_commit, load_raw_dataset
 from models.lmpc.emulator import TrainConfig, train_emulator
-from models.lmpc.executor import Executor, SerialExecutor
 from models.lmpc.labels import LABEL_HMPC_OPTIONS, Labeler, hmpc_labeler
 from models.lmpc.sampling import (
     PAPER_REGIONS,
@@ -92,6 +92,7 @@ class PipelineConfig:
     selection_conditions: int = 6  # pool conditions after the rollout and DAgger ones
     selection_duration_s: float = 3.0
     workers: int | None = None  # processes; None = one per CPU
+    executor: str = DEFAULT_EXECUTOR  # models.executors.EXECUTORS: serial, local, ray
 
     @property
     def laws(self) -> tuple[str, ...]:
@@ -155,7 +156,7 @@ def stage_label(
     work: Path,
     labeler: Labeler | None = None,
     progress: Progress | None = None,
-    hmpc_executor: Any = None,
+    executor: Executor | None = None,
 ) -> Path:
     """Sample every law and label the union of its optimal, uniform and test states."""
     import h5py
@@ -181,7 +182,7 @@ def stage_label(
                 law_start = time.perf_counter()
                 for lo in range(0, index.size, config.label_chunk):
                     part = rows.take(index[lo : lo + config.label_chunk])
-                    tau, status = labeler(law, robot, part, hmpc_executor)
+                    tau, status = labeler(law, robot, part, executor)
                     taus.append(np.asarray(tau, float))
                     statuses.append(np.asarray(status, np.int32))
                     advance(len(part))
@@ -400,7 +401,7 @@ def _rows(raw_law: RawLaw) -> dict[str, np.ndarray]:
 
 
 def stage_augment(
-    config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None, hmpc_executor: Any = None
+    config: PipelineConfig, work: Path, executor: Executor, progress: Progress | None = None
 ) -> dict[str, Any]:
     """The deployed emulators: residual target, on-policy data (HMPC rollouts + DAgger rounds), trust region.
 
@@ -534,7 +535,7 @@ def stage_augment(
                 rows = rows.take(np.sort(rng.choice(len(rows), config.dagger_states_per_law, replace=False)))
             counts[law] = {"visited_in_limits": len(visited[law]), "labeled": len(rows)}
             if len(rows):
-                tau, _ = hmpc_labeler(make_law(law, robot, spec.period_s, spec.gain_set), robot, rows, hmpc_executor)
+                tau, _ = hmpc_labeler(make_law(law, robot, spec.period_s, spec.gain_set), robot, rows, executor)
                 x, y, counts[law]["kept"] = on_policy(_rows(rows), tau, law)
                 data[law][0].append(x)
                 data[law][1].append(y)
@@ -789,11 +790,12 @@ def run_pipeline(
     progress: Progress | None = None,
     force_dataset: bool = False,
 ) -> dict[str, Any]:
-    """Run the stages; write <work>/pipeline.json (timings, Theorem 2 weights, training figures)."""
-    from models.lmpc.executor import make_executor
-
+    """Run the stages on ``executor`` (default: ``config.executor`` with ``config.workers``, closed
+    at the end); write <work>/pipeline.json (timings, Theorem 2 weights, training figures)."""
     work.mkdir(parents=True, exist_ok=True)
-    executor = executor or make_executor(config.workers)
+    if executor is None:
+        with make_executor(config.executor, config.workers) as owned:
+            return run_pipeline(config, work, bundles, stages, owned, labeler, progress, force_dataset)
     summary_path = work / "pipeline.json"
     summary: dict[str, Any] = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     summary.setdefault("wall_s", {})
@@ -803,16 +805,7 @@ def run_pipeline(
         summary["wall_s"]["dataset"] = round(time.perf_counter() - started, 1)
     if "label" in stages:
         started = time.perf_counter()
-        hmpc_executor = None
-        if labeler is None and not isinstance(executor, SerialExecutor):
-            from models.hmpc import ProcessPoolBatchExecutor
-
-            hmpc_executor = ProcessPoolBatchExecutor(config.workers)
-        try:
-            stage_label(config, work, labeler, progress, hmpc_executor)
-        finally:
-            if hmpc_executor is not None:
-                hmpc_executor.close()
+        stage_label(config, work, labeler, progress, executor)
         summary["wall_s"]["label"] = round(time.perf_counter() - started, 1)
     trained = None
     if "train" in stages:
@@ -834,16 +827,7 @@ def run_pipeline(
             pickle.dump(trained, handle)
     if "augment" in stages and config.rollout_conditions > 0:
         started = time.perf_counter()
-        hmpc_executor = None
-        if not isinstance(executor, SerialExecutor):
-            from models.hmpc import ProcessPoolBatchExecutor
-
-            hmpc_executor = ProcessPoolBatchExecutor(config.workers)
-        try:
-            summary["augment"] = stage_augment(config, work, executor, progress, hmpc_executor)
-        finally:
-            if hmpc_executor is not None:
-                hmpc_executor.close()
+        summary["augment"] = stage_augment(config, work, executor, progress)
         summary["wall_s"]["augment"] = round(time.perf_counter() - started, 1)
     if "export" in stages:
         started = time.perf_counter()

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from models.errors import ModelInputError
+from models.executors import LocalProcessExecutor
 from models.feedback.pd import PDLaw
-from models.hmpc import HMPCConfig, HMPCSolver, ProcessPoolBatchExecutor, make_hmpc_controller, solve_batch
+from models.hmpc import HMPCConfig, HMPCSolver, make_hmpc_controller, solve_batch
 from models.hmpc.boxqp import solve_box_qp
 from models.hmpc.solver import CONVERGED, NONFINITE_INPUT, NOT_CONVERGED
 from models.robots import load_robot
@@ -169,7 +170,7 @@ def test_batch_equals_single(law, robot) -> None:  # type: ignore[no-untyped-def
 def test_process_pool_equals_serial(law, robot) -> None:  # type: ignore[no-untyped-def]
     args = states(12, seed=11)
     serial, _ = solve_batch(law, robot, *args, chunk_states=5)
-    with ProcessPoolBatchExecutor(2) as executor:
+    with LocalProcessExecutor(2) as executor:
         parallel, _ = solve_batch(law, robot, *args, chunk_states=5, executor=executor)
     np.testing.assert_array_equal(parallel, serial)
 

@@ -65,8 +65,8 @@ def test_training_is_seeded_and_learns_a_smooth_map():
 
 def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
     from hil_runtime.bundle import PolicyBundle
+    from models.executors import SerialExecutor
     from models.lmpc.dataset import RawDatasetSpec
-    from models.lmpc.executor import SerialExecutor
     from models.lmpc.pipeline import PipelineConfig, run_pipeline
 
     config = PipelineConfig(
@@ -93,8 +93,8 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
 def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
     """Beyond the paper: HMPC closed loop on one 2.5 s condition, one DAgger round, residual + trust region."""
     from hil_runtime.bundle import PolicyBundle
+    from models.executors import SerialExecutor
     from models.lmpc.dataset import RawDatasetSpec
-    from models.lmpc.executor import SerialExecutor
     from models.lmpc.pipeline import PipelineConfig, run_pipeline
 
     config = PipelineConfig(
