@@ -18,7 +18,6 @@ written to a temporary name and renamed, so a failed run never leaves a half fil
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import time
 from collections.abc import Callable
@@ -32,6 +31,7 @@ from models.conditions import Condition, load_conditions, random_conditions
 from models.errors import ModelInputError
 from models.executors import Executor, SerialExecutor
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
+from models.lmpc.h5file import read_h5, write_h5, write_manifest
 from models.robots import RobotModel, load_robot
 from models.sim import ControllerStack, SimConfig, simulate
 
@@ -145,8 +145,6 @@ def generate_raw_dataset(
     progress: Callable[[int], None] | None = None,
 ) -> Path:
     """Simulate, log and write D_input to ``out_path`` (HDF5). ``progress(chunks_done)``."""
-    import h5py
-
     robot = load_robot(spec.robot)
     conditions = make_conditions(spec, robot)
     sim = SimConfig(period_s=spec.period_s, substeps=spec.substeps)
@@ -189,22 +187,16 @@ def generate_raw_dataset(
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(out_path.name + f".tmp{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as h5:
-            h5.attrs["manifest"] = json.dumps(manifest)
-            for law in spec.laws:
-                group = h5.create_group(law)
-                for key in ARRAYS:
-                    data = np.concatenate([p["laws"][law][key] for p in parts])
-                    group.create_dataset(key, data=data.astype(np.int32 if key == "run" else np.float64))
-                for key in ("finite", "within_limits"):
-                    group.attrs[key] = int(np.concatenate([p["laws"][law][key] for p in parts]).sum())
-        os.replace(tmp, out_path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    manifest["samples_per_law"] = {law: int(len(h5py.File(out_path, "r")[law]["t_s"])) for law in spec.laws}
+    with write_h5(out_path) as h5:
+        write_manifest(h5, manifest)
+        for law in spec.laws:
+            group = h5.create_group(law)
+            for key in ARRAYS:
+                data = np.concatenate([p["laws"][law][key] for p in parts])
+                group.create_dataset(key, data=data.astype(np.int32 if key == "run" else np.float64))
+            for key in ("finite", "within_limits"):
+                group.attrs[key] = int(np.concatenate([p["laws"][law][key] for p in parts]).sum())
+    manifest["samples_per_law"] = {law: sum(len(p["laws"][law]["t_s"]) for p in parts) for law in spec.laws}
     Path(str(out_path) + ".manifest.json").write_text(json.dumps(manifest, indent=2))
     return out_path
 
@@ -252,30 +244,17 @@ class RawDataset:
 
 def load_raw_dataset(path: Path, laws: tuple[str, ...] | None = None) -> RawDataset:
     """Read D_input; any unreadable, truncated or inconsistent file is one ModelInputError naming it."""
-    import h5py
-
     path = Path(path)
-    if not path.is_file():
-        raise ModelInputError(f"dataset {path}: no such file")
-    try:
-        with h5py.File(path, "r") as h5:
-            manifest = json.loads(h5.attrs["manifest"])
-            if manifest.get("schema") != SCHEMA:
-                raise ModelInputError(f"dataset {path}: unknown schema {manifest.get('schema')!r} (expected {SCHEMA})")
-            out = RawDataset(path, manifest)
-            for law in laws or tuple(manifest["spec"]["laws"]):
-                if law not in h5:
-                    raise ModelInputError(f"dataset {path}: no group for law '{law}'")
-                arrays = {k: h5[law][k][...] for k in ARRAYS}
-                rows = {a.shape[0] for a in arrays.values()}
-                if len(rows) != 1:
-                    raise ModelInputError(f"dataset {path}: law '{law}' arrays have different lengths {sorted(rows)}")
-                out.laws[law] = RawLaw(**arrays)
-    except ModelInputError:
-        raise
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ModelInputError(f"dataset {path}: unreadable or truncated HDF5 ({reason})") from None
+    with read_h5(path, "dataset", SCHEMA) as (h5, manifest):
+        out = RawDataset(path, manifest)
+        for law in laws or tuple(manifest["spec"]["laws"]):
+            if law not in h5:
+                raise ModelInputError(f"dataset {path}: no group for law '{law}'")
+            arrays = {k: h5[law][k][...] for k in ARRAYS}
+            rows = {a.shape[0] for a in arrays.values()}
+            if len(rows) != 1:
+                raise ModelInputError(f"dataset {path}: law '{law}' arrays have different lengths {sorted(rows)}")
+            out.laws[law] = RawLaw(**arrays)
     return out
 
 
