@@ -471,7 +471,7 @@ def make_probe_inputs(bundle: PolicyBundle, count: int = 12, seed: int = PROBE_S
 
 
 #: trust weights alpha at which clamp_probe_inputs tries each direction beyond the box (1: its edge)
-CLAMP_PROBE_ALPHAS = (1.0, 0.9, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002)
+CLAMP_PROBE_ALPHAS = (1.0, 0.9, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 1e-3, 3e-4, 1e-4)
 CLAMP_PROBE_INSIDE = (0.0, 0.25, 0.5)  # fractions of the half box, inside it (alpha = 1)
 
 
@@ -488,10 +488,12 @@ def clamp_probe_inputs(bundle: PolicyBundle) -> np.ndarray:
     ``residual_bound_nm`` whatever its size): per joint, a row where that joint's residual is clamped
     and no joint saturates, and one row at the box centre where none is clamped. Found by running the
     graph: from the trust box's centre, one guard feature (q, e, qd, e_dot, qdd_d) of one joint moved at a
-    time, both signs, inside the box and beyond it at the trust weights CLAMP_PROBE_ALPHAS (a small alpha
-    keeps tau_fb + alpha * bound below the torque limit when the bound is larger than it). Per joint the
-    row with the largest alpha is kept; a joint whose residual no row clamps gets none. Empty without a
-    trust region or a bound."""
+    time, or the tracking features (e, e_dot, qdd_d) of one or every joint together, both signs, inside
+    the box and beyond it at the trust weights CLAMP_PROBE_ALPHAS (a small alpha keeps
+    tau_fb + alpha * bound below the torque limit when the bound is larger than it). Per joint the row
+    with the largest alpha is kept. A joint whose residual no row clamps gets none: its bound is then
+    beyond anything the graph gives where the emulator acts (it never clamps there), and the loader
+    cannot check it. Empty without a trust region or a bound."""
     trust, bound = bundle.manifest.get("trust_region"), bundle.residual_bound_nm
     n = bundle.n_joints
     if trust is None or bound is None:
@@ -503,12 +505,19 @@ def clamp_probe_inputs(bundle: PolicyBundle) -> np.ndarray:
     offsets = [f * 0.5 * span for f in CLAMP_PROBE_INSIDE] + [
         0.5 * span + (1.0 - a) * margin * span for a in CLAMP_PROBE_ALPHAS
     ]
+    # directions: one feature of one joint; a joint's (e, e_dot, qdd_d) together (their accelerations add);
+    # every joint's (e, e_dot, qdd_d) together. alpha is set by the largest excess, so moving several
+    # features by the same share of their span costs no more trust than moving one.
+    tracking = (1, 3, 4)  # e, e_dot, qdd_d blocks of the guard features
+    directions = [[k] for k in range(width)]
+    directions += [[b * n + j for b in tracking] for j in range(n)]
+    directions += [[b * n + j for j in range(n) for b in tracking]]
     g = [centre]
-    for k in range(width):
+    for index in directions:
         for offset in offsets[1:]:
             for sign in (1.0, -1.0):
                 row = centre.copy()
-                row[k] += sign * offset[k]
+                row[index] += sign * offset[index]
                 g.append(row)
     x = _guard_rows(bundle, np.asarray(g))
     y = bundle._run_rows(x)

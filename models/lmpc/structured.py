@@ -50,6 +50,7 @@ PERTURBATION = {"absolute": (1e-4, 1e-2), "anchored": (2e-3, 2e-2)}
 #: c fixed per formulation (None: fitted): the absolute-cost optimum does not depend on the law
 C_FIXED = {"absolute": -1.0, "anchored": None}
 TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
+TRAINED_FORMAT = "structured-lmpc-trained/1"  # <work>/trained_<law>.pt (save_trained, reexport)
 
 
 @dataclass(frozen=True)
@@ -95,11 +96,11 @@ class StructuredConfig:
     # errors would hand every cycle back to the law).
     error_envelope_rad: float = 0.1
     rate_envelope_rad_s: float = 3.0  # the 2 s impulse alone moves the wrist by ~1.6 rad/s
-    # trust region residual bound: bound_scale x max |tau* - tau_fb| over the training labels. The shipped
-    # bundles use 3; 10 lets ADRC and SMC cancel their own torque after the impulse (eta_L 73.3 / 67.1 ->
-    # 81.2 / 77.0, docs/lmpc.md section 9) but no recorded probe then exercises the clamp, which a loader
-    # test relies on (hil pipeline --residual-bound-scale 10)
-    bound_scale: float = 3.0
+    # trust region residual bound: bound_scale x max |tau* - tau_fb| over the training labels. 10 lets ADRC
+    # and SMC cancel their own torque after the impulse (3 clamped it: eta_L 73.3 / 67.1 -> 81.2 / 77.0,
+    # docs/lmpc.md section 9); the bundle's probes clamp each joint whatever the bound
+    # (hil_runtime.bundle.clamp_probe_inputs), so the loader still catches a changed bound
+    bound_scale: float = 10.0
     # DART-style excitation of the expert rollouts: the plant gets tau* + noise (the label stays tau*),
     # noise = accel_noise * M_ii(0) * a standard normal held for noise_hold_steps periods, seeded; a
     # fraction noise_fraction of the training conditions run with it. Without it the expert's own
@@ -628,11 +629,27 @@ def export_structured(
     summary: dict[str, Any],
 ) -> dict[str, Any]:
     """A policy bundle through models.lmpc.bundle_export (trust region: the training states' box)."""
+    box, label_max = trust_box(s, robot, config), np.abs(y).max(0)
+    return export_trained(out_dir, law_name, robot, model, box, label_max, config, summary)
+
+
+def export_trained(
+    out_dir: Path,
+    law_name: str,
+    robot: RobotModel,
+    model: StructuredEmulator,
+    box: tuple[np.ndarray, np.ndarray],
+    label_max_nm: np.ndarray,
+    config: StructuredConfig,
+    summary: dict[str, Any],
+) -> dict[str, Any]:
+    """export_structured from what it needs of the data: the trust box and max |tau* - tau_fb| per joint
+    (what ``save_trained`` keeps, so a bundle can be re-exported without the rollouts or a refit)."""
     from models.lmpc.bundle_export import export_bundle
 
     law = make_law(law_name, robot, config.period_s, config.gain_set)
-    low, high = trust_box(s, robot, config)
-    bound = config.bound_scale * np.abs(y).max(0) + 1e-3
+    low, high = box
+    bound = config.bound_scale * np.asarray(label_max_nm, float) + 1e-3
     training = {
         "design": "structured (models/lmpc/structured.py, docs/lmpc.md section 9)",
         "gain_set": config.gain_set,
@@ -758,6 +775,86 @@ def _cached_rollouts(
     return {name: data[name] for name in config.laws}
 
 
+def save_trained(
+    path: Path,
+    model: StructuredEmulator,
+    config: StructuredConfig,
+    fit: dict[str, Any],
+    box: tuple[np.ndarray, np.ndarray],
+    label_max_nm: np.ndarray,
+) -> None:
+    """The trained emulator (torch weights, frozen coefficients) and what its export needs of the data:
+    ``reexport`` rebuilds the bundle from it (another residual bound, a changed graph) without a refit."""
+    payload = {
+        "format": TRAINED_FORMAT,
+        "config": jsonable_config(config),
+        "state_dict": model.state_dict(),
+        "frozen": [t.detach().clone() for t in model.coefficients()],
+        "use_residual": bool(model.use_residual),
+        "fit": fit,
+        "box": [np.asarray(box[0], float), np.asarray(box[1], float)],
+        "label_max_nm": np.asarray(label_max_nm, float),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+def config_from_json(raw: dict[str, Any]) -> StructuredConfig:
+    """The StructuredConfig that jsonable_config recorded (fields this version does not know are refused)."""
+    unknown = sorted(set(raw) - set(StructuredConfig.__dataclass_fields__))
+    if unknown:
+        raise ModelInputError(f"structured lmpc config: unknown fields {', '.join(unknown)}")
+    values = dict(raw)
+    for name in ("laws", "hidden"):
+        if name in values:
+            values[name] = tuple(values[name])
+    return StructuredConfig(**values)
+
+
+def reexport(
+    work: Path,
+    bundles: Path,
+    laws: tuple[str, ...] = (),
+    bound_scale: float | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Bundles from run_structured's trained files (<work>/trained_<law>.pt) with today's graph code: no
+    rollouts, no refit. ``bound_scale`` overrides the recorded residual-bound scale."""
+    work, bundles = Path(work), Path(bundles)
+    names = laws or tuple(sorted(p.stem.removeprefix("trained_") for p in work.glob("trained_*.pt")))
+    if not names:
+        raise ModelInputError(f"reexport: no trained_<law>.pt in {work} (made by `hil pipeline --design structured`)")
+    summary: dict[str, Any] = {}
+    for name in names:
+        path = work / f"trained_{name}.pt"
+        if not path.is_file():
+            raise ModelInputError(f"reexport: {path}: missing")
+        try:
+            payload = torch.load(path, weights_only=False)
+        except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip and runtime errors alike
+            raise ModelInputError(f"reexport: {path}: unreadable ({str(exc).splitlines()[0][:120]})") from None
+        if not isinstance(payload, dict) or payload.get("format") != TRAINED_FORMAT:
+            raise ModelInputError(f"reexport: {path}: not a {TRAINED_FORMAT} file")
+        config = config_from_json(payload["config"])
+        if bound_scale is not None:
+            config = replace(config, bound_scale=float(bound_scale))
+        robot = load_robot(config.robot)
+        bound = config.residual_bound_fraction * np.asarray(robot.torque_limit_nm, float)
+        model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)
+        model.load_state_dict(payload["state_dict"])
+        model.frozen = tuple(payload["frozen"])
+        model.use_residual = bool(payload["use_residual"])
+        box = (payload["box"][0], payload["box"][1])
+        out = bundles / robot.name / name
+        manifest = export_trained(out, name, robot, model.eval(), box, payload["label_max_nm"], config, payload["fit"])
+        error = float(manifest["validation"]["onnx_vs_torch_max_abs_nm"])
+        summary[name] = {"path": str(out), "bound_scale": config.bound_scale, "onnx_vs_torch_max_abs_nm": error}
+        log(f"{name}: re-exported {out} (residual bound {config.bound_scale}x; onnx vs torch {error:.1e} N m)")
+    return summary
+
+
 def run_structured(
     config: StructuredConfig, bundles: Path, work: Path, log: Callable[[str], None] = print
 ) -> dict[str, Any]:
@@ -779,7 +876,9 @@ def run_structured(
             s, y = features(data[name]), data[name]["tau_star"] - data[name]["tau_fb"]
             log(f"{name}: fit on {len(s)} states (round {round_index})")
             model, fit = train_structured(robot, s, y, config, log)
-            manifest = export_structured(bundles / robot.name / name, name, robot, model, s, y, config, fit)
+            box, label_max = trust_box(s, robot, config), np.abs(y).max(0)
+            save_trained(work / f"trained_{name}.pt", model, config, fit, box, label_max)
+            manifest = export_trained(bundles / robot.name / name, name, robot, model, box, label_max, config, fit)
             per_law[name] = {"fit": fit, "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"]}
         summary["rounds"].append(per_law)
         if round_index == config.dagger_rounds:

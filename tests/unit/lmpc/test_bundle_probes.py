@@ -1,0 +1,111 @@
+"""The writer's probes exercise the residual clamp whatever its size (issue 13): a bundle exported with
+the old (3x) or the shipped (10x) residual-bound scale, or a far larger one, still has its manifest's
+bound checked against the graph by the loader; and a bundle re-exported from the trained file
+(models.lmpc.reexport) is the same graph."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from hil_runtime.bundle import BundleError, PolicyBundle  # noqa: E402
+from models.errors import ModelInputError  # noqa: E402
+from models.lmpc.structured import (  # noqa: E402
+    StructuredConfig,
+    StructuredEmulator,
+    export_trained,
+    reexport,
+    save_trained,
+    trust_box,
+)
+from models.robots import load_robot  # noqa: E402
+
+ROBOT = load_robot("ur5_paper")
+#: max |tau* - tau_fb| per joint of the shipped PD bundle's labels (N m)
+LABEL_MAX_NM = np.array([14.52, 24.14, 13.35, 4.352, 0.8674, 0.01152])
+FIT = {"physics": {"relative_loss": 0.0}, "residual": {"val_relative_loss": 0.0}}  # what the manifest quotes
+
+
+def _emulator() -> StructuredEmulator:
+    """The structure with the absolute-cost HMPC's coefficients (c = -1, g = 1, deadbeat-like gains)."""
+    n = ROBOT.n_joints
+    model = StructuredEmulator(ROBOT, (8,), 0.02 * np.asarray(ROBOT.torque_limit_nm, float))
+    with torch.no_grad():
+        model.c.fill_(-1.0)
+        model.g.fill_(1.0)
+        model.theta_kp.copy_(torch.eye(n, dtype=torch.float64) * 9e4 / model.KP_SCALE)
+        model.theta_kd.copy_(torch.eye(n, dtype=torch.float64) * 900.0 / model.KD_SCALE)
+        model.net[-1].weight.normal_(0.0, 1.0)  # a residual MLP that is not zero
+    model.freeze()
+    return model.eval()
+
+
+def _export(path: Path, scale: float) -> tuple[StructuredEmulator, StructuredConfig, tuple[np.ndarray, np.ndarray]]:
+    config = StructuredConfig(laws=("pd",), hidden=(8,), bound_scale=scale)
+    model = _emulator()
+    box = trust_box(np.zeros((1, 6 * ROBOT.n_joints)), ROBOT, config)
+    export_trained(path, "pd", ROBOT, model, box, LABEL_MAX_NM, config, FIT)
+    return model, config, box
+
+
+def _tampered(src: Path, dst: Path, factor: np.ndarray) -> Path:
+    shutil.copytree(src, dst)
+    manifest = json.loads((dst / "manifest.json").read_text())
+    bound = np.asarray(manifest["trust_region"]["residual_bound_nm"], float)
+    manifest["trust_region"]["residual_bound_nm"] = (bound * factor).tolist()
+    (dst / "manifest.json").write_text(json.dumps(manifest))
+    return dst
+
+
+@pytest.mark.parametrize("scale", [3.0, 10.0, 100.0])
+def test_a_changed_residual_bound_is_refused_whatever_the_bound(tmp_path: Path, scale: float) -> None:
+    _export(tmp_path / "pd", scale)
+    bundle = PolicyBundle.load(tmp_path / "pd")  # the honest bundle passes every check
+    n = bundle.n_joints
+    outputs = np.asarray(bundle.manifest["probes"]["outputs"])
+    alpha, clamped = 1.0 - outputs[:, -2], outputs[:, -1]
+    assert (clamped[alpha > 0] >= 1).any() and ((alpha == 1.0) & (clamped == 0)).any()  # clamp and inside
+    if scale >= 10:  # the bound exceeds the first joints' torque limits: their clamp shows only at alpha < 1
+        assert np.any(np.asarray(bundle.manifest["trust_region"]["residual_bound_nm"]) > bundle.torque_limit_nm)
+    for k, factor in enumerate((10.0, 1.1, 0.1, 0.9)):
+        with pytest.raises(BundleError, match="residual_bound_nm") as info:
+            PolicyBundle.load(_tampered(tmp_path / "pd", tmp_path / f"all{k}", np.full(n, factor)))
+        assert info.value.exit_code == 2 and "\n" not in str(info.value)
+    for j in range(n):  # one joint's bound changed, up or down: its own clamp row shows it
+        for sign, factor in enumerate((1.01, 0.99)):
+            one = np.ones(n)
+            one[j] = factor
+            with pytest.raises(BundleError, match="residual_bound_nm"):
+                PolicyBundle.load(_tampered(tmp_path / "pd", tmp_path / f"j{j}{sign}", one))
+
+
+def test_reexport_from_the_trained_file_gives_the_same_graph(tmp_path: Path) -> None:
+    model, config, box = _export(tmp_path / "first" / "ur5_paper" / "pd", 10.0)
+    save_trained(tmp_path / "work" / "trained_pd.pt", model, config, FIT, box, LABEL_MAX_NM)
+    reexport(tmp_path / "work", tmp_path / "again", log=lambda _: None)
+    first = PolicyBundle.load(tmp_path / "first" / "ur5_paper" / "pd")
+    again = PolicyBundle.load(tmp_path / "again" / "ur5_paper" / "pd")
+    x = np.asarray(first.manifest["probes"]["inputs"])
+    np.testing.assert_array_equal(again._run_rows(x), first._run_rows(x))
+    assert again.manifest["trust_region"] == first.manifest["trust_region"]
+    reexport(tmp_path / "work", tmp_path / "wider", bound_scale=20.0, log=lambda _: None)
+    wider = PolicyBundle.load(tmp_path / "wider" / "ur5_paper" / "pd")
+    np.testing.assert_allclose(
+        np.asarray(wider.manifest["trust_region"]["residual_bound_nm"]) - 1e-3, 20.0 * LABEL_MAX_NM, rtol=1e-12
+    )
+
+
+def test_reexport_refuses_a_work_directory_without_trained_files(tmp_path: Path) -> None:
+    from models.lmpc.reexport import main
+
+    assert main(["--work", str(tmp_path), "--bundles", str(tmp_path / "b")]) == 2
+    (tmp_path / "trained_pd.pt").write_bytes(b"not a torch file")
+    with pytest.raises(ModelInputError, match=r"trained_pd.pt: unreadable"):
+        reexport(tmp_path, tmp_path / "b", log=lambda _: None)
+    assert main(["--work", str(tmp_path), "--residual-bound-scale", "0"]) == 2
