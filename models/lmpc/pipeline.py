@@ -30,6 +30,7 @@ from models.executors import DEFAULT_EXECUTOR, Executor, make_executor
 from models.feedback import make_law
 from models.lmpc.dataset import RawDatasetSpec, RawLaw, generate_raw_dataset, git_commit, load_raw_dataset
 from models.lmpc.emulator import TrainConfig, train_emulator
+from models.lmpc.h5file import read_h5, write_h5, write_manifest
 from models.lmpc.labels import LABEL_HMPC_OPTIONS, Labeler, hmpc_labeler
 from models.lmpc.sampling import (
     PAPER_REGIONS,
@@ -159,8 +160,6 @@ def stage_label(
     executor: Executor | None = None,
 ) -> Path:
     """Sample every law and label the union of its optimal, uniform and test states."""
-    import h5py
-
     raw_path = work / "raw.h5"
     raw = load_raw_dataset(raw_path)
     robot = load_robot(config.dataset.robot)
@@ -170,48 +169,44 @@ def stage_label(
     unions = {law: np.unique(np.concatenate([c["optimal"], c["uniform"], c["test"]])) for law, c in chosen.items()}
     advance = _progress(progress, "label: HMPC on sampled states", sum(u.size for u in unions.values()))
     out = work / "labels.h5"
-    tmp = out.with_name(out.name + f".tmp{os.getpid()}")
     started = time.perf_counter()
     wall: dict[str, float] = {}
-    try:
-        with h5py.File(tmp, "w") as h5:
-            for law_name in config.laws:
-                law = make_law(law_name, robot, config.dataset.period_s, config.dataset.gain_set)
-                rows, index = raw.laws[law_name], unions[law_name]
-                taus, statuses = [], []
-                law_start = time.perf_counter()
-                for lo in range(0, index.size, config.label_chunk):
-                    part = rows.take(index[lo : lo + config.label_chunk])
-                    tau, status = labeler(law, robot, part, executor)
-                    taus.append(np.asarray(tau, float))
-                    statuses.append(np.asarray(status, np.int32))
-                    advance(len(part))
-                wall[law_name] = time.perf_counter() - law_start
-                group = h5.create_group(law_name)
-                group.create_dataset("index", data=index)
-                group.create_dataset("tau_star", data=np.concatenate(taus))
-                group.create_dataset("status", data=np.concatenate(statuses))
-                for key in ("optimal", "uniform", "test"):
-                    group.create_dataset(key, data=chosen[law_name][key])
-                group.attrs["theorem2"] = json.dumps(chosen[law_name]["theorem2"])
-            h5.attrs["manifest"] = json.dumps(
-                {
-                    "schema": LABELS_SCHEMA,
-                    "raw": str(raw_path),
-                    "raw_manifest_created": raw.manifest.get("created"),
-                    "git_commit": git_commit(),
-                    "labeler": getattr(labeler, "__name__", repr(labeler)),
-                    "hmpc_options": LABEL_HMPC_OPTIONS if labeler is hmpc_labeler else None,
-                    "budget": config.budget,
-                    "per_law": per_law,
-                    "wall_s": round(time.perf_counter() - started, 1),
-                    "wall_s_per_law": wall,
-                    "config": _config_json(config),
-                }
-            )
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with write_h5(out) as h5:
+        for law_name in config.laws:
+            law = make_law(law_name, robot, config.dataset.period_s, config.dataset.gain_set)
+            rows, index = raw.laws[law_name], unions[law_name]
+            taus, statuses = [], []
+            law_start = time.perf_counter()
+            for lo in range(0, index.size, config.label_chunk):
+                part = rows.take(index[lo : lo + config.label_chunk])
+                tau, status = labeler(law, robot, part, executor)
+                taus.append(np.asarray(tau, float))
+                statuses.append(np.asarray(status, np.int32))
+                advance(len(part))
+            wall[law_name] = time.perf_counter() - law_start
+            group = h5.create_group(law_name)
+            group.create_dataset("index", data=index)
+            group.create_dataset("tau_star", data=np.concatenate(taus))
+            group.create_dataset("status", data=np.concatenate(statuses))
+            for key in ("optimal", "uniform", "test"):
+                group.create_dataset(key, data=chosen[law_name][key])
+            group.attrs["theorem2"] = json.dumps(chosen[law_name]["theorem2"])
+        write_manifest(
+            h5,
+            {
+                "schema": LABELS_SCHEMA,
+                "raw": str(raw_path),
+                "raw_manifest_created": raw.manifest.get("created"),
+                "git_commit": git_commit(),
+                "labeler": getattr(labeler, "__name__", repr(labeler)),
+                "hmpc_options": LABEL_HMPC_OPTIONS if labeler is hmpc_labeler else None,
+                "budget": config.budget,
+                "per_law": per_law,
+                "wall_s": round(time.perf_counter() - started, 1),
+                "wall_s_per_law": wall,
+                "config": _config_json(config),
+            },
+        )
     return out
 
 
@@ -228,30 +223,17 @@ class LawLabels:
 
 
 def load_labels(path: Path) -> tuple[dict[str, Any], dict[str, LawLabels]]:
-    import h5py
-
-    path = Path(path)
-    if not path.is_file():
-        raise ModelInputError(f"labels {path}: no such file (run the label stage first)")
-    try:
-        with h5py.File(path, "r") as h5:
-            manifest = json.loads(h5.attrs["manifest"])
-            if manifest.get("schema") != LABELS_SCHEMA:
-                raise ModelInputError(f"labels {path}: unknown schema {manifest.get('schema')!r}")
-            out = {}
-            for law in h5:
-                g = h5[law]
-                out[law] = LawLabels(
-                    g["index"][...],
-                    g["tau_star"][...],
-                    g["status"][...],
-                    {k: g[k][...] for k in ("optimal", "uniform", "test")},
-                    json.loads(g.attrs["theorem2"]),
-                )
-    except ModelInputError:
-        raise
-    except (OSError, KeyError, ValueError) as exc:
-        raise ModelInputError(f"labels {path}: unreadable or truncated HDF5 ({str(exc).splitlines()[0]})") from None
+    out = {}
+    with read_h5(path, "labels", LABELS_SCHEMA, missing="no such file (run the label stage first)") as (h5, manifest):
+        for law in h5:
+            g = h5[law]
+            out[law] = LawLabels(
+                g["index"][...],
+                g["tau_star"][...],
+                g["status"][...],
+                {k: g[k][...] for k in ("optimal", "uniform", "test")},
+                json.loads(g.attrs["theorem2"]),
+            )
     return manifest, out
 
 
