@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from models.feedback._common import const
 from models.feedback.base import FeedbackLaw
 
 PAPER_KP = np.array([25.0, 150.0, 65.0, 25.0, 2.0, 1.0])
@@ -30,6 +31,9 @@ class PDLaw(FeedbackLaw):
     def params(self) -> dict[str, Any]:
         return {"kp": self.kp.tolist(), "kd": self.kd.tolist()}
 
+    def pd_torque(self, xp: Any, e: Any, e_dot: Any) -> Any:
+        """Kp e + Kd e_dot, unsaturated (PID adds its integral term to it)."""
+        return const(xp, self.kp) * e + const(xp, self.kd) * e_dot
+
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
-        kp, kd = (self.kp, self.kd) if xp is np else (xp.as_tensor(self.kp), xp.as_tensor(self.kd))
-        return self.saturate(xp, kp * (q_d - q) + kd * (qd_d - qd)), state
+        return self.saturate(xp, self.pd_torque(xp, q_d - q, qd_d - qd)), state

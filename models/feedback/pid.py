@@ -16,13 +16,14 @@ from typing import Any
 import numpy as np
 
 from models.feedback._common import const
-from models.feedback.base import FeedbackLaw
-from models.feedback.pd import PAPER_KD, PAPER_KP
+from models.feedback.pd import PAPER_KD, PAPER_KP, PDLaw
 
 PAPER_KI = np.array([0.3, 0.4, 0.3, 0.1, 0.03, 0.03])
 
 
-class PIDLaw(FeedbackLaw):
+class PIDLaw(PDLaw):
+    """The PD law (its gains and torque) plus the clamped error integral."""
+
     name = "pid"
 
     def __init__(
@@ -34,8 +35,8 @@ class PIDLaw(FeedbackLaw):
         kd: np.ndarray = PAPER_KD,
         ki: np.ndarray = PAPER_KI,
     ) -> None:
-        super().__init__(n_joints, period_s, torque_limit_nm)
-        self.kp, self.kd, self.ki = (np.asarray(g, float) for g in (kp, kd, ki))
+        super().__init__(n_joints, period_s, torque_limit_nm, kp, kd)
+        self.ki = np.asarray(ki, float)
         # Anti-windup bound on the integral (rad*s); a large finite number where Ki = 0 keeps ONNX finite.
         self.integral_limit_rad_s = np.where(self.ki > 0, self.torque_limit_nm / np.maximum(self.ki, 1e-12), 1e6)
 
@@ -46,16 +47,15 @@ class PIDLaw(FeedbackLaw):
     @property
     def params(self) -> dict[str, Any]:
         return {
-            "kp": self.kp.tolist(),
-            "kd": self.kd.tolist(),
+            **super().params,
             "ki": self.ki.tolist(),
             "integral_limit_rad_s": self.integral_limit_rad_s.tolist(),
             "integration": "backward rectangle",
         }
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
-        kp, kd, ki, limit = (const(xp, a) for a in (self.kp, self.kd, self.ki, self.integral_limit_rad_s))
+        ki, limit = const(xp, self.ki), const(xp, self.integral_limit_rad_s)
         e = q_d - q
         integral = xp.minimum(xp.maximum(state + self.period_s * e, -limit), limit)
-        tau = kp * e + kd * (qd_d - qd) + ki * integral
+        tau = self.pd_torque(xp, e, qd_d - qd) + ki * integral
         return self.saturate(xp, tau), integral
