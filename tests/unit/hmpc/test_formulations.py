@@ -8,20 +8,6 @@ import pytest
 from models.errors import ModelInputError
 from models.feedback import make_law
 from models.hmpc import HMPCConfig, HMPCSolver
-from models.robots import load_robot
-
-
-@pytest.fixture(scope="module")
-def robot():  # type: ignore[no-untyped-def]
-    return load_robot("ur5_paper")
-
-
-def states(batch: int, seed: int = 0) -> tuple[np.ndarray, ...]:
-    rng = np.random.default_rng(seed)
-    q_d = rng.uniform(-1.0, 1.0, (batch, 6))
-    qd_d = rng.uniform(-0.3, 0.3, (batch, 6))
-    qdd_d = rng.uniform(-0.2, 0.2, (batch, 6))
-    return q_d + rng.normal(0.0, 0.01, (batch, 6)), qd_d + rng.normal(0.0, 0.05, (batch, 6)), q_d, qd_d, qdd_d
 
 
 def test_anchored_weights_scale_with_inverse_inertia_squared(robot) -> None:  # type: ignore[no-untyped-def]
@@ -33,26 +19,26 @@ def test_anchored_weights_scale_with_inverse_inertia_squared(robot) -> None:  # 
     np.testing.assert_allclose(coarse.anchor_weight / solver.anchor_weight, 100.0)
 
 
-def test_anchored_compiled_equals_numpy_and_reports_w_star(robot) -> None:  # type: ignore[no-untyped-def]
+def test_anchored_compiled_equals_numpy_and_reports_w_star(make_states, robot) -> None:  # type: ignore[no-untyped-def]
     law = make_law("pd", robot, 1e-3, "stabilized")
     results = [
-        HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", kernels=k)).solve(*states(8))
+        HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", kernels=k)).solve(*make_states(8))
         for k in ("numba", "numpy")
     ]
     np.testing.assert_allclose(results[0].tau_nm, results[1].tau_nm, atol=1e-6)
     assert np.all(np.isin(results[0].anchor_scale, HMPCConfig().candidate_scales))
-    assert HMPCSolver(law, robot).solve(*states(2)).anchor_scale is None
+    assert HMPCSolver(law, robot).solve(*make_states(2)).anchor_scale is None
 
 
-def test_a_stiff_anchor_returns_the_anchor(robot) -> None:  # type: ignore[no-untyped-def]
+def test_a_stiff_anchor_returns_the_anchor(make_states, robot) -> None:  # type: ignore[no-untyped-def]
     law = make_law("pd", robot, 1e-3, "stabilized")
-    result = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", anchor_weight_scale=1e9)).solve(*states(6))
+    result = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", anchor_weight_scale=1e9)).solve(*make_states(6))
     anchor = np.clip(result.anchor_scale[:, None] * result.tau_fb_nm, -robot.torque_limit_nm, robot.torque_limit_nm)
     np.testing.assert_allclose(result.tau_nm, anchor, atol=1e-3 * np.abs(anchor).max())
 
 
-def test_the_law_matters_only_with_the_anchored_cost(robot) -> None:  # type: ignore[no-untyped-def]
-    x = states(6, seed=3)
+def test_the_law_matters_only_with_the_anchored_cost(make_states, robot) -> None:  # type: ignore[no-untyped-def]
+    x = make_states(6, seed=3)
     taus = {}
     for cost in ("absolute", "anchored"):
         for name in ("pd", "smc"):

@@ -1,4 +1,6 @@
-"""HMPC: optimizer quality, bounds, backend agreement, fallbacks, batch == single, bad config."""
+"""HMPC: optimizer quality, bounds, dynamics backends agree, fallbacks, batch == single, bad config.
+
+numpy == compiled inner loops: test_inner_loops.py."""
 
 from __future__ import annotations
 
@@ -13,12 +15,6 @@ from models.feedback.pd import PDLaw
 from models.hmpc import HMPCConfig, HMPCSolver, make_hmpc_controller, solve_batch
 from models.hmpc.boxqp import solve_box_qp
 from models.hmpc.solver import CONVERGED, NONFINITE_INPUT, NOT_CONVERGED
-from models.robots import load_robot
-
-
-@pytest.fixture(scope="module")
-def robot():  # type: ignore[no-untyped-def]
-    return load_robot("ur5_paper")
 
 
 @pytest.fixture(scope="module")
@@ -26,19 +22,8 @@ def law(robot):  # type: ignore[no-untyped-def]
     return PDLaw(robot.n_joints, 1e-3, robot.torque_limit_nm)
 
 
-def states(batch: int, seed: int = 0, error_rad: float = 0.01) -> tuple[np.ndarray, ...]:
-    """Arm states near a moving reference, as in closed loop (errors of ~0.5 deg)."""
-    rng = np.random.default_rng(seed)
-    q_d = rng.uniform(-1.0, 1.0, (batch, 6))
-    qd_d = rng.uniform(-0.3, 0.3, (batch, 6))
-    qdd_d = rng.uniform(-0.2, 0.2, (batch, 6))
-    q = q_d + rng.normal(0.0, error_rad, (batch, 6))
-    qd = qd_d + rng.normal(0.0, 5 * error_rad, (batch, 6))
-    return q, qd, q_d, qd_d, qdd_d
-
-
-def test_refined_cost_below_best_candidate(law, robot) -> None:  # type: ignore[no-untyped-def]
-    result = HMPCSolver(law, robot).solve(*states(16))
+def test_refined_cost_below_best_candidate(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+    result = HMPCSolver(law, robot).solve(*make_states(16))
     assert np.all(result.status == CONVERGED)
     # the refinement must actually improve on the paper's candidates, not just pick one
     assert np.all(result.cost <= result.candidate_cost)
@@ -46,9 +31,9 @@ def test_refined_cost_below_best_candidate(law, robot) -> None:  # type: ignore[
     assert np.all(result.iterations >= 1)
 
 
-def test_solution_is_a_local_minimum(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_solution_is_a_local_minimum(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
     solver = HMPCSolver(law, robot)
-    args = states(1, seed=3)
+    args = make_states(1, seed=3)
     result = solver.solve(*args)
     from models.hmpc.solver import _Rows
 
@@ -62,10 +47,10 @@ def test_solution_is_a_local_minimum(law, robot) -> None:  # type: ignore[no-unt
         assert solver._rollout(rows, trial).cost[0] >= base * (1 - 1e-6)
 
 
-def test_torque_bounds_respected_and_active(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_torque_bounds_respected_and_active(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
     tight = (5.0, 5.0, 3.0, 1.0, 1.0, 1.0)
     solver = HMPCSolver(law, robot, HMPCConfig(torque_limit_nm=tight, max_iterations=10))
-    q, qd, q_d, qd_d, qdd_d = states(8, seed=2, error_rad=0.05)
+    q, qd, q_d, qd_d, qdd_d = make_states(8, seed=2, error_rad=0.05)
     result = solver.solve(q, qd, q_d, qd_d, qdd_d)
     limit = np.array(tight)
     assert np.all(np.abs(result.sequence_nm) <= limit + 1e-9)
@@ -73,11 +58,11 @@ def test_torque_bounds_respected_and_active(law, robot) -> None:  # type: ignore
     assert np.any(np.isclose(np.abs(result.sequence_nm), limit))  # the bounds do bind here
 
 
-def test_velocity_bound_holds_on_prediction(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_velocity_bound_holds_on_prediction(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
     # A large position error pulls the joints hard; the predicted velocity must stay within 0.3 rad/s.
     limit = 0.3
     solver = HMPCSolver(law, robot, HMPCConfig(velocity_limit_rad_s=(limit,) * 6, max_iterations=10))
-    q, qd, q_d, qd_d, qdd_d = states(4, seed=4, error_rad=0.1)
+    q, qd, q_d, qd_d, qdd_d = make_states(4, seed=4, error_rad=0.1)
     qd, qd_d, qdd_d = np.zeros_like(qd), np.zeros_like(qd_d), np.zeros_like(qdd_d)
     result = solver.solve(q, qd, q_d, qd_d, qdd_d)
     from models.hmpc.solver import _Rows
@@ -93,11 +78,11 @@ def test_velocity_bound_holds_on_prediction(law, robot) -> None:  # type: ignore
 
 
 @pytest.mark.parametrize("law_name", ["pd", "pid"])
-def test_rne_and_pinocchio_backends_agree(robot, law_name: str) -> None:  # type: ignore[no-untyped-def]
+def test_rne_and_pinocchio_backends_agree(make_states, robot, law_name: str) -> None:  # type: ignore[no-untyped-def]
     from models.feedback import make_law
 
     law = make_law(law_name, robot, 1e-3)
-    args = states(6, seed=5)
+    args = make_states(6, seed=5)
     state = law.initial_state(args[0])
     fast = HMPCSolver(law, robot, HMPCConfig(backend="pinocchio")).solve(*args, state)
     own = HMPCSolver(law, robot, HMPCConfig(backend="rne")).solve(*args, state)
@@ -106,8 +91,8 @@ def test_rne_and_pinocchio_backends_agree(robot, law_name: str) -> None:  # type
     np.testing.assert_allclose(own.sequence_nm, fast.sequence_nm, rtol=0, atol=1e-8)
 
 
-def test_nan_state_falls_back_and_never_outputs_nan(law, robot) -> None:  # type: ignore[no-untyped-def]
-    q, qd, q_d, qd_d, qdd_d = states(3, seed=6)
+def test_nan_state_falls_back_and_never_outputs_nan(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+    q, qd, q_d, qd_d, qdd_d = make_states(3, seed=6)
     q[1, 2] = np.nan
     qd_d[2, 0] = np.inf
     hold = np.full((3, 6), 0.5)
@@ -119,9 +104,9 @@ def test_nan_state_falls_back_and_never_outputs_nan(law, robot) -> None:  # type
     np.testing.assert_array_equal(result.tau_nm[2], result.tau_fb_nm[2])  # finite (saturated) law torque
 
 
-def test_controller_counts_fallbacks_and_times_cycles(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_controller_counts_fallbacks_and_times_cycles(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
     controller = make_hmpc_controller(law, robot)
-    q, qd, q_d, qd_d, qdd_d = states(2, seed=7)
+    q, qd, q_d, qd_d, qdd_d = make_states(2, seed=7)
     controller.reset(q)
     controller(0.0, q, qd, q_d, qd_d, qdd_d)
     q_bad = q.copy()
@@ -132,10 +117,10 @@ def test_controller_counts_fallbacks_and_times_cycles(law, robot) -> None:  # ty
     assert len(controller.cycle_times_s) == 2 and all(t > 0 for t in controller.cycle_times_s)
 
 
-def test_budget_exhausted_falls_back_to_feedback(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_budget_exhausted_falls_back_to_feedback(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
     # one Gauss-Newton iteration with a strict tolerance cannot converge on large errors
     config = HMPCConfig(max_iterations=1, cost_rtol=1e-14, cost_atol=0.0)
-    args = states(4, seed=8, error_rad=0.1)
+    args = make_states(4, seed=8, error_rad=0.1)
     result = HMPCSolver(law, robot, config).solve(*args)
     assert np.all(result.status == NOT_CONVERGED)
     np.testing.assert_array_equal(result.tau_nm, result.tau_fb_nm)
@@ -145,9 +130,9 @@ def test_budget_exhausted_falls_back_to_feedback(law, robot) -> None:  # type: i
     np.testing.assert_array_equal(kept.tau_nm, kept.sequence_nm[:, 0])
 
 
-def test_warm_start_reaches_the_same_optimum_in_fewer_iterations(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_warm_start_reaches_the_same_optimum_in_fewer_iterations(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
     solver = HMPCSolver(law, robot)
-    args = states(8, seed=9)
+    args = make_states(8, seed=9)
     cold = solver.solve(*args)
     warm_guess = np.concatenate([cold.sequence_nm[:, :1], cold.sequence_nm[:, :-1]], 1)  # undone shift
     warm = solver.solve(*args, warm_start_nm=warm_guess)
@@ -157,8 +142,8 @@ def test_warm_start_reaches_the_same_optimum_in_fewer_iterations(law, robot) -> 
     np.testing.assert_allclose(warm.cost, cold.cost, rtol=2e-4)
 
 
-def test_batch_equals_single(law, robot) -> None:  # type: ignore[no-untyped-def]
-    args = states(10, seed=10, error_rad=0.05)
+def test_batch_equals_single(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+    args = make_states(10, seed=10, error_rad=0.05)
     tau, status = solve_batch(law, robot, *args, chunk_states=4)
     solver = HMPCSolver(law, robot)
     for b in range(10):
@@ -167,8 +152,8 @@ def test_batch_equals_single(law, robot) -> None:  # type: ignore[no-untyped-def
         np.testing.assert_allclose(tau[b], one.tau_nm[0], rtol=0, atol=1e-9)
 
 
-def test_process_pool_equals_serial(law, robot) -> None:  # type: ignore[no-untyped-def]
-    args = states(12, seed=11)
+def test_process_pool_equals_serial(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+    args = make_states(12, seed=11)
     serial, _ = solve_batch(law, robot, *args, chunk_states=5)
     with LocalProcessExecutor(2) as executor:
         parallel, _ = solve_batch(law, robot, *args, chunk_states=5, executor=executor)
@@ -203,15 +188,11 @@ def test_wrong_joint_count_weights_rejected(law, robot) -> None:  # type: ignore
         HMPCSolver(law, robot, HMPCConfig(position_error_weight=(1.0, 2.0)))
 
 
-def test_box_qp_matches_a_reference_solver() -> None:
+def test_box_qp_matches_a_reference_solver(make_box_qps) -> None:  # type: ignore[no-untyped-def]
     from scipy.optimize import Bounds, minimize
 
-    rng = np.random.default_rng(1)
-    k, n = 12, 30
-    a = rng.normal(size=(k, n, n)) * np.logspace(-3, 1, n)
-    hessian = a @ np.swapaxes(a, 1, 2) + 1e-6 * np.eye(n)
-    gradient = rng.normal(size=(k, n)) * 10
-    lower, upper = -np.ones((k, n)), rng.uniform(0.1, 2.0, (k, n))
+    hessian, gradient, lower, upper = make_box_qps(seed=1, unit_lower=True)
+    k, n = gradient.shape
     x, converged = solve_box_qp(hessian, gradient, lower, upper, 20)
     assert converged.all()
     assert np.all((x >= lower) & (x <= upper))
@@ -231,52 +212,18 @@ def test_box_qp_matches_a_reference_solver() -> None:
         assert f(x[row]) <= ref.fun + 1e-9
 
 
-def test_compiled_box_qp_matches_numpy() -> None:
-    pytest.importorskip("numba")
-    from models.hmpc import kernels
-
-    rng = np.random.default_rng(2)
-    k, n = 16, 30
-    a = rng.normal(size=(k, n, n)) * np.logspace(-3, 1, n)
-    hessian = a @ np.swapaxes(a, 1, 2) + 1e-6 * np.eye(n)
-    gradient = rng.normal(size=(k, n)) * 10
-    lower, upper = -rng.uniform(0.1, 2.0, (k, n)), rng.uniform(0.1, 2.0, (k, n))
-    x_np, ok_np = solve_box_qp(hessian, gradient, lower, upper, 20)
-    x_nb, ok_nb = kernels.box_qp(hessian, gradient, lower, upper, 20, 1e-9)
-    assert ok_np.all() and ok_nb.all()
-    assert np.all((x_nb >= lower) & (x_nb <= upper))
-    objective = lambda x: np.einsum("ki,ki->k", gradient + 0.5 * np.einsum("kij,kj->ki", hessian, x), x)  # noqa: E731
-    np.testing.assert_allclose(objective(x_nb), objective(x_np), rtol=1e-9, atol=1e-12)
-
-
-def test_compiled_kernels_reach_the_numpy_optimum(law, robot) -> None:  # type: ignore[no-untyped-def]
-    # Large errors (torque box and velocity penalty active, several Gauss-Newton iterations):
-    # the compiled inner loops take the same path as the numpy ones, to round-off.
-    pytest.importorskip("numba")
-    args = states(12, seed=12, error_rad=0.08)
-    fast = HMPCSolver(law, robot, HMPCConfig(kernels="numba", on_budget_exhausted="best_iterate")).solve(*args)
-    slow = HMPCSolver(law, robot, HMPCConfig(kernels="numpy", on_budget_exhausted="best_iterate")).solve(*args)
-    assert fast.iterations.max() >= 2
-    np.testing.assert_array_equal(fast.status, slow.status)
-    np.testing.assert_array_equal(fast.iterations, slow.iterations)
-    np.testing.assert_allclose(fast.cost, slow.cost, rtol=1e-8)
-    np.testing.assert_allclose(fast.candidate_cost, slow.candidate_cost, rtol=1e-12)
-
-
-def test_warm_started_box_qp_reaches_the_same_minimizer() -> None:
+def test_warm_started_box_qp_reaches_the_same_minimizer(make_box_qps, objective) -> None:  # type: ignore[no-untyped-def]
     # A guess only picks the first active set: from the solution itself, from a wrong set of
     # bounds, or from none, the minimizer (unique: H positive definite) is the same.
-    rng = np.random.default_rng(3)
-    k, n = 12, 30
-    a = rng.normal(size=(k, n, n)) * np.logspace(-3, 1, n)
-    hessian = a @ np.swapaxes(a, 1, 2) + 1e-6 * np.eye(n)
-    gradient = rng.normal(size=(k, n)) * 10
-    lower, upper = -rng.uniform(0.1, 2.0, (k, n)), rng.uniform(0.1, 2.0, (k, n))
+    hessian, gradient, lower, upper = make_box_qps(seed=3)
+    k, n = gradient.shape
+    rng = np.random.default_rng(4)
     cold, ok = solve_box_qp(hessian, gradient, lower, upper, 20)
     assert ok.all()
-    objective = lambda x: np.einsum("ki,ki->k", gradient + 0.5 * np.einsum("kij,kj->ki", hessian, x), x)  # noqa: E731
     wrong = np.where(rng.random((k, n)) < 0.3, np.where(rng.random((k, n)) < 0.5, lower, upper), 0.0)
     for guess in (cold, wrong, np.zeros((k, n))):
         warm, ok = solve_box_qp(hessian, gradient, lower, upper, 20, guess=guess)
         assert ok.all() and np.all((warm >= lower) & (warm <= upper))
-        np.testing.assert_allclose(objective(warm), objective(cold), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            objective(hessian, gradient, warm), objective(hessian, gradient, cold), rtol=1e-9, atol=1e-12
+        )
