@@ -20,9 +20,6 @@ import gc
 import json
 import os
 import platform
-import selectors
-import subprocess
-import sys
 import time
 import timeit
 import uuid
@@ -37,8 +34,7 @@ from drivers.cia402 import frames as fr
 from drivers.cia402.od import EDS_PATH
 from drivers.config import parse_drive_bus_config
 from drivers.drive_bus import DriveBus
-
-ROOT = Path(__file__).resolve().parent.parent
+from sim_target.testing.drive_process import drive_process
 
 
 def _config(args: argparse.Namespace, transport: dict[str, Any]) -> Any:
@@ -135,30 +131,9 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
 
 def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str, Any]:
     """The drives in another process: behind the python-can-remote bridge, or on the ipc bus."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     extra = ["--ipc-dir", ipc_dir] + ([] if args.fd else ["--classical"]) if ipc_dir else []
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            str(ROOT / "tests" / "integration" / "drive_target_process.py"),
-            "--drives",
-            str(args.drives),
-            "--period-s",
-            str(1.0 / args.rate_hz),
-            *extra,
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    try:
-        selector = selectors.DefaultSelector()
-        selector.register(proc.stdout, selectors.EVENT_READ)
-        if not selector.select(30.0):
-            raise RuntimeError("target process did not start")
-        ready = json.loads(proc.stdout.readline())
+    with drive_process("--drives", str(args.drives), "--period-s", str(1.0 / args.rate_hz), *extra) as target:
+        ready = target.ready
         if ipc_dir:
             config = _config(args, {"interface": "ipc", "channel": ready["ipc_dir"]})
         else:
@@ -171,12 +146,6 @@ def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str
             result = _run_loop(driver, args)
         finally:
             driver.close()
-    finally:
-        proc.stdin.close()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
     result["bus_load"] = config.bus_load().describe()
     return result
 

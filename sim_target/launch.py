@@ -32,12 +32,15 @@ import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 
-from sim_target.config import RunStart, TargetConfigError, parse_target_config
+from sim_target.config import RunStart, TargetConfig, TargetConfigError, parse_target_config
 from sim_target.control import send_control
+
+if TYPE_CHECKING:
+    from sim_target.server import TargetServer
 
 Transport = Literal["virtual", "ipc", "bridge"]
 TRANSPORTS: tuple[str, ...] = ("virtual", "ipc", "bridge")
@@ -122,20 +125,27 @@ def launch_target(
 
 
 @contextlib.contextmanager
-def _in_process(config: dict[str, Any]) -> Iterator[LaunchedTarget]:
+def serve_in_thread(config: TargetConfig) -> Iterator[TargetServer]:
+    """The target of ``config`` in this process, its lock-step clock in a thread; stopped and closed after."""
     from sim_target.server import build_server
 
-    channel = f"hil-{uuid.uuid4().hex[:8]}"
-    bus = {**config.get("bus", {}), "interface": "virtual", "channel": channel}
-    server, close = build_server(parse_target_config({**config, "bus": bus}, "target"))
+    server, close = build_server(config)
     runner = threading.Thread(target=server.run, name="target", daemon=True)
     runner.start()
     try:
-        yield LaunchedTarget({**CAN_FD, "interface": "virtual", "channel": channel}, server=server)
+        yield server
     finally:
         server.stop()
         runner.join(timeout=10)
         close()
+
+
+@contextlib.contextmanager
+def _in_process(config: dict[str, Any]) -> Iterator[LaunchedTarget]:
+    channel = f"hil-{uuid.uuid4().hex[:8]}"
+    bus = {**config.get("bus", {}), "interface": "virtual", "channel": channel}
+    with serve_in_thread(parse_target_config({**config, "bus": bus}, "target")) as server:
+        yield LaunchedTarget({**CAN_FD, "interface": "virtual", "channel": channel}, server=server)
 
 
 @contextlib.contextmanager
@@ -153,16 +163,13 @@ def _child_process(config: dict[str, Any], transport: str, directory: Path) -> I
     parse_target_config(data, "target")  # refuse here, with one line, rather than in the child
     path = directory / "target.yaml"
     path.write_text(yaml.safe_dump(data))
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(path)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
+    process = start_hil("target", "serve", "--config", str(path))
     try:
-        url = _wait_ready(process, transport)
+        url = bridge_url(wait_ready(process)) if transport == "bridge" else ""
+        if url is None:
+            raise TargetLaunchError("hil target serve is up but names no bridge URL")
+        # Keep reading stderr so the child never blocks on a full pipe.
+        threading.Thread(target=_drain, args=(process,), daemon=True).start()
         if transport == "bridge":
             runtime_transport["channel"] = url
         yield LaunchedTarget(runtime_transport, control_socket=sock, process=process)
@@ -170,27 +177,49 @@ def _child_process(config: dict[str, Any], transport: str, directory: Path) -> I
         _stop(process)
 
 
-def _wait_ready(process: subprocess.Popen[str], transport: str) -> str:
-    """The ready line (``target serving ...``, with the bridge URL); stderr is drained afterwards."""
+# --- child processes of the ``hil`` command -----------------------------------------------------------
+
+
+def hil_command(*args: str) -> list[str]:
+    """The argv of ``hil ARGS...`` with this interpreter (the installed console script may be absent)."""
+    return [sys.executable, "-m", "hil_runtime.cli", *args]
+
+
+def start_hil(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    """``hil ARGS...`` as a child process, stdout discarded, stderr piped as text (its one-line
+    messages and ready lines); unbuffered, so a line arrives when it is written."""
+    return subprocess.Popen(
+        hil_command(*args),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def wait_ready(process: subprocess.Popen[str], timeout_s: float = START_TIMEOUT_S) -> str:
+    """Read ``hil target serve``'s stderr up to its ready line (``target serving ...``) and return
+    it; the rest stays in the pipe. TargetLaunchError, with the last lines, when it exits first."""
     assert process.stderr is not None
     lines: list[str] = []
-    timer = threading.Timer(START_TIMEOUT_S, process.kill)
+    timer = threading.Timer(timeout_s, process.kill)
     timer.start()
     try:
         for line in process.stderr:
             lines.append(line)
             if "target serving" in line:
-                found = re.search(r"bridge (ws://127\.0\.0\.1:\d+/)", line)
-                if transport == "bridge" and not found:
-                    break
-                # Keep reading stderr so the child never blocks on a full pipe.
-                threading.Thread(target=_drain, args=(process,), daemon=True).start()
-                return found.group(1) if found else ""
+                return line
     finally:
         timer.cancel()
     process.wait(timeout=10)
     tail = " | ".join(x.strip() for x in lines[-3:])
     raise TargetLaunchError(f"hil target serve did not start (exit {process.returncode}): {tail}")
+
+
+def bridge_url(ready_line: str) -> str | None:
+    """The python-can-remote bridge's URL in a ready line (with the port the OS picked), or None."""
+    found = re.search(r"bridge (ws://127\.0\.0\.1:\d+/)", ready_line)
+    return found.group(1) if found else None
 
 
 def _drain(process: subprocess.Popen[str]) -> None:
@@ -209,4 +238,16 @@ def _stop(process: subprocess.Popen[str], timeout_s: float = 10.0) -> None:
             process.wait()
 
 
-__all__ = ["TRANSPORTS", "LaunchedTarget", "TargetLaunchError", "Transport", "launch_target", "target_config_dict"]
+__all__ = [
+    "TRANSPORTS",
+    "LaunchedTarget",
+    "TargetLaunchError",
+    "Transport",
+    "bridge_url",
+    "hil_command",
+    "launch_target",
+    "serve_in_thread",
+    "start_hil",
+    "target_config_dict",
+    "wait_ready",
+]

@@ -23,7 +23,6 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -33,6 +32,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
+
+from sim_target.testing.notify import NotifyListener
 
 if TYPE_CHECKING:
     from sim_target.launch import Transport
@@ -366,41 +367,6 @@ def in_process_rig(
 # --- hil run as its own process ---------------------------------------------------------------------
 
 
-class NotifyListener:
-    """A Unix datagram socket standing in for systemd's ``$NOTIFY_SOCKET``; messages timestamped."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(str(path))
-        self.sock.settimeout(0.1)
-        self.messages: list[tuple[float, str]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="notify", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(4096)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            self.messages.append((time.monotonic(), data.decode(errors="replace")))
-
-    def watchdog_times(self) -> list[float]:
-        return [t for t, text in list(self.messages) if "WATCHDOG=1" in text.split("\n")]
-
-    def saw(self, item: str) -> bool:
-        return any(item in text.split("\n") for _, text in list(self.messages))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self.sock.close()
-
-
 @dataclass
 class DaemonRig:
     process: subprocess.Popen[str]
@@ -462,6 +428,7 @@ def daemon_rig(
 ) -> Iterator[DaemonRig]:
     """``hil target serve`` (ipc bus) and ``hil run`` as two processes, sd_notify to a socket of ours."""
     from sim_target.launch import launch_target
+    from sim_target.testing.hil_target import start_hil_run
 
     (work / "t").mkdir(parents=True, exist_ok=True)
     with launch_target(target_config(), "ipc", work_dir=work / "t") as target:
@@ -474,31 +441,9 @@ def daemon_rig(
         config_path.write_text(yaml.safe_dump(data))
         notify = NotifyListener(work / "notify.sock")
         record = work / "run.npz"
-        env = {
-            **os.environ,
-            "NOTIFY_SOCKET": str(notify.path),
-            "WATCHDOG_USEC": str(watchdog_usec),
-            "PYTHONUNBUFFERED": "1",
-        }
+        env = {**os.environ, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": str(watchdog_usec)}
         env.pop("WATCHDOG_PID", None)
-        process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "hil_runtime.cli",
-                "run",
-                "--config",
-                str(config_path),
-                "--record",
-                str(record),
-                "--record-cycles",
-                "20000",
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=env,
-        )
+        process = start_hil_run(config_path, record, env=env)
         rig = DaemonRig(process, sock, record, notify, port, target)
         rig.start_reader()
         try:

@@ -6,5 +6,9 @@ edits, no bare-name imports.
 - :mod:`sim_target.testing.drive_rig`: ``DriveBus`` + emulated drives + fake plant on one
   in-process virtual bus.
 - :mod:`sim_target.testing.hil_target`: the pybullet target in this process or as
-  ``hil target serve`` in another one, and the driver master's config for it.
+  ``hil target serve`` in another one, ``hil run`` as a child process, and the driver master's
+  config for it.
+- :mod:`sim_target.testing.drive_process`: emulated drives + fake plant in a process of their own
+  (bridge or ipc bus), for the cross-process drive-bus test and benchmark.
+- :mod:`sim_target.testing.notify`: a stand-in for systemd's ``$NOTIFY_SOCKET``.
 """

@@ -5,12 +5,8 @@ driver master's config for it. Loopback only: the bridge listens on 127.0.0.1, o
 from __future__ import annotations
 
 import contextlib
-import os
-import re
 import signal
 import subprocess
-import sys
-import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -21,7 +17,8 @@ import yaml
 
 from drivers.config import DriveBusConfig, parse_drive_bus_config
 from sim_target.config import parse_target_config
-from sim_target.server import TargetServer, build_server
+from sim_target.launch import bridge_url, serve_in_thread, start_hil, wait_ready
+from sim_target.server import TargetServer
 
 Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 # ur5_paper's URDF effort limits: the drives' max torque (0x6072).
@@ -63,15 +60,21 @@ def drive_bus_config(transport: dict[str, Any], period_s: float, **extra: Any) -
 @contextlib.contextmanager
 def target_in_process(channel: str, period_s: float, **config: Any) -> Iterator[TargetServer]:
     """The target on the in-process virtual ``channel``, its lock-step clock in a thread."""
-    server, close = build_server(parse_target_config(target_config_dict(channel, period_s, **config)))
-    runner = threading.Thread(target=server.run, name="target", daemon=True)
-    runner.start()
-    try:
+    with serve_in_thread(parse_target_config(target_config_dict(channel, period_s, **config))) as server:
         yield server
-    finally:
-        server.stop()
-        runner.join(timeout=10)
-        close()
+
+
+def serve_config(data: dict[str, Any], path: Path) -> tuple[subprocess.Popen[str], str]:
+    """``hil target serve`` on the target config ``data`` (written to ``path``), up to its ready
+    line: the process (the rest of its stderr still in the pipe) and that line."""
+    path.write_text(yaml.safe_dump(data))
+    process = start_hil("target", "serve", "--config", str(path))
+    return process, wait_ready(process)
+
+
+def start_hil_run(config_path: Path, record: Path, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    """``hil run`` on ``config_path``, recording up to 20000 cycles into ``record`` (stderr piped)."""
+    return start_hil("run", "--config", str(config_path), "--record", str(record), "--record-cycles", "20000", env=env)
 
 
 @dataclass
@@ -109,31 +112,11 @@ def target_process(
         data = target_config_dict(
             "hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0}, control_socket=str(sock), **config
         )
-    path = tmp_dir / "target.yaml"
-    path.write_text(yaml.safe_dump(data))
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(path)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    assert process.stderr is not None
-    lines = []
-    url = None
-    for line in process.stderr:  # the ready line names the bridge URL with the port it got
-        lines.append(line)
-        found = re.search(r"bridge (ws://127\.0\.0\.1:\d+/)", line)
-        if found:
-            url = found.group(1)
-            break
-        if ipc_dir is not None and "target serving" in line:
-            url = ""
-            break
+    process, ready = serve_config(data, tmp_dir / "target.yaml")
+    url = "" if ipc_dir is not None else bridge_url(ready)
     if url is None:
-        process.wait(timeout=10)
-        raise RuntimeError(f"target did not start (exit {process.returncode}): {''.join(lines)}")
+        process.kill()
+        raise RuntimeError(f"target names no bridge URL: {ready}")
     target = TargetProcess(process, url, sock, ipc_dir)
     try:
         yield target

@@ -10,9 +10,11 @@ from __future__ import annotations
 import json
 import os
 import re
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from subprocess import run
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
 UR5_URDF = (ROOT / "models" / "robots" / "data" / "ur5_paper.urdf").read_text()
@@ -37,74 +39,56 @@ def _manifest(change) -> str:  # type: ignore[no-untyped-def]
     return json.dumps(manifest)
 
 
-EXPERIMENT = [
-    "experiment",
-    "--laws",
-    "pd",
-    "--modes",
-    "fb",
-    "--timing-cycles",
-    "5",
-    "--no-plots",
-    "--no-trajectories",
-    "--out",
-    "{tmp}/out",
-]
-LMPC = [
-    "experiment",
-    "--laws",
-    "pd",
-    "--modes",
-    "lmpc",
-    "--timing-cycles",
-    "5",
-    "--no-plots",
-    "--no-trajectories",
-    "--out",
-    "{tmp}/out",
-    "--lmpc-bundles",
-    "{tmp}/bundles",
-]
+def _experiment(mode: str) -> list[str]:
+    return ["experiment", "--laws", "pd", "--modes", mode, "--timing-cycles", "5", "--no-plots", "--no-trajectories"]
+
+
+EXPERIMENT = [*_experiment("fb"), "--out", "{tmp}/out"]
+LMPC = [*_experiment("lmpc"), "--out", "{tmp}/out", "--lmpc-bundles", "{tmp}/bundles"]
+Case = tuple[str, list[str], dict[str, str | bytes], list[str]]
+
+
+def _conditions_case(name: str, text: str | bytes, *expected: str) -> Case:
+    """``hil experiment --conditions c.yaml`` with ``text`` as the file."""
+    return (name, [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"], {"c.yaml": text}, ["c.yaml", *expected])
+
+
+def _urdf_case(name: str, text: str | bytes, *expected: str) -> Case:
+    """``hil experiment --robot arm.urdf`` with ``text`` as the URDF."""
+    return (name, [*EXPERIMENT, "--robot", "{tmp}/arm.urdf"], {"arm.urdf": text}, ["arm.urdf", *expected])
+
+
+def _target_case(name: str, files: dict[str, str | bytes], *expected: str) -> Case:
+    """``hil target serve --config t.yaml`` with ``files`` (t.yaml and what it names)."""
+    return (name, ["target", "serve", "--config", "{tmp}/t.yaml"], files, ["t.yaml", *expected])
+
+
+def _bundle_case(name: str, change: Callable[[dict[str, Any]], object], field: str) -> Case:
+    """``hil experiment --modes lmpc`` on the PD bundle with its manifest edited by ``change``."""
+    files: dict[str, str | bytes] = {
+        "bundles/pd/manifest.json": _manifest(change),
+        "bundles/pd/policy.onnx": (PD_BUNDLE / "policy.onnx").read_bytes(),
+    }
+    return (name, LMPC, files, ["{tmp}/bundles/pd/manifest.json", field])
+
 
 # (id, argv, {relative file: text or bytes}, substrings of the one stderr line)
-CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
+CASES: list[Case] = [
     # conditions
-    (
-        "payload<0",
-        [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"],
-        {"c.yaml": _condition("    mismatch: {payload_kg: -1}\n")},
-        ["c.yaml", "mismatch.payload_kg: must be >= 0"],
+    _conditions_case("payload<0", _condition("    mismatch: {payload_kg: -1}\n"), "mismatch.payload_kg: must be >= 0"),
+    _conditions_case("frequency<0", _condition("    frequency_hz: -0.1\n"), "frequency_hz[0]: must be >= 0"),
+    _conditions_case(
+        "disturbance-late", _condition("    duration_s: 1\n    disturbance: {time_s: 2}\n"), "disturbance.time_s"
     ),
-    (
-        "frequency<0",
-        [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"],
-        {"c.yaml": _condition("    frequency_hz: -0.1\n")},
-        ["c.yaml", "frequency_hz[0]: must be >= 0"],
+    _conditions_case(
+        "inertia_scale=0", _condition("    mismatch: {inertia_scale: 0}\n"), "inertia_scale[0]: must be > 0"
     ),
-    (
-        "disturbance-late",
-        [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"],
-        {"c.yaml": _condition("    duration_s: 1\n    disturbance: {time_s: 2}\n")},
-        ["c.yaml", "disturbance.time_s"],
-    ),
-    (
-        "inertia_scale=0",
-        [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"],
-        {"c.yaml": _condition("    mismatch: {inertia_scale: 0}\n")},
-        ["c.yaml", "inertia_scale[0]: must be > 0"],
-    ),
-    (
-        "conditions-binary",
-        [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"],
-        {"c.yaml": bytes(range(256))},
-        ["c.yaml", "not a UTF-8 text file"],
-    ),
-    ("conditions-empty", [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"], {"c.yaml": ""}, ["c.yaml", "empty file"]),
-    (
+    _conditions_case("conditions-binary", bytes(range(256)), "not a UTF-8 text file"),
+    _conditions_case("conditions-empty", "", "empty file"),
+    _conditions_case(
         "conditions-nan",
-        [*EXPERIMENT, "--conditions", "{tmp}/c.yaml"],
-        {"c.yaml": "conditions:\n  - name: A\n    amplitude_rad: [.nan, 0, 0, 0, 0, 0]\n"},
-        ["c.yaml", "amplitude_rad[0]: not finite"],
+        "conditions:\n  - name: A\n    amplitude_rad: [.nan, 0, 0, 0, 0, 0]\n",
+        "amplitude_rad[0]: not finite",
     ),
     # options
     ("timing-cycles=0", ["experiment", "--timing-cycles", "0"], {}, ["--timing-cycles", "positive"]),
@@ -127,74 +111,48 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
         ["--out /proc/hil-out: cannot create the directory"],
     ),
     # URDF
-    (
-        "urdf-no-limit",
-        [*EXPERIMENT, "--robot", "{tmp}/arm.urdf"],
-        {"arm.urdf": _urdf(r"<limit [^>]*/>", "")},
-        ["arm.urdf", "joint 'shoulder_pan_joint' <limit>: missing"],
-    ),
-    (
+    _urdf_case("urdf-no-limit", _urdf(r"<limit [^>]*/>", ""), "joint 'shoulder_pan_joint' <limit>: missing"),
+    _urdf_case(
         "urdf-prismatic",
-        [*EXPERIMENT, "--robot", "{tmp}/arm.urdf"],
-        {"arm.urdf": _urdf(r'(<joint name="elbow_joint" type=)"revolute"', r'\1"prismatic"')},
-        ["arm.urdf", "'elbow_joint' type 'prismatic'"],
+        _urdf(r'(<joint name="elbow_joint" type=)"revolute"', r'\1"prismatic"'),
+        "'elbow_joint' type 'prismatic'",
     ),
-    (
-        "urdf-negative-inertia",
-        [*EXPERIMENT, "--robot", "{tmp}/arm.urdf"],
-        {"arm.urdf": _urdf(r'ixx="', 'ixx="-')},
-        ["arm.urdf", "<inertia> ixx: negative"],
-    ),
-    (
-        "urdf-binary",
-        [*EXPERIMENT, "--robot", "{tmp}/arm.urdf"],
-        {"arm.urdf": b"\x89PNG\r\n\x1a\n\x00\x00"},
-        ["arm.urdf", "not valid XML"],
-    ),
+    _urdf_case("urdf-negative-inertia", _urdf(r'ixx="', 'ixx="-'), "<inertia> ixx: negative"),
+    _urdf_case("urdf-binary", b"\x89PNG\r\n\x1a\n\x00\x00", "not valid XML"),
     # target configs
-    (
+    _target_case(
         "target-q0-outside",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
         {"t.yaml": FD + "plant: {initial_position_rad: [0, 0, 3.0, 0, 0, 0]}\n"},
-        ["t.yaml", "plant.initial_position_rad[2]", "outside"],
+        "plant.initial_position_rad[2]",
+        "outside",
     ),
-    (
+    _target_case(
         "target-urdf-negative-mass",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
         {"t.yaml": FD + "urdf: arm.urdf\n", "arm.urdf": _urdf(r'<mass value="', '<mass value="-')},
-        ["t.yaml", "arm.urdf", "<mass> value: negative"],
+        "arm.urdf",
+        "<mass> value: negative",
     ),
-    (
+    _target_case(
         "target-urdf-negative-inertia",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
         {"t.yaml": FD + "urdf: arm.urdf\n", "arm.urdf": _urdf(r'izz="', 'izz="-')},
-        ["t.yaml", "arm.urdf", "<inertia> izz: negative"],
+        "arm.urdf",
+        "<inertia> izz: negative",
     ),
-    (
+    _target_case(
         "target-canfd-5khz",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
         {"t.yaml": "period_s: 0.0002\nbus: {interface: virtual, fd: true, data_bitrate: 5000000}\n"},
-        ["t.yaml", "bus:", "above the 85% limit"],
+        "bus:",
+        "above the 85% limit",
     ),
-    (
+    _target_case(
         "target-classical-500hz",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
         {"t.yaml": "period_s: 0.002\nbus: {interface: virtual}\n"},
-        ["t.yaml", "classical CAN", "101.4% load"],
+        "classical CAN",
+        "101.4% load",
     ),
-    ("target-empty", ["target", "serve", "--config", "{tmp}/t.yaml"], {"t.yaml": ""}, ["t.yaml", "empty file"]),
-    (
-        "target-binary",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
-        {"t.yaml": bytes(range(256))},
-        ["t.yaml", "not a UTF-8 text file"],
-    ),
-    (
-        "target-nan",
-        ["target", "serve", "--config", "{tmp}/t.yaml"],
-        {"t.yaml": FD + "period_s: .nan\n"},
-        ["t.yaml", "period_s: Input should be a finite number"],
-    ),
+    _target_case("target-empty", {"t.yaml": ""}, "empty file"),
+    _target_case("target-binary", {"t.yaml": bytes(range(256))}, "not a UTF-8 text file"),
+    _target_case("target-nan", {"t.yaml": FD + "period_s: .nan\n"}, "period_s: Input should be a finite number"),
     # inject (schema checked before the socket is even tried)
     (
         "inject-negative-inertia",
@@ -227,24 +185,8 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
         {"bundles/empty.txt": ""},
         ["bundle directory {tmp}/bundles: no bundle for law 'pd'"],
     ),
-    (
-        "bundle-torque-edited",
-        LMPC,
-        {
-            "bundles/pd/manifest.json": _manifest(lambda m: m["limits"].__setitem__("torque_nm", [1.0] * 6)),
-            "bundles/pd/policy.onnx": (PD_BUNDLE / "policy.onnx").read_bytes(),
-        },
-        ["{tmp}/bundles/pd/manifest.json", "limits.torque_nm"],
-    ),
-    (
-        "bundle-wrong-urdf-sha",
-        LMPC,
-        {
-            "bundles/pd/manifest.json": _manifest(lambda m: m["robot"].__setitem__("urdf_sha256", "0" * 64)),
-            "bundles/pd/policy.onnx": (PD_BUNDLE / "policy.onnx").read_bytes(),
-        },
-        ["{tmp}/bundles/pd/manifest.json", "urdf_sha256"],
-    ),
+    _bundle_case("bundle-torque-edited", lambda m: m["limits"].__setitem__("torque_nm", [1.0] * 6), "limits.torque_nm"),
+    _bundle_case("bundle-wrong-urdf-sha", lambda m: m["robot"].__setitem__("urdf_sha256", "0" * 64), "urdf_sha256"),
 ]
 
 

@@ -3,14 +3,8 @@ SocketCAN vcan0 when this kernel has it (skipped with the reason otherwise)."""
 
 from __future__ import annotations
 
-import json
-import os
-import selectors
-import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
-from pathlib import Path
 
 import can
 import numpy as np
@@ -22,11 +16,9 @@ from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, TransportError
 from drivers.transport import socketcan_unavailable
 from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+from sim_target.testing.drive_process import DriveProcess, drive_process
 from sim_target.testing.drive_rig import drive_bus_config
 from sim_target.testing.fake_plant import FakePlant, lockstep
-
-HERE = Path(__file__).parent
-ROOT = HERE.parent.parent
 
 
 def _expected_position(torque_nm: np.ndarray, period_s: float, cycles: int, inertia: float = 0.5) -> np.ndarray:
@@ -46,55 +38,19 @@ def _run_cycles(driver: DriveBus, period_s: float, cycles: int = 100) -> None:
     assert counters.dropped == counters.late == counters.malformed == 0
 
 
-def _read_json_line(proc: subprocess.Popen[str], timeout_s: float) -> dict:
-    selector = selectors.DefaultSelector()
-    selector.register(proc.stdout, selectors.EVENT_READ)  # type: ignore[arg-type]
-    if not selector.select(timeout_s):
-        raise TimeoutError(f"target process printed nothing in {timeout_s} s")
-    line = proc.stdout.readline()  # type: ignore[union-attr]
-    if not line:
-        raise RuntimeError(f"target process exited: {proc.stderr.read()}")  # type: ignore[union-attr]
-    return json.loads(line)
-
-
 @pytest.fixture
-def target_process() -> Iterator[tuple[int, subprocess.Popen[str]]]:
+def target_process() -> Iterator[DriveProcess]:
     try:
         import can_remote  # noqa: F401
     except ImportError as exc:
         pytest.skip(f"python-can-remote is not installed: {exc}")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            str(HERE / "drive_target_process.py"),
-            "--period-s",
-            "0.004",
-            "--channel",
-            f"t-{uuid.uuid4().hex[:8]}",
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    try:
-        port = _read_json_line(proc, 30.0)["port"]
-        yield port, proc
-    finally:
-        if proc.poll() is None:
-            proc.stdin.close()  # type: ignore[union-attr]
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+    with drive_process("--period-s", "0.004", "--channel", f"t-{uuid.uuid4().hex[:8]}") as target:
+        yield target
 
 
 @pytest.mark.parametrize("fd", [False, True], ids=["classical", "fd"])
-def test_two_processes_over_the_loopback_bridge(target_process: tuple[int, subprocess.Popen[str]], fd: bool) -> None:
-    port, proc = target_process
+def test_two_processes_over_the_loopback_bridge(target_process: DriveProcess, fd: bool) -> None:
+    port = target_process.ready["port"]
     transport = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port, "channel": ""}
     config = drive_bus_config("unused", fd=fd, transport=transport, period_s=0.004)
     driver = DriveBus(config)
@@ -103,10 +59,9 @@ def test_two_processes_over_the_loopback_bridge(target_process: tuple[int, subpr
         _run_cycles(driver, 0.004)
     finally:
         driver.close()
-    proc.stdin.close()  # type: ignore[union-attr]
-    summary = _read_json_line(proc, 10.0)
+    summary = target_process.finish()
     assert summary["syncs"] == driver.counters.cycles  # every SYNC crossed the process boundary
-    assert proc.wait(timeout=10) == 0
+    assert target_process.proc.returncode == 0
 
 
 def test_vcan0_when_the_kernel_has_it() -> None:
@@ -137,11 +92,11 @@ def test_vcan0_when_the_kernel_has_it() -> None:
 
 
 def test_a_dead_bridge_peer_is_named_and_close_does_not_mask_it(
-    target_process: tuple[int, subprocess.Popen[str]],
+    target_process: DriveProcess,
 ) -> None:
     """The target process dies mid-run: the next exchange says the peer closed (not a feedback
     timeout), the drives' fail-safe cannot reach them, and close() raises nothing of its own."""
-    port, proc = target_process
+    port, proc = target_process.ready["port"], target_process.proc
     transport = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port, "channel": ""}
     driver = DriveBus(drive_bus_config("unused", fd=True, transport=transport, period_s=0.004))
     try:

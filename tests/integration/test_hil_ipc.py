@@ -5,7 +5,6 @@ config serves and leaves the bus directory clean, and a target that dies stops t
 from __future__ import annotations
 
 import signal
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from drivers.cia402.state_machine import State
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, HeartbeatLostError
 from sim_target.server import send_control
-from sim_target.testing.hil_target import drive_bus_config, target_process
+from sim_target.testing.hil_target import drive_bus_config, serve_config, target_process
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
 
@@ -75,20 +74,7 @@ def test_serve_with_the_deployed_ipc_config_stops_cleanly_on_sigterm(tmp_path: P
     assert data["bus"]["interface"] == "ipc" and data["period_s"] == 0.001
     data["control_socket"] = str(tmp_path / "target.sock")  # not the shared /tmp paths
     data["bus"]["channel"] = str(tmp_path / "bus")
-    config = tmp_path / "target.ipc.yaml"
-    config.write_text(yaml.safe_dump(data))
-    process = subprocess.Popen(
-        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(config)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert process.stderr is not None
-    ready = ""
-    for line in process.stderr:
-        ready = line
-        if "target serving" in line:
-            break
+    process, ready = serve_config(data, tmp_path / "target.ipc.yaml")
     assert f"target serving 6 drives on ipc:{tmp_path / 'bus'}" in ready, ready
     assert len(list((tmp_path / "bus").glob("*.sock"))) == 1
     process.send_signal(signal.SIGTERM)

@@ -37,6 +37,7 @@ from sim_target.testing.hil_target import (
     MAX_TORQUE_NM,
     Q0_RAD,
     drive_bus_config,
+    serve_config,
     target_in_process,
     target_process,
     unique_channel,
@@ -349,27 +350,12 @@ def test_max_torque_is_the_urdf_effort_limit() -> None:
 
 def test_serve_with_the_deployed_virtual_config_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
     import signal
-    import subprocess
-    import sys
 
     import yaml
 
     data = yaml.safe_load((Path(__file__).parents[2] / "deploy" / "target.virtual.yaml").read_text())
     data["control_socket"] = str(tmp_path / "target.sock")  # not the shared /tmp path
-    config = tmp_path / "target.virtual.yaml"
-    config.write_text(yaml.safe_dump(data))
-    process = subprocess.Popen(
-        [sys.executable, "-m", "hil_runtime.cli", "target", "serve", "--config", str(config)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert process.stderr is not None
-    ready = ""
-    for line in process.stderr:
-        ready = line
-        if "target serving" in line:
-            break
+    process, ready = serve_config(data, tmp_path / "target.virtual.yaml")
     assert "target serving 6 drives on virtual:hil" in ready, ready
     assert send_control(tmp_path / "target.sock", {"kind": "status"})["ok"]
     process.send_signal(signal.SIGTERM)

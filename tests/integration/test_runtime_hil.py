@@ -30,7 +30,7 @@ from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import build_runtime
 from sim_target.config import parse_fault
 from sim_target.server import send_control
-from sim_target.testing.hil_target import target_in_process, target_process, unique_channel
+from sim_target.testing.hil_target import start_hil_run, target_in_process, target_process, unique_channel
 
 ROOT = Path(__file__).resolve().parents[2]
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
@@ -119,26 +119,6 @@ def test_runtime_tracks_c1_with_the_target_in_one_process_then_stop_quick_stops(
 # --- (b) two processes: hil target serve + hil run -------------------------------------------------
 
 
-def _hil_run(config_path: Path, record: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "hil_runtime.cli",
-            "run",
-            "--config",
-            str(config_path),
-            "--record",
-            str(record),
-            "--record-cycles",
-            "20000",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
 def _wait_for(process: subprocess.Popen[str], socket: Path, cycles: int, timeout_s: float) -> dict[str, Any]:
     deadline = time.monotonic() + timeout_s
     status: dict[str, Any] = {}
@@ -173,7 +153,7 @@ def test_hil_run_and_hil_target_serve_as_two_processes(tmp_path: Path, transport
         config_path = tmp_path / "runtime.yaml"
         config_path.write_text(yaml.safe_dump(runtime_config(bus, control_socket=str(sock))))
         record = tmp_path / "run.npz"
-        process = _hil_run(config_path, record)
+        process = start_hil_run(config_path, record)
         try:
             status = _wait_for(process, sock, int(TRACK_S / 0.001), timeout_s=240)
             assert status["fault"] is None and status["reference"] == "C1"
@@ -244,7 +224,7 @@ def test_a_drive_fault_keeps_the_daemon_up_with_drives_stopped_until_hil_reset(t
         config = runtime_config({"interface": "ipc", "channel": str(target.ipc_dir)}, control_socket=str(sock))
         config["reference"] = {"kind": "hold"}
         config_path.write_text(yaml.safe_dump(config))
-        process = _hil_run(config_path, tmp_path / "run.npz")
+        process = start_hil_run(config_path, tmp_path / "run.npz")
         try:
             _wait_for(process, sock, 200, timeout_s=120)
             assert send_control(target.control_socket, {"kind": "drive_fault", "node_id": 4, "error_code": 0x2310}) == {
