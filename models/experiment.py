@@ -44,7 +44,7 @@ class ExperimentConfig:
     plots: bool = True
 
 
-def _machine() -> dict[str, Any]:
+def machine_info() -> dict[str, Any]:
     return {
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
@@ -135,10 +135,25 @@ def run_experiment(
                 config.gain_set,
             )
 
-    results = _summarize(runs, timing, config, robot, conditions)
+    results = summarize(runs, timing, config, robot, conditions)
     results["controller_options"] = {m: {k: str(v) for k, v in o.items()} for m, o in options.items()}
-    # Every file complete or absent (temporary name, then rename: Ctrl-C or a full disk leaves no
-    # half file), and results.json last: its presence means the run's outputs are all there.
+    write_outputs(out_dir, config, conditions, trajectories, format_table(results), results)
+    return results
+
+
+def write_outputs(
+    out_dir: Path,
+    config: ExperimentConfig,
+    conditions: list[Condition],
+    trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]],
+    table: str,
+    results: dict[str, Any],
+    more_plots: Callable[[Path], None] | None = None,
+) -> None:
+    """An experiment's files (simulation or HIL): trajectories, plots (``more_plots(plots_dir)`` adds
+    its own), table.md, results.json. Every file complete or absent (temporary name, then rename:
+    Ctrl-C or a full disk leaves no half file), and results.json last: its presence means the run's
+    outputs are all there."""
     if config.save_trajectories:
         traj_dir = out_dir / "trajectories"
         traj_dir.mkdir(exist_ok=True)
@@ -149,9 +164,10 @@ def run_experiment(
         from models.plots import plot_tracking_errors
 
         plot_tracking_errors(trajectories, config.laws, config.modes, [c.name for c in conditions], out_dir / "plots")
-    write_text_atomic(out_dir / "table.md", format_table(results))
+        if more_plots is not None:
+            more_plots(out_dir / "plots")
+    write_text_atomic(out_dir / "table.md", table)
     write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2))
-    return results
 
 
 def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: int) -> dict[str, Any]:
@@ -169,7 +185,7 @@ def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: 
     }
 
 
-def _summarize(
+def summarize(
     runs: list[dict[str, Any]], timing: dict, config: ExperimentConfig, robot: RobotModel, conditions: list[Condition]
 ) -> dict[str, Any]:
     metrics = {(f"{r['law']}/{r['mode']}", r["condition"]): r["metrics"] for r in runs}
@@ -212,7 +228,7 @@ def _summarize(
         "table": table,
         "all_runs_finite_and_within_limits": all(r["finite"] and r["within_limits"] for r in runs),
         "runs": runs,
-        "machine": _machine(),
+        "machine": machine_info(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
 

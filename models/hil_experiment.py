@@ -36,10 +36,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from hil_runtime.outputs import atomic_path, write_text_atomic
+from hil_runtime.outputs import write_text_atomic
 from models.conditions import Condition
 from models.errors import ModelInputError
-from models.experiment import ExperimentConfig, _machine, _summarize, run_experiment
+from models.experiment import ExperimentConfig, run_experiment, summarize, write_outputs
 from models.robots import RobotModel
 from models.scoring import run_metrics
 
@@ -451,7 +451,7 @@ def run_hil_experiment(
     timing = {
         law: {mode: _timing(np.concatenate(parts)) for mode, parts in modes.items()} for law, modes in compute.items()
     }
-    results = _summarize(runs, timing, config, robot, conditions)
+    results = summarize(runs, timing, config, robot, conditions)
     results["plant"] = "hil"
     results["hil"] = {
         "transport": options.transport,
@@ -464,24 +464,16 @@ def run_hil_experiment(
         "paper_table_ii": {law: {"fb": v[0], "lmpc": v[1]} for law, v in PAPER_TABLE_II.items()},
         "bundles": {law: _bundle_digest(options.bundle_dir / law) for law in config.laws},  # type: ignore[operator]
     }
-    results["machine"] = _machine()
     if sim_results is not None:
         results["parity"] = parity(results, sim_results, trajectories, sim_dir / "trajectories")
-    # As the simulation's outputs: every file complete or absent, results.json last.
-    if config.save_trajectories:
-        traj_dir = out_dir / "trajectories"
-        traj_dir.mkdir(exist_ok=True)
-        for (law, mode, cond), arrays in trajectories.items():
-            with atomic_path(traj_dir / f"{law}_{mode}_{cond}.npz") as tmp:
-                np.savez_compressed(tmp, **arrays)
-    if config.plots:
-        from models.plots import plot_tracking_errors
 
-        plot_tracking_errors(trajectories, config.laws, config.modes, [c.name for c in conditions], out_dir / "plots")
+    def parity_plots(plots_dir: Path) -> None:
         if "parity" in results:
-            plot_parity(results, trajectories, sim_dir / "trajectories", out_dir / "plots" / "parity")
-    write_text_atomic(out_dir / "table.md", format_hil_table(results))
-    write_text_atomic(out_dir / "results.json", json.dumps(_json_safe(results), indent=2))
+            plot_parity(results, trajectories, sim_dir / "trajectories", plots_dir / "parity")
+
+    write_outputs(
+        out_dir, config, conditions, trajectories, format_hil_table(results), _json_safe(results), parity_plots
+    )
     return results
 
 
@@ -692,6 +684,8 @@ def plot_parity(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from models.plots import save_figure
+
     out_dir.mkdir(parents=True, exist_ok=True)
     par = results["parity"]
     laws = list(par["table"])
@@ -713,10 +707,7 @@ def plot_parity(
     axes[0].axhspan(-tol, tol, color="green", alpha=0.1)
     fig.tight_layout()
     path = out_dir / "parity_scores.png"
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    written.append(path)
+    written.append(save_figure(fig, path))
 
     for mode in modes:
         fig, axes = plt.subplots(len(laws), 1, figsize=(9, 1.9 * len(laws) + 0.6), sharex=True, squeeze=False)
@@ -742,10 +733,7 @@ def plot_parity(
         fig.suptitle(f"{mode.upper()}: mean |e| over joints, HIL vs simulation (worst condition per law)", fontsize=10)
         fig.tight_layout()
         path = out_dir / f"parity_error_{mode}.png"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=90)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, path))
     return written
 
 

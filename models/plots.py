@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hil_runtime.outputs import atomic_path
 
 _STYLE = {"fb": "-", "hmpc": "--", "lmpc": ":"}
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """Write ``fig`` as a PNG (a complete file or none, even on Ctrl-C) and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    return path
 
 
 def plot_tracking_errors(
@@ -47,10 +58,7 @@ def plot_tracking_errors(
             fig.suptitle(f"{law.upper()} tracking error, condition {cond}")
             fig.tight_layout()
             path = out_dir / f"{law}_{cond}.png"
-            with atomic_path(path) as tmp:  # a complete PNG or none, even on Ctrl-C
-                fig.savefig(tmp, dpi=90)
-            plt.close(fig)
-            written.append(path)
+            written.append(save_figure(fig, path))
 
         fig, ax = plt.subplots(figsize=(9, 4.5))
         for i, law in enumerate(laws):
@@ -76,8 +84,5 @@ def plot_tracking_errors(
         ax.legend(fontsize=7, ncol=3)
         fig.tight_layout()
         path = out_dir / f"average_error_{cond}.png"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=90)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, path))
     return written
