@@ -243,9 +243,9 @@ class NumpyInnerLoops:
 
 
 class NumbaInnerLoops:
-    """Row by row in compiled code (``models.hmpc.kernels``): no per-operation overhead, and in a
-    batch no row waits for the slowest one's active-set loop. The kernels are compiled once per
-    machine and loaded from numba's on-disk cache (~0.3-0.5 s per process)."""
+    """Row by row in compiled code (``models.hmpc.kernels``, same signatures): no per-operation
+    overhead, and in a batch no row waits for the slowest one's active-set loop. The kernels are
+    compiled once per machine and loaded from numba's on-disk cache (~0.3-0.5 s per process)."""
 
     name = "numba"
     needs_warm_up = True
@@ -253,92 +253,11 @@ class NumbaInnerLoops:
     def __init__(self) -> None:
         from models.hmpc import kernels  # numba's import takes ~0.5 s: only when chosen
 
-        self._kernels = kernels
-
-    def stage_cost(
-        self,
-        features: np.ndarray,
-        q_path: np.ndarray,
-        qd_path: np.ndarray,
-        deviation: np.ndarray,
-        feature_weight: np.ndarray,
-        torque_weight: np.ndarray,
-        temporal: np.ndarray,
-        state_limit: np.ndarray,
-        rho: float,
-    ) -> np.ndarray:
-        cost: np.ndarray = self._kernels.stage_cost(
-            features, q_path, qd_path, deviation, feature_weight, torque_weight, temporal, state_limit, float(rho)
-        )
-        return cost
-
-    def sensitivities(self, d_q: np.ndarray, d_qd: np.ndarray, d_tau: np.ndarray, dt: float) -> np.ndarray:
-        sens: np.ndarray = self._kernels.sensitivities(
-            np.ascontiguousarray(d_q), np.ascontiguousarray(d_qd), np.ascontiguousarray(d_tau), float(dt)
-        )
-        return sens
-
-    def normal_equations(
-        self,
-        feature_sens: np.ndarray,
-        weights: np.ndarray,
-        residual: np.ndarray,
-        deviation: np.ndarray,
-        torque_weight: np.ndarray,
-        damping: float,
-        levenberg: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        hessian, gradient = self._kernels.normal_equations(
-            np.ascontiguousarray(feature_sens),
-            np.ascontiguousarray(weights),
-            np.ascontiguousarray(residual),
-            np.ascontiguousarray(deviation),
-            torque_weight,
-            float(damping),
-            np.ascontiguousarray(levenberg, dtype=np.float64),
-        )
-        return hessian, gradient
-
-    def model_step(
-        self,
-        hessian0: np.ndarray,
-        gradient0: np.ndarray,
-        sens: np.ndarray,
-        x: np.ndarray,
-        limit: np.ndarray,
-        lower: np.ndarray,
-        upper: np.ndarray,
-        rho: float,
-        rounds: int,
-        max_qp_iterations: int,
-        qp_tolerance: float,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        step, predicted, exact = self._kernels.model_step(
-            hessian0,
-            gradient0,
-            sens,
-            x,
-            limit,
-            lower,
-            upper,
-            float(rho),
-            rounds,
-            max_qp_iterations,
-            qp_tolerance,
-        )
-        return step, predicted, exact
-
-    def box_qp(
-        self,
-        hessian: np.ndarray,
-        gradient: np.ndarray,
-        lower: np.ndarray,
-        upper: np.ndarray,
-        max_iterations: int,
-        tolerance: float,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        x, converged = self._kernels.box_qp(hessian, gradient, lower, upper, max_iterations, tolerance)
-        return x, converged
+        self.stage_cost = kernels.stage_cost
+        self.sensitivities = kernels.sensitivities
+        self.normal_equations = kernels.normal_equations
+        self.model_step = kernels.model_step
+        self.box_qp = kernels.box_qp
 
 
 INNER_LOOPS: dict[str, type[NumpyInnerLoops] | type[NumbaInnerLoops]] = {
