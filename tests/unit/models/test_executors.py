@@ -181,3 +181,51 @@ def test_ray_listens_and_connects_on_loopback_only() -> None:
             assert peer.endswith(":*"), line  # only a listening socket has a wildcard peer
     metadata = [line for line in report["new"] if "169.254.169.254" in line]
     assert not metadata, metadata
+
+
+RAY_INTERRUPTED = r"""
+import sys, time
+from models.executors import RayExecutor
+with RayExecutor(2) as executor:
+    print("started", flush=True)
+    try:
+        list(executor.map(time.sleep, [120.0, 120.0, 120.0]))
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        code = 130
+sys.exit(code)
+"""
+
+
+def _group_members(pgid: int) -> list[str]:
+    rows = subprocess.run(["ps", "-eo", "pid=,pgid=,comm="], capture_output=True, text=True, check=True).stdout
+    return [row for row in rows.splitlines() if row.split()[1] == str(pgid) and row.split()[0] != str(pgid)]
+
+
+@needs_ray
+def test_ray_ctrl_c_on_the_process_group_shuts_down_cleanly() -> None:
+    """Ctrl-C on a terminal reaches the whole process group: the driver gets KeyboardInterrupt, Ray
+    shuts down in order (no crash on exit) and none of its processes is left behind."""
+    import signal
+    import time
+
+    process = subprocess.Popen(
+        [sys.executable, "-c", RAY_INTERRUPTED],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a shell gives a foreground job
+    )
+    try:
+        assert process.stdout is not None and process.stdout.readline().strip() == "started"
+        time.sleep(1.0)  # the tasks are running in Ray's workers
+        assert len(_group_members(process.pid)) >= 3  # GCS, raylet, workers: in the same group
+        os.killpg(process.pid, signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 130, stderr[-2000:]
+    assert "interrupted" in stdout
+    time.sleep(1.0)
+    assert _group_members(process.pid) == []
