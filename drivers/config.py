@@ -201,6 +201,22 @@ def read_config_text(path: Path, error: type[Exception], what: str, max_bytes: i
     return text
 
 
+def read_yaml_config(path: Path, error: type[Exception], what: str) -> Any:
+    """The YAML document in a config-like file, after :func:`read_config_text`'s checks; ``error``
+    with one line naming ``path`` (and the line, when YAML says it) for malformed or too deeply
+    nested YAML. Shared by the drive-bus, runtime, target and conditions loaders."""
+    text = read_config_text(path, error, what)
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None)
+        raise error(f"{path}: not valid YAML{where}" + (f" ({problem})" if problem else "")) from None
+    except RecursionError:
+        raise error(f"{path}: not valid YAML (nested too deeply)") from None
+
+
 def format_validation_error(source: str, exc: ValidationError) -> str:
     """One line naming the file and the first failing field (pydantic's own message is multi-line)."""
     errors = exc.errors()
@@ -222,9 +238,4 @@ def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
 
 def load_drive_bus_config(path: Path | str) -> DriveBusConfig:
     path = Path(path)
-    text = read_config_text(path, DriveConfigError, "a drive-bus config")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise DriveConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    return parse_drive_bus_config(data, str(path))
+    return parse_drive_bus_config(read_yaml_config(path, DriveConfigError, "a drive-bus config"), str(path))

@@ -23,9 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, Self
 
 import numpy as np
-import yaml
 
-from drivers.config import read_config_text
+from drivers.config import read_yaml_config
 
 if TYPE_CHECKING:  # only for the type of Mismatch.apply; never imported at run time
     from typing import TypeVar
@@ -346,15 +345,7 @@ def _parse_condition(raw: Any, defaults: dict[str, Any], where: str) -> Conditio
 
 def _read_yaml(path: Path) -> Any:
     """The YAML document in ``path``; a one-line error for missing, binary or malformed files."""
-    text = read_config_text(path, ConditionError, "a conditions file")
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConditionError(f"{path.name}: not valid YAML{line}") from None
-    except RecursionError:
-        raise ConditionError(f"{path.name}: not valid YAML (nested too deeply)") from None
+    return read_yaml_config(path, ConditionError, "a conditions file")
 
 
 def parse_conditions(raw: Any, source: str) -> list[Condition]:

@@ -47,10 +47,9 @@ import os
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from drivers.config import DriveBusConfig, format_validation_error, read_config_text
+from drivers.config import DriveBusConfig, format_validation_error, read_yaml_config
 from drivers.errors import DriveConfigError
 from hil_runtime.telemetry.config import TelemetryConfig
 
@@ -200,11 +199,5 @@ def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | Non
 
 def load_runtime_config(path: Path | str) -> RuntimeConfig:
     path = Path(path)
-    text = read_config_text(path, RuntimeConfigError, "a runtime config")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise RuntimeConfigError(f"{path}: not valid YAML{where}") from None
+    data = read_yaml_config(path, RuntimeConfigError, "a runtime config")
     return parse_runtime_config(data, str(path), path.resolve().parent)

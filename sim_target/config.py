@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -43,6 +42,7 @@ from drivers.config import (
     format_validation_error,
     is_loopback_host,
     read_config_text,
+    read_yaml_config,
 )
 from drivers.errors import BusLoadError
 from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
@@ -235,13 +235,13 @@ def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
 def load_target_config(path: Path | str) -> TargetConfig:
     """Read a YAML (.yaml/.yml) or TOML (.toml) target configuration."""
     path = Path(path)
-    text = read_config_text(path, TargetConfigError, "a target config")
-    try:
-        data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
-    except (yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
-        raise TargetConfigError(
-            f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'YAML'} ({str(exc).splitlines()[0]})"
-        ) from None
+    if path.suffix == ".toml":
+        try:
+            data: Any = tomllib.loads(read_config_text(path, TargetConfigError, "a target config"))
+        except tomllib.TOMLDecodeError as exc:
+            raise TargetConfigError(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    else:
+        data = read_yaml_config(path, TargetConfigError, "a target config")
     if data is None or data == {}:
         raise TargetConfigError(f"{path}: empty file (expected target settings; see deploy/target.virtual.yaml)")
     if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
