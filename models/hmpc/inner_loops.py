@@ -13,7 +13,7 @@ Gauss-Newton iteration is delegated to an ``InnerLoops`` object picked when the 
 
 ``NumpyInnerLoops`` vectorizes each over the batch; ``NumbaInnerLoops`` runs the same algorithms
 row by row in compiled code (``models.hmpc.kernels``). Same results to round-off:
-tests/unit/hmpc/test_inner_loops.py checks every method and whole solves against each other.
+tests/unit/models/hmpc/test_inner_loops.py checks every method and whole solves against each other.
 Names map to classes in ``INNER_LOOPS`` (like python-can's interface table); ``auto`` takes numba
 when it is installed.
 """
