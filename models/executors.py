@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import threading
 from abc import ABC, abstractmethod
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
@@ -119,6 +121,23 @@ RAY_ENV = {
     **SINGLE_THREAD_ENV,
 }
 LOOPBACK = "127.0.0.1"
+OBJECT_STORE_BYTES = 1 << 30  # tasks and results are small arrays; Ray's default takes 30 % of the RAM
+
+
+@contextlib.contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """SIGINT blocked while Ray starts its processes: they inherit the mask, so a Ctrl-C on the
+    terminal (sent to the whole process group) reaches only this process, which then shuts Ray down
+    in order (``close``); Ray's processes, hit directly, die mid-protocol and the driver crashes on
+    exit. A Ctrl-C during the start is delivered when the start returns."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 @contextlib.contextmanager
@@ -166,14 +185,16 @@ class RayExecutor(Executor):
                     "--executor ray: ray was imported before models.executors could pin it to 127.0.0.1; "
                     "set RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 in the environment"
                 )
-            context = ray.init(
-                address="local",
-                num_cpus=self.workers,
-                include_dashboard=False,
-                _node_ip_address=LOOPBACK,
-                log_to_driver=False,
-                configure_logging=False,
-            )
+            with _sigint_blocked():
+                context = ray.init(
+                    address="local",
+                    num_cpus=self.workers,
+                    include_dashboard=False,
+                    _node_ip_address=LOOPBACK,
+                    object_store_memory=OBJECT_STORE_BYTES,
+                    log_to_driver=False,
+                    configure_logging=False,
+                )
         node_ip = context.address_info.get("node_ip_address")
         if node_ip != LOOPBACK:  # never run on a non-loopback address
             ray.shutdown()
