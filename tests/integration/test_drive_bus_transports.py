@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drivers.cia402.state_machine import State
-from drivers.config import parse_drive_bus_config
+from drivers.config import DriveBusConfig, parse_drive_bus_config
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, TransportError
 from drivers.transport import socketcan_unavailable
@@ -38,6 +38,17 @@ def _run_cycles(driver: DriveBus, period_s: float, cycles: int = 100) -> None:
     assert counters.dropped == counters.late == counters.malformed == 0
 
 
+def _connect_and_run(config: DriveBusConfig) -> DriveBus:
+    """A driver on ``config``: connected, _run_cycles at 4 ms, closed."""
+    driver = DriveBus(config)
+    try:
+        driver.connect()
+        _run_cycles(driver, 0.004)
+    finally:
+        driver.close()
+    return driver
+
+
 @pytest.fixture
 def target_process() -> Iterator[DriveProcess]:
     try:
@@ -52,13 +63,7 @@ def target_process() -> Iterator[DriveProcess]:
 def test_two_processes_over_the_loopback_bridge(target_process: DriveProcess, fd: bool) -> None:
     port = target_process.ready["port"]
     transport = {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": port, "channel": ""}
-    config = drive_bus_config("unused", fd=fd, transport=transport, period_s=0.004)
-    driver = DriveBus(config)
-    try:
-        driver.connect()
-        _run_cycles(driver, 0.004)
-    finally:
-        driver.close()
+    driver = _connect_and_run(drive_bus_config("unused", fd=fd, transport=transport, period_s=0.004))
     summary = target_process.finish()
     assert summary["syncs"] == driver.counters.cycles  # every SYNC crossed the process boundary
     assert target_process.proc.returncode == 0
@@ -81,12 +86,9 @@ def test_vcan0_when_the_kernel_has_it() -> None:
             "joints": [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 150.0} for i in range(6)],
         }
     )
-    driver = DriveBus(config)
     try:
-        driver.connect()
-        _run_cycles(driver, 0.004)
+        _connect_and_run(config)
     finally:
-        driver.close()
         drives.close()
         side.shutdown()
 

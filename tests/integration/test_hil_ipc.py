@@ -11,12 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_hil_lockstep import SLOW_MACHINE, _check_counters, _check_trajectory, _run_arm
+from test_hil_lockstep import SLOW_MACHINE, check_arm_across_processes
 
-from drivers.cia402.state_machine import State
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, HeartbeatLostError
-from sim_target.server import send_control
 from sim_target.testing.hil_target import drive_bus_config, serve_config, target_process
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
@@ -26,19 +24,7 @@ def test_driver_moves_the_arm_across_processes_on_the_ipc_bus_at_1_ms(tmp_path: 
     period_s, cycles = 0.001, 400
     with target_process(tmp_path, period_s, substeps=32, transport="ipc") as target:
         assert target.ipc_dir is not None
-        bus = DriveBus(drive_bus_config({"interface": "ipc", "channel": str(target.ipc_dir)}, period_s, **SLOW_MACHINE))
-        try:
-            positions, velocities, commanded = _run_arm(bus, cycles, period_s)
-            _check_trajectory(positions, velocities, commanded, period_s)
-            status = send_control(target.control_socket, {"kind": "status"})
-            assert status["steps"] == bus.counters.cycles  # lock-stepped across the processes
-            np.testing.assert_allclose(status["position_rad"], positions[-1], atol=1e-5)
-            bus.quick_stop()
-            assert send_control(target.control_socket, {"kind": "status"})["operation_enabled"] == [False] * 6
-            assert set(bus.disable()) == {State.SWITCH_ON_DISABLED}
-            _check_counters(bus, cycles)
-        finally:
-            bus.close()
+        check_arm_across_processes(target, {"interface": "ipc", "channel": str(target.ipc_dir)}, period_s, cycles)
         code, err = target.stop()
         assert code == 0, err
         assert list(target.ipc_dir.iterdir()) == []  # both ends removed their sockets

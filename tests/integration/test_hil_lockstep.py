@@ -36,6 +36,7 @@ from sim_target.server import send_control
 from sim_target.testing.hil_target import (
     MAX_TORQUE_NM,
     Q0_RAD,
+    TargetProcess,
     drive_bus_config,
     serve_config,
     target_in_process,
@@ -156,29 +157,32 @@ def test_driver_moves_the_pybullet_arm_in_one_process_and_quick_stop_brakes() ->
 # --- (b) two processes over the loopback bridge -----------------------------------------------------
 
 
+def check_arm_across_processes(target: TargetProcess, transport: dict[str, str], period_s: float, cycles: int) -> None:
+    """The driver moves the arm of a ``hil target serve`` process lock-stepped, then brakes it."""
+    bus = DriveBus(drive_bus_config(transport, period_s, **SLOW_MACHINE))
+    try:
+        positions, velocities, commanded = _run_arm(bus, cycles, period_s)
+        _check_trajectory(positions, velocities, commanded, period_s)
+        status = send_control(target.control_socket, {"kind": "status"})
+        assert status["steps"] == bus.counters.cycles  # lock-stepped across the processes
+        np.testing.assert_allclose(status["position_rad"], positions[-1], atol=1e-5)
+
+        bus.quick_stop()
+        status = send_control(target.control_socket, {"kind": "status"})
+        assert status["operation_enabled"] == [False] * 6
+        assert set(bus.disable()) == {State.SWITCH_ON_DISABLED}
+        after = send_control(target.control_socket, {"kind": "status"})
+        assert after["steps"] > status["steps"]
+        np.testing.assert_allclose(after["position_rad"], status["position_rad"], atol=1e-4)  # braked
+        _check_counters(bus, cycles)
+    finally:
+        bus.close()
+
+
 def test_driver_moves_the_arm_across_processes_over_the_loopback_bridge(tmp_path: Path) -> None:
     period_s, cycles = 0.002, 300
     with target_process(tmp_path, period_s, substeps=32) as target:
-        bus = DriveBus(
-            drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s, **SLOW_MACHINE)
-        )
-        try:
-            positions, velocities, commanded = _run_arm(bus, cycles, period_s)
-            _check_trajectory(positions, velocities, commanded, period_s)
-            status = send_control(target.control_socket, {"kind": "status"})
-            assert status["steps"] == bus.counters.cycles  # lock-stepped across the processes
-            np.testing.assert_allclose(status["position_rad"], positions[-1], atol=1e-5)
-
-            bus.quick_stop()
-            status = send_control(target.control_socket, {"kind": "status"})
-            assert status["operation_enabled"] == [False] * 6
-            assert set(bus.disable()) == {State.SWITCH_ON_DISABLED}
-            after = send_control(target.control_socket, {"kind": "status"})
-            assert after["steps"] > status["steps"]
-            np.testing.assert_allclose(after["position_rad"], status["position_rad"], atol=1e-4)  # braked
-            _check_counters(bus, cycles)
-        finally:
-            bus.close()
+        check_arm_across_processes(target, {"interface": "remote", "channel": target.bridge_url}, period_s, cycles)
         code, err = target.stop()
     assert code == 0, err
     assert "target stopped after" in err

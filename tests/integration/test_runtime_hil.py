@@ -27,7 +27,7 @@ from drivers.transport import socketcan_unavailable
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.control import send_command
 from hil_runtime.lifecycle import LifecycleState
-from hil_runtime.runtime import build_runtime
+from hil_runtime.runtime import RunResult, Runtime, build_runtime
 from sim_target.config import parse_fault
 from sim_target.server import send_control
 from sim_target.testing.hil_target import start_hil_run, target_in_process, target_process, unique_channel
@@ -90,18 +90,24 @@ def check_run(rec: dict[str, np.ndarray], ramp_cycles: int, limits: dict[str, An
 # --- (a) one process -------------------------------------------------------------------------------
 
 
+def _track_c1(runtime: Runtime) -> RunResult:
+    """configure, activate, the ramp and TRACK_S of C1: no fault, the record within the limits."""
+    runtime.configure()
+    assert runtime.activate()
+    ramp = runtime.reference.ramp_cycles
+    result = runtime.run(max_cycles=ramp + int(TRACK_S / 0.001))
+    assert result.reason == "cycles" and result.fault is None
+    check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest["limits"])
+    return result
+
+
 def test_runtime_tracks_c1_with_the_target_in_one_process_then_stop_quick_stops() -> None:
     channel = unique_channel()
     config = parse_runtime_config(runtime_config({"interface": "virtual", "channel": channel}))
     with target_in_process(channel, 0.001) as target:
         runtime = build_runtime(config, record_cycles=10_000)
         try:
-            runtime.configure()
-            assert runtime.activate()
-            ramp = runtime.reference.ramp_cycles
-            result = runtime.run(max_cycles=ramp + int(TRACK_S / 0.001))
-            assert result.reason == "cycles" and result.fault is None
-            check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest["limits"])
+            result = _track_c1(runtime)
             assert target.stats.steps == runtime.bus.counters.cycles  # lock-step: one step per SYNC
             stats = result.stats
             assert (stats["bus_dropped"], stats["bus_late"], stats["bus_malformed"], stats["overruns"]) == (0, 0, 0, 0)
@@ -199,12 +205,7 @@ def test_runtime_tracks_c1_over_vcan0() -> None:
     ) as target:
         runtime = build_runtime(config, record_cycles=10_000)
         try:
-            runtime.configure()
-            assert runtime.activate()
-            ramp = runtime.reference.ramp_cycles
-            result = runtime.run(max_cycles=ramp + int(TRACK_S / 0.001))
-            assert result.fault is None
-            check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest["limits"])
+            _track_c1(runtime)
             runtime.request_stop()
             runtime.run(shutdown_at_end=True)
             assert not target.drives.operation_enabled().any()
