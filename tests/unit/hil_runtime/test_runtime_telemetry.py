@@ -11,12 +11,12 @@ import threading
 import time
 
 import pytest
-from runtime_fixtures import MAX_TORQUE_NM, Q0_RAD, config_dict
 
 from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.daemon import make_telemetry
 from hil_runtime.runtime import Runtime
+from tests.unit.hil_runtime.support import MAX_TORQUE_NM, Q0_RAD, config_dict
 
 zenoh = pytest.importorskip("zenoh")
 

@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-from runtime_fixtures import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
 
 from drivers.cia402.state_machine import State
 from drivers.errors import DriveFaultError, FeedbackTimeoutError, HeartbeatLostError
@@ -18,6 +17,7 @@ from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.codec import STATS_FIELDS
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
+from tests.unit.hil_runtime.support import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
 
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from runtime_fixtures import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
 
 from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.runtime import Runtime
 from hil_runtime.sdnotify import Notifier
 from sim_target.testing.notify import NotifyListener
+from tests.unit.hil_runtime.support import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
 
 
 @pytest.fixture

@@ -12,7 +12,6 @@ from pathlib import Path
 import pytest
 import yaml
 from pydantic import ValidationError
-from runtime_fixtures import PD_BUNDLE, config_dict
 
 from drivers.testing import FakeJointBus
 from hil_runtime.bundle import BundleError
@@ -23,6 +22,7 @@ from hil_runtime.config import (
     parse_runtime_config,
 )
 from hil_runtime.runtime import Runtime
+from tests.unit.hil_runtime.support import PD_BUNDLE, config_dict
 
 
 def _write(tmp_path: Path, data: object, name: str = "runtime.yaml") -> Path:
@@ -221,7 +221,7 @@ def test_hil_status_without_a_daemon(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("name", ["runtime.bridge.yaml", "runtime.ipc.yaml", "runtime.can0.yaml"])
 def test_the_deployed_configs_are_valid(name: str) -> None:
-    from runtime_fixtures import ROOT
+    from tests.unit.hil_runtime.support import ROOT
 
     config = load_runtime_config(ROOT / "deploy" / name)
     assert config.robot == "ur5_paper" and config.period_s == 0.001
@@ -230,7 +230,7 @@ def test_the_deployed_configs_are_valid(name: str) -> None:
 
 
 def test_hil_run_check_validates_without_touching_the_bus(tmp_path: Path) -> None:
-    from runtime_fixtures import ROOT
+    from tests.unit.hil_runtime.support import ROOT
 
     result = _hil("run", "--config", str(ROOT / "deploy" / "runtime.ipc.yaml"), "--check")
     assert result.returncode == 0, result.stderr

@@ -1,5 +1,6 @@
-"""Shared by the runtime's unit tests: a runtime config for the shipped PD bundle, and a stand-in
-bundle whose outputs a test sets (NaN policy output, trust fallbacks) without onnxruntime."""
+"""Shared by the runtime's unit tests (``from tests.unit.hil_runtime.support import ...``): a runtime
+config for the shipped PD bundle, and a stand-in bundle whose outputs a test sets (NaN policy output,
+trust fallbacks) without onnxruntime."""
 
 from __future__ import annotations
 

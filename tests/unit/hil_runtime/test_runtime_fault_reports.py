@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from runtime_fixtures import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, StubBundle, config_dict
 
 from drivers.testing import FakeJointBus
 from hil_runtime.bundle import NonFiniteOutputError, PolicyBundle
@@ -19,6 +18,7 @@ from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import RunRecord, Runtime
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
+from tests.unit.hil_runtime.support import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, StubBundle, config_dict
 
 
 class Events(NullTelemetry):
