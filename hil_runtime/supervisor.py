@@ -1,7 +1,7 @@
 """The safety supervisor: pure rules over one cycle's feedback and policy output.
 
 No I/O, no clock, no bus: the loop calls it and acts on what it returns (quick stop and FAULT), so
-every rule is table-tested (tests/unit/runtime/test_supervisor.py).
+every rule is table-tested (tests/unit/hil_runtime/test_supervisor.py).
 
 Feedback (:meth:`Supervisor.check_feedback`), before the policy runs:
 
