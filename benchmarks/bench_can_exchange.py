@@ -107,6 +107,18 @@ def _run_loop(driver: DriveBus, args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def _measure(config: Any, args: argparse.Namespace) -> dict[str, Any]:
+    """A driver on ``config`` against drives that are already up: the loop's figures and the bus load."""
+    driver = DriveBus(config)
+    try:
+        driver.connect()
+        result = _run_loop(driver, args)
+    finally:
+        driver.close()
+    result["bus_load"] = config.bus_load().describe()
+    return result
+
+
 def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
     from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
     from sim_target.testing.fake_plant import FakePlant, lockstep
@@ -117,16 +129,11 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
     drives = EmulatedDrives(side, EmulatedDrivesConfig(node_ids=config.node_ids))
     lockstep(drives, FakePlant(args.drives, config.period_s))
     drives.start()
-    driver = DriveBus(config)
     try:
-        driver.connect()
-        result = _run_loop(driver, args)
+        return _measure(config, args)
     finally:
-        driver.close()
         drives.close()
         side.shutdown()
-    result["bus_load"] = config.bus_load().describe()
-    return result
 
 
 def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str, Any]:
@@ -140,14 +147,7 @@ def run_bridge(args: argparse.Namespace, ipc_dir: str | None = None) -> dict[str
             config = _config(
                 args, {"interface": "remote", "bridge_host": "127.0.0.1", "bridge_port": ready["port"], "channel": ""}
             )
-        driver = DriveBus(config)
-        try:
-            driver.connect()
-            result = _run_loop(driver, args)
-        finally:
-            driver.close()
-    result["bus_load"] = config.bus_load().describe()
-    return result
+        return _measure(config, args)
 
 
 def run_ipc(args: argparse.Namespace) -> dict[str, Any]:
