@@ -40,6 +40,16 @@ def _edit(path: Path, change) -> None:  # type: ignore[no-untyped-def]
 def test_every_shipped_bundle_passes_its_behavioural_check(law: str) -> None:
     bundle = PolicyBundle.load(SHIPPED / law, expected_joints=6, expected_period_s=1e-3)
     assert bundle.saturation_checked.all()  # every joint's saturation was observed and matched
+    # and every joint's residual clamp: some recorded probe puts that joint at its bound (the loader's
+    # check of residual_bound_nm), whatever the bound's size (issue 13: 10x the labels' largest residual)
+    n, s = bundle.n_joints, bundle.state_size
+    y = np.asarray(bundle.manifest["probes"]["outputs"])
+    tau, tau_fb, alpha, clamped = y[:, :n], y[:, n : 2 * n], 1.0 - y[:, 2 * n + s], y[:, 2 * n + s + 1]
+    acting = (alpha > 0) & (clamped >= 1) & (np.abs(tau) < bundle.torque_limit_nm).all(axis=1)
+    residual = np.abs(tau - tau_fb)[acting] / alpha[acting, None]
+    bound = bundle.residual_bound_nm
+    assert bound is not None
+    assert np.isclose(residual, bound, rtol=1e-7).any(axis=0).all()
 
 
 def test_a_graph_of_another_law_under_a_fixed_up_hash_is_refused(tmp_path: Path) -> None:
