@@ -7,6 +7,13 @@ the bare ``PolicyBundle.step`` time. Prints JSON.
     python benchmarks/bench_lmpc.py [--cycles 3000] [--bundles models/bundles]
     python benchmarks/bench_lmpc.py --fallbacks      # + trust-region counters on the paper's 5 conditions
     python benchmarks/bench_lmpc.py --session-sweep  # + each graph under onnxruntime's optimization levels
+    python benchmarks/bench_lmpc.py --compact        # shipped graph vs today's graph code, interleaved
+
+``--compact``: per law, the shipped bundle's emulator (rebuilt from its graph's weights and its
+manifest) exported with the working tree's graph code (models.lmpc.structured) to a temporary file;
+node counts, the new graph's outputs on the shipped manifest's probes against the recorded ones
+(max relative difference), and the bare single-row run time of both graphs, plus a one-node graph
+(onnxruntime's per-run floor), all timed interleaved in one process.
 
 ``--fallbacks``: every law's LMPC on the paper's five conditions (5 s, nominal plant, the
 experiment's settings); per law and condition the cycles outside the trust box (torque = the
@@ -35,11 +42,21 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     parser.add_argument(
+        "--compact", action="store_true", help="only compare the shipped graphs with today's graph code"
+    )
+    parser.add_argument(
         "--session-sweep",
         action="store_true",
         help="also time each graph under onnxruntime's optimization levels / execution modes",
     )
     args = parser.parse_args()
+    if args.compact:
+        result = compact_compare(args.laws.split(","), args.bundles, args.cycles)
+        print(json.dumps(result, indent=2))
+        if args.out is not None:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps(result, indent=2))
+        return
 
     from hil_runtime.bundle import PolicyBundle
     from models.conditions import load_conditions
@@ -174,6 +191,163 @@ def session_sweep(bundle, cycles: int) -> dict:  # type: ignore[no-untyped-def]
                 times.append(time.perf_counter() - start)
             us = np.asarray(times[100:]) * 1e6
             out[f"{name}/{mode_name}"] = [round(float(np.median(us)), 1), round(float(np.percentile(us, 99)), 1)]
+    return out
+
+
+def structured_policy_from_bundle(bundle_dir: Path):  # type: ignore[no-untyped-def]
+    """The shipped structured bundle's policy module rebuilt from its graph's weights and its manifest
+    (for bundles exported before the trained weights were kept: models.lmpc.structured.save_trained)."""
+    import onnx
+    import torch
+    from onnx import numpy_helper
+
+    from models.feedback import make_law
+    from models.lmpc.structured import StructuredEmulator, _structured_policy_class
+    from models.robots import load_robot
+
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    training, trust = manifest["training"], manifest["trust_region"]
+    config, physics, residual = training["config"], training["summary"]["physics"], training["summary"]["residual"]
+    robot = load_robot(config["robot"])
+    weights = {t.name: numpy_helper.to_array(t) for t in onnx.load(str(bundle_dir / "policy.onnx")).graph.initializer}
+    model = StructuredEmulator(robot, tuple(config["hidden"]), np.asarray(residual["bound_nm"]), config["ff_point"])
+    state = model.state_dict()
+    for name in state:
+        key = f"emulator.{name}"
+        if key in weights:
+            state[name] = torch.as_tensor(np.array(weights[key], dtype=np.float64))
+    model.load_state_dict(state)
+    model.frozen = tuple(
+        torch.as_tensor(np.asarray(physics[k], dtype=np.float64)) for k in ("c", "g", "kp_1_s2", "kd_1_s")
+    )
+    model.use_residual = bool(residual["used"])
+    law = make_law(
+        manifest["law"]["name"], robot, manifest.get("period_s", manifest.get("control_period_s")), training["gain_set"]
+    )
+    trust_spec = {k: trust[k] for k in ("feature_low", "feature_high", "box_margin", "residual_bound_nm")}
+    return _structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
+
+
+def _session(path: str, level_name: str = "all"):  # type: ignore[no-untyped-def]
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads, options.log_severity_level = 1, 1, 3
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = {
+        "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+        "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+        "disable_all": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    }[level_name]
+    return ort.InferenceSession(path, sess_options=options, providers=["CPUExecutionProvider"])
+
+
+def _bound_runner(session, width: int):  # type: ignore[no-untyped-def]
+    """A single-row run with IOBinding (what PolicyBundle.step does, without the Python around it)."""
+    import onnxruntime as ort
+
+    x = np.zeros((1, width))
+    x[0, : min(width, 30)] = 0.1
+    y = np.zeros(
+        (1, session.get_outputs()[0].shape[-1] if isinstance(session.get_outputs()[0].shape[-1], int) else width)
+    )
+    binding = session.io_binding()
+    binding.bind_ortvalue_input(session.get_inputs()[0].name, ort.OrtValue.ortvalue_from_numpy(x))
+    binding.bind_ortvalue_output(session.get_outputs()[0].name, ort.OrtValue.ortvalue_from_numpy(y))
+    return lambda: session.run_with_iobinding(binding)
+
+
+def one_node_graph(path: Path, width: int = 6) -> None:
+    """y = x + x on one (1, width) float64 row: onnxruntime's per-run cost without a graph."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    node = helper.make_node("Add", ["x", "x"], ["y"])
+    io = [helper.make_tensor_value_info(k, TensorProto.DOUBLE, [1, width]) for k in ("x", "y")]
+    model = helper.make_model(
+        helper.make_graph([node], "one", io[:1], io[1:]), opset_imports=[helper.make_opsetid("", 17)]
+    )
+    model.ir_version = 8
+    onnx.save(model, str(path))
+
+
+def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
+    """Shipped graph vs today's graph code per law: nodes, probe equality, interleaved run times."""
+    import tempfile
+    import time
+    import warnings
+
+    import onnxruntime
+    import torch
+
+    from models.lmpc.controller import bundle_path
+
+    out: dict = {
+        "what": "bare single-row graph run (IOBinding, 1 thread), us median / p99",
+        "cycles": cycles,
+        "laws": {},
+    }
+    runners: dict[str, object] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        floor = Path(tmp) / "one_node.onnx"
+        one_node_graph(floor)
+        runners["one_node_graph/all"] = _bound_runner(_session(str(floor)), 6)
+        for law_name in laws:
+            directory = bundle_path("ur5_paper", law_name, bundles)
+            policy, manifest = structured_policy_from_bundle(directory)
+            width = int(sum(part["size"] for part in manifest["graph"]["input"]["layout"]))
+            path = Path(tmp) / f"{law_name}.onnx"
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                torch.onnx.export(
+                    policy,
+                    (torch.zeros(2, width, dtype=torch.float64),),
+                    str(path),
+                    input_names=["x"],
+                    output_names=["y"],
+                    dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}},
+                    opset_version=17,
+                    dynamo=False,
+                )
+            old_path = str(directory / manifest["graph"]["file"])
+            probes = manifest["probes"]
+            inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
+            got = _session(str(path)).run(None, {"x": inputs})[0]
+            scale = np.maximum(np.abs(recorded), 1.0)
+            with torch.no_grad():
+                torch_out = policy(torch.as_tensor(inputs)).numpy()
+            out["laws"][law_name] = {
+                "compute_nodes": {"shipped": _nodes(Path(old_path), True), "new": _nodes(path, True)},
+                "probe_max_abs_diff": float(np.abs(got - recorded).max()),
+                "probe_max_rel_diff": float((np.abs(got - recorded) / scale).max()),
+                "new_onnx_vs_torch_max_abs": float(np.abs(got - torch_out).max()),
+            }
+            for label, p, level in (
+                ("shipped/all", old_path, "all"),
+                ("new/all", str(path), "all"),
+                ("new/basic", str(path), "basic"),
+            ):
+                runners[f"{law_name}:{label}"] = _bound_runner(_session(p, level), width)
+        times: dict[str, list[float]] = {k: [] for k in runners}
+        for _ in range(cycles):
+            for key, run in runners.items():
+                start = time.perf_counter()
+                run()  # type: ignore[operator]
+                times[key].append(time.perf_counter() - start)
+    for key, values in times.items():
+        us = np.asarray(values[100:]) * 1e6
+        figure = [round(float(np.median(us)), 1), round(float(np.percentile(us, 99)), 1)]
+        if ":" in key:
+            law_name, label = key.split(":")
+            out["laws"][law_name].setdefault("run_us", {})[label] = figure
+        else:
+            out[key + "_us"] = figure
+    out["load_average"] = os.getloadavg()
+    out["machine"] = {
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "onnxruntime": onnxruntime.__version__,
+    }
     return out
 
 

@@ -15,9 +15,11 @@ from typing import Protocol
 
 import numpy as np
 
-from models.dynamics.rne import ChainArrays, mass_matrix_and_bias, rneida
+from models.dynamics.rne import ChainArrays, mass_matrix_and_bias, rnefda, rneida
 from models.errors import ModelInputError
 from models.robots import RobotModel
+
+COMPLEX_STEP = 1e-30
 
 
 class Dynamics(Protocol):
@@ -35,6 +37,9 @@ class Dynamics(Protocol):
     def forward_dynamics(
         self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, ee_wrench: np.ndarray | None = None
     ) -> np.ndarray: ...
+    def forward_dynamics_derivatives(
+        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
 
 
 def _batched(*arrays: np.ndarray | None) -> tuple[bool, list[np.ndarray | None]]:
@@ -77,8 +82,33 @@ class RneDynamics:
     def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
         """RNEFDA (Alg. 1): h and M from N + 1 RNEIDA calls (one batched pass), then a solve."""
         single, (q, qd, tau, w) = _batched(q, qd, tau, ee_wrench)
-        mass_matrix, bias = mass_matrix_and_bias(np, self.chain, q, qd, w)
-        return _unbatch(single, np.linalg.solve(mass_matrix, (tau - bias)[..., None])[..., 0])
+        return _unbatch(single, rnefda(np, self.chain, q, qd, tau, w))
+
+    def forward_dynamics_derivatives(
+        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(qdd, dqdd/dq, dqdd/dqd, dqdd/dtau) for states (K, N), exact.
+
+        d(qdd)/dtau = M^-1 and d(qdd)/d(q, qd) = -M^-1 d(ID)/d(q, qd) at qdd, the RNEIDA partials by
+        complex-step differentiation (Im f(x + i h) / h, h = 1e-30: no cancellation error), so they
+        agree with pinocchio's analytic ABA derivatives to round-off.
+        """
+        k, n = q.shape
+        mass_matrix, bias = mass_matrix_and_bias(np, self.chain, q, qd)
+        m_inv = np.linalg.inv(mass_matrix)
+        qdd = np.einsum("kij,kj->ki", m_inv, tau - bias)
+        # RNEIDA at (q, qd, qdd) perturbed along each q_i and each qd_i by i*h: 2N complex rows per state.
+        eye = np.eye(n) * (1j * COMPLEX_STEP)
+        q_rows = np.concatenate([q[:, None, :] + eye, np.broadcast_to(q[:, None, :], (k, n, n))], 1)
+        qd_rows = np.concatenate([np.broadcast_to(qd[:, None, :], (k, n, n)), qd[:, None, :] + eye], 1)
+        qdd_rows = np.broadcast_to(qdd[:, None, :], (k, 2 * n, n)).astype(complex)
+        tau_rows = rneida(
+            np, self.chain, q_rows.reshape(-1, n), qd_rows.reshape(-1, n), qdd_rows.reshape(-1, n), self.chain.gravity
+        )
+        partials = tau_rows.imag.reshape(k, 2 * n, n) / COMPLEX_STEP  # row i: d(ID)/d(x_i)
+        d_id_dq = np.swapaxes(partials[:, :n], 1, 2)
+        d_id_dqd = np.swapaxes(partials[:, n:], 1, 2)
+        return qdd, -m_inv @ d_id_dq, -m_inv @ d_id_dqd, m_inv
 
     def mass_matrix_and_bias(self, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         single, (q, qd) = _batched(q, qd)
@@ -118,8 +148,14 @@ class PinocchioDynamics:
         self.n_joints = robot.n_joints
         self.model = build_pinocchio_model(robot)
         self.data = self.model.createData()
+        self._pool = None  # built on the first batched forward_dynamics (not pickled)
         self._ee_joint = self.model.njoints - 1
         self._ee_placement = pin.SE3(robot.ee_rotation, robot.ee_translation)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_pool"] = None
+        return state
 
     def _fext(self, wrench: np.ndarray | None):  # type: ignore[no-untyped-def]
         if wrench is None:
@@ -159,12 +195,37 @@ class PinocchioDynamics:
         return self._each(lambda q: self._pin.computeGeneralizedGravity(self.model, self.data, q).copy(), q)
 
     def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
+        if ee_wrench is None and np.ndim(q) == 2:  # a batch without wrench: ABA in one C++ call
+            if np.shape(q)[0] == 1:  # one state (the 1 kHz loop): the plain call has less set-up
+                return self._pin.aba(self.model, self.data, q[0], qd[0], tau[0])[None].copy()
+            # (K, N) C-contiguous transposes to the (N, K) column-major layout pinocchio wants: no copy.
+            q, qd, tau = (np.ascontiguousarray(a, dtype=np.float64) for a in (q, qd, tau))
+            if self._pool is None:
+                # One model/data, one thread: a 1 kHz loop must not wait on thread start-up, and batch
+                # labeling gets its parallelism from processes (models.hmpc.batch).
+                self._pool = self._pin.ModelPool(self.model, 1)
+            return self._pin.abaInParallel(1, self._pool, q.T, qd.T, tau.T).T
+
         def one(q, qd, tau, w):  # type: ignore[no-untyped-def]
             if w is None:
                 return self._pin.aba(self.model, self.data, q, qd, tau).copy()
             return self._pin.aba(self.model, self.data, q, qd, tau, self._fext(w)).copy()
 
         return self._each(one, q, qd, tau, ee_wrench)
+
+    def forward_dynamics_derivatives(
+        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(qdd, dqdd/dq, dqdd/dqd, dqdd/dtau) for states (K, N): pinocchio's analytic ABA derivatives."""
+        pin, model, data = self._pin, self.model, self.data
+        k, n = q.shape
+        qdd = np.empty((k, n))
+        d_q, d_qd, d_tau = np.empty((k, n, n)), np.empty((k, n, n)), np.empty((k, n, n))
+        for row in range(k):
+            # The returned arrays alias pinocchio's data: copy them out before the next call.
+            d_q[row], d_qd[row], d_tau[row] = pin.computeABADerivatives(model, data, q[row], qd[row], tau[row])
+            qdd[row] = data.ddq
+        return qdd, d_q, d_qd, d_tau
 
 
 BACKENDS = {"rne": RneDynamics, "pinocchio": PinocchioDynamics}

@@ -6,30 +6,40 @@ frame origins, motion m = [w; v], force f = [n; f]):
     v_i = X_i v_p + S_i qd_i
     a_i = X_i a_p + S_i qdd_i + crm(v_i) S_i qd_i          a_base = [0; -g] (gravity as a base acceleration)
     f_i = I_i a_i + crf(v_i) I_i v_i                       I_i: spatial inertia at the frame origin
-    F_i = f_i + X_{i+1}^T F_{i+1},   tau_i = S_i^T F_i
+    tau_i = S_i^T sum_{j >= i} X*_{i<-j} f_j
 
-written so that onnxruntime runs few, larger nodes (its per-node cost dominates small graphs):
+onnxruntime spends ~0.3-0.5 us per node on tensors this small, so the graph is written as few nodes:
 
-- X_i(q_i) is affine in (sin q_i, 1 - cos q_i) (Rodrigues): all joints' transforms are three
-  constant tensors combined once for the whole chain.
-- The forward pass carries the row W = [v, a, 1] (13 entries): one link is one 13 x 13 product
-  W_i = W_p N_i, where N_i holds X_i, the S_i qd_i, S_i qdd_i terms and crm(v_i) S_i qd_i (all
-  built for every link at once before the recursion). The backward pass likewise carries
-  [F, 1] through 7 x 7 products.
-- f_i is a fixed quadratic form of W_i (its last entry is 1, so the linear part I_i a_i is
-  quadratic too): one outer product and one matmul for every link at once.
+- Forward: one 13 x 13 matrix per link, L_i = blockdiag(X_i^T, X_i^T, 1) (I + qd_i Gv + [qd_i S | qdd_i S]
+  in the last row). X_i is affine in (1, sin q_i, cos q_i) (Rodrigues; cos q = sin(q + pi/2), so one Sin
+  node), the rest affine in (1, qd_i, qdd_i): L_i = sum_ab u_a w_b K_iab, one product with constants for
+  all links at once. The chain C_i = C_{i-1} L_i (five MatMul nodes; C_0 is folded into link 1's
+  constants) carries the row W_i = [v_i, a_i, 1] and, in further rows, X_{i<-0}^T and P X_{i<-0}^T
+  (P swaps the angular and linear halves; X^-1 = P X^T P for a motion transform).
+- f_i is a fixed quadratic form of W_i (its last entry is 1): one outer product and one MatMul.
+- Backward without a recursion: in base coordinates f_j^0 = X_{j<-0}^T f_j (one batched MatMul with the
+  chain), the suffix sums over j >= i are one constant MatMul, and tau_i = (S_i^0)^T F_i^0 with
+  S_i^0 = X_{0<-i} S_i = P X_{i<-0}^T P S_i (one batched MatMul with constants); the final dot products
+  and any per-joint output scale are one Mul and one constant MatMul.
 
-About 65 ONNX nodes for a 6-joint arm (the component-wise version: ~1,700; the compact one it
-replaces, models.lmpc.compact_rne before this change: 408 for gravity, 860 for full ID).
-Checked against ``rneida`` (tests/unit/lmpc/test_structured.py) to 1e-12.
+28 ONNX nodes for any joint count (the spatial recursion it replaces: 66; the component-wise RNEIDA:
+~1,700). Several rate sets (qd, qdd) at one position run as one pass (``inverse_dynamics_shared``: a
+law's own nominal model and a feed-forward in one graph at no extra node). Checked against ``rneida``
+and pinocchio (tests/unit/models/dynamics/test_dynamics_parity.py).
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 
 from models.robots import RobotModel
+
+#: one rate set of inverse_dynamics_shared: qd = z @ qd_map, qdd = z @ qdd_map (+ qdd_offset), z its input
+RateMap = tuple[np.ndarray, np.ndarray, "np.ndarray | None"]
+W = 13  # the chain row [v (6), a (6), 1]
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -52,6 +62,17 @@ def _t(a: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64))
 
 
+def spatial_inertia(mass_kg: float, com_m: np.ndarray, inertia_kg_m2: np.ndarray) -> np.ndarray:
+    """The 6 x 6 spatial inertia of a link at its frame origin (inertia_kg_m2 about the COM)."""
+    cs = _skew(com_m)
+    out = np.zeros((6, 6))
+    out[:3, :3] = inertia_kg_m2 + mass_kg * cs @ cs.T
+    out[:3, 3:] = mass_kg * cs
+    out[3:, :3] = mass_kg * cs.T
+    out[3:, 3:] = mass_kg * np.eye(3)
+    return out
+
+
 class SpatialRne:
     """tau = ID(q, qd, qdd) for batches (B, N) of torch tensors (float64), gravity optional."""
 
@@ -61,120 +82,148 @@ class SpatialRne:
         axis = np.asarray(robot.joint_axis, float)
         r0 = np.asarray(robot.joint_rotation, float)
         p = np.asarray(robot.joint_translation, float)
+        swap = np.zeros((6, 6))  # P: [w; v] <-> [v; w]
+        swap[:3, 3:] = swap[3:, :3] = np.eye(3)
 
-        # R_i(q) = R0 + sin(q) R0 K + (1 - cos q) R0 K^2 (K = skew(axis)); the motion transform parent -> i
-        # is X = [[R^T, 0], [-R^T skew(p), R^T]], affine in R, so X^T (what a row multiplies) is
-        # XT0 + sin(q) XT1 + (1 - cos q) XT2.
+        # X_i^T (what a row multiplies) = A + sin(q) B + cos(q) C, from R_i(q) = R0 (I + sin q K + (1 - cos q) K^2)
         def xt(rot: np.ndarray, p_i: np.ndarray) -> np.ndarray:
             x = np.zeros((6, 6))
             x[:3, :3] = x[3:, 3:] = rot.T
             x[3:, :3] = -rot.T @ _skew(p_i)
             return x.T
 
-        parts = np.zeros((3, n, 6, 6))
-        for i in range(n):
-            k = _skew(axis[i])
-            for j, rot in enumerate((r0[i], r0[i] @ k, r0[i] @ k @ k)):
-                parts[j, i] = xt(rot, p[i])
-
-        # the forward map on W = [v (6), a (6), 1]: blockdiag(XT, XT, 1) (the constant 1 is added below)
-        def forward_block(m6: np.ndarray) -> np.ndarray:
-            out = np.zeros(m6.shape[:-2] + (13, 13))
-            out[..., :6, :6] = m6
-            out[..., 6:12, 6:12] = m6
+        def block(m6: np.ndarray) -> np.ndarray:
+            out = np.zeros((W, W))
+            out[:6, :6] = out[6:12, 6:12] = m6
             return out
 
-        self.d0, self.d1, self.d2 = (_t(forward_block(parts[j])) for j in range(3))
-        self.d0 = self.d0.clone()
-        self.d0[:, 12, 12] = 1.0
-        self.x0, self.x1, self.x2 = (_t(np.swapaxes(parts[j], -1, -2)) for j in range(3))  # X (rows: f @ X = (X^T f)^T)
         s = np.zeros((n, 6))
         s[:, :3] = axis
-        # G_i(qd_i): after the transform, v += S qd, a += S qdd + qd (v @ crf(S)) (row form of crm(v) S qd).
-        # G = I + qd * Gv + [qd S | qdd S] in the last row: W_i = W_p XT-block G.
-        gv = np.zeros((n, 13, 13))
-        gq = np.zeros((n, 13, 13))
-        gqq = np.zeros((n, 13, 13))
+        links = np.zeros((n, 3, 3, W, W))  # [joint, (1, sin, cos), (1, qd, qdd)]
         for i in range(n):
-            gv[i, :6, 6:12] = _crf(s[i])  # row v @ crf(S) = (crm(v) S)^T ... = (-crm(S) v)^T
-            gq[i, 12, :6] = s[i]
-            gqq[i, 12, 6:12] = s[i]
-        self.g_qd = _t(gv + gq)
-        self.g_qdd = _t(gqq)
-        self.eye13 = _t(np.eye(13))
-        # f_i = I_i a_i + crf(v_i) I_i v_i as sum_jk W_j W_k T_i[j, k] (W_12 = 1)
+            k = _skew(axis[i])
+            a0, a1, a2 = (xt(rot, p[i]) for rot in (r0[i], r0[i] @ k, r0[i] @ k @ k))
+            trig = [block(a0 + a2), block(a1), -block(a2)]
+            trig[0][12, 12] = 1.0
+            rate = [np.eye(W), np.zeros((W, W)), np.zeros((W, W))]
+            rate[1][:6, 6:12] = _crf(s[i])  # row v @ crf(S) qd: the crm(v) S qd term
+            rate[1][12, :6] = s[i]  # + S qd on v
+            rate[2][12, 6:12] = s[i]  # + S qdd on a
+            for a in range(3):
+                for b in range(3):
+                    links[i, a, b] = trig[a] @ rate[b]
+        # C_0: row 0 the base row [0, a_base, 1], rows 1..6 [I | 0], rows 7..12 [P | 0]; folded into link 1
+        start = np.zeros((2, W, W))
+        start[:, 1:7, :6] = np.eye(6)
+        start[:, 7:13, :6] = swap
+        start[:, 0, 12] = 1.0
+        start[0, 0, 9:12] = -np.asarray(robot.gravity_m_s2, float)  # [0]: with gravity, [1]: without
+        self._links = {}
+        for key, c0 in ((True, start[0]), (False, start[1])):
+            folded = links.copy()
+            folded[0] = np.einsum("rk,abkc->abrc", c0, links[0])
+            # u9 = (1, s, c) each thrice, w9 = (1, qd, qdd) repeated: u9 * w9 = all nine products, (a, b) order
+            self._links[key] = _t(folded.reshape(n, 9, W * W))
+        # (1, sin q, cos q) per joint, each thrice: Sin(q @ trig_map + trig_offset)
+        trig_map = np.zeros((n, 9 * n))
+        trig_offset = np.zeros(9 * n)
+        for i in range(n):
+            for a in range(3):
+                for b in range(3):
+                    col = 9 * i + 3 * a + b
+                    trig_map[i, col] = 0.0 if a == 0 else 1.0
+                    trig_offset[col] = {0: np.pi / 2, 1: 0.0, 2: np.pi / 2}[a]
+        self.trig_map, self.trig_offset = _t(trig_map), _t(trig_offset)
+        # f_i (in the first 6 entries of a 13-column) = quad_i @ vec(W_i W_i^T)
         m = np.asarray(robot.mass_kg, float)
-        c = np.asarray(robot.com_m, float)
-        ic = np.asarray(robot.inertia_kg_m2, float)
-        quad = np.zeros((n, 13, 13, 6))
+        quad = np.zeros((n, W, W, W))  # [joint, a, b, k]
         for i in range(n):
-            cs = _skew(c[i])
-            inertia = np.zeros((6, 6))
-            inertia[:3, :3] = ic[i] + m[i] * cs @ cs.T
-            inertia[:3, 3:] = m[i] * cs
-            inertia[3:, :3] = m[i] * cs.T
-            inertia[3:, 3:] = m[i] * np.eye(3)
-            quad[i, 6:12, 12, :] = inertia.T  # row a @ I^T
+            inertia = spatial_inertia(
+                m[i], np.asarray(robot.com_m[i], float), np.asarray(robot.inertia_kg_m2[i], float)
+            )
+            quad[i, 6:12, 12, :6] = inertia.T  # I a (row form, W_12 = 1)
             for a in range(6):
                 for b in range(6):
-                    e_a, e_b = np.eye(6)[a], np.eye(6)[b]
-                    quad[i, a, b, :] = _crf(e_a) @ inertia @ e_b
-        self.quad = _t(quad.reshape(n, 169, 6))
-        self.gravity = _t(np.asarray(robot.gravity_m_s2, float))
-        base = np.zeros((1, 13))
-        base[0, 9:12] = -np.asarray(robot.gravity_m_s2, float)
-        base[0, 12] = 1.0
-        self.base_gravity = _t(base)
-        base0 = np.zeros((1, 13))
-        base0[0, 12] = 1.0
-        self.base_free = _t(base0)
-        # tau_i = S_i . F_i on the row [F (6), 1]
-        s7 = np.zeros((n, 7))
-        s7[:, :6] = s
-        self.s7 = _t(s7)
-        top = np.zeros((7, 6))
-        top[:6] = np.eye(6)
-        self.place_top = _t(top)  # (7, 6): X into rows 0..5
-        self.place_right = _t(top.T)  # (6, 7): into columns 0..5
-        last = np.zeros((7, 1))
-        last[6, 0] = 1.0
-        self.last_col = _t(last)  # (7, 1) @ (1, 7): a row into the last row
-        corner = np.zeros((7, 7))
-        corner[6, 6] = 1.0
-        self.corner = _t(corner)
-        self.corner_row = _t(corner[6:7])
+                    quad[i, a, b, :6] = _crf(np.eye(6)[a]) @ inertia @ np.eye(6)[b]  # crf(v) I v
+        self.quad = _t(np.swapaxes(quad.reshape(n, W * W, W), 1, 2))  # (N, 13, 169): column f = quad @ col
+        # c_i: rows 7..12 of C_i @ c_i = P X^T P S_i = S_i^0
+        project = np.zeros((n, W, 1))
+        project[:, :6, 0] = s @ swap.T
+        self.project = _t(project)
+        self.eye = np.eye(n)
+
+    def _suffix_and_sum(self, variants: int, scales: Sequence[np.ndarray | None]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(suffix, total): G' = A @ suffix puts sum_{j >= i} f_j^0 beside S_i^0; tau = (G' * b) @ total."""
+        n = self.n
+        suffix = np.zeros((variants, n, W, variants, n, W))
+        total = np.zeros((variants, n, W, variants, n))
+        for k in range(variants):
+            scale = np.ones(n) if scales[k] is None else np.asarray(scales[k], float)
+            for i in range(n):
+                for r in range(1, 7):
+                    suffix[k, i:, r, k, i, r + 6] = 1.0
+                total[k, i, 7:13, k, i] = scale[i]
+        size = variants * n * W
+        return _t(suffix.reshape(size, size)), _t(total.reshape(size, variants * n))
 
     def inverse_dynamics(
         self, q: torch.Tensor, qd: torch.Tensor, qdd: torch.Tensor, gravity: bool = True
     ) -> torch.Tensor:
-        """M(q) qdd + C(q, qd) qd (+ G(q)), (B, N). Reshapes use constant shapes (no Shape nodes)."""
+        """M(q) qdd + C(q, qd) qd (+ G(q)), (B, N)."""
         n = self.n
-        sin = torch.sin(q).reshape(-1, n, 1, 1)
-        vers = (1.0 - torch.cos(q)).reshape(-1, n, 1, 1)
-        d = self.d0 + sin * self.d1 + vers * self.d2  # (B, N, 13, 13)
-        g = self.eye13 + qd.reshape(-1, n, 1, 1) * self.g_qd + qdd.reshape(-1, n, 1, 1) * self.g_qdd
-        step = d @ g  # W_i = W_p @ step_i
-        w = (self.base_gravity if gravity else self.base_free).reshape(1, 1, 13)
-        rows = []
-        for i in range(n):
-            w = w @ step[:, i]
-            rows.append(w)
-        w_all = torch.cat(rows, 1)  # (B, N, 13)
-        outer = (w_all.reshape(-1, n, 13, 1) * w_all.reshape(-1, n, 1, 13)).reshape(-1, n, 1, 169)
-        f = outer @ self.quad  # (B, N, 1, 6)
-        # backward: [F_i, 1] = [F_{i+1}, 1] @ [[X_{i+1}, 0], [f_i, 1]], the blocks placed by constant products
-        x = self.x0[1:] + sin[:, 1:] * self.x1[1:] + vers[:, 1:] * self.x2[1:]  # (B, N-1, 6, 6)
-        back = (
-            self.place_top @ x @ self.place_right + self.last_col @ (f[:, :-1] @ self.place_right) + self.corner
-        )  # (B, N-1, 7, 7)
-        r = f[:, n - 1] @ self.place_right + self.corner_row  # (B, 1, 7)
-        out = [r]
-        for i in range(n - 2, -1, -1):
-            r = r @ back[:, i]
-            out.append(r)
-        forces = torch.cat(out[::-1], 1)  # (B, N, 7)
-        return torch.sum(forces * self.s7, -1)
+        maps = (np.vstack([self.eye, np.zeros((n, n))]), np.vstack([np.zeros((n, n)), self.eye]), None)
+        return self.inverse_dynamics_shared(q, torch.cat([qd, qdd], 1), [maps], gravity=gravity)[0]
 
     def gravity_torque(self, q: torch.Tensor) -> torch.Tensor:
-        zero = torch.zeros_like(q)
-        return self.inverse_dynamics(q, zero, zero, gravity=True)
+        """G(q), (B, N): no rate input at all."""
+        return self.inverse_dynamics_shared(q, None, [None])[0]
+
+    def inverse_dynamics_shared(
+        self,
+        q: torch.Tensor,
+        rates: torch.Tensor | None,
+        maps: Sequence[RateMap | None],
+        scales: Sequence[np.ndarray | None] | None = None,
+        gravity: bool = True,
+    ) -> list[torch.Tensor]:
+        """ID at one position q (B, N) for K rate sets, one pass: [scale_k * ID(q, z M_k, z M'_k + o_k)].
+
+        ``rates`` z (B, R) is one input the K maps read (None for K rate sets that are all zero, G(q));
+        ``maps[k]`` = (qd_map (R, N), qdd_map (R, N), qdd_offset (N,) or None), or None for zero rates;
+        ``scales[k]`` (N,) multiplies variant k's torque (folded into the last constant).
+        """
+        n, k = self.n, len(maps)
+        scales = list(scales) if scales is not None else [None] * k
+        # (1, sin q_i, cos q_i) thrice per joint
+        u = torch.sin(torch.addmm(self.trig_offset, q, self.trig_map)).reshape(-1, 1, n, 1, 9)
+        # (1, qd_i, qdd_i) each repeated, per variant
+        width = 0 if rates is None else rates.shape[1]
+        rate_map = np.zeros((width, k, n, 3, 3))
+        rate_offset = np.zeros((k, n, 3, 3))
+        rate_offset[:, :, :, 0] = 1.0
+        for v, spec in enumerate(maps):
+            if spec is None:
+                continue
+            qd_map, qdd_map, offset = spec
+            rate_map[:, v, :, :, 1] = np.asarray(qd_map, float)[:, :, None]
+            rate_map[:, v, :, :, 2] = np.asarray(qdd_map, float)[:, :, None]
+            if offset is not None:
+                rate_offset[v, :, :, 2] = np.asarray(offset, float)[:, None]
+        # u9 is (a, b)-ordered with a slow: (1,1,1, s,s,s, c,c,c); w9 = (1,qd,qdd) three times
+        if rates is None:
+            w = _t(rate_offset.reshape(1, k, n, 1, 9))
+        else:
+            w = torch.addmm(_t(rate_offset.reshape(-1)), rates, _t(rate_map.reshape(width, -1))).reshape(-1, k, n, 1, 9)
+        links = (u * w) @ self._links[gravity]  # (B, K, N, 1, 169)
+        steps = torch.split(links.reshape(-1, k, n, W, W), 1, 2)
+        chain = [steps[0]]
+        for i in range(1, n):
+            chain.append(chain[-1] @ steps[i])
+        c = torch.cat(chain, 2)  # (B, K, N, 13, 13)
+        row = c[:, :, :, :1, :]  # W_i = [v_i, a_i, 1]
+        f = self.quad @ (row.reshape(-1, k, n, W, 1) * row).reshape(-1, k, n, W * W, 1)  # (B, K, N, 13, 1)
+        suffix, total = self._suffix_and_sum(k, scales)
+        forces = (c @ f).reshape(-1, k * n * W) @ suffix
+        axes = (c @ self.project).reshape(-1, k * n * W)
+        out = (forces * axes) @ total  # (B, K N)
+        return [out] if k == 1 else list(torch.split(out, n, 1))

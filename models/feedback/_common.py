@@ -1,13 +1,17 @@
 """Helpers shared by the laws: gains checked against the robot, constants in the caller's namespace,
-and the nominal rigid-body model (one RNEIDA call) that SMC and H-infinity use, in numpy or torch."""
+and the nominal rigid-body model that SMC, H-infinity and MRAC use (models.dynamics), in numpy or torch."""
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from models.dynamics.rne import ChainArrays, rneida
+from models.dynamics import RneDynamics
+
+if TYPE_CHECKING:  # torch is imported only when a law is traced
+    from models.dynamics.torch_rne import RateMap, SpatialRne
 from models.errors import ModelInputError
 from models.robots import RobotModel
 
@@ -43,35 +47,84 @@ def sat(xp: Any, x: Any) -> Any:
     return xp.clip(x, -1.0, 1.0)
 
 
-class NominalModel:
-    """The nominal rigid-body model of the robot, evaluated by the project's RNEIDA in numpy or torch.
+@dataclass
+class SharedId:
+    """A caller's own ID request at the law's position, run in the same pass as the law's next torch call.
 
-    Laws that need model terms call it inside ``step`` so the same definition traces to ONNX.
+    ``SpatialRne.inverse_dynamics_shared`` semantics: ID(position, rates @ qd_map, rates @ qdd_map + offset)
+    times ``scale``; when ``position`` is not the law's q, it runs as a second pass.
+    """
+
+    position: Any
+    rates: Any
+    rate_map: RateMap
+    scale: np.ndarray | None = None
+
+
+class NominalModel:
+    """The nominal rigid-body model of the robot (models.dynamics): numpy through ``RneDynamics``, torch
+    through the one traceable RNE (``SpatialRne``, a small ONNX graph).
+
+    Laws that need model terms call it inside ``step`` so the same definition traces to ONNX. A caller
+    tracing a graph around the law (models.lmpc.structured) may set ``pending`` to a ``SharedId``: the
+    law's next torch call then runs both in one RNE pass and leaves the caller's torque in
+    ``pending_result``.
     """
 
     def __init__(self, robot: RobotModel) -> None:
         self.robot = robot
-        self._chains: dict[str, ChainArrays] = {"numpy": ChainArrays.from_robot(robot)}
+        self.dynamics = RneDynamics(robot)
+        self._torch_rne: SpatialRne | None = None
+        self.pending: SharedId | None = None
+        self.pending_result: Any = None
 
-    def _chain(self, xp: Any) -> ChainArrays:
-        key = "numpy" if xp is np else "torch"
-        if key not in self._chains:
-            self._chains[key] = ChainArrays.from_robot(self.robot, to_array=lambda a: xp.as_tensor(a, dtype=xp.float64))
-        return self._chains[key]
+    @property
+    def torch_rne(self) -> SpatialRne:
+        if self._torch_rne is None:
+            from models.dynamics.torch_rne import SpatialRne
+
+            self._torch_rne = SpatialRne(self.robot)
+        return self._torch_rne
 
     def inverse_dynamics(self, xp: Any, q: Any, qd: Any, qdd: Any) -> Any:
-        """M(q) qdd + C(q, qd) qd + G(q), (B, N), one RNEIDA call."""
-        chain = self._chain(xp)
-        return rneida(xp, chain, q, qd, qdd, chain.gravity)
+        """M(q) qdd + C(q, qd) qd + G(q), (B, N)."""
+        if xp is np:
+            return self.dynamics.inverse_dynamics(q, qd, qdd)
+        return self._torch(q, (qd, qdd))
 
     def gravity(self, xp: Any, q: Any) -> Any:
         """G(q), (B, N)."""
-        zero = xp.zeros_like(q)
-        return self.inverse_dynamics(xp, q, zero, zero)
+        if xp is np:
+            return self.dynamics.gravity(q)
+        return self._torch(q, None)
+
+    def _torch(self, q: Any, rates: tuple[Any, Any] | None) -> Any:
+        import torch
+
+        rne, request, self.pending = self.torch_rne, self.pending, None
+        n = self.robot.n_joints
+        eye, zero = np.eye(n), np.zeros((n, n))
+        if request is not None and request.position is not q:  # another position: its own pass
+            self.pending_result = rne.inverse_dynamics_shared(
+                request.position, request.rates, [request.rate_map], [request.scale]
+            )[0]
+            request = None
+        if request is None:
+            return rne.gravity_torque(q) if rates is None else rne.inverse_dynamics(q, *rates)
+        qd_map, qdd_map, offset = request.rate_map
+        width = np.shape(qd_map)[0]
+        if rates is None:  # G(q) and the caller's ID: the law's rate set is all zero
+            own, inputs = None, request.rates
+            theirs = request.rate_map
+        else:
+            inputs = torch.cat([rates[0], rates[1], request.rates], 1)
+            own = (np.vstack([eye, zero, np.zeros((width, n))]), np.vstack([zero, eye, np.zeros((width, n))]), None)
+            pad = np.zeros((2 * n, n))
+            theirs = (np.vstack([pad, qd_map]), np.vstack([pad, qdd_map]), offset)
+        law, caller = rne.inverse_dynamics_shared(q, inputs, [own, theirs], [None, request.scale])
+        self.pending_result = caller
+        return law
 
     def mass_matrix_diagonal(self, q: np.ndarray) -> np.ndarray:
         """diag M(q) at one configuration (N,), numpy; used to size per-joint nominal plants."""
-        from models.dynamics.rne import mass_matrix_and_bias
-
-        mass_matrix, _ = mass_matrix_and_bias(np, self._chains["numpy"], np.atleast_2d(q), np.zeros((1, len(q))))
-        return np.diag(mass_matrix[0]).copy()
+        return np.diag(self.dynamics.mass_matrix(np.asarray(q, float))).copy()

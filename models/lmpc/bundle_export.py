@@ -91,13 +91,7 @@ class FusedPolicy(nn.Module):
                 np.full(law.n_joints, 1e300) if bound is None else np.asarray(bound, float), dtype=torch.float64
             ),
         )
-        if hasattr(law, "nominal"):  # H-infinity, SMC: trace the compact RNEIDA (same equations, ~10x fewer nodes)
-            import copy
-
-            from models.lmpc.compact_rne import CompactNominal
-
-            law = copy.copy(law)
-            law.nominal = CompactNominal(law.nominal)  # type: ignore[attr-defined]
+        # (H-infinity's and SMC's nominal model traces to models.dynamics.torch_rne, the small RNE graph)
         self.law = law
         self.emulator = emulator.double().eval()
         self.n, self.s = law.n_joints, law.state_size

@@ -48,7 +48,7 @@ def test_spatial_rne_is_a_small_onnx_graph(tmp_path) -> None:  # type: ignore[no
         dynamo=False,
     )
     compute = [n for n in onnx.load(str(path)).graph.node if n.op_type != "Constant"]
-    assert len(compute) <= 80
+    assert len(compute) <= 31  # 28 for the RNE, 3 slices of x
     x = np.random.default_rng(0).normal(size=(5, 18))
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
     np.testing.assert_allclose(
@@ -142,24 +142,30 @@ def test_structured_config_refuses_unknown_options() -> None:
 
 
 def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
-    from models.feedback._common import NominalModel
-    from models.lmpc.compact_rne import CompactNominal
+    from models.feedback._common import NominalModel, SharedId
 
     robot = load_robot("ur5_paper")
-    nominal = CompactNominal(NominalModel(robot))
+    nominal = NominalModel(robot)
     rng = np.random.default_rng(2)
     q, qd, qdd, pq, pqd, pa = (torch.as_tensor(rng.normal(size=(4, 6))) for _ in range(6))
-    alone_law, alone_caller = nominal.inverse_dynamics(torch, q, qd, qdd), nominal.rne.inverse_dynamics(pq, pqd, pa)
-    nominal.pending = (pq, pqd, pa)
-    both = nominal.inverse_dynamics(torch, q, qd, qdd)
-    assert nominal.pending is None
-    torch.testing.assert_close(both, alone_law, rtol=0, atol=1e-12)
-    torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
-    nominal.pending = (pq, pqd, pa)
-    torch.testing.assert_close(
-        nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11
+    eye, zero = np.eye(6), np.zeros((6, 6))
+    rate_map = (np.vstack([eye, zero]), np.vstack([zero, eye]), None)
+    alone_law, alone_caller = (
+        nominal.inverse_dynamics(torch, q, qd, qdd),
+        nominal.torch_rne.inverse_dynamics(pq, pqd, pa),
     )
-    torch.testing.assert_close(nominal.pending_result, alone_caller, rtol=0, atol=1e-12)
+    for position, expected in ((pq, alone_caller), (q, nominal.torch_rne.inverse_dynamics(q, pqd, pa))):
+        # another position: a second pass; the law's own q: one shared pass
+        nominal.pending = SharedId(position, torch.cat([pqd, pa], 1), rate_map)
+        both = nominal.inverse_dynamics(torch, q, qd, qdd)
+        assert nominal.pending is None
+        torch.testing.assert_close(both, alone_law, rtol=0, atol=1e-12)
+        torch.testing.assert_close(nominal.pending_result, expected, rtol=0, atol=1e-12)
+        nominal.pending = SharedId(position, torch.cat([pqd, pa], 1), rate_map, np.full(6, 2.0))
+        torch.testing.assert_close(
+            nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11
+        )
+        torch.testing.assert_close(nominal.pending_result, 2.0 * expected, rtol=0, atol=1e-12)
 
 
 def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path) -> None:  # type: ignore[no-untyped-def]
