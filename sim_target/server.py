@@ -24,18 +24,13 @@ Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": fals
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 import queue
-import socket
-import socketserver
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from stat import S_ISSOCK
 from typing import Any, Protocol
 
 import can
@@ -56,10 +51,8 @@ from sim_target.config import (
     TargetLayout,
     check_fault,
     check_run_start,
-    parse_fault,
-    parse_run_start,
 )
-from sim_target.control import send_control  # noqa: F401 - re-exported: the client side lives there
+from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
 from sim_target.plant import JointState, PybulletPlant, TorqueImpulse, default_urdf_path
 
 log = logging.getLogger(__name__)
@@ -128,7 +121,7 @@ class TargetServer:
                 self._scheduled.append(fault)
         self._scheduled.sort(key=lambda fault: fault.at_s)
         self._start: RunStart | None = None  # armed by start_run, placed at the first enabled step
-        self._control: _ControlServer | None = None
+        self._control: ControlServer | None = None
         self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
         drives.set_sync_handler(self._on_sync)
 
@@ -276,86 +269,7 @@ class TargetServer:
     # --- control socket -------------------------------------------------------------------------
 
     def serve_control(self, path: Path) -> None:
-        self._control = _ControlServer(path, self)
-
-
-class _ControlServer:
-    """Line-oriented JSON over a Unix socket: local only, no network address involved.
-
-    It removes only what it owns: a leftover *socket* that nobody answers on (a killed run) before
-    binding, and on close the socket it bound itself (same inode). A regular file, a directory or a
-    socket another target is serving on is never touched: the target refuses to start instead."""
-
-    def __init__(self, path: Path, target: TargetServer) -> None:
-        self.path = Path(path)
-        _claim_socket_path(self.path)
-
-        class Handler(socketserver.StreamRequestHandler):
-            def handle(self) -> None:
-                for raw in self.rfile:
-                    reply = _control_reply(target, raw.decode(errors="replace"))
-                    self.wfile.write((json.dumps(reply) + "\n").encode())
-
-        try:
-            self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
-        except OSError as exc:
-            raise TargetConfigError(f"control_socket {self.path}: cannot bind ({exc.strerror or exc})") from None
-        stat = os.stat(self.path)
-        self._identity = (stat.st_dev, stat.st_ino)
-        self._server.daemon_threads = True
-        self._thread = threading.Thread(target=self._server.serve_forever, name="target-control", daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self._server.shutdown()
-        self._server.server_close()
-        try:
-            stat = os.lstat(self.path)
-        except OSError:
-            return
-        if (stat.st_dev, stat.st_ino) == self._identity:  # still ours: not replaced by another target
-            self.path.unlink(missing_ok=True)
-
-
-def _claim_socket_path(path: Path) -> None:
-    """Make ``path`` free for bind, or refuse (TargetConfigError) without deleting anything not ours."""
-    try:
-        stat = os.lstat(path)
-    except FileNotFoundError:
-        if not path.parent.is_dir():
-            raise TargetConfigError(f"control_socket {path}: directory {path.parent} does not exist") from None
-        return
-    if not S_ISSOCK(stat.st_mode):
-        raise TargetConfigError(f"control_socket {path}: exists and is not a socket; not removed (choose another path)")
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-        probe.settimeout(0.5)
-        try:
-            probe.connect(str(path))
-        except (ConnectionRefusedError, FileNotFoundError):
-            path.unlink(missing_ok=True)  # a socket nobody serves: left by a killed run
-            return
-        except OSError as exc:
-            raise TargetConfigError(f"control_socket {path}: cannot check it ({exc.strerror or exc})") from None
-    raise TargetConfigError(f"control_socket {path}: in use by another running target")
-
-
-def _control_reply(target: TargetServer, line: str) -> dict[str, Any]:
-    try:
-        data = json.loads(line)
-        if isinstance(data, dict) and data.get("kind") == "status":
-            return {"ok": True, **target.status()}
-        if isinstance(data, dict) and data.get("kind") == "start":
-            target.start_run(parse_run_start(data, "control"))
-            return {"ok": True}
-        target.inject(parse_fault(data, "control"))
-        return {"ok": True}
-    except json.JSONDecodeError as exc:
-        return {"ok": False, "error": f"control: not JSON ({exc.msg})"}
-    except TargetConfigError as exc:
-        return {"ok": False, "error": str(exc)}
-    except Exception as exc:
-        log.exception("control command failed: %s", line.strip()[:200])
-        return {"ok": False, "error": f"control: {type(exc).__name__}: {exc}"}
+        self._control = ControlServer(path, self)
 
 
 # --- assembly -------------------------------------------------------------------------------------
