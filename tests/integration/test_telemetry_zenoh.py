@@ -26,11 +26,10 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from telemetry_fake_loop import JOINTS, expected_state
-
 from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink
 from hil_runtime.telemetry.codec import Schema
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
+from tests.integration.telemetry_fake_loop import JOINTS, expected_state
 
 FAKE_LOOP = Path(__file__).with_name("telemetry_fake_loop.py")
 REPO = Path(__file__).resolve().parents[2]
