@@ -7,6 +7,9 @@ Everything is counted in cycles; the only clocks are the driver's own timeouts (
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import can
 import numpy as np
 import pytest
@@ -244,14 +247,34 @@ def test_sync_counter_wraps_after_240() -> None:
 # --- (e) feedback timeout and miss budget, configurable ---------------------------------------------
 
 
-def test_documented_defaults() -> None:
+def _documented_value(text: str) -> float:
+    """'20 ms' -> 0.02, '1.0 s' -> 1.0, '25' -> 25.0."""
+    number, _, unit = text.strip().partition(" ")
+    return float(number) * {"": 1.0, "s": 1.0, "ms": 1e-3}[unit.strip()]
+
+
+def test_defaults_are_the_documented_ones() -> None:
+    """docs/drivers.md's "Timeouts and what they trade" table and the master heartbeat paragraph,
+    read from the page: the code and the page cannot drift apart."""
     config = DriveBusConfig.model_validate(
         {"period_s": 0.001, "joints": [{"name": "a", "node_id": 1, "max_torque_nm": 1.0}]}
     )
-    # What docs/drivers.md documents ("Timeouts and what they trade").
-    assert (config.feedback_timeout_s, config.max_missed_cycles) == (0.02, 25)
-    assert (config.heartbeat_timeout_s, config.comm_loss_timeout_s, config.state_change_timeout_s) == (1.0, 0.5, 2.0)
-    assert (config.master_heartbeat_ms, config.master_node_id) == (20, 127)
+    page = (Path(__file__).resolve().parents[2] / "docs" / "drivers.md").read_text()
+    table = page.split("## Timeouts and what they trade", 1)[1].split("\n\n")[2]
+    rows = [line.split("|")[1:3] for line in table.splitlines() if line.startswith("| `")]
+    documented = {name.strip().strip("`"): _documented_value(value) for name, value in rows}
+    assert set(documented) == {
+        "feedback_timeout_s",
+        "max_missed_cycles",
+        "heartbeat_timeout_s",
+        "comm_loss_timeout_s",
+        "state_change_timeout_s",
+    }
+    for name, value in documented.items():
+        assert getattr(config, name) == pytest.approx(value), name
+    heartbeat = re.search(r"`master_node_id`, default (\d+), every\s+`master_heartbeat_ms`, default (\d+) ms", page)
+    assert heartbeat is not None, "docs/drivers.md no longer states the master heartbeat defaults"
+    assert (config.master_node_id, config.master_heartbeat_ms) == (int(heartbeat[1]), int(heartbeat[2]))
 
 
 @pytest.mark.parametrize("max_missed", [0, 3])
