@@ -19,7 +19,8 @@ import numpy as np
 
 
 def _objective(hessian: np.ndarray, gradient: np.ndarray, x: np.ndarray) -> np.ndarray:
-    return np.einsum("ki,ki->k", gradient + 0.5 * (hessian @ x[..., None])[..., 0], x)
+    value: np.ndarray = np.einsum("ki,ki->k", gradient + 0.5 * (hessian @ x[..., None])[..., 0], x)
+    return value
 
 
 def solve_box_qp(
@@ -44,6 +45,8 @@ def solve_box_qp(
     scale = np.maximum(np.abs(gradient).max(1), 1e-300)
     with np.errstate(all="ignore"):
         x = -np.linalg.solve(hessian, gradient[..., None])[..., 0]
+    preset_upper: np.ndarray
+    preset_lower: np.ndarray
     if guess is None:
         preset_upper = preset_lower = np.zeros((k, n), bool)
     else:

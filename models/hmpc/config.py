@@ -136,11 +136,11 @@ class HMPCConfig:
         unknown = sorted(set(options) - known)
         if unknown:
             raise ModelInputError(f"hmpc options: unknown {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-        cleaned = {k: tuple(v) if isinstance(v, list | np.ndarray) else v for k, v in options.items()}
+        cleaned: dict[str, Any] = {k: tuple(v) if isinstance(v, list | np.ndarray) else v for k, v in options.items()}
         return cls(**cleaned)
 
 
-def per_joint(name: str, value: Weight | tuple[float, ...], n_joints: int) -> np.ndarray:
+def per_joint(name: str, value: Weight | np.ndarray, n_joints: int) -> np.ndarray:
     """A scalar or per-joint value as an (N,) array, checked against the robot's joint count."""
     array = np.asarray(value, float)
     if array.ndim == 0:

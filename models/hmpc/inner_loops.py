@@ -113,7 +113,8 @@ class InnerLoops(Protocol):
 
 def _penalty(y: np.ndarray, limit: np.ndarray, rho: float) -> np.ndarray:
     violation = y - np.clip(y, -limit, limit)
-    return 0.5 * rho * np.einsum("kx,kx->k", violation, violation)
+    value: np.ndarray = 0.5 * rho * np.einsum("kx,kx->k", violation, violation)
+    return value
 
 
 class NumpyInnerLoops:

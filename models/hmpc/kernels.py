@@ -23,18 +23,27 @@ the compile once per machine, not per call. Importing this module needs numba.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
 import numba
 import numpy as np
+import numpy.typing as npt
 
 # This module is imported lazily, by the first solver that uses it (numba's import takes ~0.5 s).
 
+Floats = npt.NDArray[np.float64]
+Bools = npt.NDArray[np.bool_]
+Kernel = TypeVar("Kernel", bound=Callable[..., Any])
 
-def _jit(fn):  # type: ignore[no-untyped-def]
-    return numba.njit(cache=True, fastmath={"reassoc", "contract"}, nogil=True)(fn)
+
+def _jit(fn: Kernel) -> Kernel:
+    """Compiled with numba (the annotations are for readers and mypy; numba types by the call)."""
+    return cast(Kernel, numba.njit(cache=True, fastmath={"reassoc", "contract"}, nogil=True)(fn))
 
 
 @_jit
-def _solve_free(h, rhs, free, out, work):  # type: ignore[no-untyped-def]
+def _solve_free(h: Floats, rhs: Floats, free: Bools, out: Floats, work: Floats) -> bool:
     """out[free] = H[free, free]^-1 rhs[free] by Cholesky (work: (m, m) scratch); False if not PD."""
     m = h.shape[0]
     index = np.empty(m, np.int64)
@@ -71,7 +80,7 @@ def _solve_free(h, rhs, free, out, work):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _solve_free_set(h, g, free, fixed, out, rhs, work):  # type: ignore[no-untyped-def]
+def _solve_free_set(h: Floats, g: Floats, free: Bools, fixed: Floats, out: Floats, rhs: Floats, work: Floats) -> bool:
     """out[free] = argmin g'x + 1/2 x'Hx over the free variables, the others held at fixed[~free]
     (rhs: (m,) scratch); False if H[free, free] is not positive definite. ``out`` may be ``fixed``."""
     m = g.shape[0]
@@ -86,7 +95,7 @@ def _solve_free_set(h, g, free, fixed, out, rhs, work):  # type: ignore[no-untyp
 
 
 @_jit
-def _hx_plus_g(h, x, g, out):  # type: ignore[no-untyped-def]
+def _hx_plus_g(h: Floats, x: Floats, g: Floats, out: Floats) -> None:
     m = x.shape[0]
     for i in range(m):
         s = g[i]
@@ -96,7 +105,7 @@ def _hx_plus_g(h, x, g, out):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _objective(h, g, x):  # type: ignore[no-untyped-def]
+def _objective(h: Floats, g: Floats, x: Floats) -> float:
     m = x.shape[0]
     total = 0.0
     for i in range(m):
@@ -108,7 +117,17 @@ def _objective(h, g, x):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def box_qp_row(h, g, lo, hi, max_iterations, tolerance, x, work, warm=False):  # type: ignore[no-untyped-def]
+def box_qp_row(
+    h: Floats,
+    g: Floats,
+    lo: Floats,
+    hi: Floats,
+    max_iterations: int,
+    tolerance: float,
+    x: Floats,
+    work: Floats,
+    warm: bool = False,
+) -> bool:
     """One box QP, min g'x + 1/2 x'Hx, lo <= x <= hi, into x; returns converged (KKT).
 
     ``warm``: x holds a guess whose bounds at which it sits are the first active set of the
@@ -243,7 +262,9 @@ def box_qp_row(h, g, lo, hi, max_iterations, tolerance, x, work, warm=False):  #
 
 
 @_jit
-def box_qp(hessian, gradient, lower, upper, max_iterations, tolerance):  # type: ignore[no-untyped-def]
+def box_qp(
+    hessian: Floats, gradient: Floats, lower: Floats, upper: Floats, max_iterations: int, tolerance: float
+) -> tuple[Floats, Bools]:
     """``models.hmpc.boxqp.solve_box_qp`` row by row: (x (K, n), converged (K,))."""
     k, m = gradient.shape
     x = np.zeros((k, m))
@@ -255,7 +276,7 @@ def box_qp(hessian, gradient, lower, upper, max_iterations, tolerance):  # type:
 
 
 @_jit
-def _penalty(x, limit, rho):  # type: ignore[no-untyped-def]
+def _penalty(x: Floats, limit: Floats, rho: float) -> float:
     total = 0.0
     for i in range(x.shape[0]):
         v = x[i] - min(max(x[i], -limit[i]), limit[i])
@@ -264,13 +285,25 @@ def _penalty(x, limit, rho):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _side(value, limit):  # type: ignore[no-untyped-def]
+def _side(value: float, limit: float) -> float:
     """Which bound of |value| <= limit is violated: +1 upper, -1 lower, 0 none."""
     return (1.0 if value > 0 else -1.0) if abs(value) > limit else 0.0
 
 
 @_jit
-def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, max_qp_iterations, qp_tolerance):  # type: ignore[no-untyped-def]
+def model_step(
+    hessian0: Floats,
+    gradient0: Floats,
+    sens: Floats,
+    x: Floats,
+    limit: Floats,
+    lower: Floats,
+    upper: Floats,
+    rho: float,
+    rounds: int,
+    max_qp_iterations: int,
+    qp_tolerance: float,
+) -> tuple[Floats, Floats, Bools]:
     """``NumpyInnerLoops.model_step`` row by row: (step (K, M), predicted decrease of J (K,),
     exact (K,)). The penalty 1/2 rho |x_A + S_A d - b_A|^2 acts on the violated set A,
     re-evaluated at the predicted states up to ``rounds`` times."""
@@ -331,7 +364,7 @@ def model_step(hessian0, gradient0, sens, x, limit, lower, upper, rho, rounds, m
 
 
 @_jit
-def sensitivities(d_q, d_qd, d_tau, dt):  # type: ignore[no-untyped-def]
+def sensitivities(d_q: Floats, d_qd: Floats, d_tau: Floats, dt: float) -> Floats:
     """S = dx/dU (K, T 2N, TN) of the linearized semi-implicit Euler rollout, from the per-step
     dynamics derivatives (K, T, N, N); block lower triangular (x_j depends on u_1..u_j only)."""
     k, horizon, n = d_q.shape[0], d_q.shape[1], d_q.shape[2]
@@ -367,7 +400,15 @@ def sensitivities(d_q, d_qd, d_tau, dt):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def normal_equations(feature_sens, weights, residual, deviation, torque_weight, damping, levenberg):  # type: ignore[no-untyped-def]
+def normal_equations(
+    feature_sens: Floats,
+    weights: Floats,
+    residual: Floats,
+    deviation: Floats,
+    torque_weight: Floats,
+    damping: float,
+    levenberg: Floats,
+) -> tuple[Floats, Floats]:
     """H (K, TN, TN), g (K, TN) of the Gauss-Newton model of J / 2 (without the bound penalty):
     1/2 sum w (r + F d)^2 + 1/2 sum W2 (dev + d)^2, F = dE/dU (K, T nE, TN) block lower triangular,
     weights (T, nE), residual r (K, T, nE), deviation (K, TN); plus the Levenberg damping."""
@@ -407,7 +448,17 @@ def normal_equations(feature_sens, weights, residual, deviation, torque_weight, 
 
 
 @_jit
-def stage_cost(features, q_path, qd_path, deviation, feature_weight, torque_weight, temporal, state_limit, rho):  # type: ignore[no-untyped-def]
+def stage_cost(
+    features: Floats,
+    q_path: Floats,
+    qd_path: Floats,
+    deviation: Floats,
+    feature_weight: Floats,
+    torque_weight: Floats,
+    temporal: Floats,
+    state_limit: Floats,
+    rho: float,
+) -> Floats:
     """J (K,) of predicted paths (K, T, N) with error features E (K, T, nE), E[..., :2N] = [e, e_dot]:
     sum_j w_j [E_j' W1 E_j + u_j' W2 u_j] + rho |x - clip(x, -limit, limit)|^2."""
     k, horizon, n = q_path.shape

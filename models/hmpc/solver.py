@@ -23,6 +23,7 @@ outside them (e.g. just after the impulse) still gives a feasible problem; torqu
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,15 +76,23 @@ class _Rows:
     law_state: np.ndarray  # (K, S)
     anchor: np.ndarray | None = None  # (K, T, N) torque the W2 term is measured from (anchored cost), None: 0
 
-    def _arrays(self) -> tuple:
-        return (self.q0, self.qd0, self.ref_q, self.ref_qd, self.qdd_d, self.law_state)
+    def _map(self, fn: Callable[[np.ndarray], np.ndarray]) -> _Rows:
+        """The same rows with ``fn`` applied to every array (row selection, repetition)."""
+        return _Rows(
+            fn(self.q0),
+            fn(self.qd0),
+            fn(self.ref_q),
+            fn(self.ref_qd),
+            fn(self.qdd_d),
+            fn(self.law_state),
+            None if self.anchor is None else fn(self.anchor),
+        )
 
     def take(self, index: np.ndarray) -> _Rows:
-        return _Rows(*(a[index] for a in self._arrays()), None if self.anchor is None else self.anchor[index])
+        return self._map(lambda a: a[index])
 
     def repeat(self, count: int) -> _Rows:
-        anchor = None if self.anchor is None else np.repeat(self.anchor, count, axis=0)
-        return _Rows(*(np.repeat(a, count, axis=0) for a in self._arrays()), anchor)
+        return self._map(lambda a: np.repeat(a, count, axis=0))
 
     def deviation(self, u: np.ndarray) -> np.ndarray:
         """What W2 weighs: u itself (absolute cost) or u - anchor (anchored cost)."""
@@ -141,7 +150,7 @@ class HMPCSolver:
         self.anchored = config.torque_cost == "anchored"
         # W2 of the optimized cost: on tau (absolute), or on tau - w* tau_fb with c dt^2 / M_ii(0)^2
         # (anchored: equal cost per unit of acceleration deviation on every joint).
-        self.anchor_weight = None
+        self.anchor_weight: np.ndarray | None = None
         self.cost_torque_weight = self.torque_weight
         if self.anchored:
             from models.dynamics import make_dynamics
@@ -280,7 +289,11 @@ class HMPCSolver:
         )
 
     # ------------------------------------------------------------------------------------------
-    def _optimize(self, rows: _Rows, tau_fb: np.ndarray, warm: np.ndarray | None):  # type: ignore[no-untyped-def]
+    def _optimize(
+        self, rows: _Rows, tau_fb: np.ndarray, warm: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """Per row: the optimized sequence (K, T, N), its cost, the best paper candidate's cost,
+        status, Gauss-Newton iterations, and w* (anchored cost; None for the absolute one)."""
         config, limit = self.config, self.torque_limit_nm
         k, n, horizon = tau_fb.shape[0], self.n_joints, self.horizon
         candidates = np.clip(self.scales[None, :, None] * tau_fb[:, None, :], -limit, limit)  # (K, C, N)
@@ -304,7 +317,7 @@ class HMPCSolver:
             rows.anchor = np.ascontiguousarray(candidates[np.arange(k), pick])  # (K, T, N)
             deviation = candidates - rows.anchor[:, None]
             rolled.cost = (
-                base + np.einsum("kctn,n,t->kc", deviation * deviation, self.anchor_weight, self.temporal)
+                base + np.einsum("kctn,n,t->kc", deviation * deviation, self.cost_torque_weight, self.temporal)
             ).reshape(-1)
         costs = np.where(np.isfinite(rolled.cost), rolled.cost, np.inf).reshape(k, n_candidates)
         candidate_cost = costs[:, : len(self.scales)].min(1)
@@ -416,7 +429,9 @@ class HMPCSolver:
         """dE/dx (K, T, nE, 2N) of a law's own features at fixed law state, by central differences."""
         k, horizon, n = state.q.shape
         x = np.concatenate([state.q, state.qd], -1).reshape(k * horizon, 2 * n)
-        law_state = state.law_states.reshape(k * horizon, -1)  # type: ignore[union-attr]
+        if state.law_states is None:
+            raise ValueError("hmpc: feature Jacobian of a rollout without the law's states (base features)")
+        law_state = state.law_states.reshape(k * horizon, -1)
         ref_q, ref_qd = rows.ref_q.reshape(-1, n), rows.ref_qd.reshape(-1, n)
         h = FEATURE_FD_STEP * np.maximum(1.0, np.abs(x))
         delta = np.eye(2 * n)[None] * h[:, None, :]  # (KT, 2N perturbations, 2N)
@@ -434,7 +449,7 @@ class HMPCSolver:
             float,
         )
         values = values.reshape(k * horizon, 2, 2 * n, -1)
-        jac = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
+        jac: np.ndarray = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
         return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
 
     def _model_step(
