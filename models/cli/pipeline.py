@@ -9,6 +9,7 @@ from typing import Annotated
 
 import typer
 
+from models.cli.options import one_of, split_names
 from models.errors import ModelInputError
 
 STAGES = ("dataset", "label", "train", "augment", "export")
@@ -68,22 +69,21 @@ def pipeline(
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     from models.executors import EXECUTORS
+    from models.feedback import LAW_NAMES
 
-    if executor not in EXECUTORS:
-        raise ModelInputError(f"--executor: unknown '{executor}' (known: {', '.join(EXECUTORS)})")
+    one_of(executor, EXECUTORS, "--executor")
     if workers is not None and workers < 1:
         raise ModelInputError(f"--workers: must be >= 1, got {workers}")
-    if design not in ("paper", "structured"):
-        raise ModelInputError(f"--design: unknown '{design}' (known: paper, structured)")
-    if hmpc_formulation not in ("absolute", "anchored"):
-        raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
+    one_of(design, ("paper", "structured"), "--design")
+    one_of(hmpc_formulation, ("absolute", "anchored"), "--hmpc-formulation")
+    law_list = split_names(laws, LAW_NAMES, "laws")
     if design == "structured":
         if not residual_bound_scale > 0:
             raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
         _structured(
             work,
             bundles,
-            laws,
+            law_list,
             hmpc_formulation,
             target,
             ff_point,
@@ -102,19 +102,10 @@ def pipeline(
         TimeRemainingColumn,
     )
 
-    from models.feedback import LAW_NAMES
     from models.lmpc.pipeline import PipelineConfig, run_pipeline
 
-    stage_list = tuple(s.strip() for s in stages.split(",") if s.strip())
-    for stage in stage_list:
-        if stage not in STAGES:
-            raise ModelInputError(f"--stages: unknown '{stage}' (known: {', '.join(STAGES)})")
-    law_list = tuple(x.strip() for x in laws.split(",") if x.strip())
-    for law in law_list:
-        if law not in LAW_NAMES:
-            raise ModelInputError(f"--laws: unknown '{law}' (known: {', '.join(LAW_NAMES)})")
-    if lipschitz not in ("zero", "estimate"):
-        raise ModelInputError(f"--lipschitz: unknown '{lipschitz}' (known: zero, estimate)")
+    stage_list = split_names(stages, STAGES, "stages")
+    one_of(lipschitz, ("zero", "estimate"), "--lipschitz")
     if conditions < 2:
         raise ModelInputError(f"--conditions: need >= 2 (a pool and held-out ones), got {conditions}")
     base = PipelineConfig()
@@ -165,7 +156,7 @@ def pipeline(
 def _structured(
     work: Path,
     bundles: Path,
-    laws: str,
+    law_list: tuple[str, ...],
     formulation: str,
     target: str,
     ff_point: str,
@@ -177,13 +168,8 @@ def _structured(
     import torch
     from rich.console import Console
 
-    from models.feedback import LAW_NAMES
     from models.lmpc.structured import C_FIXED, PERTURBATION, StructuredConfig, run_structured
 
-    law_list = tuple(x.strip() for x in laws.split(",") if x.strip())
-    for law in law_list:
-        if law not in LAW_NAMES:
-            raise ModelInputError(f"--laws: unknown '{law}' (known: {', '.join(LAW_NAMES)})")
     torch.set_num_threads(1)
     options = {} if formulation == "absolute" else {"torque_cost": formulation}
     sigma_e, sigma_rate = PERTURBATION[formulation]
@@ -202,7 +188,3 @@ def _structured(
     console = Console(stderr=True)
     summary = run_structured(config, bundles, work, log=console.print)
     console.print(f"wrote {bundles}/<robot>/<law>/ and {work}/structured.json ({summary['wall_s']:.0f} s)")
-
-
-def register(app: typer.Typer) -> None:
-    app.command("pipeline")(pipeline)

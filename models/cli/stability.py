@@ -1,7 +1,7 @@
 """``hil stability``: Theorem 1's conditions for a law along an operating condition's reference.
 
-The lead registers ``stability`` in models/cli.py. The law is evaluated at the equilibrium e = 0 along
-the condition's reference (local stability is about that equilibrium), its state rolled along it.
+The law is evaluated at the equilibrium e = 0 along the condition's reference (local stability is
+about that equilibrium), its state rolled along it.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
+from models.cli.options import ROBOTS_HELP
 from models.errors import ModelInputError
 
 
@@ -20,7 +21,7 @@ def stability(
     law: Annotated[str, typer.Argument(help="Feedback law: pd, pid, adrc, hinf, smc, mrac.")],
     conditions: Annotated[Path | None, typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
     condition: Annotated[int, typer.Option(help="1-based index of the condition in the file.")] = 1,
-    robot: Annotated[str, typer.Option(help="Robot: ur5_paper, ur5, panda, or a URDF path.")] = "ur5_paper",
+    robot: Annotated[str, typer.Option(help=f"Robot: {ROBOTS_HELP}, or a URDF path.")] = "ur5_paper",
     period_s: Annotated[float, typer.Option(help="Control period (s); also the sampling of the reference.")] = 1e-3,
     beta: Annotated[float, typer.Option(help="Lyapunov cross-term weight beta.")] = 1e-6,
     epsilon: Annotated[float, typer.Option(help="Margin epsilon of Eqs. 19-20.")] = 1e-3,

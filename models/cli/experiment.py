@@ -1,4 +1,4 @@
-"""``hil`` commands of the science side: experiment, stability, urdf."""
+"""``hil experiment``: laws x modes x conditions on the simulator or the HIL plant (Table I, Table II)."""
 
 from __future__ import annotations
 
@@ -8,29 +8,7 @@ from typing import Annotated
 
 import typer
 
-from models.errors import ModelInputError
-
-# The built-in robots (models.robots.robot_names(); tests/unit/models/test_cli.py keeps them equal).
-ROBOTS_HELP = "ur5_paper, ur5, panda"
-
-
-def _positive(value: float, option: str, integer: bool = False) -> None:
-    """Refuse zero, negative or non-finite values of a numeric option (one line naming it)."""
-    import math
-
-    if not (math.isfinite(value) and value > 0):
-        kind = "a positive integer" if integer else "a positive finite number"
-        raise ModelInputError(f"{option}: must be {kind}, got {value!r}")
-
-
-def _split(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
-    items = tuple(x.strip().lower() for x in text.split(",") if x.strip())
-    if not items:
-        raise ModelInputError(f"--{what}: empty")
-    for item in items:
-        if item not in known:
-            raise ModelInputError(f"--{what}: unknown '{item}' (known: {', '.join(known)})")
-    return items
+from models.cli.options import ROBOTS_HELP, one_of, positive, split_names
 
 
 def experiment(
@@ -92,33 +70,28 @@ def experiment(
     from models.feedback import GAIN_SETS, LAW_NAMES
     from models.modes import MODES
 
-    law_list = _split(laws, LAW_NAMES, "laws")
-    if plant not in ("sim", "hil"):
-        raise ModelInputError(f"--plant: unknown '{plant}' (known: sim, hil)")
+    law_list = split_names(laws, LAW_NAMES, "laws")
+    one_of(plant, ("sim", "hil"), "--plant")
     default_modes = "fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"
-    mode_list = _split(modes if modes is not None else default_modes, MODES, "modes")
+    mode_list = split_names(modes if modes is not None else default_modes, MODES, "modes")
     hil = None
     if plant == "hil":
         from models.hil_experiment import HilOptions
 
-        _positive(target_substeps, "--target-substeps", integer=True)
+        positive(target_substeps, "--target-substeps", integer=True)
         hil = HilOptions(
             transport=transport, target_substeps=target_substeps, parity=not no_parity, bundle_dir=lmpc_bundles
         )
-    if mismatch not in ("none", "paper"):
-        raise ModelInputError(f"--mismatch: unknown '{mismatch}' (known: none, paper)")
-    if gains not in GAIN_SETS:
-        raise ModelInputError(f"--gains: unknown '{gains}' (known: {', '.join(GAIN_SETS)})")
-    _positive(period_s, "--period-s")
-    _positive(substeps, "--substeps", integer=True)
-    _positive(timing_cycles, "--timing-cycles", integer=True)
+    one_of(mismatch, ("none", "paper"), "--mismatch")
+    one_of(gains, GAIN_SETS, "--gains")
+    positive(period_s, "--period-s")
+    positive(substeps, "--substeps", integer=True)
+    positive(timing_cycles, "--timing-cycles", integer=True)
     if hmpc_prediction_step_s is not None:
-        _positive(hmpc_prediction_step_s, "--hmpc-prediction-step-s")
-    _positive(hmpc_anchor_scale, "--hmpc-anchor-scale")
-    if plant_backend not in ("pinocchio", "rne"):
-        raise ModelInputError(f"--plant-backend: unknown '{plant_backend}' (known: pinocchio, rne)")
-    if hmpc_formulation not in ("absolute", "anchored"):
-        raise ModelInputError(f"--hmpc-formulation: unknown '{hmpc_formulation}' (known: absolute, anchored)")
+        positive(hmpc_prediction_step_s, "--hmpc-prediction-step-s")
+    positive(hmpc_anchor_scale, "--hmpc-anchor-scale")
+    one_of(plant_backend, ("pinocchio", "rne"), "--plant-backend")
+    one_of(hmpc_formulation, ("absolute", "anchored"), "--hmpc-formulation")
     created = not out.exists()
     prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
     try:
@@ -226,19 +199,3 @@ def _experiment(
     if hil is not None and getattr(hil, "parity", False):
         written.append("sim/")  # the simulation twin's own outputs
     console.print(f"wrote {out}/{', '.join(written)}", soft_wrap=True, highlight=False)  # one line, even piped
-
-
-def register(app: typer.Typer) -> None:
-    """Add the science commands to the ``hil`` root (an entry point in pyproject.toml)."""
-    app.command("experiment")(experiment)
-    from models.lmpc.cli import register as register_lmpc
-
-    register_lmpc(app)
-    from models.demo.cli import register as register_demo
-
-    register_demo(app)  # hil demo: models/demo/
-    try:
-        from models.stability_cli import stability
-    except ImportError:  # not written yet on this branch
-        return
-    app.command("stability")(stability)
