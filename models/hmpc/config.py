@@ -66,8 +66,9 @@ class HMPCConfig:
     damping: float = 1e-10  # Levenberg term, relative to the mean Hessian diagonal
     on_budget_exhausted: str = "fallback"  # "fallback" to tau_fb (counted) or "best_iterate"
     warm_start: bool = True  # add last cycle's shifted solution as a candidate
-    # Inner loops (condensation, box QP, penalty rounds): "numba" (compiled, row by row), "numpy"
-    # (vectorized over the batch), or "auto" (numba when installed). Same algorithms and results.
+    # The solver's inner loops (models.hmpc.inner_loops: cost, condensation, box QP, penalty rounds):
+    # "numba" (compiled, row by row), "numpy" (vectorized over the batch), or "auto" (numba when
+    # installed). Same algorithms, same results to round-off; chosen once when the solver is built.
     kernels: str = "auto"
 
     def __post_init__(self) -> None:
