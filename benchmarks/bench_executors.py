@@ -3,7 +3,7 @@
     python benchmarks/bench_executors.py --states 4000 --workers 2 --rounds 3
 
 The batch: states visited by the PD law alone on the paper's five conditions (as in
-benchmarks/bench_hmpc.py), cold HMPC solves with the labeling options, ``solve_batch`` in chunks
+``bench_hmpc.labeling_states``), cold HMPC solves with the labeling options, ``solve_batch`` in chunks
 of 256. Each executor is started once (process pool / ``ray.init``: its start-up time is reported
 apart), warmed on a few states, then the batch is labeled ``--rounds`` times, the two executors
 interleaved round by round so that both see the same machine load. The 1-min load average is
@@ -19,31 +19,12 @@ import time
 from typing import Any
 
 import numpy as np
+from bench_hmpc import labeling_states
 from benchinfo import machine
 
 
 def load() -> float:
     return round(os.getloadavg()[0], 2)
-
-
-def labeling_states(states: int) -> tuple[Any, Any, tuple[np.ndarray, ...], Any]:
-    from models.conditions import load_conditions
-    from models.feedback import make_law
-    from models.hmpc import HMPCConfig
-    from models.lmpc.labels import LABEL_HMPC_OPTIONS
-    from models.robots import load_robot
-    from models.sim import SimConfig, make_controller, simulate
-
-    robot = load_robot("ur5_paper")
-    law = make_law("pd", robot, 1e-3)
-    conditions = load_conditions(robot=robot)
-    traj = simulate(robot, make_controller("fb", law, robot), conditions, SimConfig())
-    rng = np.random.default_rng(0)
-    run, step = rng.integers(0, len(conditions), states), rng.integers(0, traj.t_s.size, states)
-    refs = [c.reference(traj.t_s) for c in conditions]
-    q_d, qd_d, qdd_d = (np.stack([refs[r][i][s] for r, s in zip(run, step, strict=True)]) for i in range(3))
-    args = (traj.q[run, step], traj.qd[run, step], q_d, qd_d, qdd_d)
-    return law, robot, args, HMPCConfig.from_options(**LABEL_HMPC_OPTIONS)
 
 
 def main() -> None:
@@ -55,9 +36,11 @@ def main() -> None:
     options = parser.parse_args()
 
     from models.executors import make_executor
-    from models.hmpc import solve_batch
+    from models.hmpc import HMPCConfig, solve_batch
+    from models.lmpc.labels import LABEL_HMPC_OPTIONS
 
-    law, robot, args, config = labeling_states(options.states)
+    law, robot, args = labeling_states(options.states)
+    config = HMPCConfig.from_options(**LABEL_HMPC_OPTIONS)
     names = [n.strip() for n in options.executors.split(",") if n.strip()]
     executors = {name: make_executor(name, options.workers) for name in names}
     out: dict[str, Any] = {

@@ -160,12 +160,11 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
     return out
 
 
-def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
+def labeling_states(states: int) -> tuple:
+    """PD law, UR5 (paper) and ``states`` states the PD law alone visits on the five paper conditions
+    (q, qd, q_d, qd_d, qdd_d), drawn with a fixed seed: the batch-labeling benchmark's input."""
     from models.conditions import load_conditions
-    from models.executors import LocalProcessExecutor
     from models.feedback import make_law
-    from models.hmpc import HMPCConfig, solve_batch
-    from models.lmpc.labels import LABEL_HMPC_OPTIONS
     from models.robots import load_robot
     from models.sim import SimConfig, make_controller, simulate
 
@@ -177,9 +176,17 @@ def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
     run, step = rng.integers(0, len(conditions), states), rng.integers(0, traj.t_s.size, states)
     refs = [c.reference(traj.t_s) for c in conditions]
     q_d, qd_d, qdd_d = (np.stack([refs[r][i][s] for r, s in zip(run, step, strict=True)]) for i in range(3))
-    args = (traj.q[run, step], traj.qd[run, step], q_d, qd_d, qdd_d)
+    return law, robot, (traj.q[run, step], traj.qd[run, step], q_d, qd_d, qdd_d)
+
+
+def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
+    from models.executors import LocalProcessExecutor
+    from models.hmpc import HMPCConfig, solve_batch
+    from models.lmpc.labels import LABEL_HMPC_OPTIONS
+
+    law, robot, args = labeling_states(states)
     config = HMPCConfig.from_options(**{**LABEL_HMPC_OPTIONS, "kernels": kernels})
-    error_deg = np.degrees(np.abs(args[0] - q_d).max(1))
+    error_deg = np.degrees(np.abs(args[0] - args[2]).max(1))
     out: dict = {
         "states": states,
         "kernels": kernels,
