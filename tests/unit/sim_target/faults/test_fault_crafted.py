@@ -12,7 +12,7 @@ import pytest
 from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle
 from sim_target.faults.crafted import SATURATING_TORQUE_NM, TRIGGER_HALF_WIDTH_RAD, craft_bundle, tamper_bundle
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = Path(__file__).resolve().parents[4]
 PD = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
 Q = np.array([0.0, -0.5, 0.8, -0.3, 0.0, 0.0])
 Z = np.zeros(6)
