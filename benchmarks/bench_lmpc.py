@@ -221,9 +221,7 @@ def structured_policy_from_bundle(bundle_dir: Path):  # type: ignore[no-untyped-
         torch.as_tensor(np.asarray(physics[k], dtype=np.float64)) for k in ("c", "g", "kp_1_s2", "kd_1_s")
     )
     model.use_residual = bool(residual["used"])
-    law = make_law(
-        manifest["law"]["name"], robot, manifest.get("period_s", manifest.get("control_period_s")), training["gain_set"]
-    )
+    law = make_law(manifest["law"]["name"], robot, manifest["period_s"], training["gain_set"])
     trust_spec = {k: trust[k] for k in ("feature_low", "feature_high", "box_margin", "residual_bound_nm")}
     return _structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
 
