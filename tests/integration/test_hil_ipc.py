@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_hil_lockstep import SLOW_MACHINE, check_arm_across_processes
 
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, HeartbeatLostError
 from sim_target.testing.hil_target import drive_bus_config, serve_config, target_process
+from tests.integration.test_hil_lockstep import SLOW_MACHINE, check_arm_across_processes
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
 
