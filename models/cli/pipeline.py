@@ -33,8 +33,8 @@ def pipeline(
     executor: Annotated[
         str,
         typer.Option(
-            help="Where the workers run (paper design): 'local' processes, 'serial' (this process) or 'ray' "
-            "(a local Ray on 127.0.0.1; the ray extra)."
+            help="Where the workers run (simulation, HMPC labeling, training): 'local' processes, 'serial' (this "
+            "process) or 'ray' (a local Ray on 127.0.0.1; the ray extra)."
         ),
     ] = "local",
     lipschitz: Annotated[str, typer.Option(help="L*Delta_i: 'zero' (paper's reading) or 'estimate'.")] = "zero",
@@ -90,6 +90,8 @@ def pipeline(
             train_conditions,
             dagger_rounds,
             residual_bound_scale,
+            executor,
+            workers,
         )
         return
     from rich.console import Console
@@ -163,11 +165,14 @@ def _structured(
     conditions: int,
     dagger_rounds: int,
     bound_scale: float = 10.0,
+    executor: str = "local",
+    workers: int | None = None,
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
     from rich.console import Console
 
+    from models.executors import make_executor
     from models.lmpc.structured import C_FIXED, PERTURBATION, StructuredConfig, run_structured
 
     torch.set_num_threads(1)
@@ -186,5 +191,6 @@ def _structured(
         bound_scale=bound_scale,
     )
     console = Console(stderr=True)
-    summary = run_structured(config, bundles, work, log=console.print)
+    with make_executor(executor, workers) as pool:
+        summary = run_structured(config, bundles, work, log=console.print, executor=pool)
     console.print(f"wrote {bundles}/<robot>/<law>/ and {work}/structured.json ({summary['wall_s']:.0f} s)")

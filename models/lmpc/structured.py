@@ -39,6 +39,7 @@ import torch
 from torch import nn
 
 from models.errors import ModelInputError
+from models.executors import Executor
 from models.feedback import make_law
 from models.robots import RobotModel, load_robot
 from models.sim import ControllerStack, SimConfig, simulate
@@ -200,6 +201,7 @@ def collect(
     conditions: list[Any],
     law_names: tuple[str, ...] | None = None,
     policy_dir: Path | None = None,
+    executor: Executor | None = None,
 ) -> dict[str, dict[str, np.ndarray]]:
     """Per law: logged states with the label ``tau_star``.
 
@@ -236,7 +238,7 @@ def collect(
     data = {}
     for name, law, log in zip(laws, made, logs, strict=True):
         if policy_dir is not None and config.target == "hmpc":
-            log["tau_star"] = relabel(law, robot, log, config.hmpc_options)
+            log["tau_star"] = relabel(law, robot, log, config.hmpc_options, executor)
         elif config.target == "law":
             log["tau_star"] = log["tau_fb"].copy()
         if policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc":
@@ -251,7 +253,9 @@ def collect(
                     float,
                 )
             extra["tau_star"] = (
-                extra["tau_fb"].copy() if config.target == "law" else relabel(law, robot, extra, config.hmpc_options)
+                extra["tau_fb"].copy()
+                if config.target == "law"
+                else relabel(law, robot, extra, config.hmpc_options, executor)
             )
             log = {k: np.concatenate([log[k], extra[k]]) for k in log}
         data[name] = log
@@ -269,26 +273,23 @@ def perturbed(
     return rows
 
 
-def relabel(law: Any, robot: RobotModel, log: dict[str, np.ndarray], hmpc_options: dict[str, Any]) -> np.ndarray:
-    """The HMPC torque at logged states (cold solves from the logged law state), in chunks."""
-    from models.hmpc import HMPCConfig
-    from models.hmpc.solver import HMPCSolver
+def relabel(
+    law: Any,
+    robot: RobotModel,
+    log: dict[str, np.ndarray],
+    hmpc_options: dict[str, Any],
+    executor: Executor | None = None,
+) -> np.ndarray:
+    """The HMPC torque at logged states (cold solves from the logged law state), in chunks of 1024
+    on ``executor``'s workers (models.executors; None: this process)."""
+    from models.hmpc import HMPCConfig, solve_batch
 
     options = {**hmpc_options, "on_budget_exhausted": "best_iterate"}
-    solver = HMPCSolver(law, robot, HMPCConfig.from_options(**options))
-    out = np.empty_like(log["q"])
-    for a in range(0, len(out), 1024):
-        part = slice(a, a + 1024)
-        res = solver.solve(
-            log["q"][part],
-            log["qd"][part],
-            log["q_d"][part],
-            log["qd_d"][part],
-            log["qdd_d"][part],
-            log["law_state"][part],
-        )
-        out[part] = res.tau_nm
-    return out
+    rows = (log[k] for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state"))
+    tau, _ = solve_batch(
+        law, robot, *rows, config=HMPCConfig.from_options(**options), executor=executor, chunk_states=1024
+    )
+    return tau
 
 
 # --- the emulator -----------------------------------------------------------------------------
@@ -422,19 +423,19 @@ def _structured_policy_class() -> type:
             rate = qd if emulator.ff_point == "measured" else qd_d
             low, high = self.box_low.numpy(), self.box_high.numpy()
             inv_span = self.box_inv_span.numpy()
-            half = 0.5 * (high - low) * inv_span
-            uniform = bool(np.all(half == half[0]))
+            mid, half = 0.5 * (low + high) * inv_span, 0.5 * (high - low) * inv_span
+            trust_bound = self.bound.numpy()  # r is computed in units of it: clip(r', -1, 1) is one node
             out: dict[str, Any] = {
                 "rate_map": (rate[:width], accel[:width], None),
-                "scale": g,
-                "law_gain": torch.as_tensor(tau_fb * c[None, :]),  # c on the tau_fb rows
-                "guard_map": torch.as_tensor(guard * inv_span),
-                "guard_offset": torch.as_tensor(-0.5 * (low + high) * inv_span),
-                "guard_half": None if uniform else torch.as_tensor(half),
+                "scale": g / trust_bound,
+                "law_gain": torch.as_tensor(tau_fb * (c / trust_bound)[None, :]),  # c on the tau_fb rows
+                # max(|g - mid| / span - half / span) over j as one max over [g - mid - half, mid - g - half]
+                "guard_map": torch.as_tensor(np.concatenate([guard * inv_span, -guard * inv_span], 1)),
+                "guard_offset": torch.as_tensor(np.concatenate([-mid - half, mid - half])),
                 "alpha_gain": torch.full((1, 1), -self.inv_margin, dtype=torch.float64),
-                "alpha_offset": torch.full(
-                    (1,), 1.0 + (half[0] * self.inv_margin if uniform else 0.0), dtype=torch.float64
-                ),
+                "alpha_offset": torch.ones(1, dtype=torch.float64),
+                "trust_bound": torch.as_tensor(np.diag(trust_bound)),
+                "residual_scale": torch.as_tensor(emulator.bound.numpy() / trust_bound),
                 "layers": [],
             }
             if emulator.use_residual:
@@ -474,24 +475,20 @@ def _structured_policy_class() -> type:
                 rne = self.emulator.rne
                 tau_id = rne.inverse_dynamics_shared(position, x, [k["rate_map"]], [k["scale"]])[0]
             xt = torch.cat([x, tau_fb], 1)
-            r = torch.addmm(tau_id, xt, k["law_gain"])  # c tau_fb + g ID(...)
+            r = torch.addmm(tau_id, xt, k["law_gain"])  # (c tau_fb + g ID(...)) / trust bound
             if k["layers"]:
                 h = xt
                 for i, (bias, weight) in enumerate(k["layers"]):
                     h = torch.addmm(bias, h, weight)
                     if i < len(k["layers"]) - 1:
                         h = torch.relu(h)
-                r = r + self.emulator.bound * torch.tanh(h)
+                r = r + k["residual_scale"] * torch.tanh(h)
             # the trust region (hil_runtime.bundle.trust_filter is the reference)
-            distance = torch.abs(torch.addmm(k["guard_offset"], xt, k["guard_map"]))
-            if k["guard_half"] is not None:
-                distance = distance - k["guard_half"]
-            alpha = torch.clamp(
-                torch.addmm(k["alpha_offset"], torch.amax(distance, 1, keepdim=True), k["alpha_gain"]), 0.0, 1.0
-            )
-            clamped = torch.sum((torch.abs(r) > self.bound).to(torch.float64), 1, keepdim=True) * torch.sign(alpha)
-            r = torch.minimum(torch.maximum(r, -self.bound), self.bound)
-            tau = torch.minimum(torch.maximum(tau_fb + alpha * r, -self.limit), self.limit)
+            distance = torch.amax(torch.addmm(k["guard_offset"], xt, k["guard_map"]), 1, keepdim=True)
+            alpha = torch.clamp(torch.addmm(k["alpha_offset"], distance, k["alpha_gain"]), 0.0, 1.0)
+            clamped = torch.sum((torch.abs(r) > 1.0).to(torch.float64), 1, keepdim=True) * torch.sign(alpha)
+            step = torch.addmm(tau_fb, alpha * torch.clamp(r, -1.0, 1.0), k["trust_bound"])
+            tau = torch.minimum(torch.maximum(step, -self.limit), self.limit)
             if self.applied is not None:
                 a, b = self.applied.start, self.applied.stop
                 next_state = torch.cat([next_state[:, :a], tau, next_state[:, b:]], 1)
@@ -792,7 +789,11 @@ def _data_key(config: StructuredConfig) -> str:
 
 
 def _cached_rollouts(
-    work: Path, config: StructuredConfig, conditions: list[Any], log: Callable[[str], None]
+    work: Path,
+    config: StructuredConfig,
+    conditions: list[Any],
+    log: Callable[[str], None],
+    executor: Executor | None = None,
 ) -> dict[str, Any]:
     """Per law, <work>/rollouts_<law>.pkl when made with the same settings; the missing laws are run
     (side by side in one plant) and cached."""
@@ -813,7 +814,7 @@ def _cached_rollouts(
         log(f"rollouts: reusing {', '.join(sorted(data))} from {work}")
     missing = tuple(name for name in config.laws if name not in data)
     if missing:
-        fresh = collect(config, conditions, law_names=missing)
+        fresh = collect(config, conditions, law_names=missing, executor=executor)
         for name in missing:
             path = work / f"rollouts_{name}.pkl"
             tmp = path.with_suffix(".tmp")
@@ -904,9 +905,14 @@ def reexport(
 
 
 def run_structured(
-    config: StructuredConfig, bundles: Path, work: Path, log: Callable[[str], None] = print
+    config: StructuredConfig,
+    bundles: Path,
+    work: Path,
+    log: Callable[[str], None] = print,
+    executor: Executor | None = None,
 ) -> dict[str, Any]:
-    """Rollouts -> fit -> export (-> DAgger rounds); returns a summary (also written to work/structured.json)."""
+    """Rollouts -> fit -> export (-> DAgger rounds); returns a summary (also written to work/structured.json).
+    The cold HMPC relabeling runs on ``executor`` (models.executors; None: this process)."""
     from models.lmpc.paper_range import paper_range_conditions
 
     robot = load_robot(config.robot)
@@ -914,7 +920,7 @@ def run_structured(
     started = time.perf_counter()
     conditions = paper_range_conditions(robot, config.train_conditions, config.train_seed, prefix="T")
     conditions = [replace(c, duration_s=config.duration_s) for c in conditions]
-    data = _cached_rollouts(work, config, conditions, log)
+    data = _cached_rollouts(work, config, conditions, log, executor)
     counts = ", ".join(f"{k} {len(v['q'])}" for k, v in data.items())
     log(f"rollouts: {counts} states ({time.perf_counter() - started:.0f} s)")
     summary: dict[str, Any] = {"config": jsonable_config(config), "rounds": []}
@@ -933,7 +939,7 @@ def run_structured(
             break
         dagger = paper_range_conditions(robot, config.dagger_conditions, config.dagger_seed + round_index, prefix="D")
         dagger = [replace(c, duration_s=config.duration_s) for c in dagger]
-        extra = collect(config, dagger, policy_dir=bundles)
+        extra = collect(config, dagger, policy_dir=bundles, executor=executor)
         for name in config.laws:
             data[name] = {k: np.concatenate([data[name][k], extra[name][k]]) for k in data[name]}
         counts = ", ".join(f"{k} {len(v['q'])}" for k, v in extra.items())
