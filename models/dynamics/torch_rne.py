@@ -13,19 +13,20 @@ onnxruntime spends ~0.3-0.5 us per node on tensors this small, so the graph is w
 - Forward: one 13 x 13 matrix per link, L_i = blockdiag(X_i^T, X_i^T, 1) (I + qd_i Gv + [qd_i S | qdd_i S]
   in the last row). X_i is affine in (1, sin q_i, cos q_i) (Rodrigues; cos q = sin(q + pi/2), so one Sin
   node), the rest affine in (1, qd_i, qdd_i): L_i = sum_ab u_a w_b K_iab, one product with constants for
-  all links at once. The chain C_i = C_{i-1} L_i (five MatMul nodes; C_0 is folded into link 1's
-  constants) carries the row W_i = [v_i, a_i, 1] and, in further rows, X_{i<-0}^T and P X_{i<-0}^T
-  (P swaps the angular and linear halves; X^-1 = P X^T P for a motion transform).
+  all links at once. The chain C_i = C_{i-1} L_i (7 x 13, five MatMul nodes, carried transposed; C_0 is
+  folded into link 1's constants) holds the row W_i = [v_i, a_i, 1] and, in rows 1..6, X_{i<-0}^T.
 - f_i is a fixed quadratic form of W_i (its last entry is 1): one outer product and one MatMul.
 - Backward without a recursion: in base coordinates f_j^0 = X_{j<-0}^T f_j (one batched MatMul with the
-  chain), the suffix sums over j >= i are one constant MatMul, and tau_i = (S_i^0)^T F_i^0 with
-  S_i^0 = X_{0<-i} S_i = P X_{i<-0}^T P S_i (one batched MatMul with constants); the final dot products
-  and any per-joint output scale are one Mul and one constant MatMul.
+  chain), and tau_i = (S_i^0)^T sum_{j >= i} f_j^0 with S_i^0 = X_{0<-i} S_i = P X_{i<-0}^T P S_i (P swaps
+  the angular and linear halves; X^-1 = P X^T P for a motion transform): the suffix sums and that P are
+  one constant MatMul, X_{i<-0}^T P S_i one batched MatMul, the dot products and any per-joint output
+  scale one Mul and one constant MatMul.
 
-28 ONNX nodes for any joint count (the spatial recursion it replaces: 66; the component-wise RNEIDA:
-~1,700). Several rate sets (qd, qdd) at one position run as one pass (``inverse_dynamics_shared``: a
-law's own nominal model and a feed-forward in one graph at no extra node). Checked against ``rneida``
-and pinocchio (tests/unit/models/dynamics/test_dynamics_parity.py).
+29 ONNX nodes for any joint count (the spatial recursion it replaces: 66; the component-wise RNEIDA:
+~1,700); its MatMuls are sized to the work (onnxruntime's small GEMMs cost ~0.3 us per 1,000
+multiply-adds here, so a padded product is not free). Several rate sets (qd, qdd) at one position run
+as one pass (``inverse_dynamics_shared``: a law's own nominal model and a feed-forward in one graph at
+no extra node). Checked against ``rneida`` and pinocchio (tests/unit/models/dynamics/test_dynamics_parity.py).
 """
 
 from __future__ import annotations
@@ -112,19 +113,21 @@ class SpatialRne:
             for a in range(3):
                 for b in range(3):
                     links[i, a, b] = trig[a] @ rate[b]
-        # C_0: row 0 the base row [0, a_base, 1], rows 1..6 [I | 0], rows 7..12 [P | 0]; folded into link 1
-        start = np.zeros((2, W, W))
+        # C_0 (7 x 13): row 0 the base row [0, a_base, 1], rows 1..6 [I | 0]; folded into link 1
+        start = np.zeros((2, 7, W))
         start[:, 1:7, :6] = np.eye(6)
-        start[:, 7:13, :6] = swap
         start[:, 0, 12] = 1.0
         start[0, 0, 9:12] = -np.asarray(robot.gravity_m_s2, float)  # [0]: with gravity, [1]: without
         self._links = {}
         for key, c0 in ((True, start[0]), (False, start[1])):
             folded = links.copy()
-            folded[0] = np.einsum("rk,abkc->abrc", c0, links[0])
-            # u9 = (1, s, c) each thrice, w9 = (1, qd, qdd) repeated: u9 * w9 = all nine products, (a, b) order
-            self._links[key] = _t(folded.reshape(n, 9, W * W))
-        # (1, sin q, cos q) per joint, each thrice: Sin(q @ trig_map + trig_offset)
+            folded[0] = 0.0
+            folded[0, :, :, :7] = np.einsum("rk,abkc->abrc", c0, links[0])
+            # the chain is carried transposed (D_i = C_i^T = L_i^T D_{i-1}, 13 x 7), so that a row times
+            # D_i is (C_i x)^T; u9 * w9 = all nine (a, b) products, a slow
+            transposed = np.swapaxes(folded, -1, -2)
+            self._links[key] = _t(transposed.reshape(n, 9, W * W))
+        # (1, sin q_i, cos q_i) per joint, each thrice: Sin(q @ trig_map + trig_offset)
         trig_map = np.zeros((n, 9 * n))
         trig_offset = np.zeros(9 * n)
         for i in range(n):
@@ -133,38 +136,41 @@ class SpatialRne:
                     col = 9 * i + 3 * a + b
                     trig_map[i, col] = 0.0 if a == 0 else 1.0
                     trig_offset[col] = {0: np.pi / 2, 1: 0.0, 2: np.pi / 2}[a]
-        self.trig_map, self.trig_offset = _t(trig_map), _t(trig_offset)
-        # f_i (in the first 6 entries of a 13-column) = quad_i @ vec(W_i W_i^T)
+        self._trig = (trig_map, trig_offset)
+        # f_i^T = vec(W_i W_i^T) (row, W_12 = 1) @ forms_i (169 x 6)
         m = np.asarray(robot.mass_kg, float)
-        quad = np.zeros((n, W, W, W))  # [joint, a, b, k]
+        forms = np.zeros((n, W, W, 6))  # [joint, a, b, k]
         for i in range(n):
-            inertia = spatial_inertia(
-                m[i], np.asarray(robot.com_m[i], float), np.asarray(robot.inertia_kg_m2[i], float)
-            )
-            quad[i, 6:12, 12, :6] = inertia.T  # I a (row form, W_12 = 1)
+            com, inertia_c = np.asarray(robot.com_m[i], float), np.asarray(robot.inertia_kg_m2[i], float)
+            inertia = spatial_inertia(m[i], com, inertia_c)
+            forms[i, 6:12, 12, :] = inertia.T  # I a (row form, W_12 = 1)
             for a in range(6):
                 for b in range(6):
-                    quad[i, a, b, :6] = _crf(np.eye(6)[a]) @ inertia @ np.eye(6)[b]  # crf(v) I v
-        self.quad = _t(np.swapaxes(quad.reshape(n, W * W, W), 1, 2))  # (N, 13, 169): column f = quad @ col
-        # c_i: rows 7..12 of C_i @ c_i = P X^T P S_i = S_i^0
-        project = np.zeros((n, W, 1))
-        project[:, :6, 0] = s @ swap.T
-        self.project = _t(project)
+                    forms[i, a, b, :] = _crf(np.eye(6)[a]) @ inertia @ np.eye(6)[b]  # crf(v) I v
+        self.forms = _t(forms.reshape(n, 1, W * W, 6))
+        self.axis = _t((s @ swap.T).reshape(n, 1, 1, 6))  # (P S_i)^T: C_i P S_i = X_{i<-0}^T P S_i
         self.eye = np.eye(n)
+        self._sums: dict[tuple[int, tuple[bytes, ...]], tuple[torch.Tensor, torch.Tensor]] = {}
 
     def _suffix_and_sum(self, variants: int, scales: Sequence[np.ndarray | None]) -> tuple[torch.Tensor, torch.Tensor]:
-        """(suffix, total): G' = A @ suffix puts sum_{j >= i} f_j^0 beside S_i^0; tau = (G' * b) @ total."""
+        """(suffix, total) on the flat rows (C_i f_i)^T and (C_i P S_i)^T (7 entries per variant and link):
+        tau_i = (S_i^0)^T F_i^0 = (X^T P S_i) . P sum_{j >= i} X_j^T f_j (X^-1 = P X^T P), so ``suffix``
+        sums over j >= i and swaps the halves, and ((forces @ suffix) * axes) @ total = tau."""
         n = self.n
-        suffix = np.zeros((variants, n, W, variants, n, W))
-        total = np.zeros((variants, n, W, variants, n))
-        for k in range(variants):
-            scale = np.ones(n) if scales[k] is None else np.asarray(scales[k], float)
-            for i in range(n):
-                for r in range(1, 7):
-                    suffix[k, i:, r, k, i, r + 6] = 1.0
-                total[k, i, 7:13, k, i] = scale[i]
-        size = variants * n * W
-        return _t(suffix.reshape(size, size)), _t(total.reshape(size, variants * n))
+        key = (variants, tuple(b"" if v is None else np.asarray(v, float).tobytes() for v in scales))
+        if key not in self._sums:
+            suffix = np.zeros((variants, n, 7, variants, n, 7))
+            total = np.zeros((variants, n, 7, variants, n))
+            swapped = [4, 5, 6, 1, 2, 3]
+            for k in range(variants):
+                scale = np.ones(n) if scales[k] is None else np.asarray(scales[k], float)
+                for i in range(n):
+                    for r in range(1, 7):
+                        suffix[k, i:, r, k, i, swapped[r - 1]] = 1.0
+                    total[k, i, 1:7, k, i] = scale[i]
+            size = variants * n * 7
+            self._sums[key] = (_t(suffix.reshape(size, size)), _t(total.reshape(size, variants * n)))
+        return self._sums[key]
 
     def inverse_dynamics(
         self, q: torch.Tensor, qd: torch.Tensor, qdd: torch.Tensor, gravity: bool = True
@@ -194,8 +200,9 @@ class SpatialRne:
         """
         n, k = self.n, len(maps)
         scales = list(scales) if scales is not None else [None] * k
-        # (1, sin q_i, cos q_i) thrice per joint
-        u = torch.sin(torch.addmm(self.trig_offset, q, self.trig_map)).reshape(-1, 1, n, 1, 9)
+        # (1, sin q_i, cos q_i) thrice per joint, once per variant: (B, K 9N), as the rates below
+        trig_map, trig_offset = (_t(np.tile(a, k)) for a in self._trig)
+        u = torch.sin(torch.addmm(trig_offset, q, trig_map))
         # (1, qd_i, qdd_i) each repeated, per variant
         width = 0 if rates is None else rates.shape[1]
         rate_map = np.zeros((width, k, n, 3, 3))
@@ -211,19 +218,20 @@ class SpatialRne:
                 rate_offset[v, :, :, 2] = np.asarray(offset, float)[:, None]
         # u9 is (a, b)-ordered with a slow: (1,1,1, s,s,s, c,c,c); w9 = (1,qd,qdd) three times
         if rates is None:
-            w = _t(rate_offset.reshape(1, k, n, 1, 9))
+            w = _t(rate_offset.reshape(1, -1))
         else:
-            w = torch.addmm(_t(rate_offset.reshape(-1)), rates, _t(rate_map.reshape(width, -1))).reshape(-1, k, n, 1, 9)
-        links = (u * w) @ self._links[gravity]  # (B, K, N, 1, 169)
-        steps = torch.split(links.reshape(-1, k, n, W, W), 1, 2)
-        chain = [steps[0]]
+            w = torch.addmm(_t(rate_offset.reshape(-1)), rates, _t(rate_map.reshape(width, -1)))
+        links = (u * w).reshape(-1, k, n, 1, 9) @ self._links[gravity]  # (B, K, N, 1, 169)
+        steps = torch.split(links.reshape(-1, k, n, 1, W, W), 1, 2)
+        chain = [steps[0][..., :7]]  # D_1 = (C_0 L_1)^T, 13 x 7
         for i in range(1, n):
-            chain.append(chain[-1] @ steps[i])
-        c = torch.cat(chain, 2)  # (B, K, N, 13, 13)
-        row = c[:, :, :, :1, :]  # W_i = [v_i, a_i, 1]
-        f = self.quad @ (row.reshape(-1, k, n, W, 1) * row).reshape(-1, k, n, W * W, 1)  # (B, K, N, 13, 1)
+            chain.append(steps[i] @ chain[-1])  # D_i = L_i^T D_{i-1}
+        d = torch.cat(chain, 2)  # (B, K, N, 1, 13, 7), D_i = C_i^T
+        column = d[..., :1]  # W_i = [v_i, a_i, 1] (column 0 of D_i)
+        outer = (column * column.reshape(-1, k, n, 1, 1, W)).reshape(-1, k, n, 1, 1, W * W)
+        y = d[..., :6, :]  # rows 0..5 of D_i: what a 6-vector (a force, P S_i) meets
+        forces = ((outer @ self.forms) @ y).reshape(-1, k * n * 7)  # (X_{i<-0}^T f_i) in entries 1..6
+        axes = (self.axis @ y).reshape(-1, k * n * 7)  # (X_{i<-0}^T P S_i) in entries 1..6
         suffix, total = self._suffix_and_sum(k, scales)
-        forces = (c @ f).reshape(-1, k * n * W) @ suffix
-        axes = (c @ self.project).reshape(-1, k * n * W)
-        out = (forces * axes) @ total  # (B, K N)
+        out = ((forces @ suffix) * axes) @ total  # (B, K N)
         return [out] if k == 1 else list(torch.split(out, n, 1))

@@ -390,9 +390,10 @@ def _structured_policy_class() -> type:
       into its first layer), the trust box's scaled guard features (box centre and 1/span folded in);
     - the feed-forward's ID is one pass of models.dynamics.torch_rne (g folded into its last constant),
       shared with the law's own nominal RNE (H-infinity, SMC) when both are at the measured q;
-    - d = max_j (|g_j - mid_j| / span_j - 1/2) replaces max_j max(low_j - g_j, g_j - high_j, 0) / span_j
-      (alpha = clip(1 - d / margin, 0, 1) is the same for d < 0 as for d = 0), 1/bound folded into the
-      MLP's last layer, sign(alpha) for alpha > 0.
+    - d = max over [g - mid - half, mid - g - half] / span (one Gemm and one ReduceMax) replaces
+      max_j max(low_j - g_j, g_j - high_j, 0) / span_j (alpha = clip(1 - d / margin, 0, 1) is the same for
+      d < 0 as for d = 0); r is computed in units of the trust region's residual bound (the clamp is one
+      Clip), 1/b folded into the MLP's last layer, sign(alpha) for alpha > 0.
 
     The reference semantics is FusedPolicy.forward with the emulator's own forward (tests compare both).
     """
