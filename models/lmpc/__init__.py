@@ -6,7 +6,8 @@
 - ``emulator``: the MLP and its training.
 - ``bundle_export``: law step + emulator fused into one ONNX graph, with its manifest.
 - ``controller``: ``make_lmpc_controller`` (mode ``lmpc``) runs a bundle through hil_runtime.bundle.
-- ``pipeline``: dataset -> sampling -> labels -> training -> bundles, with ``hil lmpc ...`` commands.
+- ``pipeline``: dataset -> sampling -> labels -> training -> bundles, a module per stage; the
+  command is ``hil pipeline`` (models/cli/pipeline.py).
 
 See docs/lmpc.md.
 """
