@@ -96,6 +96,9 @@ CASES: list[Case] = [
     ("period_s=0", ["experiment", "--period-s", "0"], {}, ["--period-s", "positive"]),
     ("unknown-option", ["experiment", "--colour", "red"], {}, ["No such option: --colour"]),
     ("unknown-robot", ["experiment", "--robot", "r2d2"], {}, ["robot: unknown name 'r2d2'", "ur5_paper"]),
+    ("unknown-executor", ["pipeline", "--executor", "dask"], {}, ["--executor: unknown 'dask'", "serial, local, ray"]),
+    ("workers=0", ["pipeline", "--workers", "0"], {}, ["--workers: must be >= 1"]),
+    ("unknown-stage", ["pipeline", "--stages", "dataset,fit"], {}, ["--stages: unknown 'fit'", "augment"]),
     # --out
     ("out-file-in-the-way", ["experiment", "--out", "{tmp}/f"], {"f": "x"}, ["--out {tmp}/f: a file is in the way"]),
     (
