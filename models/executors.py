@@ -169,6 +169,9 @@ class RayExecutor(Executor):
     def _start(self) -> Any:
         if self._ray is not None:
             return self._ray
+        # Token authentication between Ray's processes, as Ray itself sets it (for good, in this
+        # process) for a new local cluster; set here, Ray does not print its one-line notice about it.
+        os.environ.setdefault("RAY_AUTH_MODE", "token")
         with _environment(RAY_ENV):
             try:
                 import ray
