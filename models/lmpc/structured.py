@@ -393,7 +393,7 @@ def _structured_policy_class() -> type:
     - d = max over [g - mid - half, mid - g - half] / span (one Gemm and one ReduceMax) replaces
       max_j max(low_j - g_j, g_j - high_j, 0) / span_j (alpha = clip(1 - d / margin, 0, 1) is the same for
       d < 0 as for d = 0); r is computed in units of the trust region's residual bound (the clamp is one
-      Clip), 1/b folded into the MLP's last layer, sign(alpha) for alpha > 0.
+      Clip), 1/b folded into the MLP's last layer, |r| alpha > alpha counts the clamped joints where alpha > 0.
 
     The reference semantics is FusedPolicy.forward with the emulator's own forward (tests compare both).
     """
@@ -436,7 +436,7 @@ def _structured_policy_class() -> type:
                 "alpha_gain": torch.full((1, 1), -self.inv_margin, dtype=torch.float64),
                 "alpha_offset": torch.ones(1, dtype=torch.float64),
                 "trust_bound": torch.as_tensor(np.diag(trust_bound)),
-                "residual_scale": torch.as_tensor(emulator.bound.numpy() / trust_bound),
+                "residual_scale": torch.as_tensor(np.diag(emulator.bound.numpy() / trust_bound)),
                 "layers": [],
             }
             if emulator.use_residual:
@@ -483,11 +483,12 @@ def _structured_policy_class() -> type:
                     h = torch.addmm(bias, h, weight)
                     if i < len(k["layers"]) - 1:
                         h = torch.relu(h)
-                r = r + k["residual_scale"] * torch.tanh(h)
+                r = torch.addmm(r, torch.tanh(h), k["residual_scale"])
             # the trust region (hil_runtime.bundle.trust_filter is the reference)
             distance = torch.amax(torch.addmm(k["guard_offset"], xt, k["guard_map"]), 1, keepdim=True)
             alpha = torch.clamp(torch.addmm(k["alpha_offset"], distance, k["alpha_gain"]), 0.0, 1.0)
-            clamped = torch.sum((torch.abs(r) > 1.0).to(torch.float64), 1, keepdim=True) * torch.sign(alpha)
+            # joints clamped while alpha > 0: |r| alpha > alpha (one comparison instead of a count times sign(alpha))
+            clamped = torch.sum((torch.abs(r) * alpha > alpha).to(torch.float64), 1, keepdim=True)
             step = torch.addmm(tau_fb, alpha * torch.clamp(r, -1.0, 1.0), k["trust_bound"])
             tau = torch.minimum(torch.maximum(step, -self.limit), self.limit)
             if self.applied is not None:

@@ -175,3 +175,71 @@ def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path
         experiment(modes="fb", laws="pd", out=tmp_path, hmpc_formulation="relative", conditions=None)
     with pytest.raises(ModelInputError, match="--conditions"):
         experiment(modes="fb", laws="pd", out=tmp_path, conditions="random:zero:1")
+
+
+@pytest.mark.parametrize("law_name", ["pd", "pid", "adrc", "hinf", "smc", "mrac"])
+def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The folded graph (models.lmpc.structured) computes FusedPolicy.forward with the emulator's own forward
+    to round-off: inside the trust box, in the fade-out, outside it, clamped or not; and it is small."""
+    onnx = pytest.importorskip("onnx")
+    ort = pytest.importorskip("onnxruntime")
+    import warnings
+
+    from models.feedback import make_law
+    from models.lmpc.bundle_export import FusedPolicy
+    from models.lmpc.structured import StructuredEmulator, _structured_policy_class
+
+    robot = load_robot("ur5_paper")
+    n = robot.n_joints
+    limit = np.asarray(robot.torque_limit_nm, float)
+    rng = np.random.default_rng(11)
+    torch.manual_seed(11)
+    for ff_point in ("measured", "reference"):
+        law = make_law(law_name, robot, 1e-3, "stabilized")
+        model = StructuredEmulator(robot, (16, 16), 0.02 * limit, ff_point)
+        with torch.no_grad():
+            model.c.copy_(torch.as_tensor(rng.uniform(-1.0, 0.0, n)))
+            model.g.copy_(torch.as_tensor(rng.uniform(0.8, 1.2, n)))
+            model.theta_kp.copy_(torch.eye(n) * 5.0 + torch.as_tensor(rng.normal(size=(n, n))) * 0.1)
+            model.theta_kd.copy_(torch.eye(n) * 5.0)
+            for layer in model.net:
+                if isinstance(layer, torch.nn.Linear):
+                    layer.weight.normal_(0.0, 0.3)
+                    layer.bias.normal_(0.0, 0.1)
+            model.in_mean.copy_(torch.as_tensor(rng.normal(size=6 * n) * 0.1))
+            model.in_std.copy_(torch.as_tensor(rng.uniform(0.5, 2.0, 6 * n)))
+        model.freeze()
+        low, high = -np.full(6 * n, 0.4), np.full(6 * n, 0.4)
+        low[5 * n :], high[5 * n :] = -limit, limit
+        low[n], high[n] = -0.3, 0.3 + 1e-12  # a span near the minimum is handled as the reference does
+        trust = {"feature_low": low, "feature_high": high, "box_margin": 0.5, "residual_bound_nm": 0.05 * limit}
+        reference = FusedPolicy(law, model, True, trust, "eq22+qdd_d").eval()
+        compact = _structured_policy_class()(law, model, True, trust, "eq22+qdd_d").eval()
+        width = 5 * n + law.state_size
+        x = rng.normal(size=(96, width)) * np.repeat([0.02, 0.2, 0.6], 32)[:, None]  # inside, fade-out, outside
+        x[:, 5 * n :] = rng.normal(size=(96, law.state_size)) * 0.01
+        with torch.no_grad():
+            expected = reference(torch.as_tensor(x)).numpy()
+            got = compact(torch.as_tensor(x)).numpy()
+        trust_col = expected[:, 2 * n + law.state_size]  # 1 - alpha
+        assert (trust_col == 0).any() and (trust_col == 1).any() and ((trust_col > 0) & (trust_col < 1)).any()
+        assert expected[:, -1].sum() > 0  # some rows clamp
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+        path = tmp_path / f"{law_name}_{ff_point}.onnx"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                compact,
+                (torch.zeros(2, width, dtype=torch.float64),),
+                str(path),
+                input_names=["x"],
+                output_names=["y"],
+                dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}},
+                opset_version=17,
+                dynamo=False,
+            )
+        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        np.testing.assert_allclose(session.run(None, {"x": x})[0], expected, rtol=1e-9, atol=1e-9)
+        compute = [node for node in onnx.load(str(path)).graph.node if node.op_type != "Constant"]
+        if ff_point == "measured":  # shipped; at the reference point H-inf and SMC run a second RNE pass
+            assert len(compute) <= {"pd": 62, "pid": 68, "hinf": 66, "smc": 69}.get(law_name, 81)
