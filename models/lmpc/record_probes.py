@@ -1,11 +1,13 @@
-"""Add the behavioural-check probes to bundles exported before the loader required them.
+"""(Re-)record the behavioural-check probes of bundles: for bundles exported before the loader required
+them, or before the probes clamped every joint's residual (issue 13).
 
     python -m models.lmpc.record_probes models/bundles/ur5_paper/*
 
-The graph is not touched (its sha256 stays); only the manifest gains ``probes``: seeded inputs
-(hil_runtime.bundle.make_probe_inputs) and this machine's onnxruntime outputs for them. The
-manifest is validated with the shared schema and replaced atomically; the bundle is then loaded
-with every check, as the runtime will.
+The graph is not touched (its sha256 stays); only the manifest's ``probes`` are replaced: seeded
+inputs (hil_runtime.bundle.make_probe_inputs), rows that clamp each joint's residual
+(clamp_probe_inputs) and this machine's onnxruntime outputs for them. The manifest is validated with
+the shared schema and replaced atomically; the bundle is then loaded with every check, as the
+runtime will.
 """
 
 from __future__ import annotations
