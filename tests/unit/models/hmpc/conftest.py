@@ -11,6 +11,9 @@ from models.robots import RobotModel, load_robot
 
 States = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 BoxQPs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+MakeStates = Callable[..., States]
+MakeBoxQPs = Callable[..., BoxQPs]
+Objective = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 @pytest.fixture(scope="session")
@@ -44,19 +47,20 @@ def random_box_qps(seed: int, rows: int = 12, size: int = 30, unit_lower: bool =
 
 def qp_objective(hessian: np.ndarray, gradient: np.ndarray, x: np.ndarray) -> np.ndarray:
     """g'x + 1/2 x'Hx per row (K,)."""
-    return np.einsum("ki,ki->k", gradient + 0.5 * np.einsum("kij,kj->ki", hessian, x), x)
+    value: np.ndarray = np.einsum("ki,ki->k", gradient + 0.5 * np.einsum("kij,kj->ki", hessian, x), x)
+    return value
 
 
 @pytest.fixture(scope="session")
-def make_states() -> Callable[..., States]:
+def make_states() -> MakeStates:
     return near_reference_states
 
 
 @pytest.fixture(scope="session")
-def make_box_qps() -> Callable[..., BoxQPs]:
+def make_box_qps() -> MakeBoxQPs:
     return random_box_qps
 
 
 @pytest.fixture(scope="session")
-def objective() -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+def objective() -> Objective:
     return qp_objective

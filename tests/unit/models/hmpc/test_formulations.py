@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 import pytest
 
 from models.errors import ModelInputError
 from models.feedback import make_law
 from models.hmpc import HMPCConfig, HMPCSolver
+from models.robots import RobotModel
+
+if TYPE_CHECKING:
+    from tests.unit.models.hmpc.conftest import MakeStates
 
 
-def test_anchored_weights_scale_with_inverse_inertia_squared(robot) -> None:  # type: ignore[no-untyped-def]
+def test_anchored_weights_scale_with_inverse_inertia_squared(robot: RobotModel) -> None:
     law = make_law("pd", robot, 1e-3, "stabilized")
     solver = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", anchor_weight_scale=10.0))
     inertia = np.array([0.048, 0.383, 0.124, 0.0168, 0.0024, 0.000125])  # M_ii(0), docs/hmpc.md
@@ -19,7 +25,7 @@ def test_anchored_weights_scale_with_inverse_inertia_squared(robot) -> None:  # 
     np.testing.assert_allclose(coarse.anchor_weight / solver.anchor_weight, 100.0)
 
 
-def test_anchored_compiled_equals_numpy_and_reports_w_star(make_states, robot) -> None:  # type: ignore[no-untyped-def]
+def test_anchored_compiled_equals_numpy_and_reports_w_star(make_states: MakeStates, robot: RobotModel) -> None:
     law = make_law("pd", robot, 1e-3, "stabilized")
     results = [
         HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", kernels=k)).solve(*make_states(8))
@@ -30,14 +36,14 @@ def test_anchored_compiled_equals_numpy_and_reports_w_star(make_states, robot) -
     assert HMPCSolver(law, robot).solve(*make_states(2)).anchor_scale is None
 
 
-def test_a_stiff_anchor_returns_the_anchor(make_states, robot) -> None:  # type: ignore[no-untyped-def]
+def test_a_stiff_anchor_returns_the_anchor(make_states: MakeStates, robot: RobotModel) -> None:
     law = make_law("pd", robot, 1e-3, "stabilized")
     result = HMPCSolver(law, robot, HMPCConfig(torque_cost="anchored", anchor_weight_scale=1e9)).solve(*make_states(6))
     anchor = np.clip(result.anchor_scale[:, None] * result.tau_fb_nm, -robot.torque_limit_nm, robot.torque_limit_nm)
     np.testing.assert_allclose(result.tau_nm, anchor, atol=1e-3 * np.abs(anchor).max())
 
 
-def test_the_law_matters_only_with_the_anchored_cost(make_states, robot) -> None:  # type: ignore[no-untyped-def]
+def test_the_law_matters_only_with_the_anchored_cost(make_states: MakeStates, robot: RobotModel) -> None:
     x = make_states(6, seed=3)
     taus = {}
     for cost in ("absolute", "anchored"):
@@ -54,6 +60,6 @@ def test_the_law_matters_only_with_the_anchored_cost(make_states, robot) -> None
 @pytest.mark.parametrize(
     "options", [{"torque_cost": "relative"}, {"anchor_weight_scale": 0.0}, {"anchor_weight_scale": float("nan")}]
 )
-def test_bad_formulation_options_are_model_input_errors(options) -> None:  # type: ignore[no-untyped-def]
+def test_bad_formulation_options_are_model_input_errors(options: dict[str, Any]) -> None:
     with pytest.raises(ModelInputError, match="hmpc config"):
         HMPCConfig(**options)

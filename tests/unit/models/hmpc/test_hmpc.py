@@ -5,6 +5,7 @@ numpy == compiled inner loops: test_inner_loops.py."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
@@ -15,14 +16,18 @@ from models.feedback.pd import PDLaw
 from models.hmpc import HMPCConfig, HMPCSolver, make_hmpc_controller, solve_batch
 from models.hmpc.boxqp import solve_box_qp
 from models.hmpc.solver import CONVERGED, NONFINITE_INPUT, NOT_CONVERGED
+from models.robots import RobotModel
+
+if TYPE_CHECKING:
+    from tests.unit.models.hmpc.conftest import MakeBoxQPs, MakeStates, Objective
 
 
 @pytest.fixture(scope="module")
-def law(robot):  # type: ignore[no-untyped-def]
+def law(robot: RobotModel) -> PDLaw:
     return PDLaw(robot.n_joints, 1e-3, robot.torque_limit_nm)
 
 
-def test_refined_cost_below_best_candidate(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_refined_cost_below_best_candidate(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     result = HMPCSolver(law, robot).solve(*make_states(16))
     assert np.all(result.status == CONVERGED)
     # the refinement must actually improve on the paper's candidates, not just pick one
@@ -31,7 +36,7 @@ def test_refined_cost_below_best_candidate(make_states, law, robot) -> None:  # 
     assert np.all(result.iterations >= 1)
 
 
-def test_solution_is_a_local_minimum(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_solution_is_a_local_minimum(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     solver = HMPCSolver(law, robot)
     args = make_states(1, seed=3)
     result = solver.solve(*args)
@@ -47,7 +52,7 @@ def test_solution_is_a_local_minimum(make_states, law, robot) -> None:  # type: 
         assert solver._rollout(rows, trial).cost[0] >= base * (1 - 1e-6)
 
 
-def test_torque_bounds_respected_and_active(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_torque_bounds_respected_and_active(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     tight = (5.0, 5.0, 3.0, 1.0, 1.0, 1.0)
     solver = HMPCSolver(law, robot, HMPCConfig(torque_limit_nm=tight, max_iterations=10))
     q, qd, q_d, qd_d, qdd_d = make_states(8, seed=2, error_rad=0.05)
@@ -58,7 +63,7 @@ def test_torque_bounds_respected_and_active(make_states, law, robot) -> None:  #
     assert np.any(np.isclose(np.abs(result.sequence_nm), limit))  # the bounds do bind here
 
 
-def test_velocity_bound_holds_on_prediction(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_velocity_bound_holds_on_prediction(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     # A large position error pulls the joints hard; the predicted velocity must stay within 0.3 rad/s.
     limit = 0.3
     solver = HMPCSolver(law, robot, HMPCConfig(velocity_limit_rad_s=(limit,) * 6, max_iterations=10))
@@ -78,7 +83,7 @@ def test_velocity_bound_holds_on_prediction(make_states, law, robot) -> None:  #
 
 
 @pytest.mark.parametrize("law_name", ["pd", "pid"])
-def test_rne_and_pinocchio_backends_agree(make_states, robot, law_name: str) -> None:  # type: ignore[no-untyped-def]
+def test_rne_and_pinocchio_backends_agree(make_states: MakeStates, robot: RobotModel, law_name: str) -> None:
     from models.feedback import make_law
 
     law = make_law(law_name, robot, 1e-3)
@@ -91,7 +96,7 @@ def test_rne_and_pinocchio_backends_agree(make_states, robot, law_name: str) -> 
     np.testing.assert_allclose(own.sequence_nm, fast.sequence_nm, rtol=0, atol=1e-8)
 
 
-def test_nan_state_falls_back_and_never_outputs_nan(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_nan_state_falls_back_and_never_outputs_nan(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     q, qd, q_d, qd_d, qdd_d = make_states(3, seed=6)
     q[1, 2] = np.nan
     qd_d[2, 0] = np.inf
@@ -104,7 +109,7 @@ def test_nan_state_falls_back_and_never_outputs_nan(make_states, law, robot) -> 
     np.testing.assert_array_equal(result.tau_nm[2], result.tau_fb_nm[2])  # finite (saturated) law torque
 
 
-def test_controller_counts_fallbacks_and_times_cycles(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_controller_counts_fallbacks_and_times_cycles(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     controller = make_hmpc_controller(law, robot)
     q, qd, q_d, qd_d, qdd_d = make_states(2, seed=7)
     controller.reset(q)
@@ -117,7 +122,7 @@ def test_controller_counts_fallbacks_and_times_cycles(make_states, law, robot) -
     assert len(controller.cycle_times_s) == 2 and all(t > 0 for t in controller.cycle_times_s)
 
 
-def test_budget_exhausted_falls_back_to_feedback(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_budget_exhausted_falls_back_to_feedback(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     # one Gauss-Newton iteration with a strict tolerance cannot converge on large errors
     config = HMPCConfig(max_iterations=1, cost_rtol=1e-14, cost_atol=0.0)
     args = make_states(4, seed=8, error_rad=0.1)
@@ -130,7 +135,9 @@ def test_budget_exhausted_falls_back_to_feedback(make_states, law, robot) -> Non
     np.testing.assert_array_equal(kept.tau_nm, kept.sequence_nm[:, 0])
 
 
-def test_warm_start_reaches_the_same_optimum_in_fewer_iterations(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_warm_start_reaches_the_same_optimum_in_fewer_iterations(
+    make_states: MakeStates, law: PDLaw, robot: RobotModel
+) -> None:
     solver = HMPCSolver(law, robot)
     args = make_states(8, seed=9)
     cold = solver.solve(*args)
@@ -142,7 +149,7 @@ def test_warm_start_reaches_the_same_optimum_in_fewer_iterations(make_states, la
     np.testing.assert_allclose(warm.cost, cold.cost, rtol=2e-4)
 
 
-def test_batch_equals_single(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_batch_equals_single(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     args = make_states(10, seed=10, error_rad=0.05)
     tau, status = solve_batch(law, robot, *args, chunk_states=4)
     solver = HMPCSolver(law, robot)
@@ -152,7 +159,7 @@ def test_batch_equals_single(make_states, law, robot) -> None:  # type: ignore[n
         np.testing.assert_allclose(tau[b], one.tau_nm[0], rtol=0, atol=1e-9)
 
 
-def test_process_pool_equals_serial(make_states, law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_process_pool_equals_serial(make_states: MakeStates, law: PDLaw, robot: RobotModel) -> None:
     args = make_states(12, seed=11)
     serial, _ = solve_batch(law, robot, *args, chunk_states=5)
     with LocalProcessExecutor(2) as executor:
@@ -177,18 +184,18 @@ def test_process_pool_equals_serial(make_states, law, robot) -> None:  # type: i
         {"no_such_option": 1},
     ],
 )
-def test_bad_configuration_is_a_model_input_error(law, robot, options) -> None:  # type: ignore[no-untyped-def]
+def test_bad_configuration_is_a_model_input_error(law: PDLaw, robot: RobotModel, options: dict[str, Any]) -> None:
     with pytest.raises(ModelInputError) as info:
         make_hmpc_controller(law, robot, **options)
     assert info.value.exit_code == 2
 
 
-def test_wrong_joint_count_weights_rejected(law, robot) -> None:  # type: ignore[no-untyped-def]
+def test_wrong_joint_count_weights_rejected(law: PDLaw, robot: RobotModel) -> None:
     with pytest.raises(ModelInputError, match="position_error_weight"):
         HMPCSolver(law, robot, HMPCConfig(position_error_weight=(1.0, 2.0)))
 
 
-def test_box_qp_matches_a_reference_solver(make_box_qps) -> None:  # type: ignore[no-untyped-def]
+def test_box_qp_matches_a_reference_solver(make_box_qps: MakeBoxQPs) -> None:
     from scipy.optimize import Bounds, minimize
 
     hessian, gradient, lower, upper = make_box_qps(seed=1, unit_lower=True)
@@ -198,8 +205,8 @@ def test_box_qp_matches_a_reference_solver(make_box_qps) -> None:  # type: ignor
     assert np.all((x >= lower) & (x <= upper))
     for row in range(k):
 
-        def f(z, r=row):  # type: ignore[no-untyped-def]
-            return gradient[r] @ z + 0.5 * z @ hessian[r] @ z
+        def f(z: np.ndarray, r: int = row) -> float:
+            return float(gradient[r] @ z + 0.5 * z @ hessian[r] @ z)
 
         ref = minimize(
             f,
@@ -212,7 +219,7 @@ def test_box_qp_matches_a_reference_solver(make_box_qps) -> None:  # type: ignor
         assert f(x[row]) <= ref.fun + 1e-9
 
 
-def test_warm_started_box_qp_reaches_the_same_minimizer(make_box_qps, objective) -> None:  # type: ignore[no-untyped-def]
+def test_warm_started_box_qp_reaches_the_same_minimizer(make_box_qps: MakeBoxQPs, objective: Objective) -> None:
     # A guess only picks the first active set: from the solution itself, from a wrong set of
     # bounds, or from none, the minimizer (unique: H positive definite) is the same.
     hessian, gradient, lower, upper = make_box_qps(seed=3)

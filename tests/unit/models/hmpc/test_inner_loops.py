@@ -6,7 +6,7 @@ it and fail, not skip, without it."""
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
@@ -21,6 +21,9 @@ from models.hmpc.inner_loops import INNER_LOOPS, NumbaInnerLoops, NumpyInnerLoop
 from models.hmpc.solver import CONVERGED
 from models.robots import RobotModel
 from models.sim import SimConfig, simulate
+
+if TYPE_CHECKING:
+    from tests.unit.models.hmpc.conftest import MakeBoxQPs, MakeStates, Objective
 
 # What "the same" means between the two. The compiled box QP solves on the free set by Cholesky,
 # numpy by LU: round-off differs, the Gauss-Newton stopping test (cost_rtol 1e-4) then stops at
@@ -55,7 +58,7 @@ def _block_lower_triangular(rng: np.random.Generator, k: int, horizon: int, rows
 
 
 @pytest.mark.parametrize("rho", [0.0, 1e6])
-def test_stage_cost_same_and_as_defined(loops, rho: float) -> None:  # type: ignore[no-untyped-def]
+def test_stage_cost_same_and_as_defined(loops: tuple[NumbaInnerLoops, NumpyInnerLoops], rho: float) -> None:
     rng = np.random.default_rng(0)
     k, horizon, n, n_features = 9, 5, 6, 14  # two features beyond [e, e_dot]
     features = rng.normal(size=(k, horizon, n_features))
@@ -80,7 +83,7 @@ def test_stage_cost_same_and_as_defined(loops, rho: float) -> None:  # type: ign
     np.testing.assert_allclose(slow, expected, rtol=1e-12)
 
 
-def test_sensitivities_same_and_as_defined(loops) -> None:  # type: ignore[no-untyped-def]
+def test_sensitivities_same_and_as_defined(loops: tuple[NumbaInnerLoops, NumpyInnerLoops]) -> None:
     rng = np.random.default_rng(1)
     k, horizon, n, dt = 4, 5, 6, 1e-3
     d_q, d_qd, d_tau = (rng.normal(size=(k, horizon, n, n)) * s for s in (1e3, 1e2, 1e2))
@@ -97,7 +100,7 @@ def test_sensitivities_same_and_as_defined(loops) -> None:  # type: ignore[no-un
     np.testing.assert_allclose(np.einsum("kxi,ki->kx", slow, u)[:, -2 * n :], np.concatenate([q, qd], 1), rtol=1e-10)
 
 
-def test_normal_equations_same_and_as_defined(loops) -> None:  # type: ignore[no-untyped-def]
+def test_normal_equations_same_and_as_defined(loops: tuple[NumbaInnerLoops, NumpyInnerLoops]) -> None:
     rng = np.random.default_rng(2)
     k, horizon, n, n_features = 5, 5, 6, 14
     f = _block_lower_triangular(rng, k, horizon, n_features, n)
@@ -121,7 +124,9 @@ def test_normal_equations_same_and_as_defined(loops) -> None:  # type: ignore[no
 
 
 @pytest.mark.parametrize("rho", [0.0, 1e6])
-def test_model_step_same_with_torque_and_state_bounds_active(loops, rho: float) -> None:  # type: ignore[no-untyped-def]
+def test_model_step_same_with_torque_and_state_bounds_active(
+    loops: tuple[NumbaInnerLoops, NumpyInnerLoops], rho: float
+) -> None:
     rng = np.random.default_rng(3)
     k, m, nx = 10, 30, 60
     f = rng.normal(size=(k, m, m)) * np.logspace(-2, 1, m)
@@ -142,7 +147,9 @@ def test_model_step_same_with_torque_and_state_bounds_active(loops, rho: float) 
     assert np.all(p_slow >= 0)  # a step never predicts an increase (d = 0 is feasible)
 
 
-def test_compiled_box_qp_matches_numpy(loops, make_box_qps, objective) -> None:  # type: ignore[no-untyped-def]
+def test_compiled_box_qp_matches_numpy(
+    loops: tuple[NumbaInnerLoops, NumpyInnerLoops], make_box_qps: MakeBoxQPs, objective: Objective
+) -> None:
     hessian, gradient, lower, upper = make_box_qps(seed=2, rows=16)
     (x_nb, ok_nb), (x_np, ok_np) = (impl.box_qp(hessian, gradient, lower, upper, 20, 1e-9) for impl in loops)
     assert ok_np.all() and ok_nb.all()
@@ -172,7 +179,9 @@ def _assert_same_solve(fast: Any, slow: Any, torque_cost: str = "absolute") -> N
 # only through its torque (the candidates' seed) and its state.
 @pytest.mark.parametrize("torque_cost", ["absolute", "anchored"])
 @pytest.mark.parametrize("law_name", [name for name in LAW_NAMES if name != "hinf"])
-def test_every_law_same_solve_on_random_problems(robot, make_states, law_name: str, torque_cost: str) -> None:  # type: ignore[no-untyped-def]
+def test_every_law_same_solve_on_random_problems(
+    robot: RobotModel, make_states: MakeStates, law_name: str, torque_cost: str
+) -> None:
     # ~3 deg errors: the torque box binds and most rows need several Gauss-Newton iterations
     args = make_states(12, seed=21, error_rad=0.05)
     law = make_law(law_name, robot, 1e-3)
@@ -182,7 +191,7 @@ def test_every_law_same_solve_on_random_problems(robot, make_states, law_name: s
     _assert_same_solve(fast, slow, torque_cost)
 
 
-def test_compiled_kernels_reach_the_numpy_optimum(robot, make_states) -> None:  # type: ignore[no-untyped-def]
+def test_compiled_kernels_reach_the_numpy_optimum(robot: RobotModel, make_states: MakeStates) -> None:
     # Large errors (torque box and velocity penalty active, several Gauss-Newton iterations):
     # the compiled inner loops take the same path as the numpy ones, to round-off.
     law = PDLaw(robot.n_joints, 1e-3, robot.torque_limit_nm)  # the paper's gains
@@ -198,12 +207,12 @@ class _SlidingSurfacePID(PIDLaw):
 
     name = "pid_sliding_surface"
 
-    def error_features(self, xp, state, q, qd, q_d, qd_d):  # type: ignore[no-untyped-def]
+    def error_features(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any) -> Any:
         e, e_dot = q_d - q, qd_d - qd
         return xp.concatenate([e, e_dot, e_dot + 20.0 * e + state], -1)
 
 
-def test_a_laws_own_features_same_solve_and_reduce_to_the_base_ones(robot, make_states) -> None:  # type: ignore[no-untyped-def]
+def test_a_laws_own_features_same_solve_and_reduce_to_the_base_ones(robot: RobotModel, make_states: MakeStates) -> None:
     law = _SlidingSurfacePID(robot.n_joints, 1e-3, robot.torque_limit_nm)
     args = make_states(8, seed=4, error_rad=0.03)
     # weighted: the integral term changes the optimum; both implementations find the same one
@@ -222,7 +231,7 @@ def test_a_laws_own_features_same_solve_and_reduce_to_the_base_ones(robot, make_
 
 
 @pytest.mark.parametrize(("law_name", "torque_cost"), [("pd", "absolute"), ("smc", "absolute"), ("pd", "anchored")])
-def test_same_closed_loop_on_the_experiments_conditions(robot, law_name: str, torque_cost: str) -> None:  # type: ignore[no-untyped-def]
+def test_same_closed_loop_on_the_experiments_conditions(robot: RobotModel, law_name: str, torque_cost: str) -> None:
     # The paper's five conditions (C4/C5 start off the reference), shortened to 0.3 s with the
     # impulse moved to t = 0.1 s; the HMPC controller as `hil experiment --modes hmpc` runs it.
     conditions = [
