@@ -15,6 +15,10 @@ Per state, one call of ``HMPCSolver.solve``:
    non-finite result fall back to tau_fb (or the caller's hold torque if tau_fb is not finite);
    every fallback is reported in ``status``. The torque returned is always finite and within bounds.
 
+One algorithm: the array work inside an iteration (cost, condensation, box QP) is done by an
+``InnerLoops`` object (``models.hmpc.inner_loops``: numpy, or the compiled numba kernels) chosen
+once when the solver is built (``HMPCConfig.kernels``).
+
 The reference preview at k+j comes from the reference's value, rate and acceleration at k
 (second-order Taylor, exact for the quadratic part; the error over 5 ms is O((5 ms)^3 q_d''')).
 Cost: see HMPCConfig. State bounds are soft (a stiff quadratic penalty) so that a state already
