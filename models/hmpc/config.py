@@ -88,8 +88,10 @@ class HMPCConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 fail(name, "must be a finite number >= 0", value)
-        for name in ("cost_rtol", "qp_tolerance"):
-            value = getattr(self, name)
+        positive = {name: getattr(self, name) for name in ("cost_rtol", "qp_tolerance", "anchor_weight_scale")}
+        if self.prediction_step_s is not None:  # None: the law's control period
+            positive["prediction_step_s"] = self.prediction_step_s
+        for name, value in positive.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 fail(name, "must be a finite number > 0", value)
         if 1.0 - self.temporal_decay * (self.horizon_steps - 1) <= 0.0:
@@ -104,22 +106,10 @@ class HMPCConfig:
                 array = np.asarray(value, float)
                 if array.ndim != 1 or np.any(np.isnan(array)) or np.any(array <= 0):
                     fail(name, "infeasible bounds: every limit must be > 0 (|x| <= limit)", value)
-        if self.prediction_step_s is not None and not (
-            isinstance(self.prediction_step_s, int | float)
-            and math.isfinite(self.prediction_step_s)
-            and self.prediction_step_s > 0
-        ):
-            fail("prediction_step_s", "must be a finite number > 0", self.prediction_step_s)
         if self.on_budget_exhausted not in BUDGET_POLICIES:
             fail("on_budget_exhausted", f"must be one of {', '.join(BUDGET_POLICIES)}", self.on_budget_exhausted)
         if self.torque_cost not in TORQUE_COSTS:
             fail("torque_cost", f"must be one of {', '.join(TORQUE_COSTS)}", self.torque_cost)
-        if not (
-            isinstance(self.anchor_weight_scale, int | float)
-            and math.isfinite(self.anchor_weight_scale)
-            and self.anchor_weight_scale > 0
-        ):
-            fail("anchor_weight_scale", "must be a finite number > 0", self.anchor_weight_scale)
         if self.kernels not in KERNELS:
             fail("kernels", f"must be one of {', '.join(KERNELS)}", self.kernels)
         if not isinstance(self.backend, str):
