@@ -45,13 +45,33 @@ def main() -> None:
         "--compact", action="store_true", help="only compare the shipped graphs with today's graph code"
     )
     parser.add_argument(
+        "--against",
+        type=Path,
+        default=None,
+        help="only time these bundles against --bundles (controller call and bare step, interleaved in rounds)",
+    )
+    parser.add_argument("--rounds", type=int, default=6, help="with --against: alternations per law")
+    parser.add_argument(
+        "--reexport-to",
+        type=Path,
+        default=None,
+        help="only write the shipped structured bundles, re-exported with today's graph code, under this directory",
+    )
+    parser.add_argument(
         "--session-sweep",
         action="store_true",
         help="also time each graph under onnxruntime's optimization levels / execution modes",
     )
     args = parser.parse_args()
-    if args.compact:
-        result = compact_compare(args.laws.split(","), args.bundles, args.cycles)
+    if args.reexport_to is not None:
+        for law_name in args.laws.split(","):
+            print(json.dumps(reexport_shipped(law_name, args.bundles, args.reexport_to)))
+        return
+    if args.against is not None or args.compact:
+        if args.against is not None:
+            result = time_against(args.laws.split(","), args.bundles, args.against, args.cycles, args.rounds)
+        else:
+            result = compact_compare(args.laws.split(","), args.bundles, args.cycles)
         print(json.dumps(result, indent=2))
         if args.out is not None:
             args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -226,6 +246,108 @@ def structured_policy_from_bundle(bundle_dir: Path):  # type: ignore[no-untyped-
     return _structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
 
 
+def time_against(laws: list[str], base: Path | None, other: Path, cycles: int, rounds: int) -> dict:
+    """t_L of two bundle sets, interleaved: per law, ``rounds`` alternations of a closed loop on C1
+    (``cycles`` controller calls each, the first 100 dropped) and of bare ``PolicyBundle.step`` calls."""
+    import time
+
+    from hil_runtime.bundle import PolicyBundle
+    from models.conditions import load_conditions
+    from models.feedback import make_law
+    from models.lmpc import make_lmpc_controller
+    from models.lmpc.controller import bundle_path
+    from models.robots import load_robot
+    from models.sim import SimConfig, simulate
+
+    robot = load_robot("ur5_paper")
+    sim = SimConfig()
+    short = replace(load_conditions()[0], duration_s=cycles * sim.period_s)
+    sets = {"base": base, "other": other}
+    out: dict = {
+        "what": "t_L per control cycle (us, median / p99), one arm; base = --bundles, other = --against",
+        "bundles": {k: str(v) if v is not None else "shipped" for k, v in sets.items()},
+        "cycles": cycles,
+        "rounds": rounds,
+        "laws": {},
+    }
+    for law_name in laws:
+        calls: dict[str, list[float]] = {k: [] for k in sets}
+        bare: dict[str, list[float]] = {k: [] for k in sets}
+        nodes = {}
+        for _ in range(rounds):
+            for key, directory in sets.items():
+                controller = make_lmpc_controller(make_law(law_name, robot, sim.period_s), robot, bundle_dir=directory)
+                simulate(robot, controller, [short], sim)
+                calls[key].extend(controller.cycle_times_s[100:])
+                bundle = PolicyBundle.load(bundle_path(robot.name, law_name, directory))
+                nodes[key] = _nodes(bundle.path / bundle.manifest["graph"]["file"], compute_only=True)
+                state, q = bundle.initial_state(np.zeros(6)), np.full(6, 0.1)
+                for i in range(cycles):
+                    start = time.perf_counter()
+                    bundle.step(q, q, q, q, q, state)
+                    if i >= 100:
+                        bare[key].append(time.perf_counter() - start)
+
+        def figure(values: list[float]) -> list[float]:
+            us = np.asarray(values) * 1e6
+            return [round(float(np.median(us)), 1), round(float(np.percentile(us, 99)), 1)]
+
+        out["laws"][law_name] = {
+            "compute_nodes": nodes,
+            "controller_call_us": {k: figure(v) for k, v in calls.items()},
+            "bundle_step_us": {k: figure(v) for k, v in bare.items()},
+        }
+    out["load_average"] = os.getloadavg()
+    return out
+
+
+def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dict:
+    """A shipped structured bundle re-exported with today's graph code (models.lmpc.structured.export_trained:
+    the same emulator, law, trust box and residual bound; fresh probes) to <out_root>/<robot>/<law>; returns
+    the largest difference of the new graph from the shipped manifest's recorded probe outputs."""
+    from hil_runtime.bundle import PolicyBundle
+    from models.lmpc.controller import bundle_path
+    from models.lmpc.structured import config_from_json, export_trained
+
+    source = bundle_path("ur5_paper", law_name, bundles)
+    policy, manifest = structured_policy_from_bundle(source)
+    training, trust = manifest["training"], manifest["trust_region"]
+    config = config_from_json(training["config"])
+    # bound = scale * label_max + 1e-3 (export_trained): the label maxima back from the recorded bound
+    label_max = (np.asarray(trust["residual_bound_nm"], float) - 1e-3) / config.bound_scale
+    box = (np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float))
+    robot_name = manifest["robot"]["name"]
+    out = out_root / robot_name / law_name
+    export_trained(
+        out,
+        law_name,
+        policy.law.robot if hasattr(policy.law, "robot") else _robot(robot_name),
+        policy.emulator,
+        box,
+        label_max,
+        config,
+        training["summary"],
+    )
+    bundle = PolicyBundle.load(out)
+    probes = manifest["probes"]
+    inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
+    n = bundle.n_joints
+    tau, tau_fb, state = bundle.step_batch(*(inputs[:, i * n : (i + 1) * n] for i in range(5)), inputs[:, 5 * n :])
+    got = np.concatenate([tau, tau_fb, state, bundle.last_trust_batch], 1)
+    return {
+        "law": law_name,
+        "bundle": str(out),
+        "shipped_probe_max_rel_diff": float((np.abs(got - recorded) / np.maximum(np.abs(recorded), 1.0)).max()),
+        "compute_nodes": _nodes(out / bundle.manifest["graph"]["file"], compute_only=True),
+    }
+
+
+def _robot(name: str):  # type: ignore[no-untyped-def]
+    from models.robots import load_robot
+
+    return load_robot(name)
+
+
 def _session(path: str, level_name: str = "all"):  # type: ignore[no-untyped-def]
     import onnxruntime as ort
 
@@ -255,16 +377,17 @@ def _bound_runner(session, width: int):  # type: ignore[no-untyped-def]
     return lambda: session.run_with_iobinding(binding)
 
 
-def one_node_graph(path: Path, width: int = 6) -> None:
-    """y = x + x on one (1, width) float64 row: onnxruntime's per-run cost without a graph."""
+def one_node_graph(path: Path, width: int = 6, nodes: int = 1) -> None:
+    """y = x + x (``nodes`` chained Adds) on one (1, width) float64 row: onnxruntime's per-run and per-node
+    cost without any work."""
     import onnx
     from onnx import TensorProto, helper
 
-    node = helper.make_node("Add", ["x", "x"], ["y"])
+    names = ["x"] + [f"t{i}" for i in range(nodes - 1)] + ["y"]
+    chain = [helper.make_node("Add", [names[i], names[i]], [names[i + 1]]) for i in range(nodes)]
     io = [helper.make_tensor_value_info(k, TensorProto.DOUBLE, [1, width]) for k in ("x", "y")]
-    model = helper.make_model(
-        helper.make_graph([node], "one", io[:1], io[1:]), opset_imports=[helper.make_opsetid("", 17)]
-    )
+    graph = helper.make_graph(chain, "adds", io[:1], io[1:])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     onnx.save(model, str(path))
 
@@ -273,7 +396,6 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
     """Shipped graph vs today's graph code per law: nodes, probe equality, interleaved run times."""
     import tempfile
     import time
-    import warnings
 
     import onnxruntime
     import torch
@@ -287,33 +409,23 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
     }
     runners: dict[str, object] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        floor = Path(tmp) / "one_node.onnx"
-        one_node_graph(floor)
-        runners["one_node_graph/all"] = _bound_runner(_session(str(floor)), 6)
+        for count in (1, 60):
+            floor = Path(tmp) / f"adds_{count}.onnx"
+            one_node_graph(floor, nodes=count)
+            runners[f"chained_adds_{count}/all"] = _bound_runner(_session(str(floor)), 6)
         for law_name in laws:
             directory = bundle_path("ur5_paper", law_name, bundles)
             policy, manifest = structured_policy_from_bundle(directory)
             width = int(sum(part["size"] for part in manifest["graph"]["input"]["layout"]))
-            path = Path(tmp) / f"{law_name}.onnx"
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                torch.onnx.export(
-                    policy,
-                    (torch.zeros(2, width, dtype=torch.float64),),
-                    str(path),
-                    input_names=["x"],
-                    output_names=["y"],
-                    dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}},
-                    opset_version=17,
-                    dynamo=False,
-                )
+            reexport_shipped(law_name, bundles, Path(tmp))
+            path = Path(tmp) / manifest["robot"]["name"] / law_name / manifest["graph"]["file"]
             old_path = str(directory / manifest["graph"]["file"])
             probes = manifest["probes"]
             inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
             got = _session(str(path)).run(None, {"x": inputs})[0]
             scale = np.maximum(np.abs(recorded), 1.0)
             with torch.no_grad():
-                torch_out = policy(torch.as_tensor(inputs)).numpy()
+                torch_out = policy(torch.as_tensor(inputs)).numpy()  # the graph code's own torch forward
             out["laws"][law_name] = {
                 "compute_nodes": {"shipped": _nodes(Path(old_path), True), "new": _nodes(path, True)},
                 "probe_max_abs_diff": float(np.abs(got - recorded).max()),

@@ -12,6 +12,24 @@ from models.errors import ModelInputError
 from models.robots import load_robot
 
 
+def _export(module: torch.nn.Module, width: int, path) -> None:  # type: ignore[no-untyped-def]
+    """The bundle exporter's ONNX settings (opset 17, float64 rows, dynamic batch)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            module,
+            (torch.zeros(2, width, dtype=torch.float64),),
+            str(path),
+            input_names=["x"],
+            output_names=["y"],
+            dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}},
+            opset_version=17,
+            dynamo=False,
+        )
+
+
 @pytest.mark.parametrize("name", ["ur5_paper", "ur5", "panda"])
 def test_spatial_rne_equals_rneida(name: str) -> None:
     robot = load_robot(name)
@@ -37,16 +55,7 @@ def test_spatial_rne_is_a_small_onnx_graph(tmp_path) -> None:  # type: ignore[no
             return rne.inverse_dynamics(x[:, :6], x[:, 6:12], x[:, 12:])
 
     path = tmp_path / "rne.onnx"
-    torch.onnx.export(
-        Wrap(),
-        (torch.zeros(2, 18, dtype=torch.float64),),
-        str(path),
-        input_names=["x"],
-        output_names=["y"],
-        dynamic_axes={"x": {0: "b"}, "y": {0: "b"}},
-        opset_version=17,
-        dynamo=False,
-    )
+    _export(Wrap(), 18, path)
     compute = [n for n in onnx.load(str(path)).graph.node if n.op_type != "Constant"]
     assert len(compute) <= 32  # 29 for the RNE, 3 slices of x
     x = np.random.default_rng(0).normal(size=(5, 18))
@@ -183,8 +192,6 @@ def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp
     to round-off: inside the trust box, in the fade-out, outside it, clamped or not; and it is small."""
     onnx = pytest.importorskip("onnx")
     ort = pytest.importorskip("onnxruntime")
-    import warnings
-
     from models.feedback import make_law
     from models.lmpc.bundle_export import FusedPolicy
     from models.lmpc.structured import StructuredEmulator, _structured_policy_class
@@ -226,18 +233,7 @@ def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp
         assert expected[:, -1].sum() > 0  # some rows clamp
         np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
         path = tmp_path / f"{law_name}_{ff_point}.onnx"
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                compact,
-                (torch.zeros(2, width, dtype=torch.float64),),
-                str(path),
-                input_names=["x"],
-                output_names=["y"],
-                dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}},
-                opset_version=17,
-                dynamo=False,
-            )
+        _export(compact, width, path)
         session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
         np.testing.assert_allclose(session.run(None, {"x": x})[0], expected, rtol=1e-9, atol=1e-9)
         compute = [node for node in onnx.load(str(path)).graph.node if node.op_type != "Constant"]
