@@ -1,6 +1,6 @@
 """Re-export the structured LMPC bundles from the trained weights, without rollouts or a refit.
 
-    python -m models.lmpc.reexport                                  # results/lmpc_structured -> models/bundles
+    python -m models.lmpc.reexport                                  # results/lmpc -> models/bundles
     python -m models.lmpc.reexport --work W --bundles B --laws pd,smc --residual-bound-scale 10
 
 ``hil pipeline --design structured --work W`` keeps each law's trained emulator in
@@ -18,7 +18,7 @@ from pathlib import Path
 
 from models.errors import ModelInputError
 
-DEFAULT_WORK = Path("results/lmpc_structured")
+DEFAULT_WORK = Path("results/lmpc")  # hil pipeline's default --work
 
 
 def main(argv: list[str] | None = None) -> int:
