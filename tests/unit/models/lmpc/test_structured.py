@@ -118,6 +118,18 @@ def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(
     assert (tmp_path / "work" / "structured.json").exists()
 
 
+def test_a_dagger_round_runs_the_exported_lmpc_and_refits_on_its_states(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from hil_runtime.bundle import PolicyBundle
+    from models.lmpc.structured import run_structured
+
+    summary = run_structured(
+        _tiny("hmpc", dagger_rounds=1), tmp_path / "bundles", tmp_path / "work", log=lambda _: None
+    )
+    first, second = (r["pd"]["fit"]["samples"] for r in summary["rounds"])
+    assert len(summary["rounds"]) == 2 and second > first  # the LMPC's own states were added
+    PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd")  # the round-1 bundle, every check
+
+
 def test_control_row_the_law_imitated_is_the_law(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from hil_runtime.bundle import PolicyBundle
     from models.feedback import make_law
