@@ -1,23 +1,31 @@
-"""Child processes of ``hil demo`` that cannot outlive it.
+"""What ``hil demo`` starts and creates, none of which may outlive it: child processes, the
+signals around their start and stop, and the private directory.
 
 Each child (the pybullet target, the runtime daemon) runs in its own session, so the terminal's
 Ctrl-C reaches the demo alone and the demo stops the children in the order that keeps the arm
 safe: the daemon first (it quick-stops the drives through the target), then the target. Each child
 also gets ``PR_SET_PDEATHSIG`` = SIGTERM: should the demo itself be killed (SIGKILL, a crash), the
 kernel sends the children SIGTERM, the stop path they handle. Their stderr goes to a log file
-(never a pipe that nobody reads).
+(never a pipe that nobody reads). The private directory (bus sockets, control sockets, configs)
+names its owner's pid, so a later demo removes it when a killed demo could not.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
+
+WORK_PREFIX = "hil-demo-"
+OWNER_FILE = "demo.pid"  # the demo that owns a private directory (a SIGKILLed demo cannot remove its own)
 
 
 class DemoError(RuntimeError):
@@ -117,4 +125,87 @@ class Child:
             os.killpg(self.pid, sig)
 
 
-__all__ = ["Child", "DemoError", "free_loopback_port"]
+# --- signals while children start and stop ----------------------------------------------------------
+
+
+@contextlib.contextmanager
+def signals_blocked() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM while a child is being created and registered: a Ctrl-C then lands
+    after the child is known, so the cleanup stops it (never a child nobody tracks)."""
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+@contextlib.contextmanager
+def terminate_raises_interrupt() -> Iterator[None]:
+    """SIGTERM to the demo (a CI timeout, ``kill``) takes the same path as Ctrl-C."""
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def signals_ignored() -> Iterator[None]:
+    """While the children are being stopped, a second Ctrl-C must not cut the stop short."""
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+# --- the private directory --------------------------------------------------------------------------
+
+
+def make_work_dir() -> Path:
+    """A new private directory owned by this process, after sweeping those of killed demos.
+
+    Short (in the system's temporary directory): Unix socket paths are limited to ~107 bytes."""
+    remove_stale_work_dirs()
+    work = Path(tempfile.mkdtemp(prefix=WORK_PREFIX))
+    (work / OWNER_FILE).write_text(str(os.getpid()))
+    return work
+
+
+def remove_stale_work_dirs() -> list[Path]:
+    """Private directories of earlier demos that were killed (SIGKILL leaves no chance to clean up):
+    removed when their owner is gone. Their children are gone too (PR_SET_PDEATHSIG)."""
+    removed = []
+    for directory in Path(tempfile.gettempdir()).glob(f"{WORK_PREFIX}*"):
+        try:
+            if directory.stat().st_uid != os.getuid():
+                continue
+            owner = int((directory / OWNER_FILE).read_text())
+        except (OSError, ValueError):
+            continue
+        try:
+            os.kill(owner, 0)
+            continue  # still running
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        shutil.rmtree(directory, ignore_errors=True)
+        removed.append(directory)
+    return removed
+
+
+__all__ = [
+    "OWNER_FILE",
+    "WORK_PREFIX",
+    "Child",
+    "DemoError",
+    "free_loopback_port",
+    "make_work_dir",
+    "remove_stale_work_dirs",
+    "signals_blocked",
+    "signals_ignored",
+    "terminate_raises_interrupt",
+]

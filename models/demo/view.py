@@ -1,10 +1,12 @@
 """The demo's live view: ``hil telemetry watch``'s view (one view, models/../telemetry/cli.py), under
 a line of the demo's own (phase, the run's time against the condition, the disturbance), and
-optionally pybullet's own viewer mirroring the arm from the telemetry (``--gui``)."""
+optionally pybullet's own viewer mirroring the arm from the telemetry (``--gui``). Without a
+terminal (piped, a log file) a live view cannot redraw: each phase is then one line."""
 
 from __future__ import annotations
 
 import os
+from types import TracebackType
 from typing import Any
 
 from models.demo.processes import DemoError
@@ -90,4 +92,61 @@ class ArmMirror:
             pass
 
 
-__all__ = ["ArmMirror", "NoDisplayError", "check_display", "render"]
+class LiveView:
+    """The view while the HIL run goes: ``on_phase`` and ``tick`` are what ``run_hil`` calls.
+
+    Used as a context manager: the live display and the mirror are closed however the run ends."""
+
+    def __init__(
+        self,
+        console: Any,  # rich.console.Console
+        duration_s: float,
+        disturbance_s: float | None,
+        say_phases: bool,
+        mirror: ArmMirror | None = None,
+    ) -> None:
+        from rich.live import Live
+
+        self._console = console
+        self._say_phases = say_phases
+        self._mirror = mirror
+        self._phase = DemoPhase(duration_s=duration_s)
+        self._live = (
+            None
+            if say_phases
+            else Live(get_renderable=lambda: render(self._phase, disturbance_s), console=console, refresh_per_second=8)
+        )
+
+    def on_phase(self, phase: DemoPhase) -> None:
+        self._phase = phase
+        if self._say_phases:
+            self._console.print(f"hil demo: {phase.text}", soft_wrap=True)
+
+    def tick(self) -> None:
+        if self._mirror is not None and self._phase.watch is not None:
+            self._mirror.show(self._phase.watch)
+
+    def __enter__(self) -> LiveView:
+        try:
+            if self._live is not None:
+                self._live.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, traceback: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        try:
+            if self._live is not None:
+                self._live.stop()
+        finally:
+            if self._mirror is not None:
+                self._mirror.close()
+
+
+__all__ = ["ArmMirror", "LiveView", "NoDisplayError", "check_display", "render"]

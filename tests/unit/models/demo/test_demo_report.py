@@ -1,4 +1,4 @@
-"""hil demo's report helpers (models/demo/report.py, session.py): the record on the simulator's
+"""hil demo's helpers (models/demo/analysis.py, processes.py, view.py): the record on the simulator's
 grid, the comparison, the timing figures, the stale-directory sweep; the --gui mirror in DIRECT mode."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.demo import report
-from models.demo.session import OWNER_FILE, WORK_PREFIX, remove_stale_work_dirs
+from models.demo import analysis
+from models.demo.processes import OWNER_FILE, WORK_PREFIX, remove_stale_work_dirs
 
 
 def _record(t_s: np.ndarray, n: int = 6) -> dict[str, np.ndarray]:
@@ -35,7 +35,7 @@ def _record(t_s: np.ndarray, n: int = 6) -> dict[str, np.ndarray]:
 
 def test_lockstep_record_is_taken_row_for_row_and_cut_to_the_condition() -> None:
     record = _record(np.arange(120) * 1e-3)  # the daemon ran 20 cycles past the condition's end
-    traj, info = report.hil_trajectory(record, 100, 1e-3)
+    traj, info = analysis.hil_trajectory(record, 100, 1e-3)
     assert info == {"rows": 120, "skipped_periods": 0, "covered_s": pytest.approx(0.1), "complete": True}
     np.testing.assert_array_equal(traj["q"], record["q"][:100])
     np.testing.assert_allclose(traj["t"], np.arange(100) * 1e-3)
@@ -43,14 +43,14 @@ def test_lockstep_record_is_taken_row_for_row_and_cut_to_the_condition() -> None
 
 def test_realtime_record_with_skipped_periods_is_interpolated_onto_the_grid() -> None:
     t = np.delete(np.arange(100) * 1e-3, [10, 11, 50])  # three overrun periods: no row
-    traj, info = report.hil_trajectory(_record(t), 100, 1e-3)
+    traj, info = analysis.hil_trajectory(_record(t), 100, 1e-3)
     assert info["skipped_periods"] == 3 and info["complete"]
     # q is linear in t, so the interpolation is exact.
     np.testing.assert_allclose(traj["q"], np.outer(np.arange(100) * 1e-3, np.arange(1, 7)), atol=1e-12)
 
 
 def test_a_run_cut_short_is_held_at_its_last_row_and_marked_incomplete() -> None:
-    traj, info = report.hil_trajectory(_record(np.arange(40) * 1e-3), 100, 1e-3)
+    traj, info = analysis.hil_trajectory(_record(np.arange(40) * 1e-3), 100, 1e-3)
     assert not info["complete"] and info["rows"] == 40
     np.testing.assert_array_equal(traj["q"][40:], np.repeat(traj["q"][39:40], 60, axis=0))
 
@@ -71,7 +71,7 @@ def test_timing_figures_in_microseconds_from_the_runtime_stats() -> None:
         "bus_dropped": 0.0,
         "telemetry_dropped": 1.0,
     }
-    figures = report.timing_figures(stats, _record(np.arange(10) * 1e-3), 1e-3)
+    figures = analysis.timing_figures(stats, _record(np.arange(10) * 1e-3), 1e-3)
     assert figures["period_us"] == {"median": 1000.0, "p99": 1200.0, "max": 4000.0}
     assert figures["compute_us"] == {"median": 40.0, "p99": 90.0, "max": None}  # NaN: not reported
     assert figures["exchange_us"]["median"] == 500.0
@@ -94,12 +94,12 @@ def test_compare_scores_both_runs_and_normalizes_between_them() -> None:
     q_ref = np.tile(np.array(condition.amplitude_rad) * 0.1, (t.size, 1))
     sim = {"t": t, "q": q_ref - 0.001, "q_ref": q_ref, "qd": np.zeros_like(q_ref), "within_limits": np.asarray(True)}
     hil = {**sim, "q": q_ref - 0.002, "fallback": np.zeros(t.size)}
-    result = report.compare(robot, condition, hil, sim, None)
+    result = analysis.compare(robot, condition, hil, sim, None)
     assert result["relative"]["rmse"] == pytest.approx(1.0)  # twice the error
     assert result["composite"]["hil"] > result["composite"]["sim"]
     assert result["within_limits"] == {"hil": True, "sim": True}
     assert result["trajectory_rms_diff_deg"] == pytest.approx(np.degrees(0.001))
-    faulted = report.compare(robot, condition, hil, sim, "velocity_limit: ...")
+    faulted = analysis.compare(robot, condition, hil, sim, "velocity_limit: ...")
     assert faulted["within_limits"]["hil"] is False
 
 

@@ -1,0 +1,68 @@
+"""What ``hil demo`` is asked to run: the options, checked before any process starts, and the
+paper's condition they select."""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, replace
+from typing import Any
+
+from models.errors import ModelInputError
+
+#: The best LMPC law of Table I (README, docs/lmpc.md): the lowest LMPC composite score, MRAC 0.025
+#: (PD 0.031, PID 0.031, ADRC 0.043, SMC 0.045, H∞ 0.047; structured bundles). Lower is better.
+BEST_LMPC_LAW = "mrac"
+DEFAULT_CONDITION = "C1"
+MODES = ("lmpc", "fb")
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    law: str = BEST_LMPC_LAW
+    mode: str = "lmpc"  # lmpc: the fused law + emulator bundle; fb: the bundle's law alone
+    condition: str = DEFAULT_CONDITION
+    duration_s: float | None = None  # None: the condition's own (5 s for the paper's)
+    realtime: bool = False  # free-running: the target on its own clock, the runtime on absolute deadlines
+    target_substeps: int = 32  # pybullet steps per control period
+    robot: str = "ur5_paper"
+
+
+def check_options(options: DemoOptions) -> None:
+    """Refuse bad input with one line (exit 2) before any process starts."""
+    from models.feedback import LAW_NAMES
+    from models.lmpc.controller import bundle_path
+
+    if not sys.platform.startswith("linux"):
+        raise ModelInputError("hil demo: the ipc bus between the processes is Linux only (docs/ipc_bus.md)")
+    if options.law not in LAW_NAMES:
+        raise ModelInputError(f"--law: unknown '{options.law}' (known: {', '.join(LAW_NAMES)})")
+    if options.mode not in MODES:
+        raise ModelInputError(f"--mode: unknown '{options.mode}' (known: {', '.join(MODES)})")
+    manifest = bundle_path(options.robot, options.law, None) / "manifest.json"
+    if not manifest.is_file():
+        raise ModelInputError(f"{manifest}: no bundle for law '{options.law}' (export one with `hil pipeline`)")
+    if options.duration_s is not None and not (math.isfinite(options.duration_s) and options.duration_s >= 0.05):
+        raise ModelInputError(f"--duration: must be a finite number of seconds >= 0.05, got {options.duration_s!r}")
+    if options.target_substeps < 1:
+        raise ModelInputError(f"--target-substeps: must be >= 1, got {options.target_substeps}")
+
+
+def demo_condition(options: DemoOptions, robot: Any) -> Any:
+    """The paper's condition, cut to ``duration_s`` when given (its disturbance kept where it falls)."""
+    from models.conditions import load_conditions
+
+    conditions = load_conditions(None, robot=robot)
+    for condition in conditions:
+        if condition.name == options.condition:
+            if options.duration_s is not None:
+                condition = replace(condition, duration_s=float(options.duration_s))
+                d = condition.disturbance
+                if d is not None and d.time_s >= condition.duration_s:
+                    condition = replace(condition, disturbance=None)  # the run ends before it
+            return condition
+    names = ", ".join(c.name for c in conditions)
+    raise ModelInputError(f"--condition: unknown '{options.condition}' (the paper's: {names})")
+
+
+__all__ = ["BEST_LMPC_LAW", "DEFAULT_CONDITION", "MODES", "DemoOptions", "check_options", "demo_condition"]
