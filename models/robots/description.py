@@ -146,7 +146,10 @@ def _combine(parts: list[tuple[float, np.ndarray, np.ndarray]]) -> tuple[float, 
     mass = float(sum(m for m, _, _ in parts))
     if mass <= 0.0:
         return 0.0, np.zeros(3), np.zeros((3, 3))
-    com = sum(m * np.asarray(c) for m, c, _ in parts) / mass
+    com = np.zeros(3)
+    for m, c, _ in parts:
+        com += m * np.asarray(c)
+    com /= mass
     inertia = np.zeros((3, 3))
     for m, c, i_c in parts:
         d = np.asarray(c) - com
@@ -216,10 +219,18 @@ def _parse_urdf(path: Path) -> tuple[ET.Element, dict[str, ET.Element], list[ET.
     joints = root.findall("joint")
     for joint in joints:
         for tag in ("parent", "child"):
-            el = joint.find(tag)
-            if el is None or el.get("link") not in links:
+            if _joint_link(path, joint, tag) not in links:
                 raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <{tag}> names no known link")
     return root, links, joints
+
+
+def _joint_link(path: Path, joint: ET.Element, tag: str) -> str:
+    """The link a joint's ``<parent>`` or ``<child>`` names."""
+    element = joint.find(tag)
+    link = None if element is None else element.get("link")
+    if link is None:
+        raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <{tag}> names no known link")
+    return link
 
 
 def load_robot(name_or_path: str | Path, ee_link: str | None = None) -> RobotModel:
@@ -249,7 +260,7 @@ def load_robot(name_or_path: str | Path, ee_link: str | None = None) -> RobotMod
 def _chain_from_urdf(
     path: Path, name: str, links: dict[str, ET.Element], joints: list[ET.Element], ee_link: str | None
 ) -> RobotModel:
-    child_joint = {j.find("child").get("link"): j for j in joints}  # type: ignore[union-attr]
+    child_joint = {_joint_link(path, j, "child"): j for j in joints}
     roots = [link for link in links if link not in child_joint]
     if len(roots) != 1:
         raise ModelInputError(f"{path.name}: expected one root link, found {len(roots)} ({', '.join(roots[:4])})")
@@ -259,7 +270,7 @@ def _chain_from_urdf(
         while link in child_joint:
             joint = child_joint[link]
             chain.append(joint)
-            link = joint.find("parent").get("link")  # type: ignore[union-attr]
+            link = _joint_link(path, joint, "parent")
             if len(chain) > len(joints):
                 raise ModelInputError(f"{path.name}: the joint graph has a cycle")
         return chain[::-1]
@@ -281,14 +292,14 @@ def _chain_from_urdf(
         on_chain += ancestry(ee_link)
     children: dict[str, list[ET.Element]] = {}
     for j in joints:
-        children.setdefault(j.find("parent").get("link"), []).append(j)  # type: ignore[union-attr]
-    stack = [chain_joints[-1].find("child").get("link")]  # type: ignore[union-attr]
+        children.setdefault(_joint_link(path, j, "parent"), []).append(j)
+    stack = [_joint_link(path, chain_joints[-1], "child")]
     while stack:
         for j in children.get(stack.pop(), []):
-            siblings = children[j.find("parent").get("link")]  # type: ignore[union-attr]
+            siblings = children[_joint_link(path, j, "parent")]
             if len(siblings) == 1 and j.find("mimic") is None:
                 on_chain.append(j)
-            stack.append(j.find("child").get("link"))  # type: ignore[union-attr]
+            stack.append(_joint_link(path, j, "child"))
     for joint in on_chain:
         if joint.get("type") == "prismatic":
             raise ModelInputError(
@@ -323,7 +334,7 @@ def _chain_from_urdf(
 
     rotations, translations, axes, pos_range, vel_lim, tau_lim = [], [], [], [], [], []
     for i, joint in enumerate(chain_joints):
-        parent = joint.find("parent").get("link")  # type: ignore[union-attr]
+        parent = _joint_link(path, joint, "parent")
         body, r_parent, p_parent = body_of[parent]
         if body != i - 1:
             raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' breaks the serial chain")
