@@ -74,6 +74,27 @@ def set_thread_affinity(cpus: tuple[int, ...], report: RealtimeReport | None = N
     return report.note(f"CPU affinity {list(cpus)}", True)
 
 
+def clock_pacing_risk(period_s: float, fifo_applied: bool) -> str | None:
+    """Why clock pacing may not hold ``period_s`` here, or None: no SCHED_FIFO on the loop thread
+    and a load average at or above the CPU count. Said once, as a warning, before ACTIVE: the loop
+    then overruns (counted, skipped), the drives hold a stale torque meanwhile, and the arm may
+    reach a safety limit, which FAULTs the run as it must (docs/runtime.md, real-time hygiene)."""
+    if fifo_applied:
+        return None
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # no load average on this system: nothing to say
+        return None
+    cpus = os.cpu_count() or 1
+    if load < cpus:
+        return None
+    return (
+        f"clock pacing at {1.0 / period_s:.0f} Hz without SCHED_FIFO on a loaded machine (load average "
+        f"{load:.1f} on {cpus} CPUs): expect overruns, during which the drives hold a stale torque; for a "
+        "deterministic run use loop.pacing: bus against a lock-stepped target, or grant LimitRTPRIO"
+    )
+
+
 def freeze_heap() -> None:
     """Collect once, then move every survivor to the permanent generation (never scanned again).
     Tens of milliseconds with a large heap: call it before the drives are enabled, never between

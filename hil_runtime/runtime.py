@@ -48,6 +48,7 @@ from hil_runtime.pacer import Pacer
 from hil_runtime.realtime import (
     GcQuiet,
     RealtimeReport,
+    clock_pacing_risk,
     freeze_heap,
     set_thread_affinity,
     set_thread_fifo,
@@ -476,8 +477,11 @@ class Runtime:
         loop = self.config.loop
         if loop.cpu_affinity:
             set_thread_affinity(loop.cpu_affinity, self.realtime)
-        if loop.fifo_priority:
-            set_thread_fifo(loop.fifo_priority, self.realtime)
+        fifo = loop.fifo_priority is not None and set_thread_fifo(loop.fifo_priority, self.realtime)
+        risk = clock_pacing_risk(self.config.period_s, fifo) if loop.pacing == "clock" else None
+        if risk is not None:
+            log.warning("real time: %s", risk)
+            self.telemetry.event("warning", self.total_cycles, risk)
 
     def _close_quietly(self) -> None:
         try:

@@ -73,3 +73,38 @@ def test_gc_is_off_inside_and_restored() -> None:
     with GcQuiet():
         assert not gc.isenabled()
     assert gc.isenabled()
+
+
+def test_clock_pacing_on_a_loaded_machine_without_fifo_is_said_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.5, 1.0, 1.0))
+    assert realtime.clock_pacing_risk(0.001, fifo_applied=False) is None  # below the CPU count
+    monkeypatch.setattr(os, "getloadavg", lambda: (2.5, 1.0, 1.0))
+    risk = realtime.clock_pacing_risk(0.001, fifo_applied=False)
+    assert risk is not None and "1000 Hz without SCHED_FIFO" in risk and "load average 2.5 on 2 CPUs" in risk
+    assert realtime.clock_pacing_risk(0.001, fifo_applied=True) is None  # SCHED_FIFO holds the period
+
+
+def test_the_runtime_warns_of_clock_pacing_risk_before_active(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    from drivers.testing import FakeJointBus
+    from hil_runtime.config import parse_runtime_config
+    from hil_runtime.runtime import Runtime
+    from tests.unit.hil_runtime.support import config_dict
+    from tests.unit.hil_runtime.test_runtime_loop import RecordingSink
+
+    monkeypatch.setattr(os, "getloadavg", lambda: (64.0, 64.0, 64.0))
+    for pacing, warned in (("clock", True), ("bus", False)):
+        sink = RecordingSink()
+        config = parse_runtime_config(config_dict(loop={"pacing": pacing, "warmup_cycles": 5}), "rt.yaml")
+        runtime = Runtime(config, FakeJointBus(6, period_s=0.001), telemetry=sink)
+        runtime.configure()
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="hil_runtime.runtime"):
+            runtime.activate()
+            runtime.run(max_cycles=3, stop_on_fault=True)
+        runtime.shutdown()
+        said = [detail for kind, _, detail in sink.events if kind == "warning" and "clock pacing" in detail]
+        logged = [r for r in caplog.records if "clock pacing" in r.getMessage()]
+        assert (len(said), len(logged)) == ((1, 1) if warned else (0, 0)), (pacing, sink.events)
