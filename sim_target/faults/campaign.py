@@ -10,7 +10,6 @@ table has the issue's columns; docs/faults.md explains each fault and bound.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import shutil
@@ -21,10 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from sim_target.faults import cases as c
+from sim_target.faults import injections as inj
 from sim_target.faults.cases import Expect
+from sim_target.faults.report import summarize, write_outputs
 
 if TYPE_CHECKING:
     from sim_target.faults.crafted import CraftKind
@@ -99,68 +98,68 @@ FAULTS: tuple[FaultSpec, ...] = (
         "TPDO dropped, 1 cycle, one drive",
         "tolerated (max_missed_cycles 1), counted",
         True,
-        _ip(c.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+        _ip(inj.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
     ),
     FaultSpec(
         "tpdo_drop_1_all",
         "TPDOs dropped, 1 cycle, all drives",
         "tolerated, counted",
         False,
-        _ip(c.drop_tpdos(1, True), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+        _ip(inj.drop_tpdos(1, True), Expect(counters=TOLERATED_DROP, max_cycles=None)),
     ),
     FaultSpec(
-        "tpdo_drop_3_one", "TPDO dropped, 3 cycles, one drive", TWO, False, _ip(c.drop_tpdos(3, False), Expect(F))
+        "tpdo_drop_3_one", "TPDO dropped, 3 cycles, one drive", TWO, False, _ip(inj.drop_tpdos(3, False), Expect(F))
     ),
     FaultSpec(
-        "tpdo_drop_3_all", "TPDOs dropped, 3 cycles, all drives", TWO, True, _ip(c.drop_tpdos(3, True), Expect(F))
+        "tpdo_drop_3_all", "TPDOs dropped, 3 cycles, all drives", TWO, True, _ip(inj.drop_tpdos(3, True), Expect(F))
     ),
     FaultSpec(
-        "tpdo_drop_50_one", "TPDO dropped, 50 cycles, one drive", TWO, False, _ip(c.drop_tpdos(50, False), Expect(F))
+        "tpdo_drop_50_one", "TPDO dropped, 50 cycles, one drive", TWO, False, _ip(inj.drop_tpdos(50, False), Expect(F))
     ),
     FaultSpec(
-        "tpdo_drop_50_all", "TPDOs dropped, 50 cycles, all drives", TWO, False, _ip(c.drop_tpdos(50, True), Expect(F))
+        "tpdo_drop_50_all", "TPDOs dropped, 50 cycles, all drives", TWO, False, _ip(inj.drop_tpdos(50, True), Expect(F))
     ),
     FaultSpec(
         "tpdo_delay_1_one",
         "TPDO delayed past the cycle, once, one drive",
         "tolerated, counted late",
         False,
-        _ip(c.delay_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+        _ip(inj.delay_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
     ),
     FaultSpec(
         "tpdo_delay_3_all",
         "TPDOs delayed past the cycle, 3 cycles, all drives",
         TWO,
         True,
-        _ip(c.delay_tpdos(3, True), Expect(F)),
+        _ip(inj.delay_tpdos(3, True), Expect(F)),
     ),
     FaultSpec(
         "tpdo_corrupt_1_one",
         "TPDO corrupted (wrong length), once, one drive",
         "tolerated, counted malformed",
         True,
-        _ip(c.corrupt_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
+        _ip(inj.corrupt_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
     ),
     FaultSpec(
         "tpdo_corrupt_3_all",
         "TPDOs corrupted (wrong length), 3 cycles, all drives",
         TWO,
         False,
-        _ip(c.corrupt_tpdos(3, True), Expect(F)),
+        _ip(inj.corrupt_tpdos(3, True), Expect(F)),
     ),
     FaultSpec(
         "wrong_length_flood",
         "wrong-length TPDO/heartbeat/EMCY frames on our drives' COB-IDs, 0.3 s",
         "tolerated, counted malformed",
         False,
-        _ip(c.flood("wrong_length"), Expect(counters=("bus.malformed",), max_cycles=None)),
+        _ip(inj.flood("wrong_length"), Expect(counters=("bus.malformed",), max_cycles=None)),
     ),
     FaultSpec(
         "unknown_cob_flood",
         "unknown COB-IDs flooding the bus, 0.3 s",
         "tolerated, counted",
         True,
-        _ip(c.flood("unknown"), Expect(counters=("bus.unknown_cob_id",), max_cycles=None)),
+        _ip(inj.flood("unknown"), Expect(counters=("bus.unknown_cob_id",), max_cycles=None)),
     ),
     FaultSpec(
         "heartbeat_lost",
@@ -168,7 +167,7 @@ FAULTS: tuple[FaultSpec, ...] = (
         "heartbeat_timeout_s (0.5 s)",
         True,
         _ip(
-            c.target_fault({"kind": "heartbeat", "node_id": "random", "silent": True}),
+            inj.target_fault({"kind": "heartbeat", "node_id": "random", "silent": True}),
             Expect(("heartbeat_lost",), max_cycles=None),
             observe_cycles=5000,
         ),
@@ -179,7 +178,8 @@ FAULTS: tuple[FaultSpec, ...] = (
         TWO,
         True,
         _ip(
-            c.target_fault({"kind": "drive_fault", "node_id": "random", "error_code": 0x2310}), Expect(("drive_fault",))
+            inj.target_fault({"kind": "drive_fault", "node_id": "random", "error_code": 0x2310}),
+            Expect(("drive_fault",)),
         ),
     ),
     FaultSpec(
@@ -194,14 +194,14 @@ FAULTS: tuple[FaultSpec, ...] = (
         "the bus closed under the driver",
         TWO,
         True,
-        _ip(c.close_bus_under_driver, Expect(("transport",)), settle_s=1.6),
+        _ip(inj.close_bus_under_driver, Expect(("transport",)), settle_s=1.6),
     ),
     FaultSpec(
         "target_killed",
         "the target process killed (SIGKILL), ipc bus",
         TWO,
         True,
-        _ip(c.kill_target_process, Expect(("feedback_timeout", "transport", "stale_feedback")), transport="ipc"),
+        _ip(inj.kill_target_process, Expect(("feedback_timeout", "transport", "stale_feedback")), transport="ipc"),
     ),
     FaultSpec(
         "emulator_nan",
@@ -248,7 +248,10 @@ FAULTS: tuple[FaultSpec, ...] = (
         "not a runtime fault",
         False,
         _ip(
-            c.kill_subscriber, Expect(event=False, max_cycles=None), post_check=_states_flow, prepare=c.start_subscriber
+            inj.kill_subscriber,
+            Expect(event=False, max_cycles=None),
+            post_check=_states_flow,
+            prepare=inj.start_subscriber,
         ),
     ),
     FaultSpec(
@@ -269,7 +272,7 @@ FAULTS: tuple[FaultSpec, ...] = (
         "overruns counted",
         False,
         _ip(
-            c.starve_cpu,
+            inj.starve_cpu,
             Expect(may_fault=("feedback_timeout", "stale_feedback"), counters=("overruns",), max_cycles=None),
             observe_cycles=2500,
             config_extra={"loop": {"pacing": "clock", "time_base": "cycles"}},
@@ -291,7 +294,7 @@ FAULTS: tuple[FaultSpec, ...] = (
         "not a fault: rejected, or a limit FAULT",
         False,
         _ip(
-            c.target_fault({"kind": "payload", "mass_kg": 5.0}),
+            inj.target_fault({"kind": "payload", "mass_kg": 5.0}),
             Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None),
             observe_cycles=1500,
         ),
@@ -302,7 +305,7 @@ FAULTS: tuple[FaultSpec, ...] = (
         "not a fault: rejected, or a limit FAULT",
         True,
         _ip(
-            c.target_fault({"kind": "impulse", "torque_nm": [10, 10, 50, 50, 100, 100]}),
+            inj.target_fault({"kind": "impulse", "torque_nm": [10, 10, 50, 50, 100, 100]}),
             Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None),
             observe_cycles=1500,
         ),
@@ -316,7 +319,6 @@ FAULTS: tuple[FaultSpec, ...] = (
     ),
 )
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
-SECONDS_ROWS = ("heartbeat_lost", "loop_stall")  # bounds in seconds: the wall time is shown too
 
 
 def _machine() -> dict[str, Any]:
@@ -418,132 +420,3 @@ def run_campaign(
     if out_dir is not None:
         write_outputs(out_dir, document)
     return document
-
-
-def _fmt_cycles(values: list[int]) -> str:
-    if not values:
-        return "—"
-    return f"{int(np.median(values))}, {max(values)}"
-
-
-def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
-    """One table row from the repeats of one fault."""
-    cycles = [r.detected_cycles for r in results if r.detected_cycles is not None]
-    seconds = [r.detected_s for r in results if r.detected_s is not None]
-    ratios = [r.max_torque_ratio for r in results if r.max_torque_ratio is not None]
-    actions = _actions(results)
-    finals = sorted(
-        {
-            ", ".join(sorted(set(r.drives_final))) if isinstance(r.drives_final, list) else r.drives_final
-            for r in results
-        }
-    )
-
-    def tri(values: list[bool | None]) -> str:
-        known = [v for v in values if v is not None]
-        if not known:
-            return "n/a"
-        return "yes" if all(known) else f"no ({known.count(False)}/{len(known)})"
-
-    return {
-        "fault": spec.name,
-        "label": spec.label,
-        "bound": spec.bound,
-        "repeats": len(results),
-        "detected_cycles": cycles,
-        "detected_cycles_median": float(np.median(cycles)) if cycles else None,
-        "detected_cycles_max": max(cycles) if cycles else None,
-        "detected_s_max": max(seconds) if seconds else None,
-        "action": actions,
-        "max_torque_ratio": max(ratios) if ratios else None,
-        "nonfinite": any(r.nonfinite_commanded for r in results),
-        "drives_final": "; ".join(finals),
-        "daemon_alive": tri([r.daemon_alive for r in results]),
-        "daemon_note": "; ".join(sorted({r.daemon_note for r in results})),
-        "telemetry_event": tri([r.telemetry_event for r in results]),
-        "arm_in_limits": tri([r.arm_in_limits for r in results]),
-        "rig_retries": sum(r.rig_retries for r in results),
-        "pass": all(r.passed for r in results),
-        "failures": sorted({f for r in results for f in r.failures}),
-    }
-
-
-def _actions(results: list[c.CaseResult]) -> str:
-    """The repeats' actions in one phrase: FAULT kinds merged, counters with their range."""
-    tolerated = [r for r in results if r.action.startswith("tolerated")]
-    others = sorted({r.action for r in results if not r.action.startswith("tolerated")})
-    faults = sorted({r.action.split(",")[0].removeprefix("FAULT ") for r in results if r.action.startswith("FAULT ")})
-    if faults and len(faults) > 1 and all(a.startswith("FAULT ") for a in others):
-        others = [f"FAULT {' / '.join(faults)}, quick stop"]
-    if "watchdog" in " ".join(others):  # one phrase, the kinds seen on resume merged
-        kinds = sorted({str(r.detail.get("fault_on_resume")) for r in results})
-        others = [
-            f"watchdog silent (> WatchdogSec: systemd restarts); drives quick-stopped on their own; on resume "
-            f"FAULT {' / '.join(kinds)}"
-        ]
-    if tolerated:
-        ranges: dict[str, list[int]] = {}
-        for r in tolerated:
-            for name, rise in r.detail.get("counters_rose", {}).items():
-                if name.split(".")[-1] in c.ANOMALIES:
-                    ranges.setdefault(name.split(".")[-1], []).append(int(rise))
-        counted = ", ".join(
-            f"{k} +{min(v)}"
-            + (f"..{max(v)}" if max(v) != min(v) else "")
-            + ("" if len(v) == len(tolerated) else f" ({len(v)}/{len(tolerated)})")
-            for k, v in sorted(ranges.items())
-        )
-        others.append("tolerated" + (f"; counted: {counted}" if counted else ", nothing to count"))
-    return "; ".join(others)
-
-
-def format_table(document: dict[str, Any]) -> str:
-    head = (
-        "| fault | detected after (cycles: median, max) | bound | action taken | max \\|τ\\| after the fault "
-        "/ limit | non-finite commanded | drives' final state | daemon alive | telemetry event | arm inside "
-        "the position limits | pass |"
-    )
-    lines = [head, "|" + "---|" * 11]
-    for row in document["rows"]:
-        cycles = _fmt_cycles(row["detected_cycles"]) if row["detected_cycles"] else "—"
-        if row["detected_s_max"] is not None and row["fault"] in SECONDS_ROWS:
-            cycles = (
-                f"{cycles} (≤ {row['detected_s_max']:.3f} s)"
-                if row["detected_cycles"]
-                else f"— (watchdog silent ≤ {row['detected_s_max']:.2f} s)"
-            )
-        ratio = "—" if row["max_torque_ratio"] is None else f"{row['max_torque_ratio']:.3f} (≤ 1)"
-        lines.append(
-            " | ".join(
-                [
-                    f"| {row['label']}",
-                    cycles,
-                    row["bound"],
-                    row["action"].replace("|", "\\|"),
-                    ratio,
-                    "yes" if row["nonfinite"] else "no",
-                    row["drives_final"],
-                    row["daemon_alive"],
-                    row["telemetry_event"],
-                    row["arm_in_limits"],
-                    ("**pass**" if row["pass"] else "**FAIL**: " + "; ".join(row["failures"])) + " |",
-                ]
-            )
-        )
-    machine = document["machine"]
-    lines += [
-        "",
-        f"`{document['command']}`: {len(document['rows'])} faults × {document['repeats']} repeats, "
-        f"{document['wall_s']} s, {machine['cpus']} CPUs ({machine['cpu']}), load average "
-        f"{machine['load_average_before']} before, {machine['load_average']} after; "
-        f"{'every row passes' if document['passed'] else 'SOME ROWS FAIL'}.",
-    ]
-    return "\n".join(lines) + "\n"
-
-
-def write_outputs(out_dir: Path, document: dict[str, Any]) -> None:
-    from hil_runtime.outputs import write_text_atomic
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out_dir / "table.md", format_table(document))
-    write_text_atomic(out_dir / "results.json", json.dumps(document, indent=1) + "\n")  # last: the run's seal
