@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -26,37 +28,37 @@ def test_a_law_for_another_arm_passes() -> None:
 
 
 class _Unsaturated(PDLaw):
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         return self.pd_torque(xp, q_d - q, qd_d - qd), state
 
 
 class _Mutating(PDLaw):
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         q += 0.0 * q + 1e-3  # in place: the caller's array
         return super().step(xp, state, q, qd, q_d, qd_d, qdd_d)
 
 
 class _Coupled(PDLaw):
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         tau, state = super().step(xp, state, q, qd, q_d, qd_d, qdd_d)
         return self.saturate(xp, tau + 1e-3 * tau.mean()), state  # rows leak into each other
 
 
 class _WrongState(PIDLaw):
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         tau, state = super().step(xp, state, q, qd, q_d, qd_d, qdd_d)
         return tau, state[:, :-1]
 
 
 class _NumpyOnly(PDLaw):
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         tau, state = super().step(xp, state, q, qd, q_d, qd_d, qdd_d)
         return (tau if xp is np else tau + 1e-3), state
 
 
 class _BadParams(PDLaw):
     @property
-    def params(self):  # type: ignore[no-untyped-def]
+    def params(self) -> dict[str, Any]:
         return {"kp": self.kp}  # an ndarray: not JSON
 
 
