@@ -211,7 +211,7 @@ def _floor(
     rounded to 1e-9 or 1e-6 N·m (a nudge) or quantized as the drives do (``carried_2``), scored
     against the plain simulation. On the scale of ``sim_results`` (an ``hil experiment``
     results.json: the parity table's scale) when given, else each pair on its own."""
-    from models.hil_experiment import _per_run_scores
+    from models.hil_experiment.parity import per_run_scores
 
     scale = json.loads(sim_results.read_text())["runs"] if sim_results is not None else None
     out: dict[str, Any] = {}
@@ -235,8 +235,8 @@ def _floor(
                     )
             for wrap in ("nudged_1e-9", "nudged_1e-6", "carried_2"):
                 pair = runs[None] + runs[wrap]
-                base = _per_run_scores(runs[None], scale=scale or pair)
-                moved = _per_run_scores(runs[wrap], scale=scale or pair)
+                base = per_run_scores(runs[None], scale=scale or pair)
+                moved = per_run_scores(runs[wrap], scale=scale or pair)
                 per_condition = {
                     c.name: round(100 * (moved[(law, mode, c.name)] / base[(law, mode, c.name)] - 1), 1)
                     for c in conditions

@@ -35,7 +35,7 @@ def runtime_config(
 ) -> dict[str, Any]:
     """``hil run``'s config: the shipped bundle, the condition from t = 0 on the placed arm, telemetry
     connecting to the demo's session, a control socket; lock-step (bus pacing) or real time (clock)."""
-    from models.hil_experiment import runtime_config_dict
+    from models.hil_experiment.config import runtime_config_dict
     from models.lmpc.controller import bundle_path
     from sim_target.launch import CAN_FD
 

@@ -158,7 +158,7 @@ class _HilRun:
     def prepare(self) -> None:
         """Write and check both configs (one line, exit 2, before any process starts); listen."""
         from hil_runtime.daemon import check as check_runtime_config
-        from models.hil_experiment import conditions_yaml
+        from models.hil_experiment.config import conditions_yaml
         from sim_target.config import load_target_config
 
         work = self.work
@@ -188,7 +188,7 @@ class _HilRun:
 
     def start_target(self) -> None:
         """``hil target serve``, then the run start (the arm placed, the disturbance armed)."""
-        from models.hil_experiment import run_start
+        from models.hil_experiment.config import run_start
         from sim_target.control import send_control
 
         self.say("starting the pybullet target (hil target serve)")

@@ -1,4 +1,4 @@
-"""models/hil_experiment.py without the target: conditions handed to the runtime exactly, the
+"""models/hil_experiment/ without the target: conditions handed to the runtime exactly, the
 target's run start, padding of a faulted record, parity arithmetic, the Table II layout."""
 
 from __future__ import annotations
@@ -11,15 +11,9 @@ import yaml
 
 from hil_runtime.conditions import parse_conditions
 from models.conditions import load_conditions, random_conditions
-from models.hil_experiment import (
-    PAPER_TABLE_II,
-    HilRun,
-    _pad,
-    _per_run_scores,
-    conditions_yaml,
-    initial_state,
-    run_start,
-)
+from models.hil_experiment import PAPER_TABLE_II, HilRun, conditions_yaml, initial_state, run_start
+from models.hil_experiment.parity import per_run_scores
+from models.hil_experiment.target_runs import pad_record
 from models.robots import load_robot
 from sim_target.config import RunStart, TargetConfigError, TargetLayout, check_run_start, parse_run_start
 
@@ -74,7 +68,7 @@ def test_a_faulted_record_is_held_at_its_last_position() -> None:
         "tau": np.ones((rows, 2)),
         "compute_s": np.ones(rows),
     }
-    out = _pad(record, steps, 1e-3)
+    out = pad_record(record, steps, 1e-3)
     np.testing.assert_allclose(out["t"], np.arange(steps) * 1e-3)
     np.testing.assert_allclose(out["q"][rows:], np.repeat(record["q"][-1:], steps - rows, axis=0))
     np.testing.assert_allclose(out["qd"][rows:], 0.0)  # braked
@@ -90,12 +84,12 @@ def test_per_run_scores_normalize_within_a_condition() -> None:
         {"law": "pd", "mode": m, "condition": "C1", "metrics": x, "finite": True, "within_limits": True}
         for m, x in (("fb", metrics), ("lmpc", half))
     ]
-    scores = _per_run_scores(runs)
+    scores = per_run_scores(runs)
     assert scores[("pd", "fb", "C1")] == pytest.approx(1.0)
     assert scores[("pd", "lmpc", "C1")] == pytest.approx(0.5)
     # On another table's scale (parity: the simulation's), a run is scored against that table's maxima.
     worse = [{**runs[1], "mode": "fb", "metrics": {k: 4 * v for k, v in metrics.items()}}]
-    assert _per_run_scores(worse, scale=runs)[("pd", "fb", "C1")] == pytest.approx(4.0)
+    assert per_run_scores(worse, scale=runs)[("pd", "fb", "C1")] == pytest.approx(4.0)
 
 
 def test_paper_table_ii_values() -> None:  # the paper's Table II (hardware), FB -> LMPC

@@ -1,0 +1,158 @@
+"""What ``hil experiment --plant hil`` is asked (checked with one line each), and what it hands the
+runtime and the target for one run: the conditions file, the runtime's config, the target's run
+start. ``hil demo`` hands its processes the same (models/demo/configs.py)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from models.conditions import Condition
+from models.errors import ModelInputError
+from models.experiment import ExperimentConfig
+from models.robots import RobotModel
+
+if TYPE_CHECKING:
+    from sim_target.launch import Transport
+
+HIL_MODES = ("fb", "lmpc")
+# Bounds on waits for frames, not assertions on time: a lock-stepped target does not care about
+# wall time, and on a shared 2-core machine a niced experiment was measured stalled for over 1 s
+# (a feedback timeout of 50 ms and a heartbeat timeout of 1 s then faulted runs that were fine).
+# The drives' own master-loss watch (comm_loss_timeout_s) stays on: a dead experiment process
+# still leaves the arm quick-stopped, after 10 s.
+DRIVER_TIMEOUTS = {
+    "feedback_timeout_s": 2.0,
+    "heartbeat_timeout_s": 10.0,
+    "sdo_timeout_s": 5.0,
+    "state_change_timeout_s": 10.0,
+    "comm_loss_timeout_s": 10.0,
+}
+
+
+@dataclass(frozen=True)
+class HilOptions:
+    transport: Transport = "virtual"  # virtual (one process) | ipc | bridge (the target in its own process)
+    target_substeps: int = 32  # pybullet steps per control period (docs/hil.md: integration)
+    parity: bool = True  # also simulate, compare run by run
+    bundle_dir: Path | None = None  # LMPC/FB bundles; None: models/bundles (the shipped ones)
+
+
+def conditions_yaml(conditions: list[Condition]) -> str:
+    """The conditions in the runtime's YAML format (hil_runtime/conditions.py), exactly (repr floats)."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items() if v is not None}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return float(value) if isinstance(value, (float, np.floating)) else value
+
+    items = []
+    for c in conditions:
+        item = plain(asdict(c))  # a None field (no disturbance, no offset) is left out: None when read
+        if c.mismatch.is_nominal:
+            item.pop("mismatch", None)
+        items.append(item)
+    return yaml.safe_dump({"conditions": items}, sort_keys=False)
+
+
+def initial_state(condition: Condition) -> tuple[np.ndarray, np.ndarray]:
+    """(q0, qd0) as the simulator starts (models.sim.closed_loop.simulate)."""
+    q0 = np.asarray(condition.initial_position(), float)
+    if condition.initial_state == "reference":
+        return q0, np.asarray(condition.reference(0.0)[1], float)
+    return q0, np.zeros_like(q0)
+
+
+def run_start(condition: Condition) -> dict[str, Any]:
+    """The target's RunStart for ``condition``: its initial state, its disturbance (if any)."""
+    q0, qd0 = initial_state(condition)
+    faults = []
+    d = condition.disturbance
+    if d is not None and d.duration_s > 0 and any(t != 0 for t in d.torque_nm):
+        faults.append({"kind": "impulse", "at_s": d.time_s, "duration_s": d.duration_s, "torque_nm": list(d.torque_nm)})
+    return {"kind": "start", "position_rad": q0.tolist(), "velocity_rad_s": qd0.tolist(), "faults": faults}
+
+
+def runtime_config_dict(
+    robot: RobotModel,
+    bundle: Path,
+    mode: str,
+    transport: dict[str, Any],
+    period_s: float,
+    conditions_file: Path,
+    condition: str,
+) -> dict[str, Any]:
+    """The runtime's config for one run: lock-step (bus pacing), no ramp (the arm is placed)."""
+    joints = [
+        {"name": name, "node_id": i + 1, "max_torque_nm": float(t)}
+        for i, (name, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm, strict=True))
+    ]
+    return {
+        "robot": robot.name,
+        "bundle": {"path": str(bundle), "mode": mode},
+        "bus": {"transport": transport, "period_s": period_s, "joints": joints, **DRIVER_TIMEOUTS},
+        "reference": {
+            "kind": "condition",
+            "conditions_file": str(conditions_file),
+            "condition": condition,
+            "start": "condition",
+        },
+        "loop": {"pacing": "bus", "time_base": "cycles", "stats_interval_s": 3600.0},
+    }
+
+
+def check_hil_inputs(
+    robot: RobotModel, conditions: list[Condition], config: ExperimentConfig, options: HilOptions
+) -> None:
+    """Refuse what the HIL plant cannot do, with one line each (exit 2)."""
+    from models.lmpc.controller import bundle_path
+    from models.robots.description import robot_names
+    from sim_target.launch import TRANSPORTS
+
+    bad_modes = [m for m in config.modes if m not in HIL_MODES]
+    if bad_modes:
+        raise ModelInputError(
+            f"--modes: '{bad_modes[0]}' cannot run on --plant hil (the runtime runs bundles: {', '.join(HIL_MODES)})"
+        )
+    if options.transport not in TRANSPORTS:
+        raise ModelInputError(f"--transport: unknown '{options.transport}' (known: {', '.join(TRANSPORTS)})")
+    if options.target_substeps < 1:
+        raise ModelInputError(f"--target-substeps: must be >= 1, got {options.target_substeps}")
+    if robot.name not in robot_names():
+        raise ModelInputError(f"--robot: --plant hil needs a built-in robot (known: {', '.join(robot_names())})")
+    for c in conditions:
+        if not c.mismatch.is_nominal:
+            raise ModelInputError(
+                f"condition {c.name}: plant-model mismatch is not emulated by the HIL target "
+                "(it runs the nominal URDF): use --mismatch none"
+            )
+    for law in config.laws:
+        path = bundle_path(robot.name, law, options.bundle_dir)
+        manifest = path / "manifest.json"
+        if not manifest.is_file():
+            raise ModelInputError(f"{manifest}: no bundle for law '{law}' (export one with `hil pipeline`)")
+        gain_set = json.loads(manifest.read_text())["law"].get("gain_set")
+        if gain_set != config.gain_set:
+            raise ModelInputError(
+                f"{manifest}: bundle exported with gain set '{gain_set}', --gains is "
+                f"'{config.gain_set}' (the runtime runs the bundle's law)"
+            )
+
+
+__all__ = [
+    "DRIVER_TIMEOUTS",
+    "HIL_MODES",
+    "HilOptions",
+    "check_hil_inputs",
+    "conditions_yaml",
+    "initial_state",
+    "run_start",
+    "runtime_config_dict",
+]

@@ -1,0 +1,177 @@
+"""One run of ``hil experiment --plant hil``: a fresh runtime loop on the target's bus for one
+(law, mode, condition), its record as the simulator's trajectory, and the run's entry in
+results.json."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from models.conditions import Condition
+from models.hil_experiment.config import HilOptions, run_start, runtime_config_dict
+from models.robots import RobotModel
+from models.scoring import run_metrics
+
+if TYPE_CHECKING:
+    from hil_runtime.config import RuntimeConfig
+
+# Faults of the rig, not of the controller (a lock-stepped run's result cannot depend on them):
+# such a run is run again, up to RIG_RETRIES times, and the retries are counted in results.json.
+RIG_FAULTS = ("feedback_timeout", "heartbeat_lost", "transport", "drive_state", "stale_feedback")
+RIG_RETRIES = 2
+CHUNK_CYCLES = 250  # the loop runs in chunks of this many cycles so the progress bar moves
+
+
+@dataclass
+class HilRun:
+    """One run's record (the runtime's arrays, padded to the condition's length when it faulted)."""
+
+    arrays: dict[str, np.ndarray]
+    rows: int  # rows the runtime recorded (< steps when it faulted)
+    fault: str | None
+    stats: dict[str, Any]
+    rig_retries: int = 0  # runs done again after a fault of the rig (RIG_FAULTS)
+
+    @property
+    def rig_fault(self) -> bool:
+        return self.fault is not None and self.fault.split(":", 1)[0] in RIG_FAULTS
+
+
+def run_on_target(
+    target: Any,
+    robot: RobotModel,
+    law: str,
+    mode: str,
+    condition: Condition,
+    period_s: float,
+    options: HilOptions,
+    conditions_file: Path,
+    advance: Callable[[int], None] | None = None,
+) -> HilRun:
+    """One run: a fresh runtime on the target's bus, the arm placed on the condition, the loop for
+    the condition's duration (or until a fault), the drives stopped. ``target``: a LaunchedTarget.
+    A fault of the rig (RIG_FAULTS: the bus, not the controller) runs it again, RIG_RETRIES times."""
+    from hil_runtime.config import parse_runtime_config
+    from models.lmpc.controller import bundle_path
+
+    data = runtime_config_dict(
+        robot,
+        bundle_path(robot.name, law, options.bundle_dir),
+        mode,
+        target.transport,
+        period_s,
+        conditions_file,
+        condition.name,
+    )
+    config = parse_runtime_config(data, f"hil experiment {law}/{mode}/{condition.name}")
+    retries = 0
+    while True:
+        run = _run_once(target, config, condition, period_s, advance)
+        if not run.rig_fault or retries >= RIG_RETRIES:
+            run.rig_retries = retries
+            return run
+        retries += 1
+
+
+def _run_once(
+    target: Any,
+    config: RuntimeConfig,
+    condition: Condition,
+    period_s: float,
+    advance: Callable[[int], None] | None,
+) -> HilRun:
+    from drivers.drive_bus import DriveBus
+    from hil_runtime.runtime import Runtime
+    from sim_target.config import parse_run_start
+
+    steps = int(round(condition.duration_s / period_s))
+    runtime = Runtime(config, DriveBus(config.bus), record_cycles=steps)
+    fault: str | None = None
+    shown = 0  # periods shown on the progress bar for this run
+    try:
+        runtime.configure()
+        target.start_run(parse_run_start(run_start(condition), "start"))
+        if runtime.activate():
+            done = 0
+            while done < steps - 1:  # row 0 is the activation's feedback (t = 0)
+                result = runtime.run(max_cycles=min(CHUNK_CYCLES, steps - 1 - done), stop_on_fault=True)
+                done = runtime.record.n - 1
+                if advance is not None:
+                    advance(done - shown)
+                    shown = done
+                if result.reason == "fault":
+                    break
+        fault = runtime.lifecycle.fault
+        stats = runtime.stats()
+    finally:
+        runtime.shutdown()
+    record = {k: np.array(v) for k, v in runtime.record.arrays().items()}
+    run = HilRun(pad_record(record, steps, period_s), int(record["q"].shape[0]), fault, stats)
+    if advance is not None:  # a rig fault runs again: take its periods back; else count the rest as done
+        advance(-shown if run.rig_fault else steps - 1 - shown)
+    return run
+
+
+def pad_record(record: dict[str, np.ndarray], steps: int, period_s: float) -> dict[str, np.ndarray]:
+    """The record as the simulator's trajectory (t, q, qd, ...), ``steps`` rows; a run cut short by a
+    fault is held at its last position (the brakes hold it), like a diverged simulated run."""
+    rows = record["q"].shape[0]
+    out = {"t": np.arange(steps) * period_s}
+    for key, value in record.items():
+        if key == "t_s":
+            continue
+        if rows == 0:
+            out[key] = np.full((steps, *value.shape[1:]), np.nan)
+            continue
+        if rows < steps:
+            fill = np.repeat(value[-1:], steps - rows, axis=0)
+            if key in ("qd", "tau", "tau_fb", "qd_ref"):
+                fill = np.zeros_like(fill)
+            value = np.concatenate([value, fill])
+        out[key] = value[:steps]
+    if rows:
+        np.testing.assert_allclose(record["t_s"], out["t"][:rows], atol=1e-9)  # lock-step: one row per period
+    return out
+
+
+def run_record(robot: RobotModel, law: str, mode: str, condition: Condition, run: HilRun, steps: int) -> dict[str, Any]:
+    a = run.arrays
+    dist_time = None if condition.disturbance is None else condition.disturbance.time_s
+    finite = bool(np.isfinite(a["q"]).all() and np.isfinite(a["qd"]).all())
+    position_ratio = float(np.max(robot.position_limit_ratio(a["q"]))) if finite else math.inf
+    velocity_ratio = float(np.max(np.abs(a["qd"]) / robot.velocity_limit_rad_s)) if finite else math.inf
+    stats = run.stats
+    compute_us = a["compute_s"][1 : run.rows] * 1e6 if run.rows > 1 else np.zeros(1)
+    return {
+        "law": law,
+        "mode": mode,
+        "condition": condition.name,
+        "metrics": run_metrics(a["t"], a["q"], a["q_ref"], dist_time),
+        "finite": finite,
+        "within_limits": finite and run.fault is None and position_ratio <= 1.0 and velocity_ratio <= 1.0,
+        "position_limit_ratio": position_ratio,
+        "velocity_limit_ratio": velocity_ratio,
+        "max_abs_torque_nm": np.abs(a["tau"]).max(axis=0).tolist(),
+        "hil": {
+            "rows": run.rows,
+            "steps": steps,
+            "fault": run.fault,
+            "rig_retries": run.rig_retries,
+            "compute_us": {
+                "median": float(np.median(compute_us)),
+                "p99": float(np.percentile(compute_us, 99)),
+                "max": float(compute_us.max()),
+            },
+            "fallback_cycles": int((a["fallback"][: run.rows] > 0).sum()),
+            "saturations": int(stats.get("saturations", 0)),
+            "bus": {k[4:]: v for k, v in stats.items() if k.startswith("bus_")},
+        },
+    }
+
+
+__all__ = ["CHUNK_CYCLES", "RIG_FAULTS", "RIG_RETRIES", "HilRun", "pad_record", "run_on_target", "run_record"]
