@@ -184,7 +184,7 @@ def _experiment(
             hmpc_options["prediction_step_s"] = hmpc_prediction_step_s
         if hmpc_options:
             options["hmpc"] = hmpc_options
-        if hil is not None:  # --plant hil: models/hil_experiment.py
+        if hil is not None:  # --plant hil: models/hil_experiment/
             from models.hil_experiment import format_hil_table, run_hil_experiment
 
             results = run_hil_experiment(arm, condition_list, config, out, hil, progress=progress)  # type: ignore[arg-type]
