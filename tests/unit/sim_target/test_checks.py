@@ -7,7 +7,7 @@ import pytest
 
 from sim_target.checks import PlantCheckError, check_plant
 from sim_target.plant import PybulletPlant
-from sim_target.testing.fake_plant import FakePlant
+from sim_target.testing.fake_plant import FakePlant, JointState
 
 Q0 = np.array([0.3, -0.5, 0.8, -0.4, 0.5, 0.2])
 
@@ -24,24 +24,24 @@ def test_the_fake_plant_passes(n: int, period_s: float) -> None:
 
 
 class _SlowClock(FakePlant):
-    def step(self, torque_nm, brake_engaged):  # type: ignore[no-untyped-def]
+    def step(self, torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState:
         state = super().step(torque_nm, brake_engaged)
         return state._replace(time_s=2 * state.time_s)
 
 
 class _LeakyBrake(FakePlant):
-    def step(self, torque_nm, brake_engaged):  # type: ignore[no-untyped-def]
+    def step(self, torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState:
         return super().step(np.full(self.n_joints, 1.0), np.zeros(self.n_joints, dtype=bool))
 
 
 class _Noisy(FakePlant):
-    def step(self, torque_nm, brake_engaged):  # type: ignore[no-untyped-def]
+    def step(self, torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState:
         state = super().step(torque_nm, brake_engaged)
         return state._replace(position_rad=state.position_rad + np.random.default_rng().normal(size=self.n_joints))
 
 
 class _WrongShape(FakePlant):
-    def state(self):  # type: ignore[no-untyped-def]
+    def state(self) -> JointState:
         state = super().state()
         return state._replace(velocity_rad_s=state.velocity_rad_s[:-1])
 

@@ -7,10 +7,14 @@ import logging
 import socket
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
+from drivers.joint_bus import JointReadings
 from sim_target.config import TargetConfigError, load_target_config, parse_target_config
 from sim_target.server import TargetServer, build_server, make_plant, send_control
 
@@ -110,23 +114,19 @@ def test_shipped_rates_still_load_and_the_runtime_budget_is_used() -> None:
 
 
 class StubDrives:
-    def set_sync_handler(self, handler):  # type: ignore[no-untyped-def]
+    def set_sync_handler(self, handler: Callable[[], None] | None) -> None:
         self.handler = handler
 
-    def commanded_torque_nm(self):  # type: ignore[no-untyped-def]
-        import numpy as np
-
+    def commanded_torque_nm(self) -> np.ndarray:
         return np.zeros(6)
 
-    def operation_enabled(self):  # type: ignore[no-untyped-def]
-        import numpy as np
-
+    def operation_enabled(self) -> np.ndarray:
         return np.ones(6, bool)
 
-    def publish_feedback(self, state) -> None:  # type: ignore[no-untyped-def]
+    def publish_feedback(self, state: JointReadings) -> None:
         pass
 
-    def apply_fault(self, fault) -> None:  # type: ignore[no-untyped-def]
+    def apply_fault(self, fault: Any) -> None:
         pass
 
     def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
