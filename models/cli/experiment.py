@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from models.cli.options import ROBOTS_HELP, one_of, positive, split_names
+from models.cli.options import RobotOption, one_of, positive, split_names
 
 
 def experiment(
@@ -23,13 +23,7 @@ def experiment(
             help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range)."
         ),
     ] = None,
-    robot: Annotated[
-        str,
-        typer.Option(
-            help=f"Robot: {ROBOTS_HELP}, or a URDF path. The gain sets are ur5_paper's: on another robot the laws need "
-            "their own gains (models.feedback.make_law), so this command refuses it."
-        ),
-    ] = "ur5_paper",
+    robot: RobotOption = "ur5_paper",
     out: Annotated[Path, typer.Option(help="Output directory (checked writable before any work).")] = Path(
         "results/experiment"
     ),

@@ -5,11 +5,23 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from typing import Annotated
+
+import typer
 
 from models.errors import ModelInputError
 
 # The built-in robots (models.robots.robot_names(); tests/unit/models/test_readme_snippets.py keeps them equal).
 ROBOTS_HELP = "ur5_paper, ur5, panda"
+
+#: ``--robot`` of the commands that run the laws with the shipped gain sets.
+RobotOption = Annotated[
+    str,
+    typer.Option(
+        help=f"Robot: {ROBOTS_HELP}, or a URDF path. The gain sets are ur5_paper's: on another robot the laws need "
+        "their own gains (models.feedback.make_law), so this command refuses it."
+    ),
+]
 
 
 def positive(value: float, option: str, integer: bool = False) -> None:

@@ -13,7 +13,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from models.cli.options import ROBOTS_HELP
+from models.cli.options import RobotOption
 from models.errors import ModelInputError
 
 
@@ -21,13 +21,7 @@ def stability(
     law: Annotated[str, typer.Argument(help="Feedback law: pd, pid, adrc, hinf, smc, mrac.")],
     conditions: Annotated[Path | None, typer.Option(help="Conditions YAML (default: the paper's five).")] = None,
     condition: Annotated[int, typer.Option(help="1-based index of the condition in the file.")] = 1,
-    robot: Annotated[
-        str,
-        typer.Option(
-            help=f"Robot: {ROBOTS_HELP}, or a URDF path. The gain sets are ur5_paper's: on another robot the laws need "
-            "their own gains (models.feedback.make_law), so this command refuses it."
-        ),
-    ] = "ur5_paper",
+    robot: RobotOption = "ur5_paper",
     period_s: Annotated[float, typer.Option(help="Control period (s); also the sampling of the reference.")] = 1e-3,
     beta: Annotated[float, typer.Option(help="Lyapunov cross-term weight beta.")] = 1e-6,
     epsilon: Annotated[float, typer.Option(help="Margin epsilon of Eqs. 19-20.")] = 1e-3,
