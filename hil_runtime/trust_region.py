@@ -11,6 +11,21 @@ import numpy as np
 from hil_runtime.bundle_schema import FEATURE_SETS, TRUST_MIN_SPAN
 
 
+def named_features(q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any, tau_fb: Any) -> dict[str, Any]:
+    """Every feature a FEATURE_SETS entry may name, from the state and the law's torque. Plain
+    arithmetic, so numpy arrays and torch tensors alike (the graph's exporter builds the same)."""
+    return {
+        "q": q,
+        "e": q_d - q,
+        "qd": qd,
+        "e_dot": qd_d - qd,
+        "q_d": q_d,
+        "qd_d": qd_d,
+        "qdd_d": qdd_d,
+        "tau_fb": tau_fb,
+    }
+
+
 def emulator_features(
     feature_set: str,
     q: np.ndarray,
@@ -21,16 +36,7 @@ def emulator_features(
     tau_fb: np.ndarray,
 ) -> np.ndarray:
     """The emulator input s of ``feature_set`` (FEATURE_SETS), last axis."""
-    parts = {
-        "q": q,
-        "e": q_d - q,
-        "qd": qd,
-        "e_dot": qd_d - qd,
-        "q_d": q_d,
-        "qd_d": qd_d,
-        "qdd_d": qdd_d,
-        "tau_fb": tau_fb,
-    }
+    parts = named_features(q, qd, q_d, qd_d, qdd_d, tau_fb)
     return np.concatenate([np.asarray(parts[k], float) for k in FEATURE_SETS[feature_set]], axis=-1)
 
 
