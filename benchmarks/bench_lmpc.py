@@ -8,6 +8,8 @@ the bare ``PolicyBundle.step`` time. Prints JSON.
     python benchmarks/bench_lmpc.py --fallbacks      # + trust-region counters on the paper's 5 conditions
     python benchmarks/bench_lmpc.py --session-sweep  # + each graph under onnxruntime's optimization levels
     python benchmarks/bench_lmpc.py --compact        # shipped graph vs today's graph code, interleaved
+    python benchmarks/bench_lmpc.py --bundles OLD --against NEW   # two bundle sets' t_L, interleaved
+    python benchmarks/bench_lmpc.py --reexport-to DIR # the shipped bundles in today's graph, under DIR
 
 ``--compact``: per law, the shipped bundle's emulator (rebuilt from its graph's weights and its
 manifest) exported with the working tree's graph code (models.lmpc.structured) to a temporary file;
