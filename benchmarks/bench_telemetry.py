@@ -97,8 +97,9 @@ def run(
     sink.start()
     child = None
     if subscriber:
-        child = subprocess.Popen([sys.executable, "-c", _SUBSCRIBER, endpoint], stdin=subprocess.PIPE,
-                                 stdout=subprocess.PIPE, text=True)  # fmt: skip
+        child = subprocess.Popen(
+            [sys.executable, "-c", _SUBSCRIBER, endpoint], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
         assert child.stdout is not None and child.stdin is not None
         if child.stdout.readline().strip() != "ready":
             raise SystemExit("the subscriber process did not start")
@@ -130,8 +131,14 @@ def run(
             deadline += period_s * int(late_s / period_s)
         begin = time.perf_counter_ns()
         state = _work(state, matrix)
-        q, qd, q_ref, qd_ref, tau, tau_fb = state[:n], state[n:2 * n], state[2 * n:3 * n], state[3 * n:4 * n], \
-            state[4 * n:5 * n], state[5 * n:]  # fmt: skip
+        q, qd, q_ref, qd_ref, tau, tau_fb = (
+            state[:n],
+            state[n : 2 * n],
+            state[2 * n : 3 * n],
+            state[3 * n : 4 * n],
+            state[4 * n : 5 * n],
+            state[5 * n :],
+        )
         middle = time.perf_counter_ns()
         target.offer_state(CycleState(k, time.monotonic_ns(), q, qd, q_ref, qd_ref, tau, tau_fb, 0.0, 2e-5))
         end = time.perf_counter_ns()

@@ -16,13 +16,27 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
 JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
 
 
-def expected_state(seq: int, n: int = len(JOINTS)) -> dict[str, np.ndarray | float]:
+class StateValues(TypedDict):
+    """CycleState's values after (seq, t_ns), by name."""
+
+    q: np.ndarray
+    qd: np.ndarray
+    q_ref: np.ndarray
+    qd_ref: np.ndarray
+    tau: np.ndarray
+    tau_fb: np.ndarray
+    fallback: float
+    compute_s: float
+
+
+def expected_state(seq: int, n: int = len(JOINTS)) -> StateValues:
     """The values sample ``seq`` carries: smooth, distinct per field and joint."""
     t = seq * 1e-3
     j = np.arange(n, dtype=float)
@@ -100,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
             deadline += period_s * int((now - deadline) / period_s)
         s = expected_state(seq)
         begin = time.perf_counter_ns()
-        sink.offer_state(CycleState(seq, time.monotonic_ns(), **s))  # type: ignore[arg-type]  # values typed loosely
+        sink.offer_state(CycleState(seq, time.monotonic_ns(), **s))
         offer_ns[seq] = time.perf_counter_ns() - begin
         starts[seq] = now
         lateness[seq] = now - deadline
@@ -112,8 +126,10 @@ def main(argv: list[str] | None = None) -> int:
     counters = getattr(sink, "counters", {})
     if args.timing is not None:
         np.savez(args.timing, start_s=starts[:seq], lateness_s=lateness[:seq], offer_ns=offer_ns[:seq])
-    print(json.dumps({"cycles": seq, "resets": controls.resets, "stopped_by_control": controls.stop, **counters}),
-          flush=True)  # fmt: skip
+    print(
+        json.dumps({"cycles": seq, "resets": controls.resets, "stopped_by_control": controls.stop, **counters}),
+        flush=True,
+    )
     return 0
 
 

@@ -13,8 +13,13 @@ from sim_target.faults.campaign import QUICK
 
 def test_hil_faults_quick_passes_every_row(tmp_path: Path) -> None:
     out = tmp_path / "faults"
-    done = subprocess.run([sys.executable, "-m", "hil_runtime.cli", "faults", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", "faults", "--quick", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     document = json.loads((out / "results.json").read_text())
     failed = {row["fault"]: row["failures"] for row in document["rows"] if not row["pass"]}
     assert done.returncode == 0 and not failed, f"{failed}\n{done.stderr[-3000:]}"

@@ -39,8 +39,9 @@ ENCODER_RAD = 2 * np.pi / (1 << 20)  # the drives' 0x608F: one count
 
 
 def hil(*args: str, cwd: Path | None = None, timeout_s: float = 600) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=timeout_s)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True, cwd=cwd, timeout=timeout_s
+    )
 
 
 @pytest.fixture
@@ -52,8 +53,9 @@ def short_conditions(tmp_path: Path) -> Path:
 
 def test_short_hil_experiment_through_the_cli(tmp_path: Path, short_conditions: Path) -> None:
     out = tmp_path / "out"
-    result = hil("experiment", "--plant", "hil", "--laws", "pd", "--conditions", str(short_conditions),
-                 "--out", str(out), cwd=tmp_path)  # fmt: skip
+    result = hil(
+        *"experiment --plant hil --laws pd --conditions".split(), str(short_conditions), "--out", str(out), cwd=tmp_path
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     results = json.loads((out / "results.json").read_text())
     assert results["plant"] == "hil" and results["hil"]["transport"] == "virtual"
@@ -91,9 +93,15 @@ def test_short_hil_experiment_through_the_cli(tmp_path: Path, short_conditions: 
         row = parity["table"]["pd"][mode]
         assert abs(row["score_rel"]) <= 0.05, row
         assert row["trajectory_rms_diff_deg"] < 0.05, row
-    for name in ("plots/pd_C4short.png", "plots/average_error_C4short.png", "plots/parity/parity_scores.png",
-                 "plots/parity/parity_error_fb.png", "sim/results.json", "conditions.yaml",
-                 "bundles/pd/manifest.json"):  # fmt: skip
+    for name in (
+        "plots/pd_C4short.png",
+        "plots/average_error_C4short.png",
+        "plots/parity/parity_scores.png",
+        "plots/parity/parity_error_fb.png",
+        "sim/results.json",
+        "conditions.yaml",
+        "bundles/pd/manifest.json",
+    ):
         assert (out / name).is_file(), name
     # Both the HIL runs and the twin ran the snapshot taken at the start (a re-export meanwhile
     # cannot mix two versions), and the results say which files those were.
@@ -112,8 +120,9 @@ def test_disturbance_hits_at_its_time_as_in_the_simulator(short_conditions: Path
     options = HilOptions(parity=False)
     with launch_target(target_config_dict("ur5_paper", 1e-3, 32), "virtual") as target:
         hit = run_on_target(target, robot, "pd", "fb", condition, 1e-3, options, short_conditions)
-        calm = run_on_target(target, robot, "pd", "fb", replace(condition, disturbance=None), 1e-3, options,
-                             short_conditions)  # fmt: skip
+        calm = run_on_target(
+            target, robot, "pd", "fb", replace(condition, disturbance=None), 1e-3, options, short_conditions
+        )
     assert hit.fault is None and calm.fault is None
     dqd = hit.arrays["qd"] - calm.arrays["qd"]
     np.testing.assert_allclose(dqd[:501], 0.0, atol=1e-9)  # identical runs until the pulse
@@ -128,9 +137,9 @@ def test_ipc_transport_reproduces_the_in_process_run(tmp_path: Path, short_condi
     records = {}
     for transport in ("virtual", "ipc"):
         out = tmp_path / transport
-        result = hil("experiment", "--plant", "hil", "--transport", transport, "--laws", "pid", "--modes", "lmpc",
-                     "--conditions", str(short_conditions), "--out", str(out), "--no-parity", "--no-plots",
-                     cwd=tmp_path)  # fmt: skip
+        args = "experiment --plant hil --laws pid --modes lmpc --no-parity --no-plots".split()
+        args += ["--transport", transport, "--conditions", str(short_conditions), "--out", str(out)]
+        result = hil(*args, cwd=tmp_path)
         assert result.returncode == 0, result.stderr[-2000:]
         assert "parity" not in json.loads((out / "results.json").read_text())
         records[transport] = np.load(out / "trajectories" / "pid_lmpc_C4short.npz")

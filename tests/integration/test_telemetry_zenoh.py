@@ -28,6 +28,7 @@ pytest.importorskip("zenoh")
 
 from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink
 from hil_runtime.telemetry.codec import Schema
+from hil_runtime.telemetry.sink import TelemetrySink
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
 from tests.integration.telemetry_fake_loop import JOINTS, expected_state
 
@@ -42,8 +43,14 @@ def _free_port() -> int:
 
 
 def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "hil_runtime.cli", *args], capture_output=True, text=True,
-                          timeout=timeout_s, cwd=REPO, check=False)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        cwd=REPO,
+        check=False,
+    )
 
 
 class FakeLoop:
@@ -56,11 +63,11 @@ class FakeLoop:
         if controls:
             command.append("--controls")
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        assert self.process.stdout is not None
+        assert self.process.stdout is not None and self.process.stderr is not None
         line = self.process.stdout.readline().strip()
         if line != "ready":
             self.process.kill()
-            raise AssertionError(f"fake loop did not start: {line!r} {self.process.stderr.read()}")  # type: ignore[union-attr]
+            raise AssertionError(f"fake loop did not start: {line!r} {self.process.stderr.read()}")
         self.endpoint = f"tcp/127.0.0.1:{port}"
 
     def finish(self, timeout_s: float = 20.0) -> dict:
@@ -99,8 +106,17 @@ def _record_and_check(tmp_path: Path, seconds: float) -> None:
     loop = FakeLoop(port, seconds=seconds + 30.0)
     out = tmp_path / "run.npz"
     try:
-        result = _hil("telemetry", "record", "--connect", loop.endpoint, "--seconds", str(seconds), "--out", str(out),
-                      timeout_s=seconds + 60.0)  # fmt: skip
+        result = _hil(
+            "telemetry",
+            "record",
+            "--connect",
+            loop.endpoint,
+            "--seconds",
+            str(seconds),
+            "--out",
+            str(out),
+            timeout_s=seconds + 60.0,
+        )
         assert result.returncode == 0, result.stderr
         counters = loop.finish()
     finally:
@@ -195,10 +211,12 @@ def test_a_dead_or_stalled_subscriber_leaves_the_loop_timing_unchanged(tmp_path:
     assert before.sum() > 300 and after.sum() > 900
     med_before, med_after = np.median(offer_us[before]), np.median(offer_us[after])
     late_before, late_after = np.percentile(late_us[before], 99), np.percentile(late_us[after], 99)
-    print(f"{how}: offer_state median {med_before:.1f} -> {med_after:.1f} µs, "
-          f"max after {offer_us[after].max():.0f} µs; "
-          f"lateness p99 {late_before:.0f} -> {late_after:.0f} µs; cycles/s {before.sum()} -> {after.sum() / 3:.0f}; "
-          f"{counters}")  # fmt: skip
+    print(
+        f"{how}: offer_state median {med_before:.1f} -> {med_after:.1f} µs, "
+        f"max after {offer_us[after].max():.0f} µs; "
+        f"lateness p99 {late_before:.0f} -> {late_after:.0f} µs; cycles/s {before.sum()} -> {after.sum() / 3:.0f}; "
+        f"{counters}"
+    )
     # The loop never waits on the peer: the hand-off stays a copy, wake-ups stay on time, the rate holds.
     assert med_after <= 2.0 * med_before + 10.0
     assert np.percentile(offer_us[after], 99) <= 2.0 * np.percentile(offer_us[before], 99) + 50.0
@@ -220,11 +238,15 @@ class _Controls:
         self.resets += 1
 
 
-def _sink(port: int, controls: _Controls | None):  # type: ignore[no-untyped-def]
-    config = TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), controls_enabled=controls is not None,
-                             stats_period_s=0.2)  # fmt: skip
-    info = {"joints": list(JOINTS), "config": {"period_s": 0.001},
-            "bundle": {"bundle_id": "pd:0123", "files": {"policy.onnx": "ab" * 32}}}  # fmt: skip
+def _sink(port: int, controls: _Controls | None) -> TelemetrySink:
+    config = TelemetryConfig(
+        enabled=True, listen=(f"tcp/127.0.0.1:{port}",), controls_enabled=controls is not None, stats_period_s=0.2
+    )
+    info = {
+        "joints": list(JOINTS),
+        "config": {"period_s": 0.001},
+        "bundle": {"bundle_id": "pd:0123", "files": {"policy.onnx": "ab" * 32}},
+    }
     return make_sink(config, "arm_q", info, controls)
 
 
@@ -297,10 +319,15 @@ def test_watch_shows_the_arm_live() -> None:
     loop = FakeLoop(port)
     try:
         result = subprocess.run(
-            [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--connect", loop.endpoint,
-             "--seconds", "1.5", "--refresh-hz", "4"],
-            capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "COLUMNS": "140"}, check=False,
-        )  # fmt: skip
+            [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--connect", loop.endpoint]
+            + "--seconds 1.5 --refresh-hz 4".split(),
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=REPO,
+            env={**os.environ, "COLUMNS": "140"},
+            check=False,
+        )
     finally:
         loop.kill()
     assert result.returncode == 0, result.stderr
@@ -320,8 +347,9 @@ def _acl_example(interfaces: str | None = None) -> str:
 
 
 @pytest.mark.parametrize(("interfaces", "stop_allowed"), [('["lo"]', False), (None, True)])
-def test_the_documented_access_control_restricts_the_controls(tmp_path: Path, interfaces: str | None,
-                                                               stop_allowed: bool) -> None:  # fmt: skip
+def test_the_documented_access_control_restricts_the_controls(
+    tmp_path: Path, interfaces: str | None, stop_allowed: bool
+) -> None:
     """With the docs' rule applied to loopback, stop is refused and schema still answers; as
     documented (network interfaces only), a stop from this machine goes through."""
     acl = tmp_path / "acl.json5"
@@ -348,8 +376,11 @@ def test_the_documented_access_control_restricts_the_controls(tmp_path: Path, in
 
 def test_close_is_bounded_with_a_stalled_subscriber() -> None:
     port = _free_port()
-    sink = make_sink(TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), close_timeout_s=0.5), "arm_q",
-                     {"joints": list(JOINTS)})  # fmt: skip
+    sink = make_sink(
+        TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), close_timeout_s=0.5),
+        "arm_q",
+        {"joints": list(JOINTS)},
+    )
     sink.start()
     code = (
         "import time\n"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -54,8 +55,8 @@ def test_header_bytes_are_the_documented_layout() -> None:
 def test_state_layout_offsets_and_size() -> None:
     document = build_schema("arm", JOINTS)
     fields = {f["name"]: f for f in document["payloads"]["state"]["fields"]}
-    assert [f["name"] for f in document["payloads"]["state"]["fields"]] == [
-        "fallback", "compute_s", "q", "qd", "q_ref", "qd_ref", "tau", "tau_fb"]  # fmt: skip
+    names = [f["name"] for f in document["payloads"]["state"]["fields"]]
+    assert names == "fallback compute_s q qd q_ref qd_ref tau tau_fb".split()
     assert fields["fallback"]["offset"] == 24 and fields["compute_s"]["offset"] == 32
     assert fields["q"]["offset"] == 40 and fields["q"]["count"] == 3
     assert fields["tau_fb"]["offset"] == 40 + 5 * 24
@@ -113,7 +114,7 @@ def test_warmup_payloads_decode_empty(schema: Schema) -> None:
         (lambda p: p[:6] + bytes([2]) + p[7:], "payload refused: kind stats, expected state"),
     ],
 )
-def test_decoder_refuses_in_one_line(mutate, message: str) -> None:  # type: ignore[no-untyped-def]
+def test_decoder_refuses_in_one_line(mutate: Callable[[bytes], bytes], message: str) -> None:
     schema = Schema(build_schema("arm", ["a", "b", "c", "d", "e", "f"]))
     payload = encode_state(1, 1, _blocks(6), 0.0, 0.0)
     with pytest.raises(TelemetryDecodeError) as info:

@@ -80,8 +80,10 @@ def test_publisher_session_drops_at_once_and_declares_a_short_lease() -> None:
 
 def test_json5_file_keeps_its_endpoints_unless_set(tmp_path: Path) -> None:
     path = tmp_path / "zenoh.json5"
-    path.write_text('{ // a comment: json5\n listen: { endpoints: ["tcp/127.0.0.1:17000"] },'
-                    ' scouting: { multicast: { enabled: true } } }')  # fmt: skip
+    path.write_text(
+        '{ // a comment: json5\n listen: { endpoints: ["tcp/127.0.0.1:17000"] },'
+        " scouting: { multicast: { enabled: true } } }"
+    )
     from_file = publisher_zenoh_config(TelemetryConfig(enabled=True, zenoh_config=path))
     assert json.loads(from_file.get_json("listen/endpoints")) == ["tcp/127.0.0.1:17000"]
     assert json.loads(from_file.get_json("scouting/multicast/enabled")) is False  # forced off whatever the file says

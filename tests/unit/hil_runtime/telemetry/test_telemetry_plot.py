@@ -14,6 +14,7 @@ from hil_runtime.telemetry.plot import PlotError, load_record, plot_record
 def _write(path: Path, samples: int = 200, n_joints: int = 3, **extra: object) -> Path:
     t_s = np.arange(samples) * 1e-3
     q = np.sin(t_s[:, None] + np.arange(n_joints))
+    # numpy's stub types savez's **kwds as also reaching its bool allow_pickle:
     np.savez(path, t_s=t_s, q=q, q_ref=q + 0.01, tau=q * 2, tau_fb=q * 1.5, **extra)  # type: ignore[arg-type]
     return path
 
@@ -56,8 +57,12 @@ def test_time_axis_is_cycles_times_period_when_known() -> None:
     from hil_runtime.telemetry.plot import _time_axis
 
     q = np.zeros((3, 2))
-    record = {"q": q, "seq": np.array([10, 11, 13], dtype=np.uint64), "period_s": np.asarray(0.001),
-              "t_s": np.array([0.0, 0.5, 0.9])}  # fmt: skip
+    record = {
+        "q": q,
+        "seq": np.array([10, 11, 13], dtype=np.uint64),
+        "period_s": np.asarray(0.001),
+        "t_s": np.array([0.0, 0.5, 0.9]),
+    }
     t_s, label = _time_axis(record)
     np.testing.assert_allclose(t_s, [0.0, 0.001, 0.003])
     assert label == "time [s] (cycles x period)"

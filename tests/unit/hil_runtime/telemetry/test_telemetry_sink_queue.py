@@ -28,7 +28,7 @@ class _FakePublisher:
 
 
 def _sink(**overrides: object) -> tuple[ZenohTelemetry, _FakePublisher]:
-    config = TelemetryConfig(enabled=True, **overrides)  # type: ignore[arg-type]
+    config = TelemetryConfig.model_validate({"enabled": True, **overrides})
     sink = make_sink(config, "arm", {"joints": JOINTS, "bundle": {"bundle_id": "pd:abc"}})
     assert isinstance(sink, ZenohTelemetry)
     publisher = _FakePublisher()
@@ -96,6 +96,7 @@ def test_caller_bugs_are_counted_never_raised(caplog: pytest.LogCaptureFixture) 
     zeros = np.zeros(3)
     caplog.set_level(logging.ERROR)
     sink.offer_state(CycleState(-1, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # negative seq: u64
+    # A list where an array belongs: the caller bug under test.
     sink.offer_state(CycleState(1, 0, [0.0] * 3, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # type: ignore[arg-type]
     short = np.zeros(2)
     sink.offer_state(CycleState(2, 0, short, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # wrong joint count
