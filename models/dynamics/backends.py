@@ -195,8 +195,8 @@ class PinocchioDynamics:
         return self._each(lambda q: self._pin.computeGeneralizedGravity(self.model, self.data, q).copy(), q)
 
     def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
-        if ee_wrench is None and np.ndim(q) == 2:  # a batch without wrench: ABA in one C++ call
-            if np.shape(q)[0] == 1:  # one state (the 1 kHz loop): the plain call has less set-up
+        if ee_wrench is None and isinstance(q, np.ndarray) and q.ndim == 2:  # a batch: ABA in one C++ call
+            if q.shape[0] == 1:  # one state (the 1 kHz loop): the plain call has less set-up
                 return self._pin.aba(self.model, self.data, q[0], qd[0], tau[0])[None].copy()
             # (K, N) C-contiguous transposes to the (N, K) column-major layout pinocchio wants: no copy.
             q, qd, tau = (np.ascontiguousarray(a, dtype=np.float64) for a in (q, qd, tau))

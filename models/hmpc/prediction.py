@@ -14,6 +14,7 @@ cheap; over the 5-step preview its difference from the simulator's RK4 plant is 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -42,20 +43,20 @@ class Predictor(Protocol):
 class DynamicsPredictor:
     """A models.dynamics backend seen as the MPC's predictor (batched (K, N) calls only)."""
 
+    # the backend's bound methods themselves: no extra Python frame on the solver's hot path
+    acceleration: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+    acceleration_derivatives: Callable[
+        [np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    ]
+
     def __init__(self, dynamics: Dynamics) -> None:
         self.dynamics = dynamics
         self.n_joints = dynamics.n_joints
+        self.acceleration = dynamics.forward_dynamics
+        self.acceleration_derivatives = dynamics.forward_dynamics_derivatives
 
     def __getstate__(self) -> dict:  # pinocchio objects are rebuilt in worker processes
         raise TypeError("the HMPC predictor is built per process; pickle the HMPCSolver's spec instead")
-
-    def acceleration(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        return self.dynamics.forward_dynamics(q, qd, tau)
-
-    def acceleration_derivatives(
-        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        return self.dynamics.forward_dynamics_derivatives(q, qd, tau)
 
 
 def make_predictor(robot: RobotModel, backend: str) -> Predictor:
