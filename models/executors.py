@@ -213,7 +213,15 @@ class RayExecutor(Executor):
         refs = [remote.remote(task) for task in tasks]
         try:
             for ref in refs:
-                yield ray.get(ref)
+                try:
+                    value = ray.get(ref)
+                except ray.exceptions.RayTaskError as exc:
+                    # The task's own exception, as the other executors raise it (a user error stays
+                    # one line); Ray's report, with the worker's traceback, is chained to it.
+                    if isinstance(exc.cause, Exception):
+                        raise exc.cause from exc
+                    raise
+                yield value
         except BaseException:  # Ctrl-C or a failed task: the remaining tasks are not waited for
             for ref in refs:
                 with contextlib.suppress(Exception):
