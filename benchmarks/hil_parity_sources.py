@@ -63,7 +63,9 @@ class Quantized:
         self.inner.reset(q0)
         self.errors = [np.zeros_like(self.step) for _ in range(max(self.carry, 1))]
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         if self.encoder:
             q = np.rint(q * COUNTS_PER_RAD) / COUNTS_PER_RAD
             qd = np.rint(qd * COUNTS_PER_RAD) / COUNTS_PER_RAD
@@ -86,7 +88,9 @@ class Delayed:
         self.inner.reset(q0)
         self.previous = None
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         seen = self.previous or (q, qd)
         self.previous = (q.copy(), qd.copy())
         tau = self.inner(t_s, seen[0], seen[1], q_d, qd_d, qdd_d)

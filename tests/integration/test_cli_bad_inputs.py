@@ -33,7 +33,7 @@ def _urdf(pattern: str, replacement: str) -> str:
     return text
 
 
-def _manifest(change) -> str:  # type: ignore[no-untyped-def]
+def _manifest(change: Callable[[dict[str, Any]], object]) -> str:
     manifest = json.loads((PD_BUNDLE / "manifest.json").read_text())
     change(manifest)
     return json.dumps(manifest)

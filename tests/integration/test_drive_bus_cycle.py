@@ -8,6 +8,7 @@ Everything is counted in cycles; the only clocks are the driver's own timeouts (
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -31,7 +32,7 @@ SAFE_STATES = {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED, State.FAULT}
 
 
 @pytest.fixture(params=[False, True], ids=["classical", "fd"])
-def rig(request: pytest.FixtureRequest):  # type: ignore[no-untyped-def]
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     rig = make_rig(n=3, fd=request.param, feedback_timeout_s=0.2)
     yield rig
     rig.close()

@@ -247,14 +247,15 @@ def _reap(proc: subprocess.Popen[str]) -> None:
 
 
 def _wait_running(proc: subprocess.Popen[str], timeout_s: float = 60.0) -> None:
+    assert proc.stdout is not None and proc.stderr is not None
     selector = selectors.DefaultSelector()
-    selector.register(proc.stdout, selectors.EVENT_READ)  # type: ignore[arg-type]
+    selector.register(proc.stdout, selectors.EVENT_READ)
     if not selector.select(timeout_s):
         proc.kill()
         raise AssertionError(f"master did not start: {proc.communicate()[1][-2000:]}")
-    line = proc.stdout.readline()  # type: ignore[union-attr]
+    line = proc.stdout.readline()
     if not line:
-        raise AssertionError(f"master exited {proc.wait()}: {proc.stderr.read()[-2000:]}")  # type: ignore[union-attr]
+        raise AssertionError(f"master exited {proc.wait()}: {proc.stderr.read()[-2000:]}")
     assert "running" in json.loads(line)
 
 

@@ -22,6 +22,7 @@ from drivers.errors import (
     HeartbeatLostError,
     SdoAbortError,
 )
+from sim_target.drives import FrameFaults
 from sim_target.testing.drive_rig import Rig, make_rig, wait_until
 
 
@@ -298,7 +299,5 @@ class _FrameFault:
         self.seed = seed
 
 
-def _faults(drop: float, corrupt: float, seed: int):  # type: ignore[no-untyped-def]
-    from sim_target.drives import FrameFaults
-
+def _faults(drop: float, corrupt: float, seed: int) -> FrameFaults:
     return FrameFaults(drop_probability=drop, corrupt_probability=corrupt, seed=seed)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -64,7 +65,7 @@ SLOW_MACHINE = {
 }
 
 
-def _gravity_plus_sinusoid():  # type: ignore[no-untyped-def]
+def _gravity_plus_sinusoid() -> Callable[[int, np.ndarray, float], np.ndarray]:
     dynamics = make_dynamics(load_robot("ur5_paper"), backend="rne")
     amplitude = np.diag(dynamics.mass_matrix(np.array(Q0_RAD))) * (2 * np.pi * FREQUENCY_HZ) ** 2 * EXCURSION_RAD
 
@@ -241,13 +242,13 @@ def _enabled_bus(channel: str, period_s: float, **extra: object) -> tuple[DriveB
     ],
     ids=["dropped-tpdos", "drive-fault"],
 )
-def test_injected_fault_is_reported_within_two_cycles(fault: object, error_type: type) -> None:
+def test_injected_fault_is_reported_within_two_cycles(fault: FrameFault | DriveFault, error_type: type) -> None:
     period_s = 0.001
     channel = unique_channel()
     with target_in_process(channel, period_s) as target:
         bus, hold = _enabled_bus(channel, period_s)
         try:
-            target.inject(fault)  # type: ignore[arg-type]  # applied at the next SYNC
+            target.inject(fault)  # applied at the next SYNC
             cycles, error = _cycles_until_error(bus, hold)
             assert isinstance(error, error_type), repr(error)
             assert cycles <= 2, f"{error!r} reported after {cycles} cycles"

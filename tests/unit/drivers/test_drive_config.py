@@ -20,7 +20,7 @@ def test_valid_fd_config_is_frozen() -> None:
     )
     assert config.joints[0].effective_rated_torque_mnm == 5000
     with pytest.raises(pydantic.ValidationError):
-        config.period_s = 0.01  # type: ignore[misc]
+        config.period_s = 0.01  # type: ignore[misc]  # a frozen field assigned on purpose: the refusal under test
 
 
 def test_yaml_error_names_file_and_field(tmp_path: Path) -> None:

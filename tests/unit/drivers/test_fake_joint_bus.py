@@ -103,7 +103,7 @@ def test_quick_stop_freezes_the_plant() -> None:
 
 
 class _AcceptsNaN(FakeJointBus):
-    def _setpoint(self, torque_nm, name):  # type: ignore[override]
+    def _setpoint(self, torque_nm: np.ndarray, name: str) -> np.ndarray:
         torque = np.asarray(torque_nm, dtype=np.float64)
         if torque.shape != (self.n_joints,):
             raise DriveCommandError("shape")
@@ -111,7 +111,7 @@ class _AcceptsNaN(FakeJointBus):
 
 
 class _StaysEnabled(FakeJointBus):
-    def quick_stop(self):  # type: ignore[override]
+    def quick_stop(self) -> tuple[State, ...]:
         return tuple(self.states)
 
 

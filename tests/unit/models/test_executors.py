@@ -16,6 +16,7 @@ import pytest
 from models.errors import ModelInputError
 from models.executors import (
     EXECUTORS,
+    Executor,
     LocalProcessExecutor,
     RayExecutor,
     SerialExecutor,
@@ -55,11 +56,11 @@ def labeling_batch(rows: int = 24, seed: int = 5) -> tuple:
     return law, robot, (q, qd, q_d, qd_d, qdd_d), HMPCConfig.from_options(**LABEL_HMPC_OPTIONS)
 
 
-def label(executor: object) -> tuple[np.ndarray, np.ndarray]:
+def label(executor: Executor) -> tuple[np.ndarray, np.ndarray]:
     from models.hmpc import solve_batch
 
     law, robot, args, config = labeling_batch()
-    return solve_batch(law, robot, *args, config=config, executor=executor, chunk_states=5)  # type: ignore[arg-type]
+    return solve_batch(law, robot, *args, config=config, executor=executor, chunk_states=5)
 
 
 def test_make_executor_names_and_refusals() -> None:
@@ -89,7 +90,12 @@ def test_a_task_error_reaches_the_caller() -> None:
 def test_worker_cached_builds_once_per_key() -> None:
     built: list[str] = []
     for key in ("a", "a", "b", "a"):
-        assert worker_cached(f"test-{key}", lambda k=key: built.append(k) or k) == key  # type: ignore[func-returns-value]
+
+        def build(k: str = key) -> str:
+            built.append(k)
+            return k
+
+        assert worker_cached(f"test-{key}", build) == key
     assert built == ["a", "b"]
 
 

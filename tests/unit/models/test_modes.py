@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
@@ -28,7 +29,7 @@ def test_a_registered_factory_and_a_lazy_entry_point_are_made(monkeypatch: pytes
     law = make_law("pd", ROBOT)
     made: list[tuple] = []
 
-    def mine(law, robot, **options):  # type: ignore[no-untyped-def]
+    def mine(law: Any, robot: Any, **options: Any) -> FeedbackController:
         made.append((law, robot, options))
         return FeedbackController(law)
 

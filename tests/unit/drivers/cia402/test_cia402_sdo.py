@@ -64,6 +64,6 @@ def test_encoder_matches_canopen_client() -> None:
 
     od = canopen.import_od(str(EDS_PATH), 5)
     client = canopen.sdo.SdoClient(0x605, 0x585, od)
-    client.network = RecordingNetwork()  # type: ignore[assignment]
+    client.network = RecordingNetwork()  # type: ignore[assignment]  # a recording stand-in, not a canopen Network
     client.download(0x6060, 0, b"\x0a")
     assert sent == [sdo.encode_download_expedited(0x6060, 0, b"\x0a")]

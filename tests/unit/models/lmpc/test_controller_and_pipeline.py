@@ -1,6 +1,7 @@
 """LMPC controller (a bundle through hil_runtime.bundle in the simulator) and a tiny pipeline run."""
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from models.sim import FeedbackController, SimConfig, simulate  # noqa: E402
 class IdentityOnFeedback(Emulator):
     """An 'emulator' that returns tau_fb: LMPC must then reproduce FB exactly."""
 
-    def forward(self, s):  # type: ignore[override]
+    def forward(self, s: Any) -> Any:  # torch.Tensor (torch is imported by importorskip)
         return s[:, 24:30]
 
 
