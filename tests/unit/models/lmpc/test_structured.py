@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 import pytest
 import torch
@@ -11,8 +14,11 @@ from models.dynamics.torch_rne import SpatialRne
 from models.errors import ModelInputError
 from models.robots import load_robot
 
+if TYPE_CHECKING:
+    from models.lmpc.structured import StructuredConfig
 
-def _export(module: torch.nn.Module, width: int, path) -> None:  # type: ignore[no-untyped-def]
+
+def _export(module: torch.nn.Module, width: int, path: Path) -> None:
     """The bundle exporter's ONNX settings (opset 17, float64 rows, dynamic batch)."""
     import warnings
 
@@ -44,7 +50,7 @@ def test_spatial_rne_equals_rneida(name: str) -> None:
     np.testing.assert_allclose(got - free, dyn.gravity(q), atol=1e-11)
 
 
-def test_spatial_rne_is_a_small_onnx_graph(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_spatial_rne_is_a_small_onnx_graph(tmp_path: Path) -> None:
     onnx = pytest.importorskip("onnx")
     ort = pytest.importorskip("onnxruntime")
     robot = load_robot("ur5_paper")
@@ -81,7 +87,7 @@ def test_paper_range_conditions_are_seeded_in_range_and_parsed() -> None:
             parse_random_spec(bad)
 
 
-def _tiny(target: str, **extra):  # type: ignore[no-untyped-def]
+def _tiny(target: str, **extra: Any) -> StructuredConfig:
     from models.lmpc.structured import StructuredConfig
 
     extra.setdefault("laws", ("pd",))
@@ -98,7 +104,7 @@ def _tiny(target: str, **extra):  # type: ignore[no-untyped-def]
     )
 
 
-def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(tmp_path: Path) -> None:
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.structured import run_structured
 
@@ -118,7 +124,7 @@ def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(
     assert (tmp_path / "work" / "structured.json").exists()
 
 
-def test_a_dagger_round_runs_the_exported_lmpc_and_refits_on_its_states(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_a_dagger_round_runs_the_exported_lmpc_and_refits_on_its_states(tmp_path: Path) -> None:
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.structured import run_structured
 
@@ -130,7 +136,7 @@ def test_a_dagger_round_runs_the_exported_lmpc_and_refits_on_its_states(tmp_path
     PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd")  # the round-1 bundle, every check
 
 
-def test_control_row_the_law_imitated_is_the_law(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_control_row_the_law_imitated_is_the_law(tmp_path: Path) -> None:
     from hil_runtime.bundle import PolicyBundle
     from models.feedback import make_law
     from models.lmpc.structured import run_structured
@@ -157,9 +163,10 @@ def test_control_row_the_law_imitated_is_the_law(tmp_path) -> None:  # type: ign
 def test_structured_config_refuses_unknown_options() -> None:
     from models.lmpc.structured import StructuredConfig
 
-    for bad in ({"target": "mpc"}, {"ff_point": "desired"}, {"train_conditions": 0}):
+    bad_options: list[dict[str, Any]] = [{"target": "mpc"}, {"ff_point": "desired"}, {"train_conditions": 0}]
+    for bad in bad_options:
         with pytest.raises(ModelInputError, match="structured lmpc"):
-            StructuredConfig(**bad)  # type: ignore[arg-type]
+            StructuredConfig(**bad)
 
 
 def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
@@ -189,7 +196,7 @@ def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
         torch.testing.assert_close(nominal.pending_result, 2.0 * expected, rtol=0, atol=1e-12)
 
 
-def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path: Path) -> None:
     from models.cli import experiment
 
     with pytest.raises(ModelInputError, match="--hmpc-formulation"):
@@ -199,7 +206,7 @@ def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path
 
 
 @pytest.mark.parametrize("law_name", ["pd", "pid", "adrc", "hinf", "smc", "mrac"])
-def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp_path: Path) -> None:
     """The folded graph (models.lmpc.structured) computes FusedPolicy.forward with the emulator's own forward
     to round-off: inside the trust box, in the fade-out, outside it, clamped or not; and it is small."""
     onnx = pytest.importorskip("onnx")
