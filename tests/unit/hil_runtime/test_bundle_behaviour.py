@@ -8,7 +8,9 @@ import json
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,7 +32,7 @@ def _copy(tmp_path: Path, law: str) -> Path:
     return path
 
 
-def _edit(path: Path, change) -> None:  # type: ignore[no-untyped-def]
+def _edit(path: Path, change: Callable[[dict[str, Any]], object]) -> None:
     manifest = json.loads((path / "manifest.json").read_text())
     change(manifest)
     (path / "manifest.json").write_text(json.dumps(manifest))
@@ -99,7 +101,9 @@ def test_a_graph_of_another_law_under_a_fixed_up_hash_is_refused(tmp_path: Path)
         (lambda m: m.__setitem__("colour", "red"), "colour: Extra inputs are not permitted"),
     ],
 )
-def test_a_manifest_that_does_not_describe_its_graph_is_refused(tmp_path: Path, change, message: str) -> None:  # type: ignore[no-untyped-def]
+def test_a_manifest_that_does_not_describe_its_graph_is_refused(
+    tmp_path: Path, change: Callable[[dict[str, Any]], object], message: str
+) -> None:
     path = _copy(tmp_path, "pd")
     _edit(path, change)
     with pytest.raises(BundleError, match=message) as info:
