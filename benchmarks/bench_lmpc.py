@@ -28,10 +28,18 @@ import argparse
 import json
 import os
 import platform
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import onnxruntime as ort
+
+    from hil_runtime.bundle import PolicyBundle
+    from models.robots import RobotModel
 
 
 def main() -> None:
@@ -177,7 +185,7 @@ def _nodes(path: Path, compute_only: bool = False) -> int:
     return sum(1 for n in nodes if not compute_only or n.op_type != "Constant")
 
 
-def session_sweep(bundle, cycles: int) -> dict:  # type: ignore[no-untyped-def]
+def session_sweep(bundle: PolicyBundle, cycles: int) -> dict[str, list[float]]:
     """Bare single-row run time (us, median / p99) of the bundle's graph per onnxruntime session option."""
     import time
 
@@ -216,7 +224,7 @@ def session_sweep(bundle, cycles: int) -> dict:  # type: ignore[no-untyped-def]
     return out
 
 
-def structured_policy_from_bundle(bundle_dir: Path):  # type: ignore[no-untyped-def]
+def structured_policy_from_bundle(bundle_dir: Path) -> tuple[Any, dict[str, Any]]:
     """The shipped structured bundle's policy module rebuilt from its graph's weights and its manifest
     (for bundles exported before the trained weights were kept: models.lmpc.structured.save_trained)."""
     import onnx
@@ -344,13 +352,13 @@ def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dic
     }
 
 
-def _robot(name: str):  # type: ignore[no-untyped-def]
+def _robot(name: str) -> RobotModel:
     from models.robots import load_robot
 
     return load_robot(name)
 
 
-def _session(path: str, level_name: str = "all"):  # type: ignore[no-untyped-def]
+def _session(path: str, level_name: str = "all") -> ort.InferenceSession:
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -364,7 +372,7 @@ def _session(path: str, level_name: str = "all"):  # type: ignore[no-untyped-def
     return ort.InferenceSession(path, sess_options=options, providers=["CPUExecutionProvider"])
 
 
-def _bound_runner(session, width: int):  # type: ignore[no-untyped-def]
+def _bound_runner(session: ort.InferenceSession, width: int) -> Callable[[], object]:
     """A single-row run with IOBinding (what PolicyBundle.step does, without the Python around it)."""
     import onnxruntime as ort
 
@@ -409,7 +417,7 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
         "cycles": cycles,
         "laws": {},
     }
-    runners: dict[str, object] = {}
+    runners: dict[str, Callable[[], object]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for count in (1, 60):
             floor = Path(tmp) / f"adds_{count}.onnx"
@@ -444,7 +452,7 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
         for _ in range(cycles):
             for key, run in runners.items():
                 start = time.perf_counter()
-                run()  # type: ignore[operator]
+                run()
                 times[key].append(time.perf_counter() - start)
     for key, values in times.items():
         us = np.asarray(values[100:]) * 1e6
