@@ -23,7 +23,7 @@ import numpy as np
 
 from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition, Mismatch
-from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, make_law
+from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, LAW_TITLES, make_law
 from models.modes import make_controller
 from models.robots import RobotModel
 from models.scoring import METRICS, composite_scores, improvement, run_metrics
@@ -236,7 +236,6 @@ def summarize(
 _MODE_TITLE = {"fb": "FB", "hmpc": "HMPC", "lmpc": "LMPC"}
 _ETA_TITLE = {"hmpc": "η_H (%)", "lmpc": "η_L (%)"}
 _T_TITLE = {"fb": "t_FB (ms)", "hmpc": "t_H (ms)", "lmpc": "t_L (ms)"}
-_LAW_TITLE = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
 
 
 def format_table(results: dict[str, Any]) -> str:
@@ -251,7 +250,7 @@ def format_table(results: dict[str, Any]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     etas: dict[str, list[float]] = defaultdict(list)
     for law, row in results["table"].items():
-        cells = [_LAW_TITLE.get(law, law)]
+        cells = [LAW_TITLES.get(law, law)]
         for mode in modes:
             failed = row[mode].get("failed_conditions", [])
             mark = f" ✗{len(failed)}" if failed else ""

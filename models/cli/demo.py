@@ -38,8 +38,8 @@ def demo(
     """Run the runtime (hil run) on the pybullet arm (hil target serve) as separate processes over the
     ipc CAN bus at 1 kHz, watch its telemetry live, stop everything, write the run and its scores."""
     from hil_runtime.outputs import remove_if_empty
-    from models.demo.report import _LAW_TITLE
     from models.demo.run import run_demo
+    from models.feedback import LAW_TITLES
 
     options = DemoOptions(
         law=law.strip().lower(),
@@ -58,7 +58,7 @@ def demo(
         raise
     s, t = results["scores"], results["timing"]
     m_hil, m_sim = s["metrics"]["hil"], s["metrics"]["sim"]
-    title = f"{_LAW_TITLE.get(options.law, options.law)} {options.mode.upper()} on {options.condition}"
+    title = f"{LAW_TITLES.get(options.law, options.law)} {options.mode.upper()} on {options.condition}"
     if results["fault"]:
         drives = "quick-stopped" if results["shutdown"].get("drives_stopped") else "not confirmed stopped"
         print(

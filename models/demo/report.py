@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hil_runtime.outputs import atomic_path, write_text_atomic
+from models.feedback import LAW_TITLES
 from models.scoring import METRICS
 
 if TYPE_CHECKING:
@@ -36,7 +37,6 @@ OUTPUT_FILES = (
     "results.json",
     "logs/",
 )
-_LAW_TITLE = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
 _METRIC_TITLE = {
     "rmse": "RMSE (deg)",
     "mae": "MAE (deg)",
@@ -85,7 +85,7 @@ def plot_tracking_error(
 
 def format_summary(results: dict[str, Any]) -> str:
     demo, scores, timing, stop = results["demo"], results["scores"], results["timing"], results["shutdown"]
-    law = _LAW_TITLE.get(demo["law"], demo["law"])
+    law = LAW_TITLES.get(demo["law"], demo["law"])
     m_hil, m_sim = scores["metrics"]["hil"], scores["metrics"]["sim"]
     clock = "free-running in real time" if demo["realtime"] else "lock-stepped"
     disturbance = f" (disturbance at {demo['disturbance_s']:g} s)" if demo.get("disturbance_s") is not None else ""

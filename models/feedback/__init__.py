@@ -22,6 +22,8 @@ from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
 
 LAW_NAMES = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
+#: How tables, plots and summaries write each law (the paper's spelling).
+LAW_TITLES = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
 
 
 def _pd(robot: RobotModel, period_s: float, kp: Any = None, kd: Any = None) -> FeedbackLaw:
@@ -176,4 +178,13 @@ def make_law(
         raise ModelInputError(f"feedback law '{name}': bad parameter ({exc})") from exc
 
 
-__all__ = ["DEFAULT_GAIN_SET", "GAIN_SETS", "GAIN_SET_ROBOT", "LAW_NAMES", "ROBOT_GAINS", "FeedbackLaw", "make_law"]
+__all__ = [
+    "DEFAULT_GAIN_SET",
+    "GAIN_SETS",
+    "GAIN_SET_ROBOT",
+    "LAW_NAMES",
+    "LAW_TITLES",
+    "ROBOT_GAINS",
+    "FeedbackLaw",
+    "make_law",
+]

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from models.feedback import LAW_TITLES
+
 #: The paper's Table II (hardware): FB score -> LMPC score per law.
 PAPER_TABLE_II: dict[str, tuple[float, float]] = {
     "pd": (0.997, 0.661),
@@ -17,7 +19,6 @@ PAPER_TABLE_II: dict[str, tuple[float, float]] = {
     "smc": (0.245, 0.007),
     "mrac": (0.046, 0.013),
 }
-_LAW_TITLE = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
 
 
 def format_hil_table(results: dict[str, Any]) -> str:
@@ -29,7 +30,7 @@ def format_hil_table(results: dict[str, Any]) -> str:
     lines = ["| Controller | " + " | ".join(m.upper() for m in modes) + eta + " | paper FB → LMPC | " + times + " |"]
     lines.append("|" + "---|" * (lines[0].count("|") - 1))
     for law, row in results["table"].items():
-        cells = [_LAW_TITLE.get(law, law)]
+        cells = [LAW_TITLES.get(law, law)]
         for mode in modes:
             failed = row[mode].get("failed_conditions", [])
             cells.append(f"{row[mode]['score']:.3f}" + (f" ✗{len(failed)}" if failed else ""))
@@ -65,7 +66,7 @@ def format_parity_table(parity_results: dict[str, Any], modes: list[str]) -> lis
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     worst = 0.0
     for law, row in parity_results["table"].items():
-        cells = [_LAW_TITLE.get(law, law)]
+        cells = [LAW_TITLES.get(law, law)]
         for mode in modes:
             p = row[mode]
             worst = max(worst, abs(p["score_rel"]))
@@ -115,7 +116,7 @@ def plot_parity(
         axes[0].bar(x, [100 * par["table"][law][mode]["score_rel"] for law in laws], width, label=mode.upper())
         axes[1].bar(x, [par["table"][law][mode]["trajectory_rms_diff_deg"] for law in laws], width, label=mode.upper())
     for ax, title in zip(axes, ("composite score, HIL vs sim (%)", "trajectory RMS difference (deg)"), strict=True):
-        ax.set_xticks(np.arange(len(laws)), [_LAW_TITLE.get(law, law) for law in laws])
+        ax.set_xticks(np.arange(len(laws)), [LAW_TITLES.get(law, law) for law in laws])
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3, axis="y")
         ax.legend(fontsize=8)
@@ -140,7 +141,7 @@ def plot_parity(
             ax.set_ylim(bottom=1e-5)
             ax.set_ylabel("deg", fontsize=8)
             ax.set_title(
-                f"{_LAW_TITLE.get(law, law)} {mode.upper()} {cond}: score Δ {100 * worst['score_rel']:+.1f} %",
+                f"{LAW_TITLES.get(law, law)} {mode.upper()} {cond}: score Δ {100 * worst['score_rel']:+.1f} %",
                 fontsize=9,
             )
             ax.grid(alpha=0.3, which="both")

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from models.feedback import LAW_TITLES
+
 METRIC_TITLES = {
     "rmse": "RMSE (°)",
     "mae": "MAE (°)",
@@ -24,7 +26,6 @@ METRIC_TITLES = {
     "settle_s": "settling (s)",
     "dedt_rms": "dE/dt RMS (°/s)",
 }
-LAW_TITLES = {"pd": "PD", "pid": "PID", "adrc": "ADRC", "hinf": "H∞", "smc": "SMC", "mrac": "MRAC"}
 
 
 def breakdown(results: dict[str, Any], modes: tuple[str, ...] | None = None) -> str:
