@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models.robots import load_robot
+
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
 
 DURATION_S = 2.5  # past C1's disturbance at 2 s
@@ -104,24 +106,9 @@ def test_hil_demo_headless_end_to_end(tmp_path: Path, private_tmp: Path, hil_com
         telemetry = {k: data[k] for k in data.files}
     schema = json.loads(str(telemetry["schema"]))
     assert schema["schema"] == "hil-telemetry" and schema["robot"] == "ur5_paper"
-    assert [f["name"] for f in schema["payloads"]["state"]["fields"]] == [
-        "fallback",
-        "compute_s",
-        "q",
-        "qd",
-        "q_ref",
-        "qd_ref",
-        "tau",
-        "tau_fb",
-    ]
-    assert list(telemetry["joints"]) == [
-        "shoulder_pan_joint",
-        "shoulder_lift_joint",
-        "elbow_joint",
-        "wrist_1_joint",
-        "wrist_2_joint",
-        "wrist_3_joint",
-    ]
+    state_fields = [f["name"] for f in schema["payloads"]["state"]["fields"]]
+    assert state_fields == "fallback compute_s q qd q_ref qd_ref tau tau_fb".split()
+    assert list(telemetry["joints"]) == list(load_robot("ur5_paper").joint_names)
     assert results["telemetry"]["missing"] == 0 and results["telemetry"]["samples"] >= steps
     assert results["telemetry"]["max_abs_q_diff_vs_record_rad"] == 0.0
 
