@@ -1,0 +1,91 @@
+"""hil demo's output files (models/demo/report.py): the summary of a faulted run says so and marks
+what it cannot compare; results.json carries numpy values as numbers and non-finite ones as null."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.demo import report
+from models.scoring import METRICS
+
+
+def _results(fault: str | None) -> dict[str, Any]:
+    metrics = {m: 0.1 for m in METRICS}
+    return {
+        "demo": {
+            "law": "mrac",
+            "mode": "lmpc",
+            "condition": "C1",
+            "realtime": False,
+            "bundle": "models/bundles/ur5_paper/mrac",
+            "period_s": 1e-3,
+            "duration_s": 5.0,
+            "disturbance_s": 2.0,
+        },
+        "fault": fault,
+        "scores": {
+            "metrics": {"hil": {**metrics, "settle_s": 0.5}, "sim": {**metrics, "settle_s": 0.0}},
+            "relative": {**{m: 0.0 for m in METRICS}, "settle_s": math.inf},
+            "composite": {"hil": 1.0, "sim": 0.5},
+            "within_limits": {"hil": fault is None, "sim": True},
+            "trajectory_rms_diff_deg": 0.01,
+            "trajectory_max_diff_deg": 0.02,
+            "fallback_cycles": {"hil": 3},
+        },
+        "timing": {
+            "cycles": 812,
+            "rate_hz": 998.0,
+            "overruns": 0,
+            "telemetry_sent": 812,
+            "telemetry_dropped": 0,
+            "period_us": {"median": 1000.0, "p99": 1100.0, "max": 1500.0},
+            "compute_us": {"median": 40.0, "p99": 90.0, "max": None},
+            "exchange_us": None,
+        },
+        "telemetry": {"samples": 812, "missing": 0},
+        "shutdown": {
+            "drives_stopped": True,
+            "drives_operation_enabled_after_stop": [False] * 6,
+            "runtime_exit_code": 0,
+            "target_exit_code": 0,
+            "processes_alive": [],
+            "ipc_sockets_left": [],
+            "work_dir_removed": True,
+        },
+        "processes": {"runtime": {"stop_s": 0.1}},
+        "load_average": [1.0, 1.0, 1.0],
+    }
+
+
+def test_the_summary_of_a_faulted_run_says_so_and_marks_what_it_cannot_compare() -> None:
+    clean = report.format_summary(_results(None))
+    faulted = report.format_summary(_results("velocity_limit: joint 6"))
+    assert "FAULTED" not in clean and "# hil demo: MRAC LMPC on C1" in clean
+    assert "**The runtime FAULTED** after 812 cycles: velocity_limit: joint 6" in faulted
+    assert "Inside the joint limits: HIL NO, simulation yes" in faulted
+    assert "| settling after the disturbance (s) | 0.5 | 0 | — |" in clean  # infinite relative change
+    assert "| composite (normalized between the two) | 1.000 | 0.500 | +100.0 |" in clean
+    assert "| exchange on the bus (µs) | — | — | — |" in clean  # no exchange figures recorded
+
+
+def test_results_json_has_numbers_and_nulls_only(tmp_path: Path) -> None:
+    values = {
+        "numpy": {"float": np.float64(0.25), "int": np.int64(3), "bool": np.bool_(True)},
+        "non_finite": [math.nan, math.inf, np.float64(-np.inf)],
+        "tuple": (1, 2.5),
+        7: "a key that is not a string",
+    }
+    report.write_json(tmp_path / "results.json", values)
+    text = (tmp_path / "results.json").read_text()
+    assert json.loads(text) == {
+        "numpy": {"float": 0.25, "int": 3, "bool": True},
+        "non_finite": [None, None, None],
+        "tuple": [1, 2.5],
+        "7": "a key that is not a string",
+    }
+    assert "NaN" not in text and "Infinity" not in text
