@@ -26,6 +26,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import benchinfo
 import can
 import canopen
 import numpy as np
@@ -91,11 +92,7 @@ def _run_loop(driver: DriveBus, args: argparse.Namespace) -> dict[str, Any]:
         "cycles": cycles,
         "elapsed_s": round(elapsed, 3),
         "achieved_rate_hz": round(cycles / elapsed, 1),
-        "latency_us": {
-            "median": round(float(np.median(us)), 1),
-            "p99": round(float(np.percentile(us, 99)), 1),
-            "max": round(float(us.max()), 1),
-        },
+        "latency_us": benchinfo.spread(us),
         "p99_fraction_of_period": round(float(np.percentile(latencies, 99)) / period_s, 3),
         "overruns": overruns,
         "frames_lost": after.dropped - before.dropped - (after.late - before.late),

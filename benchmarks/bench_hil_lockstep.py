@@ -112,20 +112,12 @@ def _run(bus: DriveBus, period_s: float, duration_s: float, rt: bool = False) ->
         "period_s": period_s,
         "elapsed_s": round(elapsed, 3),
         "achieved_rate_hz": round(n / elapsed, 1),
-        "latency_us": {
-            "median": round(float(np.median(latency_us)), 1),
-            "p99": round(float(np.percentile(latency_us, 99)), 1),
-            "max": round(float(latency_us.max()), 1),
-        },
+        "latency_us": benchinfo.spread(latency_us),
         "latency_pct_of_period": {
             "median": round(float(np.median(latency_us)) / period_us * 100, 1),
             "p99": round(float(np.percentile(latency_us, 99)) / period_us * 100, 1),
         },
-        "cycle_period_us": {
-            "median": round(float(np.median(cycle_us)), 1),
-            "p99": round(float(np.percentile(cycle_us, 99)), 1),
-            "max": round(float(cycle_us.max()), 1),
-        },
+        "cycle_period_us": benchinfo.spread(cycle_us),
         "cycles_over_period": int((latency_us > period_us).sum()),
         "overruns": overruns,
         "stale_cycles": stale,  # some TPDO missing at the feedback deadline (arrived late or never)

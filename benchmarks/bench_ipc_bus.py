@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import benchinfo
 import numpy as np
 
 FRAME = struct.pack("=IBBBB64s", 0x201, 12, 4, 0, 0, bytes(12))
@@ -203,11 +204,7 @@ def run(mode: str, cycles: int, period_s: float, rt: bool) -> dict[str, Any]:
         "mode": mode,
         "cycles": cycles,
         "sched_fifo": granted,
-        "round_trip_us": {
-            "median": round(float(np.median(us)), 1),
-            "p99": round(float(np.percentile(us, 99)), 1),
-            "max": round(float(us.max()), 1),
-        },
+        "round_trip_us": benchinfo.spread(us),
         "load_average_at_start": [round(x, 2) for x in load],
     }
 

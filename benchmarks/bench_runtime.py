@@ -110,14 +110,7 @@ def bundle_at(period_s: float) -> Iterator[Path]:
 
 
 def _us(seconds: np.ndarray) -> dict[str, float]:
-    values = np.asarray(seconds) * 1e6
-    if values.size == 0:
-        return {"median": math.nan, "p99": math.nan, "max": math.nan}
-    return {
-        "median": round(float(np.median(values)), 1),
-        "p99": round(float(np.percentile(values, 99)), 1),
-        "max": round(float(values.max()), 1),
-    }
+    return benchinfo.spread(np.asarray(seconds) * 1e6)
 
 
 def measure(runtime: Runtime, cycles: int) -> dict[str, Any]:
