@@ -73,39 +73,39 @@ def plot_record(path: Path, out_dir: Path | None = None) -> list[Path]:
     names = _joint_names(record)
     n = len(names)
     error_rad = record["q_ref"] - record["q"]
-    written: list[Path] = []
 
-    figure, axes = plt.subplots(n, 1, sharex=True, figsize=(8, 1.6 * n + 0.8), squeeze=False)
-    for j, ax in enumerate(axes[:, 0]):
+    def per_joint_figure(title: str, suffix: str, draw: Any) -> Path:
+        """One panel per joint (``draw(j, ax)``), a shared time axis, saved whole or not at all."""
+        figure, axes = plt.subplots(n, 1, sharex=True, figsize=(8, 1.6 * n + 0.8), squeeze=False)
+        for j, ax in enumerate(axes[:, 0]):
+            draw(j, ax)
+            ax.grid(alpha=0.3)
+        axes[-1, 0].set_xlabel(t_label)
+        figure.suptitle(f"{title} ({path.name})", fontsize=10)
+        figure.tight_layout()
+        target = out / f"{path.stem}_{suffix}.png"
+        with atomic_path(target) as tmp:
+            figure.savefig(tmp, dpi=110)
+        plt.close(figure)
+        return target
+
+    def tracking_error(j: int, ax: Any) -> None:
         ax.plot(t_s, error_rad[:, j], lw=0.8, color="C0")
         ax.axhline(0.0, color="0.6", lw=0.5)
         rms = float(np.sqrt(np.mean(error_rad[:, j] ** 2)))
         ax.set_ylabel(f"{names[j]}\n[rad]", fontsize=8)
         ax.text(0.99, 0.9, f"RMS {rms:.2e} rad", transform=ax.transAxes, ha="right", va="top", fontsize=7)
-        ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel(t_label)
-    figure.suptitle(f"tracking error q_ref - q ({path.name})", fontsize=10)
-    figure.tight_layout()
-    target = out / f"{path.stem}_tracking_error.png"
-    with atomic_path(target) as tmp:
-        figure.savefig(tmp, dpi=110)
-    plt.close(figure)
-    written.append(target)
 
-    figure, axes = plt.subplots(n, 1, sharex=True, figsize=(8, 1.6 * n + 0.8), squeeze=False)
-    for j, ax in enumerate(axes[:, 0]):
+    def torque(j: int, ax: Any) -> None:
         ax.plot(t_s, record["tau"][:, j], lw=0.8, color="C1", label="tau (applied)")
         if "tau_fb" in record and record["tau_fb"].shape == record["tau"].shape:
             ax.plot(t_s, record["tau_fb"][:, j], lw=0.6, color="C2", alpha=0.7, label="tau_fb (law)")
         ax.set_ylabel(f"{names[j]}\n[N m]", fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel(t_label)
-    figure.suptitle(f"joint torque ({path.name})", fontsize=10)
-    figure.tight_layout()
-    target = out / f"{path.stem}_torque.png"
-    with atomic_path(target) as tmp:
-        figure.savefig(tmp, dpi=110)
-    plt.close(figure)
-    written.append(target)
+        if j == 0:
+            ax.legend(fontsize=7, loc="upper right")
+
+    written = [
+        per_joint_figure("tracking error q_ref - q", "tracking_error", tracking_error),
+        per_joint_figure("joint torque", "torque", torque),
+    ]
     return written
