@@ -8,14 +8,13 @@ import signal
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
 from drivers.drive_bus import DriveBus
 from drivers.errors import FeedbackTimeoutError, HeartbeatLostError
 from sim_target.testing.hil_target import drive_bus_config, serve_config, target_process
-from tests.integration.test_hil_lockstep import SLOW_MACHINE, check_arm_across_processes
+from tests.integration.test_hil_lockstep import SLOW_MACHINE, check_arm_across_processes, enabled_holding
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
 
@@ -41,11 +40,7 @@ def test_a_killed_target_stops_the_driver_with_a_feedback_error(tmp_path: Path) 
             )
         )
         try:
-            bus.connect()
-            bus.enable()
-            hold = np.zeros(6)
-            for _ in range(3):
-                assert bus.exchange(hold).fresh.all()
+            hold = enabled_holding(bus)
             target.process.send_signal(signal.SIGKILL)
             target.process.wait(10)
             with pytest.raises((FeedbackTimeoutError, HeartbeatLostError)):

@@ -158,6 +158,16 @@ def test_driver_moves_the_pybullet_arm_in_one_process_and_quick_stop_brakes() ->
 # --- (b) two processes over the loopback bridge -----------------------------------------------------
 
 
+def enabled_holding(bus: DriveBus) -> np.ndarray:
+    """Connect and enable ``bus``; three exchanges at zero torque, each with every drive fresh."""
+    bus.connect()
+    bus.enable()
+    hold = np.zeros(6)
+    for _ in range(3):
+        assert bus.exchange(hold).fresh.all()
+    return hold
+
+
 def check_arm_across_processes(target: TargetProcess, transport: dict[str, str], period_s: float, cycles: int) -> None:
     """The driver moves the arm of a ``hil target serve`` process lock-stepped, then brakes it."""
     bus = DriveBus(drive_bus_config(transport, period_s, **SLOW_MACHINE))
@@ -328,11 +338,7 @@ def test_fault_injected_through_the_control_socket_across_processes(
             drive_bus_config({"interface": "remote", "channel": target.bridge_url}, period_s, **SLOW_MACHINE)
         )
         try:
-            bus.connect()
-            bus.enable()
-            hold = np.zeros(6)
-            for _ in range(3):
-                assert bus.exchange(hold).fresh.all()
+            hold = enabled_holding(bus)
             assert send_control(target.control_socket, command) == {"ok": True}
             cycles, error = _cycles_until_error(bus, hold)
             assert isinstance(error, error_type), repr(error)
