@@ -10,16 +10,21 @@ error leaves the previous file, or none, never half of one.
     write_text_atomic(out / "results.json", text)
     with atomic_path(out / "plot.png") as tmp:
         figure.savefig(tmp)            # the temporary name keeps the suffix, so formats still work
+
+``json_safe`` turns a results structure into plain JSON values (numpy scalars and arrays included,
+non-finite floats as null) before it is written.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import math
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 
 class OutputError(ValueError):
@@ -108,3 +113,23 @@ def remove_if_empty(path: Path) -> None:
     """Remove a directory this run created and never filled (after an interrupt or an error)."""
     with contextlib.suppress(OSError):
         path.rmdir()
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` as plain JSON values: dict keys as strings, tuples as lists, numpy scalars and arrays
+    as Python numbers and lists, non-finite floats as None (strict JSON has no NaN or Infinity).
+
+    numpy values are converted through their ``tolist()``, so this module does not import numpy
+    (the daemon's light imports, tested)."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if isinstance(value, float):  # np.float64 too (a float subclass)
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, (str, bytes)):
+        return value
+    tolist = getattr(value, "tolist", None)  # numpy arrays and scalars (np.float32, np.int64, np.bool_)
+    if callable(tolist):
+        return json_safe(tolist())
+    return value

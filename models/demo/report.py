@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hil_runtime.outputs import atomic_path, write_text_atomic
+from hil_runtime.outputs import atomic_path, json_safe, write_text_atomic
 from models.feedback import LAW_TITLES
 from models.scoring import METRICS
 
@@ -201,22 +201,8 @@ def write_outputs(
     write_json(out_dir / "results.json", results)  # last: its presence means the outputs are complete
 
 
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(float(value)) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
 def write_json(path: Path, results: dict[str, Any]) -> None:
-    write_text_atomic(path, json.dumps(_json_safe(results), indent=2))
+    write_text_atomic(path, json.dumps(json_safe(results), indent=2))
 
 
 __all__ = ["OUTPUT_FILES", "format_summary", "plot_tracking_error", "write_json", "write_outputs"]

@@ -4,7 +4,6 @@ second process meanwhile, the results and outputs (models/hil_experiment/__init_
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -14,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_runtime.outputs import write_text_atomic
+from hil_runtime.outputs import json_safe, write_text_atomic
 from models.conditions import Condition
 from models.errors import ModelInputError
 from models.experiment import ExperimentConfig, run_experiment, summarize, write_outputs
@@ -155,7 +154,7 @@ def run_hil_experiment(
             plot_parity(results, trajectories, sim_dir / "trajectories", plots_dir / "parity")
 
     write_outputs(
-        out_dir, config, conditions, trajectories, format_hil_table(results), _json_safe(results), parity_plots
+        out_dir, config, conditions, trajectories, format_hil_table(results), json_safe(results), parity_plots
     )
     return results
 
@@ -175,16 +174,6 @@ def _bundle_digest(path: Path) -> dict[str, Any]:
 def _timing(compute_s: np.ndarray) -> dict[str, float]:
     ms = compute_s * 1e3 if compute_s.size else np.zeros(1)
     return {"median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "cycles": int(compute_s.size)}
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 __all__ = ["run_hil_experiment", "snapshot_bundles"]

@@ -22,6 +22,7 @@ import numpy as np
 if TYPE_CHECKING:
     from sim_target.launch import Transport
 
+from hil_runtime.outputs import json_safe
 from sim_target.faults import rig as rigs
 from sim_target.faults.rig import Q0_RAD, InProcessRig, in_process_rig
 
@@ -71,7 +72,7 @@ class CaseResult:
     detail: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return rigs.json_safe(asdict(self))
+        return json_safe(asdict(self))
 
 
 @dataclass(frozen=True)

@@ -346,24 +346,6 @@ def target_drives_enabled(target: Any) -> list[bool]:
     return [bool(x) for x in status["operation_enabled"]]
 
 
-def json_safe(value: Any) -> Any:
-    """numpy scalars and arrays to plain JSON values; non-finite floats as strings."""
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, (np.bool_,)):
-        return bool(value)
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        value = float(value)
-        return value if np.isfinite(value) else str(value)
-    return value
-
-
 __all__ = [
     "DaemonRig",
     "InProcessRig",
@@ -374,7 +356,6 @@ __all__ = [
     "daemon_rig",
     "free_port",
     "in_process_rig",
-    "json_safe",
     "runtime_config_dict",
     "target_config",
 ]

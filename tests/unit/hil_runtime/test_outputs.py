@@ -1,8 +1,9 @@
-"""hil_runtime.outputs: --out checked before any work; files complete or absent."""
+"""hil_runtime.outputs: --out checked before any work; files complete or absent; JSON-safe values."""
 
 from __future__ import annotations
 
 import errno
+import json
 import os
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from hil_runtime.outputs import (
     OutputError,
     OutputWriteError,
     atomic_path,
+    json_safe,
     prepare_output_dir,
     write_text_atomic,
 )
@@ -91,3 +93,41 @@ def test_numpy_keeps_the_temporary_suffix(tmp_path: Path) -> None:
 def test_importing_it_is_light() -> None:
     code = "import sys, hil_runtime.outputs; sys.exit(1 if 'numpy' in sys.modules or 'models' in sys.modules else 0)"
     assert subprocess.run([sys.executable, "-c", code], check=False, timeout=60).returncode == 0
+
+
+def test_json_safe_makes_plain_strict_json() -> None:
+    import numpy as np
+
+    value = {
+        "nan": float("nan"),
+        "inf": float("-inf"),
+        "f64": np.float64(1.5),
+        "f32_nan": np.float32("nan"),
+        "i64": np.int64(7),
+        "flag": np.bool_(True),
+        "array": np.array([[1.0, np.inf], [2.0, 3.0]]),
+        "scalar_array": np.array(4),
+        "nested": ({"k": (np.float64(np.nan), 2)},),
+        3: "int key",
+        "text": "nan",
+        "none": None,
+    }
+    safe = json_safe(value)
+    assert safe == {
+        "nan": None,
+        "inf": None,
+        "f64": 1.5,
+        "f32_nan": None,
+        "i64": 7,
+        "flag": True,
+        "array": [[1.0, None], [2.0, 3.0]],
+        "scalar_array": 4,
+        "nested": [{"k": [None, 2]}],
+        "3": "int key",
+        "text": "nan",
+        "none": None,
+    }
+    # plain Python types all the way down, so strict JSON accepts it and reads it back equal
+    assert type(safe["f64"]) is float and type(safe["i64"]) is int and type(safe["flag"]) is bool
+    assert type(safe["array"][0][0]) is float and type(safe["scalar_array"]) is int
+    assert json.loads(json.dumps(safe, allow_nan=False)) == safe
