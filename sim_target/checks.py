@@ -1,4 +1,4 @@
-"""``check_plant``: does an implementation behave as :class:`~sim_target.plant.TargetPlant` says?
+"""``check_plant``: does an implementation behave as :class:`~sim_target.plant_protocol.TargetPlant` says?
 
 In the manner of Gymnasium's ``check_env`` (and ``drivers.checks.check_joint_bus`` on the other
 side of the bus): run it against any plant the emulated drives may step (``PybulletPlant``,

@@ -31,11 +31,11 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 import pybullet
 
+from sim_target.plant_protocol import JointState
 from sim_target.robots import RobotLookupError, builtin_urdf_path
 
 GRAVITY_M_S2 = 9.81
@@ -44,28 +44,6 @@ _MOVABLE_JOINT_TYPES = (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)
 # 1e-3 rad over 2 s for joint moves of a few tenths of a radian (benchmarks/bench_plant_parity.py).
 DEFAULT_SUBSTEPS = 32
 _BRAKE_POSITION_GAIN = 0.5  # fraction of the position error the brake motor removes per substep
-
-
-class JointState(NamedTuple):
-    position_rad: np.ndarray  # (N,) measured (encoder noise included when enabled)
-    velocity_rad_s: np.ndarray  # (N,) measured
-    torque_nm: np.ndarray  # (N,) motor torque actually applied over the last period
-    time_s: float  # simulated time
-
-
-@runtime_checkable
-class TargetPlant(Protocol):
-    """The HIL target's physics, stepped by the emulated drives once per SYNC (``PybulletPlant``,
-    ``sim_target.testing.fake_plant.FakePlant``); not the models' RK4 plant ``models.sim.ModelPlant``."""
-
-    n_joints: int
-    period_s: float
-
-    def step(self, torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState: ...
-
-    def state(self) -> JointState: ...
-
-    def reset(self, position_rad: np.ndarray | None = None) -> JointState: ...
 
 
 class PlantError(ValueError):

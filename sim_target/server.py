@@ -53,7 +53,8 @@ from sim_target.config import (
     check_run_start,
 )
 from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
-from sim_target.plant import JointState, PybulletPlant, TorqueImpulse, default_urdf_path
+from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
+from sim_target.plant_protocol import JointState
 
 log = logging.getLogger(__name__)
 

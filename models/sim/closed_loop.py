@@ -75,7 +75,7 @@ class Trajectory:
 class ModelPlant:
     """The models' simulated arm: the (possibly mismatched) robot, friction, RK4 with substeps.
 
-    Not the HIL target's physics (``sim_target.plant.TargetPlant``, pybullet behind emulated drives).
+    Not the HIL target's physics (``sim_target.plant_protocol.TargetPlant``, pybullet behind emulated drives).
     """
 
     def __init__(self, robot: RobotModel, mismatch: Mismatch, config: SimConfig) -> None:

@@ -1,24 +1,19 @@
 """A tiny plant for the drive-bus tests and benchmarks: independent joints, one inertia.
 
-Implements sim_target.plant.TargetPlant without pybullet: each joint is a double
+Implements sim_target.plant_protocol.TargetPlant without pybullet: each joint is a double
 integrator (torque / inertia), a braked joint is held still. Deterministic, microseconds per step.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sim_target.plant_protocol import JointState
+
 if TYPE_CHECKING:
     from sim_target.drives import EmulatedDrives
-
-
-class JointState(NamedTuple):
-    position_rad: np.ndarray
-    velocity_rad_s: np.ndarray
-    torque_nm: np.ndarray
-    time_s: float
 
 
 class FakePlant:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sim_target.config import DriveFault, FrameFault, parse_target_config
-from sim_target.plant import JointState
+from sim_target.plant_protocol import JointState
 from sim_target.server import TargetServer, make_plant, send_control
 
 Q0 = [0.0, -0.5, 0.8, -0.3, 0.0, 0.0]
