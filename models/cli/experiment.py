@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, cast
 
 import typer
 
 from models.cli.options import RobotOption, one_of, positive, split_names
+
+if TYPE_CHECKING:  # imported where used: the CLI starts without the HIL experiment's imports
+    from models.hil_experiment import HilOptions
+    from sim_target.launch import Transport
 
 
 def experiment(
@@ -74,13 +79,16 @@ def experiment(
     one_of(plant, ("sim", "hil"), "--plant")
     default_modes = "fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"
     mode_list = split_names(modes if modes is not None else default_modes, MODES, "modes")
-    hil = None
+    hil: HilOptions | None = None
     if plant == "hil":
         from models.hil_experiment import HilOptions
 
         positive(target_substeps, "--target-substeps", integer=True)
         hil = HilOptions(
-            transport=transport, target_substeps=target_substeps, parity=not no_parity, bundle_dir=lmpc_bundles
+            transport=cast("Transport", transport),  # checked (one line, exit 2) by check_hil_inputs
+            target_substeps=target_substeps,
+            parity=not no_parity,
+            bundle_dir=lmpc_bundles,
         )
     one_of(mismatch, ("none", "paper"), "--mismatch")
     one_of(gains, GAIN_SETS, "--gains")
@@ -139,7 +147,7 @@ def _experiment(
     hmpc_formulation: str,
     hmpc_prediction_step_s: float | None,
     hmpc_anchor_scale: float,
-    hil: object = None,
+    hil: HilOptions | None = None,
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -172,7 +180,7 @@ def _experiment(
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console) as bar:
 
-        def progress(label: str, total: int):  # type: ignore[no-untyped-def]
+        def progress(label: str, total: int) -> Callable[[int], None]:
             task = bar.add_task(label, total=total)
             return lambda n: bar.advance(task, n)
 
@@ -187,7 +195,7 @@ def _experiment(
         if hil is not None:  # --plant hil: models/hil_experiment/
             from models.hil_experiment import format_hil_table, run_hil_experiment
 
-            results = run_hil_experiment(arm, condition_list, config, out, hil, progress=progress)  # type: ignore[arg-type]
+            results = run_hil_experiment(arm, condition_list, config, out, hil, progress=progress)
         else:
             results = run_experiment(arm, condition_list, config, out, controller_options=options, progress=progress)
     from models.experiment import format_table
@@ -196,6 +204,6 @@ def _experiment(
     written = (
         ["results.json", "table.md"] + ([] if no_trajectories else ["trajectories/"]) + ([] if no_plots else ["plots/"])
     )
-    if hil is not None and getattr(hil, "parity", False):
+    if hil is not None and hil.parity:
         written.append("sim/")  # the simulation twin's own outputs
     console.print(f"wrote {out}/{', '.join(written)}", soft_wrap=True, highlight=False)  # one line, even piped
