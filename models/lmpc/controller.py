@@ -100,10 +100,12 @@ class LMPCController:
     def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         start = time.perf_counter()
         if q.shape[0] == 1:
-            tau, tau_fb, state = self.bundle.step(q[0], qd[0], q_d[0], qd_d[0], qdd_d[0], self.state[0])
-            self.state[0] = state
-            tau, tau_fb = tau[None].copy(), tau_fb[None].copy()
-            fallback, clamped = self.bundle.last_trust
+            row = self.state[0]
+            _, _, state = self.bundle.step(q[0], qd[0], q_d[0], qd_d[0], qdd_d[0], row)
+            row[:] = state
+            pair = self.bundle.last_torques.copy()  # tau and tau_fb in one copy: (2, 1, N)
+            tau, tau_fb = pair[0], pair[1]
+            fallback, clamped = self.bundle.last_trust.tolist()  # Python floats: cheaper comparisons
             if fallback > 0.0:
                 if fallback >= 1.0:
                     self.fallbacks[0] += 1

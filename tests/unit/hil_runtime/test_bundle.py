@@ -230,3 +230,22 @@ def test_laws_with_the_nominal_model_export_compactly_and_exactly(tmp_path, law_
     fb_np, state_np = law.step(np, state, q, qd, q_d, qd_d, qdd_d)
     np.testing.assert_allclose(tau_fb, fb_np, atol=1e-9)
     np.testing.assert_allclose(nxt, state_np, atol=1e-9)
+
+
+def test_step_keeps_a_large_finite_output_and_returns_the_same_views(exported):
+    """step's cheap finiteness test (y . y) overflows for |y| > 1e154: a finite row still stands."""
+    bundle = PolicyBundle.load(exported[0])
+    n, run = bundle.n_joints, bundle._run_bound
+
+    def huge_tau_fb(binding, options):
+        run(binding, options)
+        bundle._y[0, n] = 1e200  # finite, but its square is not
+
+    bundle._run_bound = huge_tau_fb
+    q = np.full(n, 0.1)
+    first = bundle.step(q, q, q, q, q, bundle.initial_state(q))
+    assert first[1][0] == 1e200 and np.isfinite(first[0]).all()
+    assert (bundle.nonfinite_fallbacks, bundle.nonfinite_refusals) == (0, 0)
+    second = bundle.step(q, q, q, q, q, first[2].copy())
+    assert all(a is b for a, b in zip(first, second, strict=True))  # views of the one output row
+    assert np.array_equal(bundle.last_torques[:, 0], np.stack(second[:2]))
