@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import os
-import platform
 import time
 import timeit
 import uuid
@@ -196,17 +194,6 @@ def codec_cost() -> dict[str, float]:
     }
 
 
-def machine_info() -> dict[str, Any]:
-    return {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "load_average_1min": round(os.getloadavg()[0], 2),
-        "python_can": can.__version__,
-        "canopen": canopen.__version__,
-    }
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--mode", choices=("inprocess", "bridge", "ipc"), default="inprocess")
@@ -230,7 +217,7 @@ def main() -> None:
         "can": "fd" if args.fd else "classical",
         **runner(args),
         "codec": codec_cost(),
-        "machine": machine_info(),
+        "machine": benchinfo.machine("python-can", "canopen", "numpy"),
     }
     print(json.dumps(result, indent=2))
 

@@ -7,10 +7,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 
+import benchinfo
 import numpy as np
 
 from models.dynamics import make_dynamics
@@ -58,12 +57,7 @@ def main() -> None:
                 "robot": robot.name,
                 "n_joints": robot.n_joints,
                 "results": results,
-                "machine": {
-                    "platform": platform.platform(),
-                    "cpu_count": os.cpu_count(),
-                    "python": platform.python_version(),
-                    "numpy": np.__version__,
-                },
+                "machine": benchinfo.machine("numpy", "pin", "torch"),
             },
             indent=2,
         )

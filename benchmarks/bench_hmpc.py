@@ -21,33 +21,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from dataclasses import replace
 from functools import partial
 
+import benchinfo
 import numpy as np
-
-
-def machine() -> dict:
-    import scipy
-
-    try:
-        import pinocchio
-
-        pin_version = pinocchio.__version__
-    except ImportError:  # pragma: no cover
-        pin_version = None
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "pinocchio": pin_version,
-        "load_average_1min_at_start": os.getloadavg()[0],
-    }
 
 
 def load() -> float:
@@ -226,7 +205,7 @@ def main() -> None:
     parser.add_argument("--kernels", default="auto", choices=("auto", "numba", "numpy"))
     parser.add_argument("--skip", nargs="*", default=[], choices=("ur5", "panda", "rne", "batch"))
     args = parser.parse_args()
-    result: dict = {"machine": machine(), "cycle": []}
+    result: dict = {"machine": benchinfo.machine("numpy", "scipy", "pin", "numba"), "cycle": []}
     if "ur5" not in args.skip:
         result["cycle"].append(cycle_times("ur5_paper", args.cycles, "pinocchio", args.kernels))
     if "panda" not in args.skip:

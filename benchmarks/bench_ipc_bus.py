@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import select
 import socket
 import struct
@@ -220,7 +219,7 @@ def main() -> None:
     out = {
         "benchmark": "ipc_bus",
         "traffic": f"{OUT} x 72-byte datagrams out, {BACK} back, per cycle",
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "cpu_count": os.cpu_count()},
+        "machine": benchinfo.machine(),
         "results": [run(mode, args.cycles, args.period_s, args.rt) for mode in modes],
         "load_average_after": [round(x, 2) for x in os.getloadavg()],
     }

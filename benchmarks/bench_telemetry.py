@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import socket
 import subprocess
 import sys
 import time
 from typing import Any
 
+import benchinfo
 import numpy as np
 
 JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
@@ -58,15 +57,6 @@ def _summary(values_us: np.ndarray) -> dict[str, float]:
         "p99": round(float(np.percentile(values_us, 99)), 2),
         "max": round(float(values_us.max()), 1),
         "n": int(values_us.size),
-    }
-
-
-def machine() -> dict[str, Any]:
-    return {
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
     }
 
 
@@ -104,7 +94,7 @@ def run(
         if child.stdout.readline().strip() != "ready":
             raise SystemExit("the subscriber process did not start")
         time.sleep(0.5)  # the peers connect
-    load_before = machine()["load_average"]
+    load_before = benchinfo.machine()["load_average"]
 
     n = len(JOINTS)
     rng = np.random.default_rng(0)
@@ -188,7 +178,7 @@ def run(
     result["sink"] = counters
     result["subscriber_received"] = received
     result["offered_on"] = offered_on
-    result["machine"] = machine()
+    result["machine"] = benchinfo.machine("eclipse-zenoh", "numpy")
     result["machine"]["load_average_before"] = load_before
     return result
 

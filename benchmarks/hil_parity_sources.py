@@ -28,12 +28,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import benchinfo
 import numpy as np
 
 from models.conditions import load_conditions
@@ -167,7 +167,7 @@ def main() -> None:
     robot = load_robot("ur5_paper")
     conditions = {c.name: c for c in load_conditions(robot=robot)}
     out: dict[str, Any] = {
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
+        "machine": benchinfo.machine("pybullet", "pin", "numpy"),
         "load_average_start": os.getloadavg(),
         "runs": {},
     }

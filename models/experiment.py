@@ -10,8 +10,6 @@ Outputs in ``out_dir``:
 from __future__ import annotations
 
 import json
-import os
-import platform
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -21,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from hil_runtime.machine import machine
 from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition, Mismatch
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, LAW_TITLES, make_law
@@ -42,16 +41,6 @@ class ExperimentConfig:
     timing_cycles: int = 1000  # single-robot cycles timed per (law, mode) for the t columns
     save_trajectories: bool = True
     plots: bool = True
-
-
-def machine_info() -> dict[str, Any]:
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-    }
 
 
 def _groups(conditions: list[Condition]) -> list[list[int]]:
@@ -228,7 +217,7 @@ def summarize(
         "table": table,
         "all_runs_finite_and_within_limits": all(r["finite"] and r["within_limits"] for r in runs),
         "runs": runs,
-        "machine": machine_info(),
+        "machine": machine("numpy", "pin", "torch"),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
 

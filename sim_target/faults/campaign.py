@@ -10,8 +10,6 @@ table has the issue's columns; docs/faults.md explains each fault and bound.
 
 from __future__ import annotations
 
-import os
-import platform
 import shutil
 import tempfile
 import time
@@ -20,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hil_runtime.machine import machine
 from sim_target.faults import cases as c
 from sim_target.faults import injections as inj
 from sim_target.faults.cases import Expect
@@ -321,15 +320,6 @@ FAULTS: tuple[FaultSpec, ...] = (
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
 
 
-def _machine() -> dict[str, Any]:
-    return {
-        "cpu": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(),
-        "python": platform.python_version(),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
-    }
-
-
 def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseResult:
     """One case, run again when the rig spoils it before the injection (counted)."""
     retries = 0
@@ -386,7 +376,7 @@ def run_campaign(
     specs = select(quick, only)
     if repeats < 1:
         raise CampaignError(f"--repeats: must be at least 1, got {repeats}")
-    load_before = _machine()["load_average"]
+    load_before = machine()["load_average"]
     started = time.monotonic()
     rows: list[dict[str, Any]] = []
     cases: list[c.CaseResult] = []
@@ -410,7 +400,7 @@ def run_campaign(
         + (f" --repeats {repeats}" if repeats != 3 else "")
         + (f" --seed {seed}" if seed else "")
         + (f" --only {','.join(only)}" if only else ""),
-        "machine": {**_machine(), "load_average_before": load_before},
+        "machine": {**machine("python-can", "canopen", "pybullet", "numpy"), "load_average_before": load_before},
         "wall_s": round(time.monotonic() - started, 1),
         "repeats": repeats,
         "passed": all(row["pass"] for row in rows),

@@ -131,7 +131,7 @@ def format_table(document: dict[str, Any]) -> str:
     lines += [
         "",
         f"`{document['command']}`: {len(document['rows'])} faults × {document['repeats']} repeats, "
-        f"{document['wall_s']} s, {machine['cpus']} CPUs ({machine['cpu']}), load average "
+        f"{document['wall_s']} s, {machine['cpu_count']} CPUs ({machine['cpu']}), load average "
         f"{machine['load_average_before']} before, {machine['load_average']} after; "
         f"{'every row passes' if document['passed'] else 'SOME ROWS FAIL'}.",
     ]
