@@ -10,12 +10,18 @@ the bare ``PolicyBundle.step`` time. Prints JSON.
     python benchmarks/bench_lmpc.py --compact        # shipped graph vs today's graph code, interleaved
     python benchmarks/bench_lmpc.py --bundles OLD --against NEW   # two bundle sets' t_L, interleaved
     python benchmarks/bench_lmpc.py --reexport-to DIR # the shipped bundles in today's graph, under DIR
+    python benchmarks/bench_lmpc.py --float32        # each shipped graph vs its float32 copy, interleaved
 
 ``--compact``: per law, the shipped bundle's emulator (rebuilt from its graph's weights and its
 manifest) exported with the working tree's graph code (models.lmpc.structured) to a temporary file;
 node counts, the new graph's outputs on the shipped manifest's probes against the recorded ones
 (max relative difference), and the bare single-row run time of both graphs, plus a one-node graph
 (onnxruntime's per-run floor), all timed interleaved in one process.
+
+``--float32``: per law, the shipped float64 graph and a float32 copy of it (every constant rounded to
+float32, a Cast at the input and at the output so the bundle contract's float64 row stays): the
+float32 graph's outputs on the manifest's recorded probes (largest relative and absolute torque
+difference, trust outputs that changed) and the bare single-row run time of both, interleaved.
 
 ``--fallbacks``: every law's LMPC on the paper's five conditions (5 s, nominal plant, the
 experiment's settings); per law and condition the cycles outside the trust box (torque = the
@@ -68,6 +74,9 @@ def main() -> None:
         help="only write the shipped structured bundles, re-exported with today's graph code, under this directory",
     )
     parser.add_argument(
+        "--float32", action="store_true", help="only compare each shipped graph with a float32 copy of it"
+    )
+    parser.add_argument(
         "--session-sweep",
         action="store_true",
         help="also time each graph under onnxruntime's optimization levels / execution modes",
@@ -77,8 +86,10 @@ def main() -> None:
         for law_name in args.laws.split(","):
             print(json.dumps(reexport_shipped(law_name, args.bundles, args.reexport_to)))
         return
-    if args.against is not None or args.compact:
-        if args.against is not None:
+    if args.against is not None or args.compact or args.float32:
+        if args.float32:
+            result = float32_compare(args.laws.split(","), args.bundles, args.cycles)
+        elif args.against is not None:
             result = time_against(args.laws.split(","), args.bundles, args.against, args.cycles, args.rounds)
         else:
             result = compact_compare(args.laws.split(","), args.bundles, args.cycles)
@@ -400,6 +411,92 @@ def one_node_graph(path: Path, width: int = 6, nodes: int = 1) -> None:
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     onnx.save(model, str(path))
+
+
+def float32_copy(source: Path, target: Path) -> None:
+    """The float64 graph at ``source`` in float32 (constants rounded, Casts to float32 retargeted), with a
+    Cast at its input and output so that it still reads and writes the bundle's float64 row."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    model = onnx.load(str(source))
+    graph = model.graph
+
+    def single(tensor: onnx.TensorProto) -> onnx.TensorProto:
+        return numpy_helper.from_array(numpy_helper.to_array(tensor).astype(np.float32), tensor.name)
+
+    for tensor in graph.initializer:
+        if tensor.data_type == TensorProto.DOUBLE:
+            tensor.CopyFrom(single(tensor))
+    for node in graph.node:
+        for attribute in node.attribute:
+            if attribute.name == "value" and attribute.t.data_type == TensorProto.DOUBLE:
+                attribute.t.CopyFrom(single(attribute.t))
+            if node.op_type == "Cast" and attribute.name == "to" and attribute.i == TensorProto.DOUBLE:
+                attribute.i = TensorProto.FLOAT
+    for info in graph.value_info:
+        if info.type.tensor_type.elem_type == TensorProto.DOUBLE:
+            info.type.tensor_type.elem_type = TensorProto.FLOAT
+    x_name, y_name = graph.input[0].name, graph.output[0].name
+    for node in graph.node:
+        node.input[:] = [f"{x_name}_f32" if name == x_name else name for name in node.input]
+        node.output[:] = [f"{y_name}_f32" if name == y_name else name for name in node.output]
+    graph.node.insert(0, helper.make_node("Cast", [x_name], [f"{x_name}_f32"], to=TensorProto.FLOAT))
+    graph.node.append(helper.make_node("Cast", [f"{y_name}_f32"], [y_name], to=TensorProto.DOUBLE))
+    onnx.save(model, str(target))
+
+
+def float32_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
+    """Per law: the float32 copy's probe differences and both graphs' bare run times, interleaved."""
+    import tempfile
+    import time
+
+    from models.lmpc.controller import bundle_path
+
+    out: dict = {
+        "what": "shipped float64 graph vs its float32 copy (Cast in/out): bare single-row run, us median / p99",
+        "cycles": cycles,
+        "laws": {},
+    }
+    runners: dict[str, Callable[[], object]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for law_name in laws:
+            directory = bundle_path("ur5_paper", law_name, bundles)
+            manifest = json.loads((directory / "manifest.json").read_text())
+            source = directory / manifest["graph"]["file"]
+            target = Path(tmp) / f"{law_name}_float32.onnx"
+            float32_copy(source, target)
+            n = int(manifest["robot"]["n_joints"])
+            width = int(sum(part["size"] for part in manifest["graph"]["input"]["layout"]))
+            inputs = np.asarray(manifest["probes"]["inputs"], float)
+            recorded = np.asarray(manifest["probes"]["outputs"], float)
+            got = _session(str(target)).run(None, {"x": inputs})[0]
+            relative = np.abs(got - recorded) / np.maximum(np.abs(recorded), 1.0)
+            out["laws"][law_name] = {
+                "probes": len(inputs),
+                "probe_max_rel_diff": float(relative.max()),
+                "probe_tau_max_abs_diff_nm": float(np.abs(got - recorded)[:, :n].max()),
+                "probe_trust_changed": int((np.abs(got[:, -2:] - recorded[:, -2:]) > 1e-3).any(axis=1).sum()),
+            }
+            runners[f"{law_name}:float64"] = _bound_runner(_session(str(source)), width)
+            runners[f"{law_name}:float32"] = _bound_runner(_session(str(target)), width)
+        times: dict[str, list[float]] = {k: [] for k in runners}
+        for _ in range(cycles):
+            for key, run in runners.items():
+                start = time.perf_counter()
+                run()
+                times[key].append(time.perf_counter() - start)
+    for key, values in times.items():
+        law_name, label = key.split(":")
+        us = np.asarray(values[100:]) * 1e6
+        out["laws"][law_name].setdefault("run_us", {})[label] = [
+            round(float(np.median(us)), 1),
+            round(float(np.percentile(us, 99)), 1),
+        ]
+    for entry in out["laws"].values():
+        entry["float32_saves_pct"] = round(100 * (1 - entry["run_us"]["float32"][0] / entry["run_us"]["float64"][0]), 1)
+    out["load_average"] = os.getloadavg()
+    return out
 
 
 def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
