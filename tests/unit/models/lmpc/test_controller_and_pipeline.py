@@ -1,7 +1,7 @@
 """LMPC controller (a bundle through hil_runtime.bundle in the simulator) and a tiny pipeline run."""
 
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
@@ -16,6 +16,9 @@ from models.lmpc.bundle_export import export_bundle  # noqa: E402
 from models.lmpc.emulator import Emulator, TrainConfig, train_emulator  # noqa: E402
 from models.robots import load_robot  # noqa: E402
 from models.sim import FeedbackController, SimConfig, simulate  # noqa: E402
+
+if TYPE_CHECKING:
+    from models.lmpc.pipeline import PipelineConfig
 
 
 class IdentityOnFeedback(Emulator):
@@ -64,13 +67,13 @@ def test_training_is_seeded_and_learns_a_smooth_map():
     assert a.best_val_mse < 0.1 * a.val_mse[0]
 
 
-def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
-    from hil_runtime.bundle import PolicyBundle
-    from models.executors import SerialExecutor
+def _tiny_pipeline_config(**augment: Any) -> "PipelineConfig":
+    """The PD law on 90 labelled samples of a 4-condition dataset, a 16-unit network, 3 epochs; the
+    augment stage's options as given."""
     from models.lmpc.dataset import RawDatasetSpec
-    from models.lmpc.pipeline import PipelineConfig, run_pipeline
+    from models.lmpc.pipeline import PipelineConfig
 
-    config = PipelineConfig(
+    return PipelineConfig(
         dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
         budget=90,
         pool_conditions=3,
@@ -79,8 +82,16 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
         train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
         label_chunk=128,
         workers=1,
-        rollout_conditions=0,
+        **augment,
     )
+
+
+def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
+    from hil_runtime.bundle import PolicyBundle
+    from models.executors import SerialExecutor
+    from models.lmpc.pipeline import run_pipeline
+
+    config = _tiny_pipeline_config(rollout_conditions=0)
     summary = run_pipeline(config, tmp_path / "work", tmp_path / "bundles", executor=SerialExecutor())
     assert "augment" not in summary["wall_s"]
     assert set(summary["wall_s"]) >= {"dataset", "label", "train", "export", "total"}
@@ -95,18 +106,9 @@ def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
     """Beyond the paper: HMPC closed loop on one 2.5 s condition, one DAgger round, residual + trust region."""
     from hil_runtime.bundle import PolicyBundle
     from models.executors import SerialExecutor
-    from models.lmpc.dataset import RawDatasetSpec
-    from models.lmpc.pipeline import PipelineConfig, run_pipeline
+    from models.lmpc.pipeline import run_pipeline
 
-    config = PipelineConfig(
-        dataset=RawDatasetSpec(laws=("pd",), conditions=4, duration_s=5.0, stride=50, chunks=1),
-        budget=90,
-        pool_conditions=3,
-        test_per_law=30,
-        seeds=(0,),
-        train=TrainConfig(hidden=(16,), max_epochs=3, patience=2),
-        label_chunk=128,
-        workers=1,
+    config = _tiny_pipeline_config(
         rollout_conditions=1,
         rollout_duration_s=2.5,
         rollout_stride=25,
