@@ -40,13 +40,10 @@ from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.runtime import Runtime, build_runtime
 from sim_target.testing.hil_target import target_in_process, target_process, unique_channel
+from sim_target.testing.ur5 import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, bus_joints
 
 ROOT = Path(__file__).resolve().parents[1]
 
-PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
-JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
-MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
-Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 # The benchmark measures rather than stops at the first stale cycle (as bench_hil_lockstep.py).
 BENCH_DRIVER = {
     "feedback_timeout_s": 0.05,
@@ -74,10 +71,7 @@ def config_dict(
         "bus": {
             "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
             "period_s": period_s,
-            "joints": [
-                {"name": n, "node_id": i + 1, "max_torque_nm": t}
-                for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))
-            ],
+            "joints": bus_joints(),
             **BENCH_DRIVER,
         },
         "reference": {"kind": "hold"} if hold else {"kind": "condition", "condition": "C1", "ramp_s": 2.0},

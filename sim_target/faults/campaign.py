@@ -47,7 +47,7 @@ def _ip(inject: Callable[..., Any], expect: Expect, **kwargs: Any) -> Callable[[
 def _crafted(kind: CraftKind, expect: Expect, **kwargs: Any) -> Callable[[str, int, int, Path], c.CaseResult]:
     def run(name: str, repeat: int, seed: int, work: Path) -> c.CaseResult:
         from sim_target.faults.crafted import craft_bundle
-        from sim_target.faults.rig import Q0_RAD
+        from sim_target.testing.ur5 import Q0_RAD
 
         trigger = craft_bundle(c.rigs.PD_BUNDLE, work / f"bundle-{kind}", kind)
         q0 = (trigger, *Q0_RAD[1:])  # the arm starts where the crafted graph misbehaves

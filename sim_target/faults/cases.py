@@ -24,7 +24,8 @@ if TYPE_CHECKING:
 
 from hil_runtime.outputs import json_safe
 from sim_target.faults import rig as rigs
-from sim_target.faults.rig import Q0_RAD, InProcessRig, in_process_rig
+from sim_target.faults.rig import InProcessRig, in_process_rig
+from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
 
 QUICK_STOPPED = ("quick stop active", "switch on disabled", "fault", "fault reaction active", "not enabled")
 LIMIT_FAULTS = ("position_limit", "velocity_limit")
@@ -440,7 +441,7 @@ def _npz_ok(path: Path) -> bool:
 def _record_ratio(path: Path) -> float:
     with np.load(path) as data:
         tau = data["tau"]
-    return float(np.max(np.abs(tau) / np.asarray(rigs.MAX_TORQUE_NM))) if tau.size else 0.0
+    return float(np.max(np.abs(tau) / np.asarray(MAX_TORQUE_NM))) if tau.size else 0.0
 
 
 def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:

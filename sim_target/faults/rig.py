@@ -35,15 +35,12 @@ import yaml
 
 from sim_target.faults.observers import RpdoTap, TelemetryWatch
 from sim_target.testing.notify import NotifyListener
+from sim_target.testing.ur5 import PD_BUNDLE, Q0_RAD, bus_joints
 
 if TYPE_CHECKING:
     from sim_target.launch import Transport
 
 ROOT = Path(__file__).resolve().parents[2]
-PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
-JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
-MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
-Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 PERIOD_S = 0.001
 TARGET_SUBSTEPS = 8  # docs/target.md: parity 1.7e-3 rad over 2 s; faults need no more
 # Driver timeouts of the campaign: tight enough that each protocol bound is what is measured
@@ -76,10 +73,7 @@ def runtime_config_dict(
         "bus": {
             "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
             "period_s": PERIOD_S,
-            "joints": [
-                {"name": n, "node_id": i + 1, "max_torque_nm": t}
-                for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))
-            ],
+            "joints": bus_joints(),
             "feedback_timeout_s": FEEDBACK_TIMEOUT_S,
             "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
             "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S,

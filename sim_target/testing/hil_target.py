@@ -17,14 +17,9 @@ import yaml
 
 from drivers.config import DriveBusConfig, parse_drive_bus_config
 from sim_target.config import parse_target_config
-from sim_target.launch import bridge_url, serve_in_thread, start_hil, wait_ready
+from sim_target.launch import CAN_FD, bridge_url, serve_in_thread, start_hil, wait_ready
 from sim_target.server import TargetServer
-
-Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
-# ur5_paper's URDF effort limits: the drives' max torque (0x6072).
-MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
-NODE_IDS = (1, 2, 3, 4, 5, 6)
-FD = {"fd": True, "data_bitrate": 5_000_000}  # six drives above ~420 Hz need CAN FD
+from sim_target.testing.ur5 import MAX_TORQUE_NM, NODE_IDS, Q0_RAD
 
 
 def unique_channel() -> str:
@@ -36,7 +31,7 @@ def target_config_dict(channel: str, period_s: float, substeps: int = 32, **extr
         "robot": "ur5_paper",
         "period_s": period_s,
         "clock": "lockstep",
-        "bus": {"interface": "virtual", "channel": channel, **FD},
+        "bus": {"interface": "virtual", "channel": channel, **CAN_FD},
         "drives": {"node_ids": list(NODE_IDS)},
         "plant": {"substeps": substeps, "initial_position_rad": list(Q0_RAD)},
         **extra,
@@ -46,7 +41,7 @@ def target_config_dict(channel: str, period_s: float, substeps: int = 32, **extr
 def drive_bus_config(transport: dict[str, Any], period_s: float, **extra: Any) -> DriveBusConfig:
     return parse_drive_bus_config(
         {
-            "transport": {**FD, **transport},
+            "transport": {**CAN_FD, **transport},
             "period_s": period_s,
             "joints": [
                 {"name": f"joint{n}", "node_id": n, "max_torque_nm": m}

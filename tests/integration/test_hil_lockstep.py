@@ -35,8 +35,6 @@ from models.sim.closed_loop import ModelPlant, SimConfig
 from sim_target.config import DriveFault, FrameFault, HeartbeatFault
 from sim_target.server import send_control
 from sim_target.testing.hil_target import (
-    MAX_TORQUE_NM,
-    Q0_RAD,
     TargetProcess,
     drive_bus_config,
     serve_config,
@@ -44,6 +42,7 @@ from sim_target.testing.hil_target import (
     target_process,
     unique_channel,
 )
+from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
 
 FREQUENCY_HZ = np.array([2.0, 2.2, 2.4, 2.6, 2.8, 3.0])
 EXCURSION_RAD = 0.01  # sinusoid amplitude: M_ii(q0) (2 pi f)^2 x 10 mrad

@@ -31,11 +31,9 @@ from hil_runtime.runtime import RunResult, Runtime, build_runtime
 from sim_target.config import parse_fault
 from sim_target.server import send_control
 from sim_target.testing.hil_target import start_hil_run, target_in_process, target_process, unique_channel
+from sim_target.testing.ur5 import MAX_TORQUE_NM, PD_BUNDLE, bus_joints
 
 ROOT = Path(__file__).resolve().parents[2]
-PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
-JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
-MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
 # Bounds on waits for frames on a loaded machine (not assertions on time): the lock-step target
 # does not care about wall time.
 SLOW_MACHINE = {
@@ -58,10 +56,7 @@ def runtime_config(transport: dict[str, Any], **sections: Any) -> dict[str, Any]
         "bus": {
             "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
             "period_s": 0.001,
-            "joints": [
-                {"name": n, "node_id": i + 1, "max_torque_nm": t}
-                for i, (n, t) in enumerate(zip(JOINTS, MAX_TORQUE_NM, strict=True))
-            ],
+            "joints": bus_joints(),
             **SLOW_MACHINE,
         },
         "reference": {"kind": "condition", "condition": "C1", "ramp_s": 2.0},

@@ -10,18 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_joints
+
 ROOT = Path(__file__).resolve().parents[3]
-PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
-JOINT_NAMES = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
-MAX_TORQUE_NM = (102.0, 102.0, 66.0, 34.0, 34.0, 34.0)
-Q0_RAD = (0.0, -0.5, 0.8, -0.3, 0.0, 0.0)
 
 
 def config_dict(**overrides: Any) -> dict[str, Any]:
@@ -32,10 +23,7 @@ def config_dict(**overrides: Any) -> dict[str, Any]:
         "bus": {
             "transport": {"interface": "virtual", "channel": "unit", "fd": True, "data_bitrate": 5_000_000},
             "period_s": 0.001,
-            "joints": [
-                {"name": n, "node_id": i + 1, "max_torque_nm": t}
-                for i, (n, t) in enumerate(zip(JOINT_NAMES, MAX_TORQUE_NM, strict=True))
-            ],
+            "joints": bus_joints(),
         },
         "reference": {"kind": "hold"},
         "loop": {"pacing": "bus", "warmup_cycles": 5},

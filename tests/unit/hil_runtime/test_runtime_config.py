@@ -22,7 +22,8 @@ from hil_runtime.config import (
     parse_runtime_config,
 )
 from hil_runtime.runtime import Runtime
-from tests.unit.hil_runtime.support import PD_BUNDLE, config_dict
+from sim_target.testing.ur5 import PD_BUNDLE
+from tests.unit.hil_runtime.support import config_dict
 
 
 def _write(tmp_path: Path, data: object, name: str = "runtime.yaml") -> Path:

@@ -18,7 +18,8 @@ from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import RunRecord, Runtime
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
-from tests.unit.hil_runtime.support import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, StubBundle, config_dict
+from sim_target.testing.ur5 import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD
+from tests.unit.hil_runtime.support import StubBundle, config_dict
 
 
 class Events(NullTelemetry):

@@ -17,7 +17,8 @@ from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.codec import STATS_FIELDS
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
-from tests.unit.hil_runtime.support import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
+from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
+from tests.unit.hil_runtime.support import StubBundle, config_dict
 
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 

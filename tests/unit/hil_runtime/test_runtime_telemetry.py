@@ -16,7 +16,8 @@ from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.daemon import make_telemetry
 from hil_runtime.runtime import Runtime
-from tests.unit.hil_runtime.support import MAX_TORQUE_NM, Q0_RAD, config_dict
+from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
+from tests.unit.hil_runtime.support import config_dict
 
 zenoh = pytest.importorskip("zenoh")
 

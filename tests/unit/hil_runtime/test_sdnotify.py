@@ -18,7 +18,8 @@ from hil_runtime.config import parse_runtime_config
 from hil_runtime.runtime import Runtime
 from hil_runtime.sdnotify import Notifier
 from sim_target.testing.notify import NotifyListener
-from tests.unit.hil_runtime.support import MAX_TORQUE_NM, Q0_RAD, StubBundle, config_dict
+from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
+from tests.unit.hil_runtime.support import StubBundle, config_dict
 
 
 @pytest.fixture
