@@ -72,6 +72,28 @@ class ADRCLaw(FeedbackLaw):
         self.torque_per_accel = self.b0 if b0_reading == "inertia" else 1.0 / self.b0
         n = n_joints
         self.applied_torque_slice = slice(3 * n, 4 * n)
+        self.step_matrix = self._step_matrix()
+
+    def _step_matrix(self) -> np.ndarray:
+        """(9N, 4N): [q, qd, q_d, qd_d, qdd_d, state] @ it = [z[k] (3N), b0 u[k] before saturation (N)].
+
+        The torch path's step as one product (an ONNX graph of 2 nodes instead of ~20: onnxruntime
+        spends ~0.3 us per node, docs/lmpc.md t_L); the numpy path keeps the equations as written."""
+        n, wc = self.n_joints, self.omega_c
+        gain = np.broadcast_to(np.asarray(self.torque_per_accel, float), (n,))
+        eye = np.eye(n)
+        m = np.zeros((9 * n, 4 * n))
+        for i in range(3):  # z_i[k] = sum_k Ad_ik z_k + Bq_i q + Bu_i tau_applied / gain
+            cols = slice(i * n, (i + 1) * n)
+            m[:n, cols] = self.eso_bq[i] * eye
+            for k in range(3):
+                m[(5 + k) * n : (6 + k) * n, cols] = self.eso_ad[i, k] * eye
+            m[8 * n :, cols] = np.diag(self.eso_bu[i] / gain)
+        u = slice(3 * n, 4 * n)  # gain (kc_p (q_d - q) + kc_d (qd_d - qd) + qdd_d - z3[k])
+        m[:, u] = -m[:, 2 * n : 3 * n] * gain[None, :]
+        for row, coefficient in ((0, -(wc**2)), (1, -2.0 * wc), (2, wc**2), (3, 2.0 * wc), (4, 1.0)):
+            m[row * n : (row + 1) * n, u] += coefficient * np.diag(gain)
+        return m
 
     @property
     def state_size(self) -> int:
@@ -100,6 +122,10 @@ class ADRCLaw(FeedbackLaw):
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         n = self.n_joints
+        if xp is not np:  # traced for the ONNX graph: the same step as one product (_step_matrix)
+            z_u = xp.concatenate([q, qd, q_d, qd_d, qdd_d, state], -1) @ const(xp, self.step_matrix)
+            tau = self.saturate(xp, z_u[:, 3 * n :])
+            return tau, xp.concatenate([z_u[:, : 3 * n], tau], -1)
         ad, bq, bu, gain = (const(xp, a) for a in (self.eso_ad, self.eso_bq, self.eso_bu, self.torque_per_accel))
         z = xp.reshape(state[:, : 3 * n], (-1, 3, n))
         u_applied = state[:, 3 * n :] / gain
