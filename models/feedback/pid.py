@@ -39,6 +39,10 @@ class PIDLaw(PDLaw):
         self.ki = np.asarray(ki, float)
         # Anti-windup bound on the integral (rad*s); a large finite number where Ki = 0 keeps ONNX finite.
         self.integral_limit_rad_s = np.where(self.ki > 0, self.torque_limit_nm / np.maximum(self.ki, 1e-12), 1e6)
+        # torch path: [q, qd, q_d, qd_d, integral] @ it = [integral + dt e, Kp e + Kd e_dot] (one MatMul)
+        eye = np.eye(n_joints)
+        rate = np.concatenate([-self.period_s * eye, 0 * eye, self.period_s * eye, 0 * eye, eye])
+        self.pid_matrix = np.concatenate([rate, np.concatenate([self.pd_matrix, 0 * eye])], 1)
 
     @property
     def state_size(self) -> int:
@@ -55,6 +59,12 @@ class PIDLaw(PDLaw):
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
         ki, limit = const(xp, self.ki), const(xp, self.integral_limit_rad_s)
+        if xp is not np:  # traced for the ONNX graph: Concat, MatMul, Split, clamp, Gemm, saturation
+            n = self.n_joints
+            mapped = xp.concatenate([q, qd, q_d, qd_d, state], -1) @ const(xp, self.pid_matrix)
+            stepped, pd = xp.split(mapped, [n, n], 1)
+            integral = xp.minimum(xp.maximum(stepped, -limit), limit)
+            return self.saturate(xp, xp.addmm(pd, integral, const(xp, np.diag(self.ki)))), integral
         e = q_d - q
         integral = xp.minimum(xp.maximum(state + self.period_s * e, -limit), limit)
         tau = self.pd_torque(xp, e, qd_d - qd) + ki * integral
