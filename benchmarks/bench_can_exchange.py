@@ -177,7 +177,8 @@ def codec_cost() -> dict[str, float]:
         return bytes(rpdo.data)
 
     def ours_decode() -> tuple[int, int, int]:
-        return tuple(fr.decode_tpdo1(data)[:3])  # three int fields
+        statusword, torque_permille, position_counts, _ = fr.decode_tpdo1(data)
+        return statusword, torque_permille, position_counts
 
     def ours_encode() -> bytes:
         return fr.encode_rpdo(0x000F, -1000)

@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 import numpy as np
-from bench_hmpc import labeling_states
+from bench_hmpc import head, labeling_states
 from benchinfo import machine
 
 
@@ -56,7 +56,7 @@ def main() -> None:
     try:
         for name, executor in executors.items():
             started = time.perf_counter()
-            warm = tuple(a[: 2 * options.workers] for a in args)  # start the workers, build their solvers
+            warm = head(args, 2 * options.workers)  # start the workers, build their solvers
             solve_batch(law, robot, *warm, config=config, executor=executor, chunk_states=1)
             out["start_s"][name] = round(time.perf_counter() - started, 2)
         for _ in range(options.rounds):

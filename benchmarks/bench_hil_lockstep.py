@@ -34,11 +34,14 @@ import benchinfo
 import numpy as np
 
 from drivers.drive_bus import DriveBus
+from drivers.ipc.bus import IpcBus
 from drivers.transport import open_bus
 from models.dynamics import make_dynamics
 from models.robots import load_robot
+from sim_target.drives import EmulatedDrives
 from sim_target.server import send_control
-from sim_target.testing.hil_target import Q0_RAD, drive_bus_config, target_in_process, target_process, unique_channel
+from sim_target.testing.hil_target import drive_bus_config, target_in_process, target_process, unique_channel
+from sim_target.testing.ur5 import Q0_RAD
 
 # The benchmark measures losses rather than stopping at the first stale cycle.
 # Likewise the drives' master-loss watchdog: a scheduler stall of 100 ms on a loaded machine must
@@ -140,6 +143,7 @@ def bench_inprocess(duration_s: float, period_s: float, substeps: int, rt: bool 
             result["syncs_lost"] = bus.counters.cycles - target.stats.syncs
         finally:
             bus.close()
+        assert isinstance(target.drives, EmulatedDrives)  # the server's DriveBank protocol has no counters
         drives = target.drives.counters
         result["target_frames_received"] = drives.frames_received
         result["target_frames_sent"] = drives.frames_sent
@@ -174,6 +178,7 @@ def bench_ipc(duration_s: float, period_s: float, substeps: int, rt: bool = Fals
         target_rt = realtime(target.process.pid) if rt else False
         config = drive_bus_config({"interface": "ipc", "channel": str(target.ipc_dir)}, period_s, **BENCH_DRIVER)
         ipc_bus = open_bus(config.transport)  # ours, to read its counters
+        assert isinstance(ipc_bus, IpcBus)
         bus = DriveBus(config, bus=ipc_bus)
         try:
             result = _run(bus, period_s, duration_s, rt)

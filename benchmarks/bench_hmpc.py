@@ -24,9 +24,19 @@ import os
 import time
 from dataclasses import replace
 from functools import partial
+from typing import Any
 
 import benchinfo
 import numpy as np
+
+# A batch of states as solve_batch takes them: q, qd, q_d, qd_d, qdd_d, each (rows, n).
+States = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def head(states: States, rows: int) -> States:
+    """The first ``rows`` states of the batch (to warm up kernels or start workers)."""
+    q, qd, q_d, qd_d, qdd_d = states
+    return q[:rows], qd[:rows], q_d[:rows], qd_d[:rows], qdd_d[:rows]
 
 
 def load() -> float:
@@ -47,7 +57,7 @@ def _timed_controller(law, robot, options: dict):
         cpu.append(time.thread_time() - start)
         return result
 
-    controller.solver.solve = timed
+    controller.solver.solve = timed  # type: ignore[method-assign]  # this instance's solve, CPU-timed on purpose
     return controller, cpu
 
 
@@ -110,11 +120,14 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
         controller, cpu = _timed_controller(law, robot, options)
         simulate(robot, controller, [condition], SimConfig(period_s=dt))
         wall_ms, cpu_ms = np.asarray(controller.cycle_times_s) * 1e3, np.asarray(cpu) * 1e3
-        walls.append(wall_ms), cpus.append(cpu_ms), iterations.extend(controller.iterations)
+        walls.append(wall_ms)
+        cpus.append(cpu_ms)
+        iterations.extend(controller.iterations)
         hard = list(range(2000, min(2030, wall_ms.size)))
         if condition.name in ("C4", "C5"):
             hard = list(range(20)) + hard
-        hard_walls.append(wall_ms[hard]), hard_cpus.append(cpu_ms[hard])
+        hard_walls.append(wall_ms[hard])
+        hard_cpus.append(cpu_ms[hard])
         for key, value in controller.fallbacks.items():
             fallbacks[key] = fallbacks.get(key, 0) + value
     out = {
@@ -139,7 +152,7 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
     return out
 
 
-def labeling_states(states: int) -> tuple:
+def labeling_states(states: int) -> tuple[Any, Any, States]:  # the law, the robot model, the states
     """PD law, UR5 (paper) and ``states`` states the PD law alone visits on the five paper conditions
     (q, qd, q_d, qd_d, qdd_d), drawn with a fixed seed: the batch-labeling benchmark's input."""
     from models.conditions import load_conditions
@@ -177,7 +190,7 @@ def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
             "max": float(error_deg.max()),
         },
     }
-    solve_batch(law, robot, *(a[:2] for a in args), config=config)  # load the compiled kernels
+    solve_batch(law, robot, *head(args, 2), config=config)  # load the compiled kernels
     out["load_average_1min_serial"] = [load()]
     start = time.perf_counter()
     _, status = solve_batch(law, robot, *args, config=config)
@@ -185,9 +198,7 @@ def batch_throughput(states: int, workers: int, kernels: str = "auto") -> dict:
     out["load_average_1min_serial"].append(load())
     out["status_counts"] = {str(k): int(v) for k, v in zip(*np.unique(status, return_counts=True), strict=True)}
     with LocalProcessExecutor(workers) as executor:
-        solve_batch(
-            law, robot, *(a[:workers] for a in args), config=config, executor=executor, chunk_states=1
-        )  # start workers
+        solve_batch(law, robot, *head(args, workers), config=config, executor=executor, chunk_states=1)  # start workers
         out[f"load_average_1min_pool_{workers}"] = [load()]
         start = time.perf_counter()
         _, pooled = solve_batch(law, robot, *args, config=config, executor=executor)

@@ -132,9 +132,12 @@ def run(mode: str, cycles: int, period_s: float, rt: bool) -> dict[str, Any]:
         if mode == "bus":
             import can
 
+            from drivers.ipc.bus import IpcBus
+
             path = str(Path(tmp) / "bus")
             peer = _start_peer("bus", path)
             bus = can.Bus(interface="ipc", channel=path, fd=True)
+            assert isinstance(bus, IpcBus)  # can.Bus is typed as BusABC; send_batch is the ipc bus's own
             out = [
                 can.Message(arbitration_id=0x201 + i, data=bytes(12), is_fd=True, is_extended_id=False)
                 for i in range(OUT)

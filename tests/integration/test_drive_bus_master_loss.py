@@ -23,6 +23,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from canopen.sdo import SdoVariable
 
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
@@ -100,11 +101,16 @@ class _HandMaster:
         self.drive = self.drives._drive(1)
 
     def watch(self, heartbeat_ms: int = 0, rpdo_ms: int = 0, sync_ms: int = 0, option: int = 3) -> None:
-        od = self.drive.node
-        od.sdo[odx.CONSUMER_HEARTBEAT][1].raw = (127 << 16) | heartbeat_ms
-        od.sdo[odx.RPDO1_COMM][5].raw = rpdo_ms
-        od.sdo[odx.SYNC_TIMEOUT].raw = sync_ms
-        od.sdo[odx.ABORT_CONNECTION_OPTION].raw = option
+        self._write(odx.CONSUMER_HEARTBEAT, 1, (127 << 16) | heartbeat_ms)
+        self._write(odx.RPDO1_COMM, 5, rpdo_ms)
+        self._write(odx.SYNC_TIMEOUT, 0, sync_ms)
+        self._write(odx.ABORT_CONNECTION_OPTION, 0, option)
+
+    def _write(self, index: int, subindex: int, value: int) -> None:
+        """Set the drive's own object (as its local application would); subindex ignored for a variable."""
+        entry = self.drive.node.sdo[index]
+        variable = entry if isinstance(entry, SdoVariable) else entry[subindex]
+        variable.raw = value
 
     def enable(self) -> None:
         self.send(0, fr.encode_nmt(fr.NmtCommand.START, 1))

@@ -265,6 +265,7 @@ def test_injected_fault_is_reported_within_two_cycles(fault: FrameFault | DriveF
                 assert error.node_ids == (3,)
                 assert bus.counters.dropped >= 2
             else:
+                assert isinstance(error, DriveFaultError)
                 assert (error.node_id, error.code) == (4, 0x2310)
                 assert bus.counters.emcy == 1
                 assert not bus.enabled

@@ -5,7 +5,7 @@ from pathlib import Path
 import pydantic
 import pytest
 
-from drivers.cia402.od import EDS_PATH, EdsError, load_object_dictionary
+from drivers.cia402.od import EDS_PATH, EdsError, load_object_dictionary, lookup_variable
 from drivers.config import load_drive_bus_config, parse_drive_bus_config
 from drivers.errors import BusLoadError, DriveConfigError
 
@@ -68,8 +68,8 @@ def test_torque_out_of_int16_range_refused() -> None:
 
 
 def test_eds_shipped_is_valid() -> None:
-    od = load_object_dictionary(3)
-    assert od[0x1800][1].default == 0x183
+    variable = lookup_variable(load_object_dictionary(3), 0x1800, 1)
+    assert variable is not None and variable.default == 0x183
 
 
 def test_bad_eds_names_file_and_object(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ import socket
 
 import can
 import pytest
+from can_remote import RemoteBus
 
 from drivers.config import TransportConfig
 from drivers.errors import DriveConfigError, TransportError
@@ -33,6 +34,7 @@ def test_remote_bridge_round_trip_on_loopback() -> None:
     local = can.Bus(interface="virtual", channel="t-bridge-unit", ignore_config=True)
     remote = open_bus(TransportConfig(interface="remote", bridge_port=bridge.port))
     try:
+        assert isinstance(remote, RemoteBus)  # python-can-remote's client (untyped), Nagle off on its socket
         assert remote.socket.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY)
         remote.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
         msg = local.recv(5.0)

@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from models.executors import (
     worker_cached,
 )
 
+States = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # solve_batch's q, qd, q_d, qd_d, qdd_d
 HAVE_RAY = importlib.util.find_spec("ray") is not None  # not imported here: RayExecutor imports it
 needs_ray = pytest.mark.skipif(not HAVE_RAY, reason="ray not installed (the ray extra; [all,test] installs it)")
 
@@ -38,7 +40,8 @@ def _fails_on_three(x: int) -> int:
     return x
 
 
-def labeling_batch(rows: int = 24, seed: int = 5) -> tuple:
+def labeling_batch(rows: int = 24, seed: int = 5) -> tuple[Any, Any, States, Any]:
+    # the law, the robot model, (q, qd, q_d, qd_d, qdd_d), the labeler's HMPCConfig
     """A small labeling batch: PD-law states near a moving reference, the labeler's HMPC options."""
     from models.feedback import make_law
     from models.hmpc import HMPCConfig
