@@ -41,8 +41,36 @@ def pair(bus_dir: Path) -> Iterator[tuple[IpcBus, IpcBus]]:
         b.shutdown()
 
 
-def _msg(can_id: int, data: bytes = b"", **kwargs: object) -> can.Message:
-    return can.Message(arbitration_id=can_id, data=data, is_extended_id=kwargs.pop("is_extended_id", False), **kwargs)
+def _msg(
+    can_id: int,
+    data: bytes = b"",
+    *,
+    is_extended_id: bool = False,
+    is_remote_frame: bool = False,
+    is_error_frame: bool = False,
+    is_fd: bool = False,
+    bitrate_switch: bool = False,
+    error_state_indicator: bool = False,
+    dlc: int | None = None,
+) -> can.Message:
+    return can.Message(
+        arbitration_id=can_id,
+        data=data,
+        is_extended_id=is_extended_id,
+        is_remote_frame=is_remote_frame,
+        is_error_frame=is_error_frame,
+        is_fd=is_fd,
+        bitrate_switch=bitrate_switch,
+        error_state_indicator=error_state_indicator,
+        dlc=dlc,
+    )
+
+
+def _recv(bus: can.BusABC, timeout_s: float) -> can.Message:
+    """The next frame; fails the test when none arrives within ``timeout_s``."""
+    message = bus.recv(timeout_s)
+    assert message is not None, f"no frame within {timeout_s} s"
+    return message
 
 
 def _sockets(bus_dir: Path) -> list[str]:
@@ -106,7 +134,7 @@ def test_frames_of_one_sender_keep_their_order_and_none_is_lost(pair: tuple[IpcB
     n = 2000  # below the default 1 MiB queue, so none may be dropped
     for i in range(n):
         a.send(_msg(0x100 + i % 16, i.to_bytes(4, "little")))
-    received = [int.from_bytes(b.recv(2.0).data, "little") for _ in range(n)]
+    received = [int.from_bytes(_recv(b, 2.0).data, "little") for _ in range(n)]
     assert received == list(range(n))
     assert b.recv(0) is None
     assert a.stats.frames_sent == n and a.stats.frames_dropped == 0 and b.stats.frames_received == n
@@ -161,7 +189,7 @@ def test_filters_apply(bus_dir: Path) -> None:
     try:
         for can_id in (0x201, 0x181, 0x601, 0x182):
             a.send(_msg(can_id))
-        assert [b.recv(1.0).arbitration_id for _ in range(2)] == [0x181, 0x182]
+        assert [_recv(b, 1.0).arbitration_id for _ in range(2)] == [0x181, 0x182]
         assert b.recv(0.05) is None
     finally:
         a.shutdown()
@@ -189,8 +217,7 @@ def test_many_peers_each_see_every_other(bus_dir: Path) -> None:
             for k in range(3):
                 bus.send(_msg(0x100 + i, bytes([k])))
         for i, bus in enumerate(buses):
-            got = [bus.recv(2.0) for _ in range(3 * 7)]
-            assert all(m is not None for m in got)
+            got = [_recv(bus, 2.0) for _ in range(3 * 7)]
             by_sender: dict[int, list[int]] = {}
             for m in got:
                 by_sender.setdefault(m.arbitration_id, []).append(m.data[0])
@@ -435,7 +462,7 @@ def test_a_killed_peer_is_dropped_and_its_stale_socket_removed_by_the_next_joine
         victim.wait(10)
         for i in range(3):  # sending to a dead peer neither raises nor blocks
             a.send(_msg(0x10 + i))
-        assert [b.recv(2.0).arbitration_id for _ in range(3)] == [0x10, 0x11, 0x12]
+        assert [_recv(b, 2.0).arbitration_id for _ in range(3)] == [0x10, 0x11, 0x12]
         assert a.peer_count == 1 and a.stats.peers_left == 1
         assert len(_sockets(bus_dir)) == 3  # a SIGKILLed process cannot remove its socket file...
         c = IpcBus(bus_dir)  # ...the next joiner finds it refused and removes it

@@ -5,11 +5,13 @@ trust fallbacks) without onnxruntime."""
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hil_runtime.bundle import PolicyBundle
 from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_joints
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -37,10 +39,15 @@ def config_dict(**overrides: Any) -> dict[str, Any]:
     return data
 
 
-class StubBundle:
-    """Quacks like PolicyBundle for the loop: tau = ``tau_value`` (or a PD law when None)."""
+class StubBundle(PolicyBundle):
+    """A PolicyBundle without a graph or onnxruntime for the loop: tau = ``tau_value`` (or a PD law
+    when None). Its own ``__init__`` on purpose (no files to load); ``step`` keeps the base's
+    signature, so a change there shows here. ``before_step``, when set, runs first in every step (a
+    test makes the policy raise or stall with it)."""
 
-    def __init__(self, n: int = 6, period_s: float = 0.001, state_size: int = 0, applied: list[int] | None = None):
+    def __init__(
+        self, n: int = 6, period_s: float = 0.001, state_size: int = 0, applied: list[int] | None = None
+    ) -> None:
         self.n_joints, self.period_s, self.state_size = n, period_s, state_size
         self.law_name = "stub"
         self.nonfinite_fallbacks = 0  # PolicyBundle's counter: this stub never falls back
@@ -52,26 +59,32 @@ class StubBundle:
             "law": {"name": "stub", "state_size": state_size, "applied_torque_slice": applied},
             "files": {},
         }
-        self._y = np.zeros(2 * n + state_size + 2)
+        self._out = np.zeros(2 * n + state_size + 2)
         self.tau_value: np.ndarray | None = None
         self.tau_fb_value: np.ndarray | None = None
         self.trust_value = 0.0
         self.states_seen: list[np.ndarray] = []
         self.calls = 0
+        self.before_step: Callable[[], None] | None = None
 
     @property
     def last_trust(self) -> np.ndarray:
-        return self._y[2 * self.n_joints + self.state_size :]
+        return self._out[2 * self.n_joints + self.state_size :]
 
     def initial_state(self, q0: np.ndarray) -> np.ndarray:
         return np.zeros(self.state_size)
 
-    def step(self, q, qd, q_d, qd_d, qdd_d, state):
+    def step(
+        self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray, law_state: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self.before_step is not None:
+            self.before_step()
+        state = law_state
         self.calls += 1
         n, s = self.n_joints, self.state_size
         self.states_seen.append(np.array(state))
         law = 50.0 * (q_d - q) + 5.0 * (qd_d - qd)
-        y = self._y
+        y = self._out
         y[n : 2 * n] = law if self.tau_fb_value is None else self.tau_fb_value
         y[:n] = (
             np.clip(y[n : 2 * n], -self.torque_limit_nm, self.torque_limit_nm)

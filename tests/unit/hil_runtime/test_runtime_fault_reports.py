@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,7 +31,9 @@ class Events(NullTelemetry):
         self.events.append((kind, cycle, detail))
 
 
-def _runtime(bundle: object = None, record: int = 0, **overrides: object) -> tuple[Runtime, FakeJointBus, Events]:
+def _runtime(
+    bundle: PolicyBundle | None = None, record: int = 0, **overrides: Any
+) -> tuple[Runtime, FakeJointBus, Events]:
     bus = FakeJointBus(
         6,
         period_s=0.001,
@@ -73,12 +76,12 @@ def test_no_warning_when_nothing_rose() -> None:
 def test_a_policy_with_nothing_finite_to_command_is_policy_nonfinite_not_internal() -> None:
     bundle = StubBundle()
 
-    def refuse(*_args: object) -> None:
+    def refuse() -> None:
         raise NonFiniteOutputError("bundle x: non-finite law torque or state (from finite inputs); stop the arm")
 
     runtime, bus, sink = _runtime(bundle=bundle)
     runtime.run(max_cycles=3)
-    bundle.step = refuse
+    bundle.before_step = refuse
     result = runtime.run(max_cycles=3, stop_on_fault=True)
     assert result.fault is not None and result.fault.startswith("policy_nonfinite: bundle x"), result.fault
     assert bus.quick_stop_calls == 1

@@ -5,13 +5,17 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import pytest
 
 from drivers.cia402.state_machine import State
-from drivers.errors import DriveFaultError, FeedbackTimeoutError, HeartbeatLostError
+from drivers.errors import DriveError, DriveFaultError, FeedbackTimeoutError, HeartbeatLostError
+from drivers.feedback import DriveFeedback
 from drivers.testing import FakeJointBus
+from hil_runtime.bundle import PolicyBundle
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
@@ -23,7 +27,7 @@ from tests.unit.hil_runtime.support import StubBundle, config_dict
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 
 
-def _bus(**kwargs: object) -> FakeJointBus:
+def _bus(**kwargs: Any) -> FakeJointBus:
     return FakeJointBus(
         6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD, **kwargs
     )
@@ -35,7 +39,7 @@ class RecordingSink(NullTelemetry):
         self.statuses: list[tuple[str, str | None]] = []
         self.events: list[tuple[str, int, str]] = []
         self.states = 0
-        self.stats: list[dict] = []
+        self.stats: list[dict[str, float]] = []
 
     def start(self) -> None:
         self.calls.append("start")
@@ -44,7 +48,7 @@ class RecordingSink(NullTelemetry):
         self.states += 1
         assert isinstance(sample, CycleState) and sample.q.shape == sample.tau.shape == (6,)
 
-    def offer_stats(self, stats: object) -> None:
+    def offer_stats(self, stats: Mapping[str, float]) -> None:
         self.stats.append(dict(stats))
 
     def set_status(self, state: str, fault: str | None) -> None:
@@ -57,7 +61,13 @@ class RecordingSink(NullTelemetry):
         self.calls.append("close")
 
 
-def _runtime(bus: FakeJointBus, record: int = 0, bundle: object = None, **overrides: object) -> Runtime:
+def _sink(rt: Runtime) -> RecordingSink:
+    """The runtime's telemetry as the recording stand-in _runtime gave it."""
+    assert isinstance(rt.telemetry, RecordingSink)
+    return rt.telemetry
+
+
+def _runtime(bus: FakeJointBus, record: int = 0, bundle: PolicyBundle | None = None, **overrides: Any) -> Runtime:
     config = parse_runtime_config(config_dict(**overrides), "rt.yaml")
     return Runtime(config, bus, record_cycles=record, bundle=bundle, telemetry=RecordingSink())
 
@@ -91,8 +101,8 @@ def test_pd_bundle_ramps_onto_c1_and_tracks_it_inside_the_limits() -> None:
     rt.shutdown()
     assert rt.state is LifecycleState.FINALIZED
     assert bus.events[-3:] == ["quick_stop", "disable", "close"]
-    assert rt.telemetry.calls == ["start", "close"]
-    assert [s for s, _ in rt.telemetry.statuses] == ["INACTIVE", "ACTIVE", "FINALIZED"]
+    assert _sink(rt).calls == ["start", "close"]
+    assert [s for s, _ in _sink(rt).statuses] == ["INACTIVE", "ACTIVE", "FINALIZED"]
 
 
 def test_a_second_run_goes_on_along_the_reference() -> None:
@@ -112,7 +122,7 @@ def test_a_second_run_goes_on_along_the_reference() -> None:
         (DriveFaultError(4, 0x2310, "EMCY"), "drive_fault"),
     ],
 )
-def test_a_driver_error_is_a_fault_drives_stopped_daemon_up_until_reset(error: Exception, kind: str) -> None:
+def test_a_driver_error_is_a_fault_drives_stopped_daemon_up_until_reset(error: DriveError, kind: str) -> None:
     bus = _bus()
     rt = _runtime(bus, loop={"pacing": "bus", "idle_poll_s": 0.001})
     rt.configure()
@@ -125,7 +135,7 @@ def test_a_driver_error_is_a_fault_drives_stopped_daemon_up_until_reset(error: E
     assert rt.last_fault is not None and rt.last_fault.kind.value == kind
     assert result.fault_cycle == 21  # the 21st exchange raised: acted on in that very cycle
     assert not bus.enabled and bus.fail_safe_count == 1 and bus.quick_stop_calls >= 1
-    assert ("fault", 21, result.fault) in rt.telemetry.events
+    assert ("fault", 21, result.fault) in _sink(rt).events
     # FAULT: the loop thread waits for a reset; then ACTIVE again from the measured pose.
     done = threading.Event()
     outcome = {}
@@ -214,10 +224,10 @@ def test_an_exception_inside_the_loop_is_a_fault_not_a_crash() -> None:
     rt.configure()
     rt.activate()
 
-    def broken(*args: object) -> None:
+    def broken() -> None:
         raise ZeroDivisionError("bug")
 
-    bundle.step = broken
+    bundle.before_step = broken
     result = rt.run(max_cycles=5, stop_on_fault=True)
     assert result.fault == "internal: ZeroDivisionError: bug"
     assert bus.quick_stop_calls == 1
@@ -267,8 +277,8 @@ def test_duration_ends_the_run_and_stats_carry_the_telemetry_fields() -> None:
     # Every stats field of the telemetry schema but the two the sink fills itself.
     for name in (f for f in STATS_FIELDS if not f.startswith("telemetry_")):
         assert name in stats, name
-    assert rt.telemetry.states == 201  # the activation row + one per exchange
-    assert rt.telemetry.stats
+    assert _sink(rt).states == 201  # the activation row + one per exchange
+    assert _sink(rt).stats
 
 
 def test_status_snapshot_is_json_able() -> None:
@@ -288,16 +298,16 @@ def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: s
     skipped). On wall time the reference index jumps over the skipped periods; on cycles (a lock-
     stepped target) it advances one row per exchange."""
     now = [0.0]
-    bus = _bus()
-    exchange = bus.exchange
-    calls = [0]
 
-    def slow_exchange(torque: np.ndarray):
-        calls[0] += 1
-        now[0] += 0.0025 if calls[0] % 10 == 0 else 0.0002
-        return exchange(torque)
+    class SlowBus(FakeJointBus):
+        calls = 0
 
-    bus.exchange = slow_exchange
+        def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
+            self.calls += 1
+            now[0] += 0.0025 if self.calls % 10 == 0 else 0.0002
+            return super().exchange(torque_nm)
+
+    bus = SlowBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
     config = parse_runtime_config(config_dict(loop={"pacing": "clock", "time_base": time_base}), "rt.yaml")
     rt = Runtime(config, bus, record_cycles=200, clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
     rt.configure()

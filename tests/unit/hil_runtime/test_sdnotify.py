@@ -78,15 +78,13 @@ def test_ready_status_watchdog_from_the_loop_and_a_stall_stops_the_pings(listene
     bundle = StubBundle()
     stall = threading.Event()
     release = threading.Event()
-    original = bundle.step
 
-    def step(*args):
+    def stall_if_asked() -> None:
         if stall.is_set():
             release.wait(5)  # the loop hangs inside the policy call
             stall.clear()
-        return original(*args)
 
-    bundle.step = step
+    bundle.before_step = stall_if_asked
     rt = _runtime(notifier, bundle)
     rt.configure()
     thread = threading.Thread(target=rt.run, kwargs={"shutdown_at_end": True})
