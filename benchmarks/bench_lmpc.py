@@ -413,6 +413,23 @@ def one_node_graph(path: Path, width: int = 6, nodes: int = 1) -> None:
     onnx.save(model, str(path))
 
 
+def interleaved_us(runners: dict[str, Callable[[], object]], cycles: int) -> dict[str, list[float]]:
+    """Each runner timed once per round, ``cycles`` rounds (the first 100 dropped): [median, p99] in us."""
+    import time
+
+    times: dict[str, list[float]] = {k: [] for k in runners}
+    for _ in range(cycles):
+        for key, run in runners.items():
+            start = time.perf_counter()
+            run()
+            times[key].append(time.perf_counter() - start)
+    figures = {}
+    for key, values in times.items():
+        us = np.asarray(values[100:]) * 1e6
+        figures[key] = [round(float(np.median(us)), 1), round(float(np.percentile(us, 99)), 1)]
+    return figures
+
+
 def float32_copy(source: Path, target: Path) -> None:
     """The float64 graph at ``source`` in float32 (constants rounded, Casts to float32 retargeted), with a
     Cast at its input and output so that it still reads and writes the bundle's float64 row."""
@@ -449,7 +466,6 @@ def float32_copy(source: Path, target: Path) -> None:
 def float32_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
     """Per law: the float32 copy's probe differences and both graphs' bare run times, interleaved."""
     import tempfile
-    import time
 
     from models.lmpc.controller import bundle_path
 
@@ -480,19 +496,10 @@ def float32_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
             }
             runners[f"{law_name}:float64"] = _bound_runner(_session(str(source)), width)
             runners[f"{law_name}:float32"] = _bound_runner(_session(str(target)), width)
-        times: dict[str, list[float]] = {k: [] for k in runners}
-        for _ in range(cycles):
-            for key, run in runners.items():
-                start = time.perf_counter()
-                run()
-                times[key].append(time.perf_counter() - start)
-    for key, values in times.items():
+        figures = interleaved_us(runners, cycles)
+    for key, figure in figures.items():
         law_name, label = key.split(":")
-        us = np.asarray(values[100:]) * 1e6
-        out["laws"][law_name].setdefault("run_us", {})[label] = [
-            round(float(np.median(us)), 1),
-            round(float(np.percentile(us, 99)), 1),
-        ]
+        out["laws"][law_name].setdefault("run_us", {})[label] = figure
     for entry in out["laws"].values():
         entry["float32_saves_pct"] = round(100 * (1 - entry["run_us"]["float32"][0] / entry["run_us"]["float64"][0]), 1)
     out["load_average"] = os.getloadavg()
@@ -502,7 +509,6 @@ def float32_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
 def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
     """Shipped graph vs today's graph code per law: nodes, probe equality, interleaved run times."""
     import tempfile
-    import time
 
     import onnxruntime
     import torch
@@ -545,15 +551,8 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
                 ("new/basic", str(path), "basic"),
             ):
                 runners[f"{law_name}:{label}"] = _bound_runner(_session(p, level), width)
-        times: dict[str, list[float]] = {k: [] for k in runners}
-        for _ in range(cycles):
-            for key, run in runners.items():
-                start = time.perf_counter()
-                run()
-                times[key].append(time.perf_counter() - start)
-    for key, values in times.items():
-        us = np.asarray(values[100:]) * 1e6
-        figure = [round(float(np.median(us)), 1), round(float(np.percentile(us, 99)), 1)]
+        figures = interleaved_us(runners, cycles)
+    for key, figure in figures.items():
         if ":" in key:
             law_name, label = key.split(":")
             out["laws"][law_name].setdefault("run_us", {})[label] = figure
