@@ -165,7 +165,7 @@ class PybulletPlant:
         period_s: float = 1e-3,
         substeps: int = DEFAULT_SUBSTEPS,
         joint_names: Sequence[str] | None = None,
-        initial_position_rad: Sequence[float] | None = None,
+        initial_position_rad: np.ndarray | Sequence[float] | None = None,
         brake_holding_torque_nm: Sequence[float] | None = None,
         encoder_noise_rad: float = 0.0,
         velocity_noise_rad_s: float = 0.0,

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
+from drivers.drive_bus import DriveBus
 from drivers.transport import socketcan_unavailable
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.control import send_command
@@ -103,6 +104,7 @@ def test_runtime_tracks_c1_with_the_target_in_one_process_then_stop_quick_stops(
         runtime = build_runtime(config, record_cycles=10_000)
         try:
             result = _track_c1(runtime)
+            assert isinstance(runtime.bus, DriveBus)  # the loop's JointBus protocol has no counters
             assert target.stats.steps == runtime.bus.counters.cycles  # lock-step: one step per SYNC
             stats = result.stats
             assert (stats["bus_dropped"], stats["bus_late"], stats["bus_malformed"], stats["overruns"]) == (0, 0, 0, 0)

@@ -33,6 +33,7 @@ def test_a_remote_process_shares_the_virtual_bus() -> None:
             text=True,
         )
         request = local.recv(timeout=20)
+        assert client.stderr is not None  # stderr=PIPE
         assert request is not None, client.stderr.read() if client.poll() is not None else "no frame"
         assert request.arbitration_id == 0x201 and bytes(request.data) == b"\x0f\x00\x10\x00"
         local.send(can.Message(arbitration_id=0x181, data=bytes(range(8)), is_extended_id=False))

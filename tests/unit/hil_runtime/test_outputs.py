@@ -78,7 +78,7 @@ def test_a_failure_midway_leaves_the_old_file_and_no_partial(tmp_path: Path, fai
     assert [p.name for p in tmp_path.iterdir()] == ["table.md"]
     if expected is OutputWriteError:
         assert str(info.value) == f"{target}: cannot write (No space left on device)"
-        assert info.value.exit_code == 1
+        assert isinstance(info.value, OutputWriteError) and info.value.exit_code == 1
 
 
 def test_numpy_keeps_the_temporary_suffix(tmp_path: Path) -> None:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hil_runtime.pacer import Pacer, RollingStats
+from hil_runtime.pacer import Pacer, Pacing, RollingStats
 
 
 class FakeClock:
@@ -24,7 +24,7 @@ class FakeClock:
         self.now += seconds
 
 
-def _pacer(period_s: float = 0.001, pacing: str = "clock") -> tuple[Pacer, FakeClock]:
+def _pacer(period_s: float = 0.001, pacing: Pacing = "clock") -> tuple[Pacer, FakeClock]:
     clock = FakeClock()
     return Pacer(period_s, pacing, clock=clock, sleep=clock.sleep, stats_window=64), clock
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import errno
 import gc
 import logging
@@ -43,8 +44,8 @@ def test_mlockall_refused(monkeypatch: pytest.MonkeyPatch) -> None:
             assert flags == realtime.MCL_CURRENT | realtime.MCL_FUTURE
             return -1
 
-    monkeypatch.setattr(realtime.ctypes, "CDLL", lambda *a, **k: Libc())
-    monkeypatch.setattr(realtime.ctypes, "get_errno", lambda: errno.EPERM)
+    monkeypatch.setattr(ctypes, "CDLL", lambda *a, **k: Libc())  # the module realtime calls through
+    monkeypatch.setattr(ctypes, "get_errno", lambda: errno.EPERM)
     report = RealtimeReport()
     assert realtime.lock_memory(report) is False
     assert report.refused and "EPERM" in report.refused[0]
@@ -55,7 +56,7 @@ def test_affinity_acts_on_the_calling_thread_only() -> None:
         pytest.skip("needs two CPUs")
     before = os.sched_getaffinity(0)
     cpu = min(before)
-    seen = {}
+    seen: dict[str, object] = {}
 
     def worker() -> None:
         seen["ok"] = set_thread_affinity((cpu,))

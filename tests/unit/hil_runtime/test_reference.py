@@ -22,8 +22,8 @@ def test_quintic_meets_both_ends() -> None:
     p0, p1, v1, a1 = np.array([0.0, 1.0]), np.array([1.0, -1.0]), np.array([0.3, 0.1]), np.array([0.5, -2.0])
     q, qd, qdd = quintic(p0, p1, v1, a1, 2.0, np.array([0.0, 2.0]))
     np.testing.assert_allclose(q, [p0, p1], atol=1e-12)
-    np.testing.assert_allclose(qd, [[0, 0], v1], atol=1e-12)
-    np.testing.assert_allclose(qdd, [[0, 0], a1], atol=1e-12)
+    np.testing.assert_allclose(qd, np.vstack([np.zeros(2), v1]), atol=1e-12)
+    np.testing.assert_allclose(qdd, np.vstack([np.zeros(2), a1]), atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["C1", "C4"])

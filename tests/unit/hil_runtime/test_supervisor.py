@@ -57,6 +57,7 @@ def test_feedback_rules(q: tuple, qd: tuple, expected: FaultKind | None) -> None
     fault = _sup().check_feedback(np.array(q), np.array(qd), FRESH)
     assert (None if fault is None else fault.kind) == expected
     if fault is not None:
+        assert expected is not None
         assert "\n" not in str(fault) and str(fault).startswith(expected.value)
 
 

@@ -27,9 +27,15 @@ def test_systemd_analyze_verify_is_silent(unit: Path, tmp_path: Path) -> None:
     assert result.returncode == 0 and output == "", output
 
 
+class _CaseSensitiveParser(configparser.ConfigParser):
+    """systemd keys are case-sensitive (WatchdogSec); ConfigParser lower-cases them by default."""
+
+    def optionxform(self, optionstr: str) -> str:
+        return optionstr
+
+
 def test_the_runtime_unit_has_the_settings_the_daemon_relies_on() -> None:
-    parser = configparser.ConfigParser(strict=False, interpolation=None)
-    parser.optionxform = str
+    parser = _CaseSensitiveParser(strict=False, interpolation=None)
     parser.read(UNITS[[u.name for u in UNITS].index("hil-runtime.service")])
     service = parser["Service"]
     assert service["Type"] == "notify"

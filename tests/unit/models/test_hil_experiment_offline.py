@@ -15,7 +15,7 @@ from models.hil_experiment import PAPER_TABLE_II, HilRun, conditions_yaml, initi
 from models.hil_experiment.parity import per_run_scores
 from models.hil_experiment.target_runs import pad_record
 from models.robots import load_robot
-from sim_target.config import RunStart, TargetConfigError, TargetLayout, check_run_start, parse_run_start
+from sim_target.config import ImpulseFault, RunStart, TargetConfigError, TargetLayout, check_run_start, parse_run_start
 
 LAYOUT = TargetLayout(tuple(f"j{i}" for i in range(6)), (-3.14,) * 6, (3.14,) * 6, (1, 2, 3, 4, 5, 6))
 
@@ -32,9 +32,11 @@ def test_run_start_is_the_simulators_initial_state_and_disturbance() -> None:
     start = parse_run_start(run_start(c4))
     q0, qd0 = initial_state(c4)
     np.testing.assert_allclose(start.position_rad, c4.reference(0.0)[0])
+    assert start.velocity_rad_s is not None
     np.testing.assert_allclose(start.velocity_rad_s, c4.reference(0.0)[1])  # C4 starts moving
     assert np.abs(qd0).max() > 0.1 and np.allclose(q0, start.position_rad)
     (impulse,) = start.faults
+    assert isinstance(impulse, ImpulseFault)
     assert (impulse.at_s, impulse.duration_s, impulse.torque_nm) == (2.0, 2e-5, (1.0, 1.0, 5.0, 5.0, 10.0, 10.0))
     check_run_start(start, LAYOUT)
 

@@ -91,9 +91,8 @@ def test_cli_reports_a_bad_config_in_one_line_with_exit_code_2(
 def test_fault_commands_share_the_config_schema() -> None:
     assert parse_fault({"kind": "impulse"}) == ImpulseFault(kind="impulse")  # the paper's disturbance
     assert ImpulseFault(kind="impulse").torque_nm == (1.0, 1.0, 5.0, 5.0, 10.0, 10.0)
-    assert (
-        parse_fault({"kind": "drive_fault", "node_id": 3}).error_code
-        == DriveFault(kind="drive_fault", node_id=3).error_code
-    )
+    drive_fault = parse_fault({"kind": "drive_fault", "node_id": 3})
+    assert isinstance(drive_fault, DriveFault)
+    assert drive_fault.error_code == DriveFault(kind="drive_fault", node_id=3).error_code
     with pytest.raises(TargetConfigError, match="control: drive_fault.node_id"):
         parse_fault({"kind": "drive_fault", "node_id": 300}, "control")

@@ -92,6 +92,7 @@ def test_bad_urdfs_are_refused_before_pybullet(tmp_path: Path, old: str | None, 
         new = old.replace('ixx="', 'ixx="-')
     elif new == "limit":
         old, new = _first("<limit "), ""
+    assert old is not None
     urdf = _urdf(tmp_path, old, new)
     path = tmp_path / "target.yaml"
     path.write_text(FD + f"urdf: {urdf.name}\n")
@@ -164,7 +165,9 @@ def test_inject_refuses_before_ok_and_the_target_lives_on(tmp_path: Path, comman
     try:
         reply = send_control(sock, command)
         assert reply["ok"] is False and message in reply["error"], reply
-        server.drives.handler()  # a physics step after the refused fault: nothing pending fails
+        drives = server.drives
+        assert isinstance(drives, StubDrives) and drives.handler is not None
+        drives.handler()  # a physics step after the refused fault: nothing pending fails
         assert send_control(sock, {"kind": "status"})["ok"] is True
     finally:
         server.shutdown()

@@ -46,6 +46,9 @@ class RecordingDrives:
     def apply_fault(self, fault: object) -> None:
         self.faults.append(fault)
 
+    def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
+        self.events.append(f"heartbeat {node_id} {'silent' if silent else 'on'}")
+
     def safe_stop(self) -> None:
         self.events.append("safe_stop")
 

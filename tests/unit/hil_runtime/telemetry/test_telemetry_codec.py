@@ -6,6 +6,7 @@ import json
 import struct
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -154,7 +155,8 @@ def test_decode_header_on_any_payload() -> None:
 
 
 def test_stats_that_are_not_numbers_become_nan(schema: Schema) -> None:
-    _, stats = schema.decode_stats(encode_stats(1, 1, {"rate_hz": None, "overruns": "x", "cycles": True}))
+    not_numbers: dict[str, Any] = {"rate_hz": None, "overruns": "x", "cycles": True}  # wrong types on purpose
+    _, stats = schema.decode_stats(encode_stats(1, 1, not_numbers))
     assert np.isnan(stats["rate_hz"]) and np.isnan(stats["overruns"]) and stats["cycles"] == 1.0
     _, body = schema.decode_event(encode_json(Kind.EVENT, 1, 1, {"kind": "k", "cycle": 1, "detail": Path("/x")}))
     assert body["detail"] == "/x"

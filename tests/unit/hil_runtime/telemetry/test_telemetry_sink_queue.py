@@ -38,7 +38,8 @@ def _sink(**overrides: object) -> tuple[ZenohTelemetry, _FakePublisher]:
 
 def _offer(sink: TelemetrySink, seq: int) -> list[np.ndarray]:
     blocks = [np.full(3, seq + 0.1 * b) for b in range(6)]
-    sink.offer_state(CycleState(seq, 1000 * seq, *blocks, 0.5, 2e-6))
+    q, qd, q_ref, qd_ref, tau, tau_fb = blocks
+    sink.offer_state(CycleState(seq, 1000 * seq, q, qd, q_ref, qd_ref, tau, tau_fb, 0.5, 2e-6))
     return blocks
 
 
@@ -65,7 +66,7 @@ def test_the_caller_may_reuse_its_buffers() -> None:
         sink.offer_state(CycleState(seq, 0, q, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
     sink._drain_state()
     schema = Schema(build_schema("arm", JOINTS))
-    assert [float(schema.decode_state(p)["q"][0]) for p in publisher.payloads] == [0.0, 1.0, 2.0]
+    assert [float(np.asarray(schema.decode_state(p)["q"])[0]) for p in publisher.payloads] == [0.0, 1.0, 2.0]
 
 
 def test_full_queue_drops_oldest_counts_and_flags_the_gap() -> None:

@@ -48,6 +48,7 @@ def test_each_key_is_decoded_warmup_skipped_and_refusals_counted() -> None:
 
     blocks = [np.full(2, float(b)) for b in range(6)]
     client.handlers["state"](encode_state(5, 10, blocks, 1.0, 2e-6, flags=FLAG_GAP))
+    assert state.sample is not None
     assert state.sample.header.seq == 5 and state.gaps == 1 and len(state.arrivals) == 1
     np.testing.assert_array_equal(state.sample["tau_fb"], blocks[5])
     assert state.arrivals[0][1] is True  # fallback > 0
@@ -62,7 +63,7 @@ def test_each_key_is_decoded_warmup_skipped_and_refusals_counted() -> None:
     client.handlers["stats"](b"garbage")
     client.handlers["state"](encode_header(Kind.STATS, 1, 0))  # a header of the wrong kind
     assert state.refused == 2 and state.last_refusal
-    assert state.sample.header.seq == 5  # what was refused replaced nothing
+    assert state.sample is not None and state.sample.header.seq == 5  # what was refused replaced nothing
 
     assert client.alive is not None
     client.alive(True)

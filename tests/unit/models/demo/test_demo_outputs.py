@@ -74,7 +74,7 @@ def test_the_summary_of_a_faulted_run_says_so_and_marks_what_it_cannot_compare()
 
 
 def test_results_json_has_numbers_and_nulls_only(tmp_path: Path) -> None:
-    values = {
+    values: dict[Any, Any] = {  # numpy values and a non-string key on purpose
         "numpy": {"float": np.float64(0.25), "int": np.int64(3), "bool": np.bool_(True)},
         "non_finite": [math.nan, math.inf, np.float64(-np.inf)],
         "tuple": (1, 2.5),

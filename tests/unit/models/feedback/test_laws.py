@@ -44,7 +44,8 @@ def test_gain_sets_refuse_another_robot(name: str) -> None:
     for gain_set in GAIN_SETS:
         with pytest.raises(ModelInputError, match=f"gain set '{gain_set}'.*robot 'ur5' \\(6 joints\\); pass"):
             make_law(name, ur5, gain_set=gain_set)
-    own = {gain: np.ones(6) for gain in ROBOT_GAINS[name]}  # every gain given: the caller's own set
+    # every gain given: the caller's own set
+    own: dict[str, np.ndarray | float] = {gain: np.ones(6) for gain in ROBOT_GAINS[name]}
     if name == "adrc":
         own.update(omega_o=50.0, omega_c=10.0)
     if name in ("hinf", "smc"):

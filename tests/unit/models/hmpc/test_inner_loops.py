@@ -23,7 +23,7 @@ from models.robots import RobotModel
 from models.sim import SimConfig, simulate
 
 if TYPE_CHECKING:
-    from tests.unit.models.hmpc.conftest import MakeBoxQPs, MakeStates, Objective
+    from tests.unit.models.hmpc.conftest import MakeBoxQPs, MakeStates, Objective, States
 
 # What "the same" means between the two. The compiled box QP solves on the free set by Cholesky,
 # numpy by LU: round-off differs, the Gauss-Newton stopping test (cost_rtol 1e-4) then stops at
@@ -65,9 +65,12 @@ def test_stage_cost_same_and_as_defined(loops: tuple[NumbaInnerLoops, NumpyInner
     q_path, qd_path = rng.normal(size=(k, horizon, n)), rng.normal(size=(k, horizon, n))
     deviation = rng.normal(size=(k, horizon, n)) * 50
     feature_weight, torque_weight = rng.uniform(0, 1e4, n_features), rng.uniform(0, 1e-3, n)
-    temporal, limit = 1 - 0.05 * np.arange(horizon), np.full(2 * n, 1.2)  # |x| > 1.2 on ~23 % of entries
-    args = (features, q_path, qd_path, deviation, feature_weight, torque_weight, temporal, limit, rho)
-    fast, slow = (impl.stage_cost(*args) for impl in loops)
+    temporal = np.asarray(1 - 0.05 * np.arange(horizon), np.float64)
+    limit = np.full(2 * n, 1.2)  # |x| > 1.2 on ~23 % of entries
+    fast, slow = (
+        impl.stage_cost(features, q_path, qd_path, deviation, feature_weight, torque_weight, temporal, limit, rho)
+        for impl in loops
+    )
     x = np.concatenate([q_path, qd_path], -1)
     excess = np.maximum(np.abs(x) - limit, 0.0)
     expected = [
@@ -159,7 +162,7 @@ def test_compiled_box_qp_matches_numpy(
     )
 
 
-def _both(law: Any, robot: RobotModel, args: tuple[np.ndarray, ...], **options: Any) -> list[Any]:
+def _both(law: Any, robot: RobotModel, args: States, **options: Any) -> list[Any]:
     state = law.initial_state(args[0])
     return [
         HMPCSolver(law, robot, HMPCConfig(kernels=kernels, **options)).solve(*args, state)

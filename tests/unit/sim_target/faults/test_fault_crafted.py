@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle
-from sim_target.faults.crafted import SATURATING_TORQUE_NM, TRIGGER_HALF_WIDTH_RAD, craft_bundle, tamper_bundle
+from sim_target.faults.crafted import (
+    SATURATING_TORQUE_NM,
+    TRIGGER_HALF_WIDTH_RAD,
+    CraftKind,
+    craft_bundle,
+    tamper_bundle,
+)
 
 ROOT = Path(__file__).resolve().parents[4]
 PD = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
@@ -25,7 +31,7 @@ def _step(bundle: PolicyBundle, q0: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("kind", ["nan", "inf", "nan_both", "saturate"])
-def test_crafted_bundles_load_and_misbehave_only_in_their_band(tmp_path: Path, kind: str) -> None:
+def test_crafted_bundles_load_and_misbehave_only_in_their_band(tmp_path: Path, kind: CraftKind) -> None:
     trigger = craft_bundle(PD, tmp_path / kind, kind)
     crafted, original = PolicyBundle.load(tmp_path / kind), PolicyBundle.load(PD)
     outside = trigger + 3 * TRIGGER_HALF_WIDTH_RAD
