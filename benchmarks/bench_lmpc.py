@@ -353,7 +353,8 @@ def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dic
     probes = manifest["probes"]
     inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
     n = bundle.n_joints
-    tau, tau_fb, state = bundle.step_batch(*(inputs[:, i * n : (i + 1) * n] for i in range(5)), inputs[:, 5 * n :])
+    q, qd, q_d, qd_d, qdd_d = (inputs[:, i * n : (i + 1) * n] for i in range(5))
+    tau, tau_fb, state = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, inputs[:, 5 * n :])
     got = np.concatenate([tau, tau_fb, state, bundle.last_trust_batch], 1)
     return {
         "law": law_name,
