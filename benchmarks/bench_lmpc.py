@@ -12,8 +12,10 @@ the bare ``PolicyBundle.step`` time. Prints JSON.
     python benchmarks/bench_lmpc.py --reexport-to DIR # the shipped bundles in today's graph, under DIR
     python benchmarks/bench_lmpc.py --float32        # each shipped graph vs its float32 copy, interleaved
 
-``--compact``: per law, the shipped bundle's emulator (rebuilt from its graph's weights and its
-manifest) exported with the working tree's graph code (models.lmpc.structured) to a temporary file;
+``--compact``: per law, the shipped bundle's emulator (from ``results/lmpc/trained_<law>.pt``, the
+weights ``hil pipeline --design structured`` keeps, when present: compact graphs fold the weights
+into constants; else rebuilt from the graph's initializers and its manifest, which only pre-compact
+bundles allow) exported with the working tree's graph code (models.lmpc.structured) to a temporary file;
 node counts, the new graph's outputs on the shipped manifest's probes against the recorded ones
 (max relative difference), and the bare single-row run time of both graphs, plus a one-node graph
 (onnxruntime's per-run floor), all timed interleaved in one process.
@@ -322,33 +324,41 @@ def time_against(laws: list[str], base: Path | None, other: Path, cycles: int, r
     return out
 
 
+TRAINED_DIR = Path("results/lmpc")  # hil pipeline --design structured's default --work (trained_<law>.pt)
+
+
 def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dict:
     """A shipped structured bundle re-exported with today's graph code (models.lmpc.structured.export_trained:
     the same emulator, law, trust box and residual bound; fresh probes) to <out_root>/<robot>/<law>; returns
     the largest difference of the new graph from the shipped manifest's recorded probe outputs."""
     from hil_runtime.bundle import PolicyBundle
     from models.lmpc.controller import bundle_path
-    from models.lmpc.structured import config_from_json, export_trained
+    from models.lmpc.structured import config_from_json, export_trained, reexport
 
     source = bundle_path("ur5_paper", law_name, bundles)
-    policy, manifest = structured_policy_from_bundle(source)
-    training, trust = manifest["training"], manifest["trust_region"]
-    config = config_from_json(training["config"])
-    # bound = scale * label_max + 1e-3 (export_trained): the label maxima back from the recorded bound
-    label_max = (np.asarray(trust["residual_bound_nm"], float) - 1e-3) / config.bound_scale
-    box = (np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float))
+    manifest = json.loads((source / "manifest.json").read_text())
     robot_name = manifest["robot"]["name"]
     out = out_root / robot_name / law_name
-    export_trained(
-        out,
-        law_name,
-        policy.law.robot if hasattr(policy.law, "robot") else _robot(robot_name),
-        policy.emulator,
-        box,
-        label_max,
-        config,
-        training["summary"],
-    )
+    trained = TRAINED_DIR / f"trained_{law_name}.pt"
+    if trained.is_file():  # the weights hil pipeline kept: the only source for compact-graph bundles
+        reexport(TRAINED_DIR, out_root, (law_name,), log=lambda _: None)
+    else:  # pre-compact bundles kept the emulator's weights as graph initializers
+        policy, manifest = structured_policy_from_bundle(source)
+        training, trust = manifest["training"], manifest["trust_region"]
+        config = config_from_json(training["config"])
+        # bound = scale * label_max + 1e-3 (export_trained): the label maxima back from the recorded bound
+        label_max = (np.asarray(trust["residual_bound_nm"], float) - 1e-3) / config.bound_scale
+        box = (np.asarray(trust["feature_low"], float), np.asarray(trust["feature_high"], float))
+        export_trained(
+            out,
+            law_name,
+            policy.law.robot if hasattr(policy.law, "robot") else _robot(robot_name),
+            policy.emulator,
+            box,
+            label_max,
+            config,
+            training["summary"],
+        )
     bundle = PolicyBundle.load(out)
     probes = manifest["probes"]
     inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
@@ -361,6 +371,7 @@ def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dic
         "bundle": str(out),
         "shipped_probe_max_rel_diff": float((np.abs(got - recorded) / np.maximum(np.abs(recorded), 1.0)).max()),
         "compute_nodes": _nodes(out / bundle.manifest["graph"]["file"], compute_only=True),
+        "rebuilt_from": str(trained) if trained.is_file() else "the shipped graph's initializers",
     }
 
 
@@ -512,7 +523,6 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
     import tempfile
 
     import onnxruntime
-    import torch
 
     from models.lmpc.controller import bundle_path
 
@@ -529,22 +539,23 @@ def compact_compare(laws: list[str], bundles: Path | None, cycles: int) -> dict:
             runners[f"chained_adds_{count}/all"] = _bound_runner(_session(str(floor)), 6)
         for law_name in laws:
             directory = bundle_path("ur5_paper", law_name, bundles)
-            policy, manifest = structured_policy_from_bundle(directory)
+            manifest = json.loads((directory / "manifest.json").read_text())
             width = int(sum(part["size"] for part in manifest["graph"]["input"]["layout"]))
-            reexport_shipped(law_name, bundles, Path(tmp))
+            rebuilt = reexport_shipped(law_name, bundles, Path(tmp))
             path = Path(tmp) / manifest["robot"]["name"] / law_name / manifest["graph"]["file"]
             old_path = str(directory / manifest["graph"]["file"])
             probes = manifest["probes"]
             inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
             got = _session(str(path)).run(None, {"x": inputs})[0]
             scale = np.maximum(np.abs(recorded), 1.0)
-            with torch.no_grad():
-                torch_out = policy(torch.as_tensor(inputs)).numpy()  # the graph code's own torch forward
+            written = json.loads((path.parent / "manifest.json").read_text())
             out["laws"][law_name] = {
                 "compute_nodes": {"shipped": _nodes(Path(old_path), True), "new": _nodes(path, True)},
                 "probe_max_abs_diff": float(np.abs(got - recorded).max()),
                 "probe_max_rel_diff": float((np.abs(got - recorded) / scale).max()),
-                "new_onnx_vs_torch_max_abs": float(np.abs(got - torch_out).max()),
+                # the export's own check: the new graph vs the graph code's torch forward
+                "new_onnx_vs_torch_max_abs": written["validation"]["onnx_vs_torch_max_abs_nm"],
+                "rebuilt_from": rebuilt["rebuilt_from"],
             }
             for label, p, level in (
                 ("shipped/all", old_path, "all"),
