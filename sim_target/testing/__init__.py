@@ -11,4 +11,6 @@ edits, no bare-name imports.
 - :mod:`sim_target.testing.drive_process`: emulated drives + fake plant in a process of their own
   (bridge or ipc bus), for the cross-process drive-bus test and benchmark.
 - :mod:`sim_target.testing.notify`: a stand-in for systemd's ``$NOTIFY_SOCKET``.
+- :mod:`sim_target.testing.ur5`: ur5_paper's six emulated drives (joint names, node ids, max
+  torques, start pose, the shipped PD bundle) as the HIL tests, benchmarks and fault rig configure them.
 """

@@ -9,7 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
@@ -25,7 +25,9 @@ from models.executors import (
     worker_cached,
 )
 
-States = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # solve_batch's q, qd, q_d, qd_d, qdd_d
+if TYPE_CHECKING:
+    from tests.unit.models.hmpc.conftest import States  # solve_batch's q, qd, q_d, qd_d, qdd_d
+
 HAVE_RAY = importlib.util.find_spec("ray") is not None  # not imported here: RayExecutor imports it
 needs_ray = pytest.mark.skipif(not HAVE_RAY, reason="ray not installed (the ray extra; [all,test] installs it)")
 
