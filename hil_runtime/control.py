@@ -15,14 +15,11 @@ does the work, so nothing here touches the bus.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import socket
-import socketserver
-import threading
 from pathlib import Path
 from typing import Any, Protocol
+
+from drivers.json_socket import JsonLineServer, SocketPathError, request_json_line
 
 COMMANDS = ("status", "reset", "activate", "stop")
 
@@ -61,79 +58,37 @@ def handle_command(target: ControlTarget, line: str) -> dict[str, Any]:
 
 
 class ControlServer:
-    """Serves :func:`handle_command` on ``path`` from one daemon thread (start before the loop's)."""
+    """Serves :func:`handle_command` on ``path`` from daemon threads (start before the loop's); the
+    socket handling (claiming the path, mode 0660, removing only its own socket) is
+    drivers.json_socket's, shared with the simulated target."""
 
     def __init__(self, path: Path, target: ControlTarget) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists() or self.path.is_symlink():
-            if _answers(self.path):
-                raise ControlError(f"control socket {self.path}: another runtime is listening on it")
-            self.path.unlink()  # stale, from a process that died
-
-        class Handler(socketserver.StreamRequestHandler):
-            def handle(self) -> None:
-                for raw in self.rfile:
-                    line = raw.decode("utf-8", "replace").strip()
-                    if not line:
-                        continue
-                    reply = handle_command(target, line)
-                    self.wfile.write((json.dumps(reply) + "\n").encode())
-
-        class Server(socketserver.ThreadingUnixStreamServer):
-            daemon_threads = True
-
-        old_umask = os.umask(0o117)  # the socket file: rw for owner and group only
         try:
-            self._server = Server(str(self.path), Handler)
-        except OSError as exc:
-            raise ControlError(f"control socket {self.path}: {exc.strerror or exc}") from None
-        finally:
-            os.umask(old_umask)
-        self._thread = threading.Thread(
-            target=self._server.serve_forever, kwargs={"poll_interval": 0.02}, name="hil-control", daemon=True
-        )
-        self._thread.start()
+            self._server = JsonLineServer(
+                self.path,
+                lambda line: handle_command(target, line),
+                in_use_by="another runtime (hil run)",
+                thread_name="hil-control",
+                create_parent=True,
+            )
+        except SocketPathError as exc:
+            raise ControlError(f"control socket {self.path}: {exc}") from None
 
     def close(self) -> None:
-        self._server.shutdown()
-        self._server.server_close()
-        self._thread.join(timeout=2.0)
-        with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
-
-
-def _answers(path: Path) -> bool:
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(0.5)
-        try:
-            sock.connect(str(path))
-        except OSError:
-            return False
-    return True
+        self._server.close()
 
 
 def send_command(path: Path | str, command: str, timeout_s: float = 2.0) -> dict[str, Any]:
     """One request to a running daemon; :class:`ControlError` when nobody answers."""
     path = Path(path)
     try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(timeout_s)
-            sock.connect(str(path))
-            sock.sendall((json.dumps({"command": command}) + "\n").encode())
-            data = b""
-            while not data.endswith(b"\n"):
-                chunk = sock.recv(65536)
-                if not chunk:
-                    break
-                data += chunk
+        reply = request_json_line(path, {"command": command}, timeout_s)
     except FileNotFoundError:
         raise ControlError(f"control socket {path}: no such file (is hil run running?)") from None
     except OSError as exc:
         raise ControlError(f"control socket {path}: {exc.strerror or exc}") from None
-    try:
-        reply = json.loads(data)
-    except json.JSONDecodeError:
+    except ValueError:
         raise ControlError(f"control socket {path}: unreadable reply") from None
     if not isinstance(reply, dict):
         raise ControlError(f"control socket {path}: unreadable reply (not a JSON object)")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import socket
 import stat
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -80,3 +81,29 @@ def test_a_stale_socket_file_is_replaced(tmp_path: Path) -> None:
         assert send_command(path, "status")["ok"]
     finally:
         server.close()
+
+
+def test_a_regular_file_at_the_socket_path_is_refused_and_kept(tmp_path: Path) -> None:
+    path = tmp_path / "rt.sock"
+    path.write_text("not a socket")
+    with pytest.raises(ControlError, match=r"rt.sock: exists and is not a socket; not removed"):
+        ControlServer(path, Target())
+    assert path.read_text() == "not a socket"
+
+
+def test_a_server_that_closes_without_answering_is_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "mute.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as mute:
+        mute.bind(str(path))
+        mute.listen(1)
+
+        def hang_up() -> None:
+            connection, _ = mute.accept()
+            connection.recv(1024)  # the request arrives; the server hangs up without a reply
+            connection.close()
+
+        thread = threading.Thread(target=hang_up)
+        thread.start()
+        with pytest.raises(ControlError, match=r"mute.sock: the server closed the connection without answering"):
+            send_command(path, "status", timeout_s=5.0)
+        thread.join(5.0)
