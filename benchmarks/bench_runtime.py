@@ -42,8 +42,6 @@ from hil_runtime.runtime import Runtime, build_runtime
 from sim_target.testing.hil_target import target_in_process, target_process, unique_channel
 from sim_target.testing.ur5 import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, bus_joints
 
-ROOT = Path(__file__).resolve().parents[1]
-
 # The benchmark measures rather than stops at the first stale cycle (as bench_hil_lockstep.py).
 BENCH_DRIVER = {
     "feedback_timeout_s": 0.05,

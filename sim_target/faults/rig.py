@@ -40,7 +40,6 @@ from sim_target.testing.ur5 import PD_BUNDLE, Q0_RAD, bus_joints
 if TYPE_CHECKING:
     from sim_target.launch import Transport
 
-ROOT = Path(__file__).resolve().parents[2]
 PERIOD_S = 0.001
 TARGET_SUBSTEPS = 8  # docs/target.md: parity 1.7e-3 rad over 2 s; faults need no more
 # Driver timeouts of the campaign: tight enough that each protocol bound is what is measured

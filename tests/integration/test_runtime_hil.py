@@ -34,7 +34,6 @@ from sim_target.server import send_control
 from sim_target.testing.hil_target import start_hil_run, target_in_process, target_process, unique_channel
 from sim_target.testing.ur5 import MAX_TORQUE_NM, PD_BUNDLE, bus_joints
 
-ROOT = Path(__file__).resolve().parents[2]
 # Bounds on waits for frames on a loaded machine (not assertions on time): the lock-step target
 # does not care about wall time.
 SLOW_MACHINE = {
