@@ -222,11 +222,12 @@ class RayExecutor(Executor):
                         raise exc.cause from exc
                     raise
                 yield value
-        except BaseException:  # Ctrl-C or a failed task: the remaining tasks are not waited for
-            for ref in refs:
-                with contextlib.suppress(Exception):
-                    ray.cancel(ref, force=True)
-            raise
+        finally:
+            # Ctrl-C or a failed task: the remaining tasks are not waited for, and not cancelled
+            # either: ray.cancel(force=True) on a task that finishes meanwhile aborts the driver in
+            # Ray 2.60 (task_manager.cc "Tried to complete task that was not pending", seen in CI);
+            # close() shuts Ray down, which ends them.
+            del refs
 
     def close(self) -> None:
         if self._ray is not None:
