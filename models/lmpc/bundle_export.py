@@ -41,6 +41,7 @@ from hil_runtime.bundle_schema import (
     TRUST_SIZE,
     Manifest,
 )
+from hil_runtime.trust_region import named_features
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.lmpc.dataset import jsonable
@@ -103,16 +104,7 @@ class FusedPolicy(nn.Module):
         q, qd, q_d, qd_d, qdd_d = (x[:, i * n : (i + 1) * n] for i in range(5))
         state = x[:, 5 * n : 5 * n + self.s]
         tau_fb, next_state = self.law.step(torch, state, q, qd, q_d, qd_d, qdd_d)
-        named = {
-            "q": q,
-            "e": q_d - q,
-            "qd": qd,
-            "e_dot": qd_d - qd,
-            "q_d": q_d,
-            "qd_d": qd_d,
-            "qdd_d": qdd_d,
-            "tau_fb": tau_fb,
-        }
+        named = named_features(q, qd, q_d, qd_d, qdd_d, tau_fb)  # the runtime's own feature names
         s = torch.cat([named[k] for k in FEATURE_SETS[self.feature_set]], 1)
         guard = torch.cat([named[k] for k in FEATURE_SETS[GUARD_FEATURES]], 1)
         r = self.emulator(s)

@@ -1,0 +1,111 @@
+"""The structured LMPC's settings (StructuredConfig) and their JSON form, as recorded in each bundle's
+manifest and each trained file."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from models.errors import ModelInputError
+
+FF_POINTS = ("measured", "reference")
+#: perturbation (sigma_e rad, sigma_e_dot rad/s) of the relabeled copies per HMPC formulation: small enough
+#: that the absolute-cost HMPC (gains ~1e5 1/s^2, ~1e3 1/s) stays off its torque limits
+PERTURBATION = {"absolute": (1e-4, 1e-2), "anchored": (2e-3, 2e-2)}
+#: c fixed per formulation (None: fitted): the absolute-cost optimum does not depend on the law
+C_FIXED = {"absolute": -1.0, "anchored": None}
+TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
+TRAINED_FORMAT = "structured-lmpc-trained/1"  # <work>/trained_<law>.pt (save_trained, reexport)
+
+
+@dataclass(frozen=True)
+class StructuredConfig:
+    """Everything that decides a structured LMPC (recorded in each bundle's manifest)."""
+
+    robot: str = "ur5_paper"
+    laws: tuple[str, ...] = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
+    gain_set: str = "stabilized"
+    hmpc_options: dict[str, Any] = field(
+        default_factory=dict
+    )  # HMPCConfig fields (torque_cost, prediction_step_s, ...)
+    target: str = "hmpc"
+    ff_point: str = "measured"
+    train_conditions: int = 16
+    train_seed: int = 7101  # paper-range conditions for training; the held-out experiment uses other seeds
+    duration_s: float = 5.0
+    stride: int = 5  # log every 5th period
+    period_s: float = 1e-3
+    substeps: int = 2
+    hidden: tuple[int, ...] = (32, 32)
+    residual_bound_fraction: float = 0.02  # b_j = fraction * torque limit_j
+    # upper bound of c (tau_L = (1 + c) tau_fb + ...): 0 = the law is kept or reduced, never amplified. The
+    # expert's closed loop has tau_fb ~ 0, so c is weakly identified; c = +0.5 on MRAC's joints 2-3 (fitted
+    # with the bound at 0.5) drove its adaptation unstable on all five paper conditions.
+    c_max: float = 0.0
+    # c fixed (not fitted) when the expert does not depend on the law: the absolute-cost HMPC's optimum is
+    # the same for every law (docs/hmpc.md), so tau_L should not depend on tau_fb either (c = -1). A fitted
+    # c is noise there (tau_fb ~ 0 on the expert's states) and c = 0 on MRAC's joints 2-3 fed its
+    # adaptation back into the torque: every paper condition left the limits.
+    c_fixed: float | None = None
+    residual_min_gain: float = 0.10  # the residual MLP is kept only if it lowers the validation loss by this fraction
+    physics_steps: int = 1500  # full-batch projected Adam steps on (c, g, Kp, Kd)
+    physics_learning_rate: float = 0.05
+    residual_epochs: int = 40
+    batch_size: int = 512
+    learning_rate: float = 3e-3
+    seed: int = 0
+    box_margin: float = 1.0  # trust region: alpha fades to 0 at one box range outside the training states
+    # The box over (q, e, qd, e_dot, qdd_d, tau_fb): the training states' min/max for q, qd, qdd_d (where
+    # the model was fitted); for e, e_dot at least +-these envelopes and tau_fb the torque limits (the
+    # expert's own closed loop has errors of ~0, and the structure is exact in e: a box of the expert's
+    # errors would hand every cycle back to the law).
+    error_envelope_rad: float = 0.1
+    rate_envelope_rad_s: float = 3.0  # the 2 s impulse alone moves the wrist by ~1.6 rad/s
+    # trust region residual bound: bound_scale x max |tau* - tau_fb| over the training labels. 10 lets ADRC
+    # and SMC cancel their own torque after the impulse (3 clamped it: eta_L 73.3 / 67.1 -> 81.2 / 77.0,
+    # docs/lmpc.md section 9); the bundle's probes clamp each joint whatever the bound
+    # (hil_runtime.bundle.clamp_probe_inputs), so the loader still catches a changed bound
+    bound_scale: float = 10.0
+    # DART-style excitation of the expert rollouts: the plant gets tau* + noise (the label stays tau*),
+    # noise = accel_noise * M_ii(0) * a standard normal held for noise_hold_steps periods, seeded; a
+    # fraction noise_fraction of the training conditions run with it. Without it the expert's own
+    # closed loop has e ~ 0, tau_fb ~ 0: its feedback gains are not identifiable from its data.
+    accel_noise_rad_s2: float = 0.0
+    noise_hold_steps: int = 20
+    noise_fraction: float = 0.75
+    # Perturbed copies of the expert's states, relabeled by cold HMPC solves: the expert's feedback
+    # (its response to e, e_dot) seen without running it off its own closed loop. Per copy, every
+    # joint's e and e_dot get N(0, sigma) added (q, qd moved; reference and law state kept).
+    perturbed_copies: int = 1
+    perturb_error_rad: float = 0.01
+    perturb_rate_rad_s: float = 0.05
+    dagger_rounds: int = 0
+    dagger_conditions: int = 8
+    dagger_seed: int = 7201
+
+    def __post_init__(self) -> None:
+        if self.target not in TARGETS:
+            raise ModelInputError(f"structured lmpc target: unknown {self.target!r} (known: {', '.join(TARGETS)})")
+        if self.ff_point not in FF_POINTS:
+            raise ModelInputError(
+                f"structured lmpc ff_point: unknown {self.ff_point!r} (known: {', '.join(FF_POINTS)})"
+            )
+        if self.train_conditions < 1 or self.stride < 1:
+            raise ModelInputError("structured lmpc: train_conditions and stride must be >= 1")
+
+
+def jsonable_config(config: StructuredConfig) -> dict[str, Any]:
+    return json.loads(json.dumps(asdict(config), default=str))
+
+
+def config_from_json(raw: dict[str, Any]) -> StructuredConfig:
+    """The StructuredConfig that jsonable_config recorded (fields this version does not know are refused)."""
+    unknown = sorted(set(raw) - set(StructuredConfig.__dataclass_fields__))
+    if unknown:
+        raise ModelInputError(f"structured lmpc config: unknown fields {', '.join(unknown)}")
+    values = dict(raw)
+    for name in ("laws", "hidden"):
+        if name in values:
+            values[name] = tuple(values[name])
+    return StructuredConfig(**values)

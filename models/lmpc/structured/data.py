@@ -1,0 +1,246 @@
+"""On-policy training data of the structured LMPC: the expert's (HMPC) closed-loop rollouts, optionally
+excited (DART) and perturbed, DAgger rollouts relabeled by cold HMPC solves, their features and their
+cache in the work directory."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.executors import Executor
+from models.feedback import make_law
+from models.lmpc.structured.config import StructuredConfig, jsonable_config
+from models.robots import RobotModel, load_robot
+from models.sim import ControllerStack, SimConfig, simulate
+
+
+def _logged_rollouts(
+    robot: RobotModel,
+    controllers: list[Any],
+    conditions: list[Any],
+    sim: SimConfig,
+    stride: int,
+    excite: tuple[np.ndarray, np.ndarray] | None = None,
+    hold: int = 1,
+    seed: int = 0,
+) -> list[dict[str, np.ndarray]]:
+    """Run controllers side by side on ``conditions``; per controller the logged states and torques."""
+    from models.lmpc.expert_rollouts import StateLogger
+
+    steps = int(round(conditions[0].duration_s / sim.period_s))
+    loggers = []
+    for c in controllers:
+        # the law's sizes: FB and HMPC controllers hold the law, the LMPC (DAgger rounds) its bundle
+        sizes = c.bundle if hasattr(c, "bundle") else c.law
+        n, size = sizes.n_joints, sizes.state_size
+        state_of = (lambda ctl: ctl._law_state) if hasattr(c, "_law_state") else (lambda ctl: ctl.state)
+        loggers.append(StateLogger(c, len(conditions), steps, stride, n, size, law_state=state_of, log_applied=True))
+    runners: list[Any] = loggers
+    if excite is not None:
+        runners = [_Excited(lg, excite[0], hold, excite[1], seed + 1000 * k) for k, lg in enumerate(loggers)]
+    traj = simulate(
+        robot, ControllerStack(runners, [len(conditions)] * len(runners)), [x for _ in loggers for x in conditions], sim
+    )
+    out = []
+    for k, logger in enumerate(loggers):
+        rows = logger.log["t_s"].size
+        part = slice(k * len(conditions), (k + 1) * len(conditions))
+        ok = np.repeat(traj.finite[part] & traj.within_limits[part], rows)
+        data = {
+            "t_s": np.tile(logger.log["t_s"], len(conditions)),
+            **{key: v.reshape(len(conditions) * rows, -1) for key, v in logger.log.items() if key != "t_s"},
+        }
+        out.append({key: v[ok] for key, v in data.items()})
+    return out
+
+
+class _Excited:
+    """Adds held, seeded noise (per row of the batch) to a controller's torque; the label is the clean one."""
+
+    def __init__(self, inner: Any, amplitude_nm: np.ndarray, hold: int, rows_on: np.ndarray, seed: int) -> None:
+        self.inner, self.amplitude, self.hold, self.rows_on = inner, amplitude_nm, hold, rows_on
+        self.name = inner.name + "-excited"
+        self.cycle_times_s: list[float] = []
+        self.last_tau_fb: np.ndarray | None = None
+        self.seed = seed
+
+    def reset(self, q0: np.ndarray) -> None:
+        self.inner.reset(q0)
+        self.k, self.rng, self.noise = 0, np.random.default_rng(self.seed), np.zeros_like(np.atleast_2d(q0))
+
+    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
+        self.last_tau_fb = self.inner.last_tau_fb
+        if self.k % self.hold == 0:
+            self.noise = self.rng.standard_normal(q.shape) * self.amplitude * self.rows_on[:, None]
+        self.k += 1
+        return tau + self.noise
+
+
+def collect(
+    config: StructuredConfig,
+    conditions: list[Any],
+    law_names: tuple[str, ...] | None = None,
+    policy_dir: Path | None = None,
+    executor: Executor | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
+    """Per law: logged states with the label ``tau_star``.
+
+    Expert (policy_dir None): the HMPC's own closed loop, label = the torque it applied (target
+    "hmpc") or the FB closed loop labeled with tau_fb (target "law"). DAgger (policy_dir given):
+    the LMPC of ``policy_dir`` runs, the visited states are labeled by cold HMPC solves.
+    """
+    from models.hmpc import make_hmpc_controller
+    from models.sim import FeedbackController
+
+    robot = load_robot(config.robot)
+    sim = SimConfig(period_s=config.period_s, substeps=config.substeps)
+    laws = law_names or config.laws
+    made = [make_law(name, robot, config.period_s, config.gain_set) for name in laws]
+    if policy_dir is not None:
+        from models.lmpc import make_lmpc_controller
+
+        controllers = [make_lmpc_controller(law, robot, bundle_dir=policy_dir) for law in made]
+    elif config.target == "law":
+        controllers = [FeedbackController(law) for law in made]
+    else:
+        controllers = [make_hmpc_controller(law, robot, **config.hmpc_options) for law in made]
+    excite = None
+    if policy_dir is None and config.target == "hmpc" and config.accel_noise_rad_s2 > 0:
+        from models.dynamics import make_dynamics
+
+        n = robot.n_joints
+        inertia0 = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n))).reshape(n, n))
+        rows_on = (np.arange(len(conditions)) < round(config.noise_fraction * len(conditions))).astype(float)
+        excite = (config.accel_noise_rad_s2 * inertia0, rows_on)
+    logs = _logged_rollouts(
+        robot, controllers, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed
+    )
+    data = {}
+    for name, law, log in zip(laws, made, logs, strict=True):
+        if policy_dir is not None and config.target == "hmpc":
+            log["tau_star"] = relabel(law, robot, log, config.hmpc_options, executor)
+        elif config.target == "law":
+            log["tau_star"] = log["tau_fb"].copy()
+        if policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc":
+            extra = perturbed(
+                log, config.perturbed_copies, config.perturb_error_rad, config.perturb_rate_rad_s, config.seed + 17
+            )
+            with np.errstate(all="ignore"):
+                extra["tau_fb"] = np.asarray(
+                    law.step(
+                        np, extra["law_state"], extra["q"], extra["qd"], extra["q_d"], extra["qd_d"], extra["qdd_d"]
+                    )[0],
+                    float,
+                )
+            extra["tau_star"] = (
+                extra["tau_fb"].copy()
+                if config.target == "law"
+                else relabel(law, robot, extra, config.hmpc_options, executor)
+            )
+            log = {k: np.concatenate([log[k], extra[k]]) for k in log}
+        data[name] = log
+    return data
+
+
+def perturbed(
+    log: dict[str, np.ndarray], copies: int, sigma_e: float, sigma_rate: float, seed: int
+) -> dict[str, np.ndarray]:
+    """``copies`` perturbed copies of logged rows (module StructuredConfig.perturbed_copies); labels not set."""
+    rng = np.random.default_rng(seed)
+    rows = {k: np.concatenate([v] * copies) for k, v in log.items() if k != "tau_star"}
+    rows["q"] = rows["q"] + rng.normal(0.0, sigma_e, rows["q"].shape)
+    rows["qd"] = rows["qd"] + rng.normal(0.0, sigma_rate, rows["qd"].shape)
+    return rows
+
+
+def relabel(
+    law: Any,
+    robot: RobotModel,
+    log: dict[str, np.ndarray],
+    hmpc_options: dict[str, Any],
+    executor: Executor | None = None,
+) -> np.ndarray:
+    """The HMPC torque at logged states (cold solves from the logged law state), in chunks of 1024
+    on ``executor``'s workers (models.executors; None: this process)."""
+    from models.hmpc import HMPCConfig, solve_batch
+
+    options = {**hmpc_options, "on_budget_exhausted": "best_iterate"}
+    rows = (log[k] for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state"))
+    tau, _ = solve_batch(
+        law, robot, *rows, config=HMPCConfig.from_options(**options), executor=executor, chunk_states=1024
+    )
+    return tau
+
+
+def features(log: dict[str, np.ndarray]) -> np.ndarray:
+    """s = (q, e, qd, e_dot, qdd_d, tau_fb) of logged rows."""
+    return np.concatenate(
+        [log["q"], log["q_d"] - log["q"], log["qd"], log["qd_d"] - log["qd"], log["qdd_d"], log["tau_fb"]], 1
+    )
+
+
+_DATA_FIELDS = (
+    "robot",
+    "gain_set",
+    "hmpc_options",
+    "target",
+    "train_conditions",
+    "train_seed",
+    "duration_s",
+    "stride",
+    "period_s",
+    "substeps",
+    "accel_noise_rad_s2",
+    "noise_hold_steps",
+    "noise_fraction",
+    "perturbed_copies",
+    "perturb_error_rad",
+    "perturb_rate_rad_s",
+    "seed",
+)
+
+
+def _data_key(config: StructuredConfig) -> str:
+    """What the rollouts depend on (a cache made with other settings is not reused)."""
+    return json.dumps({k: jsonable_config(config)[k] for k in _DATA_FIELDS}, sort_keys=True)
+
+
+def _cached_rollouts(
+    work: Path,
+    config: StructuredConfig,
+    conditions: list[Any],
+    log: Callable[[str], None],
+    executor: Executor | None = None,
+) -> dict[str, Any]:
+    """Per law, <work>/rollouts_<law>.pkl when made with the same settings; the missing laws are run
+    (side by side in one plant) and cached."""
+    import pickle
+
+    key = _data_key(config)
+    data: dict[str, Any] = {}
+    for name in config.laws:
+        path = work / f"rollouts_{name}.pkl"
+        if path.exists():
+            try:
+                stored_key, value = pickle.loads(path.read_bytes())
+                if stored_key == key:
+                    data[name] = value
+            except Exception:  # noqa: BLE001, S110 - an unreadable cache is regenerated, never trusted
+                pass
+    if data:
+        log(f"rollouts: reusing {', '.join(sorted(data))} from {work}")
+    missing = tuple(name for name in config.laws if name not in data)
+    if missing:
+        fresh = collect(config, conditions, law_names=missing, executor=executor)
+        for name in missing:
+            path = work / f"rollouts_{name}.pkl"
+            tmp = path.with_suffix(".tmp")
+            tmp.write_bytes(pickle.dumps((key, fresh[name])))
+            tmp.replace(path)
+            data[name] = fresh[name]
+    return {name: data[name] for name in config.laws}

@@ -1,0 +1,172 @@
+"""Fitting the structured emulator: the physics coefficients (projected Adam, L-BFGS polish), then the
+bounded residual MLP."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from models.lmpc.structured.config import StructuredConfig
+from models.lmpc.structured.model import StructuredEmulator
+from models.robots import RobotModel
+
+
+def _physics_terms(robot: RobotModel, s: np.ndarray, ff_point: str) -> tuple[np.ndarray, np.ndarray]:
+    """M (B, N, N) and h (B, N) at the feed-forward point, for fast training: ID(p, a) = M a + h."""
+    from models.dynamics import make_dynamics
+
+    n = robot.n_joints
+    q, e, qd, e_dot = (s[:, i * n : (i + 1) * n] for i in range(4))
+    if ff_point == "reference":
+        q, qd = q + e, qd + e_dot
+    dyn = make_dynamics(robot, "pinocchio")
+    mass = np.concatenate(
+        [np.asarray(dyn.mass_matrix(q[a : a + 4096])).reshape(-1, n, n) for a in range(0, len(q), 4096)]
+    )
+    bias = np.concatenate(
+        [
+            np.asarray(dyn.nonlinear_effects(q[a : a + 4096], qd[a : a + 4096])).reshape(-1, n)
+            for a in range(0, len(q), 4096)
+        ]
+    )
+    return mass, bias
+
+
+def train_structured(
+    robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig, log: Callable[[str], None] = print
+) -> tuple[StructuredEmulator, dict[str, Any]]:
+    """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb."""
+    torch.manual_seed(config.seed)
+    n = robot.n_joints
+    limit = np.asarray(robot.torque_limit_nm, float)
+    bound = config.residual_bound_fraction * limit
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)
+    if config.c_fixed is not None:
+        with torch.no_grad():
+            model.c.fill_(config.c_fixed)
+        model.c.requires_grad_(False)
+    mass, bias = _physics_terms(robot, s, config.ff_point)
+    from models.dynamics import make_dynamics
+
+    inertia0 = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n))).reshape(n, n))
+    # loss in acceleration units: a torque error on a 1e-4 kg m^2 wrist matters as much as 1e3x on the base
+    scale = torch.as_tensor(1.0 / inertia0, dtype=torch.float64)
+    st, yt = torch.as_tensor(s), torch.as_tensor(y)
+    mt, ht = torch.as_tensor(mass), torch.as_tensor(bias)
+    q, e, qd, e_dot, qdd_d, tau_fb = (st[:, i * n : (i + 1) * n] for i in range(6))
+
+    def physics_fast() -> torch.Tensor:
+        c, g, kp, kd = model.coefficients()
+        accel = qdd_d + e @ kp.T + e_dot @ kd.T
+        tau_id = (mt @ accel.unsqueeze(-1)).squeeze(-1) + ht
+        return c * tau_fb + g * tau_id
+
+    params = [p for p in (model.c, model.g, model.theta_kp, model.theta_kd) if p.requires_grad]
+    # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0)
+    denom = float(torch.mean((yt * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
+    started = time.perf_counter()
+    # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the bounds:
+    # the control row's optimum c = g = 0 sits on them)
+    optimizer = torch.optim.Adam(params, lr=config.physics_learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimizer, config.physics_steps, eta_min=1e-3 * config.physics_learning_rate
+    )
+    for _ in range(config.physics_steps):
+        optimizer.zero_grad()
+        loss = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        model.project()
+    # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior)
+    polish = torch.optim.LBFGS(
+        [model.theta_kp, model.theta_kd],
+        lr=1.0,
+        max_iter=200,
+        tolerance_grad=1e-12,
+        tolerance_change=1e-14,
+        history_size=50,
+        line_search_fn="strong_wolfe",
+    )
+
+    def closure() -> torch.Tensor:
+        polish.zero_grad()
+        value = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
+        value.backward()
+        return value
+
+    polish.step(closure)
+    model.freeze()
+    with torch.no_grad():
+        physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)
+        remainder = (yt - physics_fast()).detach()
+    coef = [t.detach().numpy() for t in model.coefficients()]
+    log(
+        f"  physics fit: relative loss {physics_loss:.4f}; c {np.round(coef[0], 3).tolist()} "
+        f"g {np.round(coef[1], 3).tolist()} "
+        f"diag Kp {np.round(np.diag(coef[2]), 1).tolist()} diag Kd {np.round(np.diag(coef[3]), 1).tolist()}"
+    )
+    # residual MLP on what the physics leaves, bounded by construction
+    model.in_mean.copy_(st.mean(0))
+    model.in_std.copy_(st.std(0).clamp_min(1e-6))
+    rng = np.random.default_rng(config.seed)
+    order = rng.permutation(len(s))
+    n_val = max(1, len(s) // 10)
+    val, train = order[:n_val], order[n_val:]
+    optimizer2 = torch.optim.Adam(model.net.parameters(), lr=config.learning_rate)
+    sched = torch.optim.lr_scheduler.ExponentialLR(optimizer2, 0.93)
+    bound_t = model.bound
+    sn = (st - model.in_mean) / model.in_std
+
+    def residual(idx: np.ndarray) -> torch.Tensor:
+        return bound_t * torch.tanh(model.net(sn[idx]) / bound_t)
+
+    best, best_state = float("inf"), None
+    residual_history = []
+    for _ in range(config.residual_epochs):
+        perm = rng.permutation(train)
+        for a in range(0, len(perm), config.batch_size):
+            idx = perm[a : a + config.batch_size]
+            optimizer2.zero_grad()
+            loss = torch.mean(((residual(idx) - remainder[idx]) * scale) ** 2) / denom
+            loss.backward()
+            optimizer2.step()
+        sched.step()
+        with torch.no_grad():
+            v = float(torch.mean(((residual(val) - remainder[val]) * scale) ** 2) / denom)
+        residual_history.append(v)
+        if v < best:
+            best, best_state = v, {k: t.clone() for k, t in model.net.state_dict().items()}
+    if best_state is not None:
+        model.net.load_state_dict(best_state)
+    model.freeze()
+    with torch.no_grad():
+        before = float(torch.mean((remainder[val] * scale) ** 2) / denom)
+    # keep the MLP only where it pays for its graph nodes (t_L): >= 10 % lower validation loss
+    model.use_residual = best < (1.0 - config.residual_min_gain) * before
+    log(f"  residual MLP: val relative loss {before:.4g} -> {best:.4g} ({'kept' if model.use_residual else 'dropped'})")
+    summary = {
+        "physics": {
+            "c": coef[0].tolist(),
+            "g": coef[1].tolist(),
+            "kp_1_s2": coef[2].tolist(),
+            "kd_1_s": coef[3].tolist(),
+            "relative_loss": physics_loss,
+        },
+        "residual": {
+            "hidden": list(config.hidden),
+            "bound_nm": bound.tolist(),
+            "used": bool(model.use_residual),
+            "val_relative_loss_before": before,
+            "val_relative_loss": best,
+            "history": residual_history,
+        },
+        "loss": "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_fb) / M_ii(0))^2)",
+        "samples": int(len(s)),
+        "train_s": time.perf_counter() - started,
+    }
+    return model.eval(), summary
