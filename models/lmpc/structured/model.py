@@ -11,16 +11,16 @@ from models.robots import RobotModel
 
 
 class StructuredEmulator(nn.Module):
-    #: kp, kd scales (1/s^2, 1/s): the optimizer sees numbers of order 1
-    KP_SCALE, KD_SCALE = 1.0e4, 1.0e2
-    G_MAX = 1.2
-    C_MIN = -1.05  # c = -1: the law's torque removed (the absolute-cost HMPC does not depend on the law)
-
-    """s = (q, e, qd, e_dot, qdd_d, tau_fb) (B, 6N) -> r = tau_L - tau_fb (B, N); module docstring.
+    """s = (q, e, qd, e_dot, qdd_d, tau_fb) (B, 6N) -> r = tau_L - tau_fb (B, N); package docstring.
 
     ``in_mean``/``in_std`` normalize the residual MLP's input; ``net`` is that MLP (the names the
     bundle exporter reads).
     """
+
+    #: kp, kd scales (1/s^2, 1/s): the optimizer sees numbers of order 1
+    KP_SCALE, KD_SCALE = 1.0e4, 1.0e2
+    G_MAX = 1.2
+    C_MIN = -1.05  # c = -1: the law's torque removed (the absolute-cost HMPC does not depend on the law)
 
     def __init__(
         self,
