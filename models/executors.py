@@ -211,23 +211,20 @@ class RayExecutor(Executor):
         if remote is None:
             remote = self._remote[fn] = ray.remote(num_cpus=1, max_retries=0)(fn)
         refs = [remote.remote(task) for task in tasks]
-        try:
-            for ref in refs:
-                try:
-                    value = ray.get(ref)
-                except ray.exceptions.RayTaskError as exc:
-                    # The task's own exception, as the other executors raise it (a user error stays
-                    # one line); Ray's report, with the worker's traceback, is chained to it.
-                    if isinstance(exc.cause, Exception):
-                        raise exc.cause from exc
-                    raise
-                yield value
-        finally:
-            # Ctrl-C or a failed task: the remaining tasks are not waited for, and not cancelled
-            # either: ray.cancel(force=True) on a task that finishes meanwhile aborts the driver in
-            # Ray 2.60 (task_manager.cc "Tried to complete task that was not pending", seen in CI);
-            # close() shuts Ray down, which ends them.
-            del refs
+        # On Ctrl-C or a failed task the remaining tasks are neither waited for nor cancelled:
+        # ray.cancel(force=True) on a task that finishes meanwhile aborts the driver in Ray 2.60
+        # (task_manager.cc "Tried to complete task that was not pending", seen in CI); close() shuts
+        # Ray down, which ends them.
+        for ref in refs:
+            try:
+                value = ray.get(ref)
+            except ray.exceptions.RayTaskError as exc:
+                # The task's own exception, as the other executors raise it (a user error stays
+                # one line); Ray's report, with the worker's traceback, is chained to it.
+                if isinstance(exc.cause, Exception):
+                    raise exc.cause from exc
+                raise
+            yield value
 
     def close(self) -> None:
         if self._ray is not None:
