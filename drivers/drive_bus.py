@@ -47,6 +47,7 @@ from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
 from drivers.config import DriveBusConfig
+from drivers.eds_check import check_bus, raise_first_error
 from drivers.emcy import EmcyConsumer
 from drivers.errors import (
     DriveCommandError,
@@ -97,6 +98,9 @@ class DriveBus:
         """``bus``: an already open python-can bus to use (not closed by :meth:`close`)."""
         self.config = config
         self.bus_load = config.bus_load()  # raises BusLoadError before touching the bus
+        # Every drive's EDS against what the runtime maps and writes, and the bus's COB-IDs:
+        # DriveConfigError naming the file, node and object before anything is written to a drive.
+        raise_first_error(check_bus(config))
         self._bus = bus
         self._owns_bus = bus is None
         self.node_ids = config.node_ids
@@ -172,6 +176,7 @@ class DriveBus:
             self.close()
             raise
         self._services.exchange.refresh_scaling()
+        self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])  # as read at start-up
         self._connected = True
         network.last_cycle_end_s = time.monotonic()
         network.caller_receives = True
@@ -189,7 +194,7 @@ class DriveBus:
             sdo.write(node.node_id, odx.HEARTBEAT_PRODUCER, 0, config.heartbeat_producer_ms)
             sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
             configure_master_loss(sdo, node, config)
-            map_layout(sdo, node, services.exchange.layout)
+            map_layout(sdo, node, services.exchange.layout_for(node))
             p402.check_mode(sdo, node)
         for node in nodes:
             send_command(network, fr.NmtCommand.START, node.node_id)
