@@ -17,7 +17,7 @@ from drivers.cia402 import od as odx
 from drivers.cia402.scaling import INT16_MAX
 from drivers.config import DriveBusConfig
 from drivers.drive_spec import DriveSpec, spec_scale
-from drivers.eds_check import FAULT_REACTION, FEED_CONSTANT, GEAR_RATIO, INTERPOLATION_PERIOD, WRITABLE, obj_name
+from drivers.eds_check import FAULT_REACTION, GEAR_RATIO, INTERPOLATION_PERIOD, WRITABLE, obj_name
 from drivers.errors import DriveConfigError
 from drivers.node import DriveNode
 from drivers.sdo import SdoClient
@@ -61,8 +61,6 @@ def read_scaling(sdo: SdoClient, node: DriveNode, spec: DriveSpec) -> dict[str, 
         read["encoder_increments"] = _ratio(sdo, spec, node_id, odx.ENCODER_RESOLUTION)
     if spec.gear_ratio == "drive":
         read["gear_ratio"] = _ratio(sdo, spec, node_id, GEAR_RATIO)
-    if spec.feed_constant == "drive":
-        read["feed_constant"] = _ratio(sdo, spec, node_id, FEED_CONSTANT)
     return read
 
 

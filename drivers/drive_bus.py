@@ -83,6 +83,9 @@ class _Services:
         self, config: DriveBusConfig, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer
     ) -> None:
         self.sdo = SdoClient(network, nodes, config.eds_path or odx.EDS_PATH, config.sdo_timeout_s)
+        # SYNCs carry the counter when every drive takes 0x1019, or some drive echoes it (CAN FD).
+        has_overflow = [self.sdo.variable(node.node_id, odx.SYNC_OVERFLOW, 0) is not None for node in nodes]
+        sync.carry_counter(all(has_overflow) or any(node.fd_sync_echo for node in nodes))
         self.heartbeats = HeartbeatConsumer(network, nodes, config.heartbeat_timeout_s)
         self.emcy = EmcyConsumer(network, nodes)
         self.exchange = CyclicExchange(network, nodes, sync, config.feedback_timeout_s, config.transport.fd)
@@ -192,7 +195,8 @@ class DriveBus:
         for node in nodes:
             p402.configure(sdo, node, config)
             sdo.write(node.node_id, odx.HEARTBEAT_PRODUCER, 0, config.heartbeat_producer_ms)
-            sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
+            if sdo.variable(node.node_id, odx.SYNC_OVERFLOW, 0) is not None:
+                sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
             configure_master_loss(sdo, node, config)
             map_layout(sdo, node, services.exchange.layout_for(node))
             p402.check_mode(sdo, node)

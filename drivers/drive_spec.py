@@ -12,7 +12,6 @@ One joint of ``bus.joints`` with a ``drive`` section::
         rated_torque_unit_nm: 1.0e-6       # what one unit of 0x6076 is (CiA 402: mN·m; maxon: µN·m)
         encoder_increments: 4096           # per motor revolution; "drive": 0x608F:01 / 0x608F:02
         gear_ratio: 160.0                  # motor revolutions per joint revolution; "drive": 0x6091
-        feed_constant: 1.0                 # 0x6092 (positions in increments: 1); "drive": read it
         polarity: -1                       # the joint turns against the motor: every sign flipped
         zero_offset_rad: 0.0               # joint angle = drive angle - zero offset
         interpolation_period: true         # write 0x60C2 = the control period (ms, index -3)
@@ -24,9 +23,9 @@ Scaling (the drive's integer objects <-> the joint's SI units):
 
 - torque: 0x6071/0x6077 are INTEGER16 per mille of 0x6076 (the *motor's* rated torque), so one
   per mille is ``rated_torque * rated_torque_unit_nm * gear_ratio / 1000`` N·m at the joint;
-- position: 0x6064 counts ``encoder_increments * gear_ratio / feed_constant`` per joint
-  revolution (the position factor of CiA 402: 0x608F x 0x6091 / 0x6092; a drive reporting raw
-  increments has a feed constant of 1); velocity 0x606C in the same units per second;
+- position: 0x6064 counts ``encoder_increments * gear_ratio`` per joint revolution: the runtime
+  takes positions in encoder increments (a drive applying the CiA 402 factor group divides them by
+  0x6092 feed constant: set it to 1/1 with ``sdo`` entries); velocity 0x606C in increments/s;
 - polarity -1 flips torque, position and velocity at the master (0x607E is the drive's own flag:
   leave it as the drive's commissioning tool set it, or put it in ``sdo``).
 
@@ -73,7 +72,6 @@ class DriveSpec(_Frozen):
     rated_torque_unit_nm: float = Field(1e-3, gt=0)  # CiA 402: mN·m (1e-3); maxon EPOS4: µN·m (1e-6)
     encoder_increments: float | FromDrive = "drive"  # per motor revolution (0x608F:01 / :02)
     gear_ratio: float | FromDrive = 1.0  # motor revolutions per joint revolution (0x6091:01 / :02)
-    feed_constant: float | FromDrive = 1.0  # 0x6092:01 / :02; 1 when positions are increments
     polarity: Literal[1, -1] = 1
     zero_offset_rad: float = 0.0
     interpolation_period: bool = True  # write 0x60C2 (the control period) where the EDS has it
@@ -91,7 +89,7 @@ class DriveSpec(_Frozen):
 
     @model_validator(mode="after")
     def _check(self) -> DriveSpec:
-        for name in ("rated_torque", "encoder_increments", "gear_ratio", "feed_constant"):
+        for name in ("rated_torque", "encoder_increments", "gear_ratio"):
             value = getattr(self, name)
             if value != "drive" and (not math.isfinite(value) or value <= 0):
                 raise ValueError(f"{name} must be a positive finite number or 'drive'")
@@ -112,13 +110,12 @@ class DriveScale:
         rated_torque_unit_nm: float,
         encoder_increments: float,
         gear_ratio: float,
-        feed_constant: float,
         polarity: int,
         zero_offset_rad: float,
     ) -> None:
         # Signed: polarity -1 flips every conversion (torque, position and velocity) at once.
         self.nm_per_permille = polarity * rated_torque * rated_torque_unit_nm * gear_ratio / 1000.0
-        self.counts_per_rad = polarity * encoder_increments * gear_ratio / feed_constant / (2.0 * math.pi)
+        self.counts_per_rad = polarity * encoder_increments * gear_ratio / (2.0 * math.pi)
         self.zero_offset_rad = zero_offset_rad
 
     @property
@@ -138,7 +135,6 @@ def spec_scale(spec: DriveSpec, read: dict[str, float]) -> DriveScale:
         spec.rated_torque_unit_nm,
         pick("encoder_increments"),
         pick("gear_ratio"),
-        pick("feed_constant"),
         spec.polarity,
         spec.zero_offset_rad,
     )

@@ -48,7 +48,6 @@ CST_BIT: Final = 1 << 9  # 0x6502 bit 9: cyclic synchronous torque
 INTERPOLATION_PERIOD: Final = 0x60C2
 FAULT_REACTION: Final = 0x605E
 GEAR_RATIO: Final = 0x6091
-FEED_CONSTANT: Final = 0x6092
 EMCY_COB_ID: Final = 0x1014
 CLASSICAL_PDO_BITS: Final = 64
 FD_PDO_BITS: Final = 512
@@ -223,7 +222,6 @@ def _check_spec(d: _Drive, joint: JointDriveConfig, index: int, spec: DriveSpec,
         ("rated_torque", odx.RATED_TORQUE, (0,)),
         ("encoder_increments", odx.ENCODER_RESOLUTION, (1, 2)),
         ("gear_ratio", GEAR_RATIO, (1, 2)),
-        ("feed_constant", FEED_CONSTANT, (1, 2)),
     ):
         if getattr(spec, name) == "drive":
             for sub in subs:
