@@ -42,6 +42,7 @@ from collections.abc import Sequence
 
 import can
 import numpy as np
+from canopen.objectdictionary import ODVariable
 
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
@@ -369,6 +370,16 @@ class DriveBus:
 
     def sdo_read_int(self, node_id: int, index: int, subindex: int = 0) -> int:
         return self._sdo().read_int(node_id, index, subindex)
+
+    def sdo_variable(self, node_id: int, index: int, subindex: int = 0) -> ODVariable | None:
+        """The drive's EDS entry of an object (None: not in its dictionary)."""
+        return self._sdo().variable(node_id, index, subindex)
+
+    def layout_for(self, node: DriveNode) -> odx.PdoLayout:
+        """The PDO layout mapped on ``node`` at start-up."""
+        if self._services is None:
+            raise DriveStateError("not connected: call connect() first")
+        return self._services.exchange.layout_for(node)
 
     def nmt(self, command: fr.NmtCommand, node_id: int = 0) -> None:
         if self._network.bus is None:

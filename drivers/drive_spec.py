@@ -36,6 +36,7 @@ drive; the values read from the drive are checked again at start-up (:mod:`drive
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -84,7 +85,7 @@ class DriveSpec(_Frozen):
         base = (info.context or {}).get("base_dir") if isinstance(info.context, dict) else None
         value = value.expanduser()
         if base is not None and not value.is_absolute():
-            return Path(base) / value
+            return Path(os.path.normpath(Path(base) / value))
         return value
 
     @model_validator(mode="after")

@@ -250,7 +250,7 @@ def load_target_config(path: Path | str) -> TargetConfig:
     if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
         # Relative URDF paths are relative to the config file, not the working directory.
         data = {**data, "urdf": str((path.parent / data["urdf"]).resolve())}
-    return parse_target_config(data, str(path))
+    return parse_target_config(data, str(path), path.resolve().parent)  # drives.profiles' eds: same rule
 
 
 def parse_fault(data: Any, source: str = "fault") -> Fault:

@@ -20,6 +20,7 @@ In a target config (``hil target serve``), one entry per joint::
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
@@ -42,7 +43,7 @@ class DriveProfile(BaseModel):
     @classmethod
     def _resolve(cls, value: Path, info: ValidationInfo) -> Path:
         base = info.context.get("base_dir") if isinstance(info.context, dict) else None
-        return Path(base) / value if base is not None and not value.is_absolute() else value
+        return Path(os.path.normpath(Path(base) / value)) if base is not None and not value.is_absolute() else value
 
     @field_validator("polarity")
     @classmethod
