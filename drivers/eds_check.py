@@ -14,6 +14,7 @@ object; :func:`raise_first_error` turns the first error into a one-line
 from __future__ import annotations
 
 import configparser
+import functools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -92,14 +93,27 @@ def obj_name(index: int, subindex: int = 0) -> str:
 
 
 def load_dictionary(path: Path | str, node_id: int) -> ObjectDictionary:
-    """canopen's import of an EDS or DCF; :class:`DriveConfigError` naming the file otherwise."""
+    """canopen's import of an EDS or DCF; :class:`DriveConfigError` naming the file otherwise.
+
+    Imports are cached per (file version, node id): a vendor's EDS takes canopen up to a second
+    to import, and the checks, the master's SDO client and the emulated drives of one process
+    each need it. The dictionaries are only read (values live in the nodes' own stores)."""
     path = Path(path)
+    try:
+        stat = path.stat()
+    except OSError:
+        raise DriveConfigError(f"{path}: node {node_id}: EDS file not found") from None
     if not path.is_file():
         raise DriveConfigError(f"{path}: node {node_id}: EDS file not found")
+    return _import(str(path.resolve()), stat.st_mtime_ns, stat.st_size, node_id, str(path))
+
+
+@functools.lru_cache(maxsize=128)
+def _import(resolved: str, _mtime_ns: int, _size: int, node_id: int, shown: str) -> ObjectDictionary:
     try:
-        return canopen.import_od(str(path), node_id)
+        return canopen.import_od(resolved, node_id)
     except (configparser.Error, KeyError, ValueError, UnicodeDecodeError, IndexError) as exc:
-        raise DriveConfigError(f"{path}: node {node_id}: unreadable EDS ({type(exc).__name__}: {exc})") from None
+        raise DriveConfigError(f"{shown}: node {node_id}: unreadable EDS ({type(exc).__name__}: {exc})") from None
 
 
 def variable(od: ObjectDictionary, index: int, subindex: int = 0) -> ODVariable | None:
@@ -227,8 +241,10 @@ def _check_spec(d: _Drive, joint: JointDriveConfig, index: int, spec: DriveSpec,
             for sub in subs:
                 if variable(od, obj, sub) is None:
                     d.add("error", obj, sub, f"missing from the EDS: give joints.{index}.drive.{name} in the config")
-    if spec.rated_torque != "drive" and spec.gear_ratio != "drive":
-        nm_per_permille = spec.rated_torque * spec.rated_torque_unit_nm * spec.gear_ratio / 1000.0
+    # The rated torque as configured, or as the DCF says the drive holds it (checked again at start-up).
+    rated = spec.rated_torque if spec.rated_torque != "drive" else known_value(variable(od, odx.RATED_TORQUE))
+    if rated and spec.gear_ratio != "drive":
+        nm_per_permille = rated * spec.rated_torque_unit_nm * spec.gear_ratio / 1000.0
         permille = joint.max_torque_nm / nm_per_permille
         if permille > INT16_MAX:
             d.add(
@@ -274,13 +290,33 @@ def _check_spec(d: _Drive, joint: JointDriveConfig, index: int, spec: DriveSpec,
 
 
 def _commissioned_node_id(path: Path) -> int | None:
-    parser = configparser.RawConfigParser()
-    parser.optionxform = str  # type: ignore[assignment,method-assign]  # keep the EDS key case
+    """A DCF's ``[DeviceComissioning] NodeID`` (CiA 306 spells it so), None for an EDS."""
     try:
-        parser.read(path, encoding="utf-8")
-        return int(parser.get("DeviceComissioning", "NodeID"), 0)
-    except (configparser.Error, ValueError, UnicodeDecodeError):
+        stat = path.stat()
+    except OSError:
         return None
+    return _read_commissioned(str(path), stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _read_commissioned(path: str, _mtime_ns: int) -> int | None:
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return None
+    section = text.find("[DeviceComissioning]")
+    if section < 0:
+        return None
+    for line in text[section:].splitlines()[1:]:
+        if line.startswith("["):
+            return None
+        key, _, value = line.partition("=")
+        if key.strip().lower() == "nodeid":
+            try:
+                return int(value.strip(), 0)
+            except ValueError:
+                return None
+    return None
 
 
 def _cob_ids(joint: JointDriveConfig, fd: bool) -> list[tuple[int, str]]:
@@ -307,21 +343,25 @@ def _cob_ids(joint: JointDriveConfig, fd: bool) -> list[tuple[int, str]]:
 
 
 def check_cob_ids(config: DriveBusConfig, source: str) -> list[Finding]:
-    """Two senders on one identifier: between drives, or a drive against the master's SYNC/NMT/heartbeat."""
+    """Two senders on one identifier: between drives, or a drive against the master's SYNC/NMT/
+    heartbeat. The identifiers the runtime sets come first, so an SDO init entry that moves a PDO
+    or the EMCY onto a taken one is the finding, named by its own drive's file."""
     owners: dict[int, tuple[int, str]] = {
         0x000: (0, "NMT (master)"),
         fr.SYNC_COB_ID: (0, "SYNC (master)"),
         0x700 + config.master_node_id: (0, "heartbeat (master)"),
     }
     findings = []
-    for joint in config.joints:
-        for cob_id, what in _cob_ids(joint, config.transport.fd):
-            owner = owners.get(cob_id)
-            if owner is None:
-                owners[cob_id] = (joint.node_id, what)
-            elif owner != (joint.node_id, what):
-                other = f"node {owner[0]}'s {owner[1]}" if owner[0] else owner[1]
-                findings.append(Finding("error", source, joint.node_id, what, f"COB-ID 0x{cob_id:03X} is also {other}"))
+    passes = [(joint, cob_id, what) for joint in config.joints for cob_id, what in _cob_ids(joint, config.transport.fd)]
+    passes.sort(key=lambda item: "(SDO init)" in item[2])
+    for joint, cob_id, what in passes:
+        owner = owners.get(cob_id)
+        if owner is None:
+            owners[cob_id] = (joint.node_id, what)
+        elif owner != (joint.node_id, what):
+            other = f"node {owner[0]}'s {owner[1]}" if owner[0] else owner[1]
+            where = str(joint.drive.eds) if joint.drive is not None else source
+            findings.append(Finding("error", where, joint.node_id, what, f"COB-ID 0x{cob_id:03X} is also {other}"))
     return findings
 
 
