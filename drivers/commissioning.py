@@ -18,7 +18,7 @@ from drivers.cia402.scaling import INT16_MAX
 from drivers.config import DriveBusConfig
 from drivers.drive_spec import DriveSpec, spec_scale
 from drivers.eds_check import FAULT_REACTION, GEAR_RATIO, INTERPOLATION_PERIOD, WRITABLE, obj_name
-from drivers.errors import DriveConfigError
+from drivers.errors import DriveConfigError, SdoAbortError
 from drivers.node import DriveNode
 from drivers.sdo import SdoClient
 
@@ -47,7 +47,18 @@ def _ratio(sdo: SdoClient, spec: DriveSpec, node_id: int, index: int) -> float:
 
 
 def read_scaling(sdo: SdoClient, node: DriveNode, spec: DriveSpec) -> dict[str, float]:
-    """The ``"drive"`` entries of the spec, read from the drive."""
+    """The ``"drive"`` entries of the spec, read from the drive; a drive without the object its
+    EDS promised is not the drive the config describes: DriveConfigError naming the object."""
+    try:
+        return _read_scaling(sdo, node, spec)
+    except SdoAbortError as exc:
+        raise DriveConfigError(
+            f"{spec.eds}: node {node.node_id}: {obj_name(exc.index, exc.subindex)}: the drive refuses it "
+            f"(SDO abort 0x{exc.code:08X}): not the drive the config describes"
+        ) from None
+
+
+def _read_scaling(sdo: SdoClient, node: DriveNode, spec: DriveSpec) -> dict[str, float]:
     node_id, read = node.node_id, {}
     if spec.rated_torque == "drive":
         rated = sdo.read_int(node_id, odx.RATED_TORQUE)

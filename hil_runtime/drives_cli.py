@@ -175,6 +175,7 @@ def jog(
     import numpy as np
 
     from drivers.drive_bus import DriveBus
+    from drivers.eds_check import check_bus, raise_first_error
     from hil_runtime.config import RuntimeConfigError, load_runtime_config
     from hil_runtime.loading import load_bundle_for, safety_limits_for
     from hil_runtime.supervisor import SafetyLimits, Supervisor
@@ -193,6 +194,7 @@ def jog(
         )
     if not (math.isfinite(seconds) and 0 < seconds <= JOG_MAX_S):
         raise RuntimeConfigError(f"{config}: --seconds {seconds}: must be in (0, {JOG_MAX_S:g}]")
+    raise_first_error(check_bus(runtime.bus, str(config)))  # every drive of the config, before any is touched
     full = safety_limits_for(runtime, load_bundle_for(runtime))
     one = slice(index, index + 1)
     limits = SafetyLimits(
