@@ -22,10 +22,10 @@ import numpy as np
 from hil_runtime.machine import machine
 from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition, Mismatch
+from models.effort import deployable, effort_composite, effort_metrics, format_effort_table
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, LAW_TITLES, make_law
 from models.modes import make_controller
 from models.robots import RobotModel
-from models.effort import deployable, effort_composite, effort_metrics, format_effort_table
 from models.scoring import METRICS, composite_scores, improvement, run_metrics
 from models.sim import ControllerStack, SimConfig, Trajectory, simulate
 from sim_target.realism import RealismSpec

@@ -13,9 +13,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from models.conditions import Condition
+from models.effort import effort_metrics
 from models.hil_experiment.config import HilOptions, run_start, runtime_config_dict
 from models.robots import RobotModel
-from models.effort import effort_metrics
 from models.scoring import run_metrics
 
 if TYPE_CHECKING:
