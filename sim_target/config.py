@@ -207,6 +207,7 @@ class TargetConfig(_Frozen):
     plant: PlantConfig = PlantConfig()
     faults: tuple[Fault, ...] = ()
     control_socket: Path | None = None  # Unix socket for run-time faults; no network traffic
+    realism: str = "ideal"  # a realism profile (ideal, realistic, harsh) or a profile YAML (docs/realism.md)
 
     @model_validator(mode="after")
     def _check(self) -> TargetConfig:
@@ -247,6 +248,9 @@ def load_target_config(path: Path | str) -> TargetConfig:
     if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
         # Relative URDF paths are relative to the config file, not the working directory.
         data = {**data, "urdf": str((path.parent / data["urdf"]).resolve())}
+    realism = data.get("realism") if isinstance(data, dict) else None
+    if isinstance(realism, str) and realism not in ("ideal", "realistic", "harsh") and not Path(realism).is_absolute():
+        data = {**data, "realism": str((path.parent / realism).resolve())}  # a profile file, like urdf
     return parse_target_config(data, str(path))
 
 
