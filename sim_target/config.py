@@ -395,6 +395,15 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
                 raise TargetConfigError(f"{source}: plant.{field}: negative value")
     for i, fault in enumerate(config.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
+    if config.realism != "ideal":  # before pybullet starts: the profile's one line is the only output
+        from sim_target.realism import RealismError
+        from sim_target.realism_profiles import load_realism
+
+        try:
+            physics_step_s = config.period_s / config.plant.substeps
+            load_realism(config.realism, layout.n_joints, config.period_s, physics_step_s, [1.0] * layout.n_joints)
+        except RealismError as exc:
+            raise TargetConfigError(str(exc)) from None
     defaults = DriveBusConfig.model_fields
     try:
         check_bus_load(

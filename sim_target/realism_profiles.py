@@ -116,7 +116,7 @@ def bind_profile(
     n_joints: int,
     period_s: float,
     physics_step_s: float,
-    torque_limit_nm: np.ndarray,
+    torque_limit_nm: np.ndarray | list[float],
     seed: int | None = None,
 ) -> RealismSpec:
     """The profile for one arm and one plant: per-joint arrays, rates checked against the physics
@@ -176,7 +176,7 @@ def load_realism(
     n_joints: int,
     period_s: float,
     physics_step_s: float,
-    torque_limit_nm: np.ndarray,
+    torque_limit_nm: np.ndarray | list[float],
     seed: int | None = None,
 ) -> RealismSpec:
     """Read, validate and bind a profile in one call (one line and exit 2 on any bad value)."""
