@@ -80,12 +80,25 @@ def _say(text: str) -> None:
     print(f"hil run: {text}", file=sys.stderr, flush=True)
 
 
-def serve(config_path: Path | str, record_path: Path | None = None, record_cycles: int = 0) -> int:
+def serve(
+    config_path: Path | str, record_path: Path | None = None, record_cycles: int = 0, urdf: Path | None = None
+) -> int:
     """Run the daemon until SIGTERM/SIGINT (or loop.duration_s); the process exit code."""
     config = load_runtime_config(config_path)
     notifier = Notifier.from_environment()
-    runtime = build_runtime(config, notifier=notifier, record_cycles=record_cycles)
+    mcap = record_path is not None and record_path.suffix.lower() == ".mcap"
+    runtime = build_runtime(config, notifier=notifier, record_cycles=0 if mcap else record_cycles)
     runtime.telemetry = make_telemetry(config, runtime)
+    recording: Any = None
+    if mcap:  # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
+        from hil_runtime.formats.mcap_record import mcap_sink_for_run
+        from hil_runtime.telemetry.sink import FanOutTelemetry
+
+        assert record_path is not None
+        recording = mcap_sink_for_run(
+            record_path, config.robot, config.joint_names, runtime.bundle, config.period_s, urdf
+        )
+        runtime.telemetry = FanOutTelemetry(runtime.telemetry, recording)
     configured = threading.Event()
 
     def say_state(state: LifecycleState, fault: str | None) -> None:
@@ -137,8 +150,10 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
         notifier.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if record_path is not None and runtime.record.n:
+    if record_path is not None and not mcap and runtime.record.n:
         runtime.record.save_npz(record_path)
+    if recording is not None:
+        _say(f"recorded {recording.recorder.states_written} cycles to {record_path}, {recording.dropped} dropped")
     if "error" in outcome:
         _say(f"loop failed: {outcome['error']!r}")
         return 1
