@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from models.conditions import load_conditions
+from models.conditions import Condition, load_conditions
 from models.feedback import make_law
 from models.modes import make_controller
 from models.robots import load_robot
@@ -33,7 +33,7 @@ TOLERANCE_RAD = 1e-2
 SECTION_TOLERANCE_RAD = 1e-3
 
 
-def _condition() -> object:
+def _condition() -> Condition:
     robot = load_robot("ur5_paper")
     c1 = load_conditions(None, robot=robot)[0]
     return replace(c1, duration_s=DURATION_S, disturbance=replace(c1.disturbance, time_s=0.5))

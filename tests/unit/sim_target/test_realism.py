@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import pytest
 from sim_target.realism import (
     RealismError,
     RealismModel,
+    RealismSpec,
     encoder_step_rad,
     friction_nm,
     lag_period,
@@ -22,7 +24,7 @@ PERIOD_S = 1e-3
 LIMIT_NM = np.array([102.0, 102.0, 66.0, 34.0, 34.0, 34.0])
 
 
-def spec(**sections: dict) -> object:
+def spec(**sections: Any) -> RealismSpec:
     return bind_profile(parse_profile(sections, "test"), "test", 6, PERIOD_S, PERIOD_S / 32, LIMIT_NM)
 
 
