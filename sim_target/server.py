@@ -396,14 +396,19 @@ def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBa
     return drive_module.make_drive_bank(bus, node_ids, config, own_thread=False)  # served by run()
 
 
-def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]]:
-    """Plant, bus (and bridge), drives and control socket; returns the server and a closer."""
+def build_server(config: TargetConfig, can_log: Path | None = None) -> tuple[TargetServer, Callable[[], None]]:
+    """Plant, bus (and bridge), drives and control socket; returns the server and a closer.
+    ``can_log``: every frame the drives send or receive also goes to this capture (docs/formats.md)."""
     plant = make_plant(config)
     bridge: BridgeServer | None = None
     try:
         if config.bridge is not None:
             bridge = start_bridge_server(config.bridge.host, config.bridge.port, config.bus.channel)
         bus = open_bus(config.bus)
+        if can_log is not None:
+            from drivers.capture import CanCapture, CaptureBus
+
+            bus = CaptureBus(bus, CanCapture(can_log))
         try:
             drives = make_drives(config, bus, plant.n_joints)
         except Exception:
