@@ -354,7 +354,7 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
     urdf = config.urdf if config.urdf is not None else default_urdf_path(config.robot or "ur5_paper")
     plant_cfg = config.plant
     try:
-        return PybulletPlant(
+        plant = PybulletPlant(
             urdf,
             period_s=config.period_s,
             substeps=config.substeps,
@@ -367,6 +367,23 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
         )
     except ValueError as exc:  # PlantError and the robot loader's ModelInputError
         raise TargetConfigError(f"plant: {exc}") from None
+    if config.realism != "ideal":
+        from sim_target.realism_profiles import load_realism
+
+        try:  # RealismError names the profile file and field; the plant's own refusals say "realism:"
+            plant.use_realism(
+                load_realism(
+                    config.realism,
+                    plant.n_joints,
+                    config.period_s,
+                    config.period_s / plant.substeps,
+                    plant.torque_limit_nm,
+                )
+            )
+        except ValueError as exc:
+            plant.close()
+            raise TargetConfigError(str(exc)) from None
+    return plant
 
 
 def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBank:
