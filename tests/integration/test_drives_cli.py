@@ -195,7 +195,7 @@ def test_bad_drive_config_is_one_line_exit_2_and_nothing_enabled(
     with target_in_process(channel, 0.001, drives=drives) as target:  # the drives are there: none may move
         code, _, err = run_cli(capsys, *argv)
         assert not target.drives.operation_enabled().any()
-        assert target.drives.counters.syncs == 0  # nothing cycled: refused before the first SYNC
+        assert target.stats.steps == 0  # nothing cycled: refused before the first SYNC
     assert code == 2, err
     assert err.count("\n") == 1 and "Traceback" not in err, err
     assert expected in err, err
@@ -211,7 +211,7 @@ def test_a_node_answering_with_another_device_profile(tmp_path: Path, capsys: py
     with target_in_process(channel, 0.001, drives={"node_ids": list(NODE_IDS), "profiles": profiles}) as target:
         code, out, err = run_cli(capsys, "drives", "check", "--config", str(config))
         assert not target.drives.operation_enabled().any()
-        assert target.drives.counters.syncs == 0
+        assert target.stats.steps == 0
     assert code == 2, err
     assert err.count("\n") == 1
     assert "maxon_epos4_50_15.dcf: node 5: 0x1000:00: device type 0x00000191, profile 401, not CiA 402" in err
