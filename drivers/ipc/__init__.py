@@ -5,6 +5,6 @@ over Unix SOCK_SEQPACKET sockets, frames in SocketCAN's layout (docs/ipc_bus.md)
 - :mod:`drivers.ipc.bus`: :class:`~drivers.ipc.bus.IpcBus`, registered as ``can.Bus(interface="ipc")``.
 """
 
-from drivers.ipc.bus import IpcBus, IpcBusStats, bus_directory
+from drivers.ipc.bus import IpcBus, IpcBusStats, IpcMessage, Sender, bus_directory
 
-__all__ = ["IpcBus", "IpcBusStats", "bus_directory"]
+__all__ = ["IpcBus", "IpcBusStats", "IpcMessage", "Sender", "bus_directory"]
