@@ -43,6 +43,7 @@ from collections.abc import Sequence
 import can
 import numpy as np
 
+from drivers.bus_guard import BusGuard, master_listen_s
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
@@ -88,6 +89,16 @@ class _Services:
         self.master_heartbeat = HeartbeatProducer(network, config.master_node_id, config.master_heartbeat_ms / 1000)
         network.supervise = self.heartbeats.check
         network.produce = self.master_heartbeat.send_if_due
+        tpdo_bases = (fr.TPDO1_BASE,) if config.transport.fd else (fr.TPDO1_BASE, fr.TPDO2_BASE)
+        self.guard = BusGuard(
+            network,
+            config.node_ids,
+            config.master_node_id,
+            (base + node.node_id for base in tpdo_bases for node in nodes),
+            config.heartbeat_producer_ms / 1000,
+            lambda: self.exchange.cycle,
+        )
+        network.watch = self.guard.watch
 
 
 class DriveBus:
@@ -166,8 +177,10 @@ class DriveBus:
             if self._services is None:
                 self._services = _Services(self.config, network, self.nodes, self._sync)
             network.start()
+            self._services.guard.check_no_master(master_listen_s(self.config))  # before our first frame
             self._services.master_heartbeat.start()
             self._start_up(self._services)
+            self._services.guard.arm()
         except BaseException:
             self.close()
             raise
