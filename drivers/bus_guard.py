@@ -10,7 +10,8 @@ CAN has one sender per identifier and one NMT master per network. Every received
   refuses the bus, :class:`MasterPresentError`, exit 2; later it is a :class:`BusIntruderError`.
 - **A second sender of a drive's frame** (TPDO, heartbeat, EMCY):
   - a transport that says who sent each frame (the ipc bus: ``msg.sender``, one per connection,
-    from SO_PEERCRED) names a sender other than the first one seen for that identifier;
+    from SO_PEERCRED) names a sender other than the first one seen for that drive (its boot-up
+    message, at start-up);
   - a drive answers each SYNC with one frame per TPDO: more TPDOs of one identifier than SYNCs
     sent since the guard was armed means someone else answers too (a forger that answers each
     SYNC is caught by the second cycle);
@@ -79,7 +80,7 @@ class BusGuard:
         }
         self._drive_cob_ids = {*self._tpdo_frames, *self._heartbeats, *(fr.EMCY_BASE + n for n in self.node_ids)}
         self._heartbeat_window_s = HEARTBEAT_WINDOW_PERIODS * heartbeat_period_s
-        self._senders: dict[int, object] = {}  # COB-ID -> the first sender seen (transports that say)
+        self._senders: dict[int, object] = {}  # node id -> the first sender of its frames (transports that say)
         self.armed = False
         self.tripped: str | None = None  # what was seen, once
         self.foreign_master: str | None = None
@@ -115,9 +116,12 @@ class BusGuard:
             return
         sender = getattr(msg, "sender", None)
         if sender is not None:
-            first = self._senders.setdefault(cob_id, sender)
+            node_id = cob_id & 0x7F  # every frame of one drive comes from one sender
+            first = self._senders.setdefault(node_id, sender)
             if sender != first:
-                self._trip(f"second sender of 0x{cob_id:03X}: {_describe(sender)} besides {_describe(first)}")
+                self._trip(
+                    f"second sender of 0x{cob_id:03X} (drive {node_id}): {_describe(sender)} besides {_describe(first)}"
+                )
                 return
         if not self.armed:
             return

@@ -43,7 +43,7 @@ from collections.abc import Sequence
 import can
 import numpy as np
 
-from drivers.bus_guard import BusGuard, master_listen_s
+from drivers.bus_guard import BusGuard, MasterPresentError, master_listen_s
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
@@ -181,6 +181,9 @@ class DriveBus:
             self._services.master_heartbeat.start()
             self._start_up(self._services)
             self._services.guard.arm()
+        except MasterPresentError:
+            self._close(stop_drives=False)  # not ours: not a single frame to another master's drives
+            raise
         except BaseException:
             self.close()
             raise
@@ -327,6 +330,9 @@ class DriveBus:
     def close(self) -> None:
         """Disable the drives if enabled, stop their PDOs (NMT pre-operational), release the bus.
         Never raises for a failing bus: what stopped the run is the error the caller sees."""
+        self._close(stop_drives=True)
+
+    def _close(self, stop_drives: bool) -> None:
         if self._enabled:
             try:
                 self.disable()
@@ -334,7 +340,7 @@ class DriveBus:
                 log.warning("disable on close failed: %s", exc)
         self._enabled = False
         network, services = self._network, self._services
-        if network.bus is not None and network.receiving:
+        if network.bus is not None and network.receiving and stop_drives:
             if services is not None:
                 services.heartbeats.armed = False
             for node_id in self.node_ids:
