@@ -416,7 +416,7 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
     for i, fault in enumerate(config.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
     if config.bus.interface == "ipc":
-        from drivers.ipc.bus import channel_problem
+        from drivers.ipc.directory import channel_problem
 
         problem = channel_problem(config.bus.channel, config.bus.group)
         if problem is not None:

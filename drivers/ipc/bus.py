@@ -53,15 +53,9 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
+from drivers.ipc.directory import IpcMessage, IpcPathError, Sender, bus_directory
 from drivers.ipc.frame import CANFD_MTU, FrameError, decode, encode, rx_overflow_frame
-from drivers.ownership import (
-    OwnershipError,
-    check_existing_directory,
-    group_id,
-    peer_allowed,
-    peer_credentials,
-    private_directory,
-)
+from drivers.ownership import OwnershipError, group_id, peer_allowed, peer_credentials, private_directory
 
 if TYPE_CHECKING:
     from drivers.config import TransportConfig
@@ -73,44 +67,6 @@ MAX_PATH_BYTES = 107  # sun_path is 108 bytes with the terminating NUL
 DEFAULT_QUEUE_BYTES = 1 << 20  # per peer pair: ~2700 FD frames queued before a slow reader loses some
 _CONNECT_TIMEOUT_S = 1.0
 _WAKE = b"\x00"  # one byte on the loopback pair: shutdown wakes a blocked reader
-
-
-def bus_directory(channel: str | os.PathLike[str]) -> Path:
-    """The directory a channel names: a path as given; a bare name under ``$XDG_RUNTIME_DIR/hil-can``
-    (the user's private runtime directory), or ``/run/hil/can`` without one (a service's
-    ``RuntimeDirectory=hil``). Never a fixed name in a shared directory such as /tmp."""
-    text = os.fspath(channel)
-    if not text:
-        raise ValueError("ipc bus channel is empty")
-    if os.sep in text or text.startswith("."):
-        return Path(text)
-    runtime_dir = os.environ.get("XDG_RUNTIME_DIR")
-    base = Path(runtime_dir) / "hil-can" if runtime_dir else Path("/run/hil/can")
-    return base / text
-
-
-class IpcPathError(can.CanInitializationError):
-    """The bus directory cannot be used: not a directory, another user's, writable by others."""
-
-
-@dataclass(frozen=True)
-class Sender:
-    """Who sent a received frame: the connection it came on (unique within the receiving bus, one
-    per other bus instance) and that process's credentials (SO_PEERCRED)."""
-
-    peer: int
-    pid: int
-    uid: int
-
-
-class IpcMessage(can.Message):
-    """A received frame with its :class:`Sender` (``None`` on frames built locally)."""
-
-    __slots__ = ("sender",)
-
-    def __init__(self, *args: Any, sender: Sender | None = None, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.sender = sender
 
 
 @dataclass
@@ -493,24 +449,6 @@ class IpcBus(can.BusABC):
             obj = getattr(self, closable, None)
             if obj is not None:
                 obj.close()
-
-
-def channel_problem(channel: str, group: str | None = None) -> str | None:
-    """Why an existing bus directory could not be joined (a file, another user's, writable by
-    others), or None: for config checks, before anything is opened. Creates nothing."""
-    try:
-        directory = bus_directory(channel).absolute()
-    except ValueError as exc:
-        return str(exc)
-    if not os.path.lexists(directory):
-        return None
-    try:
-        check_existing_directory(directory, group_id(group))
-    except KeyError:
-        return f"no such group {group!r}"
-    except OSError as exc:
-        return str(exc) if isinstance(exc, OwnershipError) else f"{directory}: {exc.strerror or exc}"
-    return None
 
 
 def open_bus(config: TransportConfig) -> IpcBus:
