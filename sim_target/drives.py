@@ -417,10 +417,14 @@ class EmulatedDrives:
             except Exception:  # keep the bus alive; the plant owner logs its own
                 log.exception("SYNC handler failed")
         position, velocity, torque = self._scaled_feedback()
-        for drive in drives:
-            if drive.nmt is fr.NmtState.OPERATIONAL:
-                i = drive.index
-                pdo.send_tpdos(link, drive, position[i], velocity[i], torque[i], counter)
+        link.begin_batch()
+        try:
+            for drive in drives:
+                if drive.nmt is fr.NmtState.OPERATIONAL:
+                    i = drive.index
+                    pdo.send_tpdos(link, drive, position[i], velocity[i], torque[i], counter)
+        finally:
+            link.flush()
 
     def _scaled_feedback(self) -> tuple[list[int], list[int], list[int]]:
         """The published state in each drive's units (counts, counts/s, ‰), all joints at once.
@@ -431,13 +435,12 @@ class EmulatedDrives:
         if feedback is None:
             return [0] * n, [0] * n, [0] * n
         position, velocity, torque = (a.tolist() for a in feedback)
-        position_counts, velocity_counts, torque_permille = [], [], []
-        for drive, q, qd, tau in zip(self._drives, position, velocity, torque, strict=True):
-            counts = drive.counts_per_rad
-            position_counts.append(_clip_int(q * counts, _INT32_MIN, _INT32_MAX))
-            velocity_counts.append(_clip_int(qd * counts, _INT32_MIN, _INT32_MAX))
-            torque_permille.append(_clip_int(tau * 1e6 / drive.rated_torque_mnm, -32768, 32767))
-        return position_counts, velocity_counts, torque_permille
+        drives = self._drives
+        return (
+            [_clip_int(q * d.counts_per_rad, _INT32_MIN, _INT32_MAX) for d, q in zip(drives, position, strict=True)],
+            [_clip_int(v * d.counts_per_rad, _INT32_MIN, _INT32_MAX) for d, v in zip(drives, velocity, strict=True)],
+            [_clip_int(t * 1e6 / d.rated_torque_mnm, -32768, 32767) for d, t in zip(drives, torque, strict=True)],
+        )
 
     # --- sending ---------------------------------------------------------------------------------
 
