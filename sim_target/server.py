@@ -113,9 +113,10 @@ class ServerStats:
 
 _LOCKSTEP_WAKE_S = 0.05  # lock-step: the loop thread looks at the fault queue at least this often
 # Phase lock of the physics ticks to the master's SYNC (TargetServer._lock_phase_to_sync): the
-# tick lands this fraction of a period before the expected SYNC; each SYNC corrects a quarter of
-# the phase error, at most an eighth of a period (SYNC jitter is filtered, never a burst of ticks).
-_SYNC_LEAD = 0.2
+# tick lands this fraction of a period after a SYNC (the master's jitter must not bring the next
+# SYNC into a running tick); each SYNC corrects a quarter of the phase error, at most an eighth
+# of a period (SYNC jitter is filtered, never a burst of ticks).
+_TICK_AFTER_SYNC = 0.25
 _PHASE_GAIN = 0.25
 _MAX_PHASE_STEP = 0.125
 _COST_PROBE_STEPS = 200  # physics steps timed at start-up (clock: realtime)
@@ -172,14 +173,15 @@ class TargetServer:
         self.drives.publish_feedback(self.plant.state())
 
     def _lock_phase_to_sync(self, sync_s: float) -> None:
-        """Real time: move the next physics tick towards ``_SYNC_LEAD`` of a period before the next
-        SYNC is expected, a bounded step per SYNC (a PLL, as a CiA 402 drive synchronises its cycle
-        to SYNC). The state a SYNC is answered with is then at most that old, and a torque latched at
-        one SYNC acts from the next tick on: one period from sample to torque, a real cyclic drive's
-        delay; unlocked, the phase is random and the delay up to two periods. The tick rate stays
-        the master's (the wall clock's); without SYNCs the ticks run on at their own period."""
+        """Real time: move the next physics tick towards ``_TICK_AFTER_SYNC`` of a period after
+        this SYNC, a bounded step per SYNC (a PLL, as a CiA 402 drive synchronises its cycle to
+        SYNC). A tick then never runs while a SYNC waits: the SYNC is answered at once. (Whatever
+        the phase, a torque latched at one SYNC is integrated over the next period: one period
+        from a sample to the torque computed from it, as with a real cyclic drive, where
+        lock-step has none.) The tick rate stays the master's, i.e. the wall clock's; without
+        SYNCs the ticks run on at their own period."""
         period_s = self.config.period_s
-        error_s = self._deadline_s - (sync_s + period_s * (1.0 - _SYNC_LEAD))
+        error_s = self._deadline_s - (sync_s + period_s * _TICK_AFTER_SYNC)
         error_s = (error_s + period_s / 2) % period_s - period_s / 2  # the nearest tick, (-T/2, T/2]
         step_s = max(-_MAX_PHASE_STEP * period_s, min(_MAX_PHASE_STEP * period_s, _PHASE_GAIN * error_s))
         self._deadline_s -= step_s
