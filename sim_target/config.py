@@ -231,6 +231,7 @@ class TargetConfig(_Frozen):
     plant: PlantConfig = PlantConfig()
     faults: tuple[Fault, ...] = ()
     control_socket: Path | None = None  # Unix socket for run-time faults; no network traffic
+    realism: str = "ideal"  # a realism profile (ideal, realistic, harsh) or a profile YAML (docs/realism.md)
     realtime: RealtimeConfig = RealtimeConfig()
 
     @property
@@ -279,6 +280,9 @@ def load_target_config(path: Path | str) -> TargetConfig:
     if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
         # Relative URDF paths are relative to the config file, not the working directory.
         data = {**data, "urdf": str((path.parent / data["urdf"]).resolve())}
+    realism = data.get("realism") if isinstance(data, dict) else None
+    if isinstance(realism, str) and realism not in ("ideal", "realistic", "harsh") and not Path(realism).is_absolute():
+        data = {**data, "realism": str((path.parent / realism).resolve())}  # a profile file, like urdf
     return parse_target_config(data, str(path))
 
 
@@ -423,6 +427,15 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
                 raise TargetConfigError(f"{source}: plant.{field}: negative value")
     for i, fault in enumerate(config.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
+    if config.realism != "ideal":  # before pybullet starts: the profile's one line is the only output
+        from sim_target.realism import RealismError
+        from sim_target.realism_profiles import load_realism
+
+        try:
+            physics_step_s = config.period_s / config.substeps
+            load_realism(config.realism, layout.n_joints, config.period_s, physics_step_s, [1.0] * layout.n_joints)
+        except RealismError as exc:
+            raise TargetConfigError(str(exc)) from None
     defaults = DriveBusConfig.model_fields
     try:
         check_bus_load(

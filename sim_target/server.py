@@ -383,7 +383,7 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
     urdf = config.urdf if config.urdf is not None else default_urdf_path(config.robot or "ur5_paper")
     plant_cfg = config.plant
     try:
-        return PybulletPlant(
+        plant = PybulletPlant(
             urdf,
             period_s=config.period_s,
             substeps=config.substeps,
@@ -396,6 +396,23 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
         )
     except ValueError as exc:  # PlantError and the robot loader's ModelInputError
         raise TargetConfigError(f"plant: {exc}") from None
+    if config.realism != "ideal":
+        from sim_target.realism_profiles import load_realism
+
+        try:  # RealismError names the profile file and field; the plant's own refusals say "realism:"
+            plant.use_realism(
+                load_realism(
+                    config.realism,
+                    plant.n_joints,
+                    config.period_s,
+                    config.period_s / plant.substeps,
+                    plant.torque_limit_nm,
+                )
+            )
+        except ValueError as exc:
+            plant.close()
+            raise TargetConfigError(str(exc)) from None
+    return plant
 
 
 def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBank:
@@ -408,14 +425,19 @@ def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBa
     return drive_module.make_drive_bank(bus, node_ids, config, own_thread=False)  # served by run()
 
 
-def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]]:
-    """Plant, bus (and bridge), drives and control socket; returns the server and a closer."""
+def build_server(config: TargetConfig, can_log: Path | None = None) -> tuple[TargetServer, Callable[[], None]]:
+    """Plant, bus (and bridge), drives and control socket; returns the server and a closer.
+    ``can_log``: every frame the drives send or receive also goes to this capture (docs/formats.md)."""
     plant = make_plant(config)
     bridge: BridgeServer | None = None
     try:
         if config.bridge is not None:
             bridge = start_bridge_server(config.bridge.host, config.bridge.port, config.bus.channel)
         bus = open_bus(config.bus)
+        if can_log is not None:
+            from drivers.capture import CanCapture, CaptureBus
+
+            bus = CaptureBus(bus, CanCapture(can_log))
         try:
             drives = make_drives(config, bus, plant.n_joints)
         except Exception:

@@ -41,6 +41,13 @@ def demo(
         str,
         typer.Option(help="--realtime: CPUs of the runtime's loop and the target's physics: auto, none or R,T."),
     ] = "auto",
+    realism: Annotated[
+        str,
+        typer.Option(
+            help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
+            metavar="PROFILE|FILE",
+        ),
+    ] = "ideal",
 ) -> None:
     """Run the runtime (hil run) on the pybullet arm (hil target serve) as separate processes over the
     ipc CAN bus at 1 kHz, watch its telemetry live, stop everything, write the run and its scores."""
@@ -56,6 +63,7 @@ def demo(
         realtime=realtime,
         target_substeps=target_substeps,
         cpus=cpus,
+        realism=realism,
     )
     created = not out.exists()
     try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from models.demo.options import DemoOptions
+from models.demo.options import DemoOptions, target_substeps
 
 
 def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_socket: Path) -> dict[str, Any]:
@@ -19,8 +19,11 @@ def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_
         "period_s": period_s,
         "clock": "realtime" if options.realtime else "lockstep",
         "bus": {"interface": "ipc", "channel": str(bus_dir), **CAN_FD},
-        "plant": {} if options.target_substeps is None else {"substeps": options.target_substeps},
+        "plant": {"substeps": target_substeps(options)},
         "control_socket": str(control_socket),
+        "realism": options.realism
+        if options.realism in ("ideal", "realistic", "harsh")
+        else str(Path(options.realism).resolve()),
     }
     if options.realtime:  # SCHED_FIFO and mlockall by default; its own CPU, apart from the runtime's
         data["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
