@@ -217,10 +217,10 @@ class RealtimeConfig(_Frozen):
 
     @model_validator(mode="after")
     def _check(self) -> RealtimeConfig:
-        if self.cpus is not None:
-            available = sorted(os.sched_getaffinity(0))
-            if not self.cpus or any(cpu not in available for cpu in self.cpus):
-                raise ValueError(f"cpus {list(self.cpus)}: this machine offers {available}")
+        if self.cpus is not None:  # the machine's CPUs (a CPU outside this process's mask: a warning later)
+            count = os.cpu_count() or 1
+            if not self.cpus or any(not 0 <= cpu < count for cpu in self.cpus):
+                raise ValueError(f"cpus {list(self.cpus)}: this machine has CPUs 0..{count - 1}")
         return self
 
 
