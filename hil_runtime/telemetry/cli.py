@@ -158,6 +158,41 @@ def record(
 
 
 @telemetry_app.command()
+def foxglove(
+    host: Annotated[str, typer.Option("--host", help="where the Foxglove WebSocket server listens")] = "127.0.0.1",
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="its port (0: any free one)")] = 8765,
+    rate_hz: Annotated[float, typer.Option("--rate-hz", min=1.0, max=1000.0, help="states republished per s")] = 50.0,
+    seconds: Annotated[float | None, typer.Option("--seconds", min=0.1, help="stop after [default: Ctrl-C]")] = None,
+    urdf: Annotated[Path | None, typer.Option("--urdf", help="the arm's URDF [default: the bundle's]")] = None,
+    allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen beyond loopback")] = False,
+    robot: RobotOption = None,
+    connect: ConnectOption = None,
+    timeout: TimeoutOption = 3.0,
+    zenoh_config: ZenohConfigOption = None,
+) -> None:
+    """Republish the telemetry live to Foxglove (ws://HOST:PORT) with the arm's URDF (docs/formats.md)."""
+    from hil_runtime.formats.foxglove_live import FoxgloveBridge, FoxgloveError, run_bridge, urdf_text_for
+    from hil_runtime.telemetry.config import is_loopback_endpoint
+
+    if not allow_remote and not is_loopback_endpoint(f"tcp/{host}:{port}"):
+        raise FoxgloveError(f"--host {host}: not loopback (127.0.0.1/::1); pass --allow-remote to serve beyond it")
+    with _client(robot, connect, timeout, zenoh_config) as client:
+        schema = client.schema()
+        bridge = FoxgloveBridge(schema.joints, urdf_text_for(client, schema.robot, urdf), host, port, rate_hz)
+        try:
+            print(
+                f"Foxglove: open ws://{host}:{bridge.port} (hil/{client.robot}, "
+                f"{'URDF attached' if bridge.urdf_text else 'no URDF found'}); Ctrl-C to stop",
+                file=sys.stderr,
+                flush=True,
+            )
+            run_bridge(client, bridge, seconds)
+        finally:
+            bridge.close()
+    print(f"republished {bridge.states_out} of {bridge.states_in} states", file=sys.stderr)
+
+
+@telemetry_app.command()
 def plot(
     path: Annotated[Path, typer.Argument(help="a record from 'hil telemetry record' (or 'hil run --record')")],
     out_dir: Annotated[Path | None, typer.Option("--out-dir", help="where the PNGs go [default: beside FILE]")] = None,

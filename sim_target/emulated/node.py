@@ -111,6 +111,7 @@ class EmulatedDrive:
     rated_torque_mnm: int = 1000  # 0x6076 as the drive holds it (in its own unit with a profile)
     # Joint N·m per (per mille x one unit of 0x6076): 1e-6 for 0x6076 in mN·m, no gear; a profile's own.
     torque_unit_nm: float = 1e-6
+    units_per_nm: float = 1e6  # 1 / torque_unit_nm, kept exact for the default drive (bit-identical frames)
     profile: DriveProfile | None = None  # a vendor's dictionary and motor (sim_target/emulated/profile.py)
     max_torque_permille: int = 1000
     quick_stop_option: int = 2

@@ -127,7 +127,7 @@ class ObjectServer:
                     return clamp32(round(float(feedback[0][i]) * drive.counts_per_rad))
                 if index == odx.VELOCITY_ACTUAL:
                     return clamp32(round(float(feedback[1][i]) * drive.counts_per_rad))
-                return clamp16(round(float(feedback[2][i]) / (drive.rated_torque_mnm * drive.torque_unit_nm)))
+                return clamp16(round(float(feedback[2][i]) * drive.units_per_nm / drive.rated_torque_mnm))
             return None
 
         return read
