@@ -148,3 +148,19 @@ def test_scaling_from_spec_and_drive_values() -> None:
     scale = spec_scale(spec, {"rated_torque": 512_871})
     assert scale.nm_per_permille == pytest.approx(-512_871e-6 * 160 / 1000)  # polarity -1
     assert scale.counts_per_rad == pytest.approx(-3200 * 160 / (2 * 3.141592653589793))
+
+
+DEPLOY_DRIVES = Path(__file__).resolve().parents[3] / "deploy" / "drives"
+
+
+@pytest.mark.parametrize("config", sorted(DEPLOY_DRIVES.glob("*.runtime.yaml")), ids=lambda p: p.name)
+def test_the_shipped_vendor_configs_pass_their_eds_checks(config: Path) -> None:
+    from hil_runtime.config import load_runtime_config
+    from sim_target.config import load_target_config
+
+    runtime = load_runtime_config(config)
+    assert all(joint.drive is not None and joint.drive.eds.is_file() for joint in runtime.bus.joints)
+    assert errors(check_bus(runtime.bus)) == []
+    target = load_target_config(config.with_name(config.name.replace(".runtime.", ".target.")))
+    assert target.drives.profiles is not None and all(p.eds.is_file() for p in target.drives.profiles)
+    assert target.bus.channel == runtime.bus.transport.channel
