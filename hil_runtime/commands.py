@@ -30,7 +30,9 @@ ConfigOption = Annotated[Path | None, typer.Option("--config", help="the daemon'
 def run(
     config: Annotated[Path, typer.Option("--config", help="runtime config, YAML (deploy/*.yaml)")],
     record: Annotated[Path | None, typer.Option("--record", help="write the run's per-cycle record (.npz)")] = None,
-    record_cycles: Annotated[int, typer.Option(help="rows kept for --record (preallocated, ~330 B each)")] = 60_000,
+    record_cycles: Annotated[
+        int, typer.Option(min=1, max=3_600_000, help="rows kept for --record (preallocated, ~330 B each)")
+    ] = 60_000,
     check: Annotated[bool, typer.Option("--check", help="validate config, bundle and condition; touch no bus")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
@@ -39,6 +41,10 @@ def run(
     from hil_runtime.daemon import serve
 
     if check:
+        if record is not None:
+            from hil_runtime.record import check_record_path
+
+            check_record_path(record)
         print(check_config(config))
         return
 

@@ -7,6 +7,11 @@ loop's :class:`~hil_runtime.telemetry.sink.CycleState`); ``hil run --record`` sa
 
 from __future__ import annotations
 
+import contextlib
+import os
+import stat
+import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,7 +19,40 @@ from typing import Any
 import numpy as np
 
 from hil_runtime.lifecycle import LifecycleState
+from hil_runtime.outputs import OutputError
 from hil_runtime.telemetry.sink import CycleState
+
+RECORD_SUFFIXES: tuple[str, ...] = (".npz",)  # what ``hil run --record`` writes, by the file's suffix
+MAX_RECORD_CYCLES = 3_600_000  # an hour at 1 kHz, ~1.2 GB preallocated (~330 B a row)
+
+
+def check_record_path(path: Path | str, suffixes: Sequence[str] = RECORD_SUFFIXES, option: str = "--record") -> Path:
+    """The path a record will be written to, refused (:class:`OutputError`, exit 2) before the run
+    when it could not be: a suffix not in ``suffixes`` (the format is chosen by it), an existing
+    directory, device, FIFO or socket (``/dev/full``), a parent that is missing, not a directory
+    or not writable (a probe file proves it: ``os.access`` says yes to root on a read-only mount)."""
+    path = Path(path).expanduser()
+    where = f"{option} {path}"
+    if path.exists() or path.is_symlink():
+        try:
+            mode = path.stat().st_mode
+        except OSError as exc:
+            raise OutputError(f"{where}: cannot use it ({exc.strerror or exc})") from None
+        if not stat.S_ISREG(mode):
+            kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+            raise OutputError(f"{where}: {kind} (the record replaces a regular file or creates one)")
+    if path.suffix not in suffixes:
+        raise OutputError(f"{where}: the name must end in {' or '.join(suffixes)} (the format is chosen by it)")
+    parent = path.parent
+    if not parent.is_dir():
+        raise OutputError(f"{where}: {parent} is not an existing directory")
+    try:
+        handle, probe = tempfile.mkstemp(dir=parent, prefix=f".{path.stem}.probe-", suffix=path.suffix)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as exc:
+        raise OutputError(f"{where}: {parent} is not writable ({exc.strerror or exc})") from None
+    return path
 
 
 class RunRecord:
@@ -67,8 +105,13 @@ class RunRecord:
         """Written whole or not at all (a temporary name, then a rename): never half a file."""
         from hil_runtime.outputs import atomic_path
 
-        with atomic_path(path) as tmp:
-            np.savez_compressed(tmp, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+        # Through an open file: np.savez appends '.npz' to a name without it, and the renamed file
+        # would then be missing while the written one stayed behind as a hidden partial file.
+        with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+            np.savez_compressed(handle, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+            handle.flush()
+            with contextlib.suppress(OSError):  # a pipe or a special file cannot be synced
+                os.fsync(handle.fileno())
 
 
 @dataclass
