@@ -10,8 +10,6 @@ from __future__ import annotations
 import contextlib
 import os
 import stat
-import tempfile
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,40 +17,9 @@ from typing import Any
 import numpy as np
 
 from hil_runtime.lifecycle import LifecycleState
-from hil_runtime.outputs import OutputError
 from hil_runtime.telemetry.sink import CycleState
 
-RECORD_SUFFIXES: tuple[str, ...] = (".npz",)  # what ``hil run --record`` writes, by the file's suffix
-MAX_RECORD_CYCLES = 3_600_000  # an hour at 1 kHz, ~1.2 GB preallocated (~330 B a row)
-
-
-def check_record_path(path: Path | str, suffixes: Sequence[str] = RECORD_SUFFIXES, option: str = "--record") -> Path:
-    """The path a record will be written to, refused (:class:`OutputError`, exit 2) before the run
-    when it could not be: a suffix not in ``suffixes`` (the format is chosen by it), an existing
-    directory, device, FIFO or socket (``/dev/full``), a parent that is missing, not a directory
-    or not writable (a probe file proves it: ``os.access`` says yes to root on a read-only mount)."""
-    path = Path(path).expanduser()
-    where = f"{option} {path}"
-    if path.exists() or path.is_symlink():
-        try:
-            mode = path.stat().st_mode
-        except OSError as exc:
-            raise OutputError(f"{where}: cannot use it ({exc.strerror or exc})") from None
-        if not stat.S_ISREG(mode):
-            kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
-            raise OutputError(f"{where}: {kind} (the record replaces a regular file or creates one)")
-    if path.suffix not in suffixes:
-        raise OutputError(f"{where}: the name must end in {' or '.join(suffixes)} (the format is chosen by it)")
-    parent = path.parent
-    if not parent.is_dir():
-        raise OutputError(f"{where}: {parent} is not an existing directory")
-    try:
-        handle, probe = tempfile.mkstemp(dir=parent, prefix=f".{path.stem}.probe-", suffix=path.suffix)
-        os.close(handle)
-        os.unlink(probe)
-    except OSError as exc:
-        raise OutputError(f"{where}: {parent} is not writable ({exc.strerror or exc})") from None
-    return path
+MAX_RECORD_CYCLES = 3_600_000  # an hour at 1 kHz, ~1.2 GB preallocated (~330 B a row); hil run --record-cycles
 
 
 class RunRecord:
@@ -124,3 +91,24 @@ class RunResult:
     cycles: int
     stats: dict[str, Any]
     fault_cycle: int | None = None  # exchanges in ACTIVE when the last fault was entered
+
+
+RECORD_SUFFIXES = {".npz": "npz", ".mcap": "mcap"}
+
+
+def check_record_path(path: Path, option: str = "--record") -> str:
+    """Before the run: the record's format from its suffix (``npz`` or ``mcap``), its directory
+    created and proved writable (a probe file), no directory, device, FIFO or socket in its place
+    (``/dev/full``: the record would be lost after the run). OutputError (one line, exit 2) otherwise."""
+    from hil_runtime.outputs import OutputError, prepare_output_dir
+
+    kind = RECORD_SUFFIXES.get(path.suffix.lower())
+    if kind is None:
+        known = ", ".join(RECORD_SUFFIXES)
+        raise OutputError(f"{option} {path}: unknown record format {path.suffix or '(no suffix)'!r} (use {known})")
+    if path.is_dir():
+        raise OutputError(f"{option} {path}: a directory is in the way")
+    if path.exists() and not stat.S_ISREG(path.stat().st_mode):
+        raise OutputError(f"{option} {path}: not a regular file (a device, FIFO or socket is in the way)")
+    prepare_output_dir(path.parent if str(path.parent) else Path("."), option=option)
+    return kind

@@ -569,11 +569,12 @@ class Runtime:
         }
 
 
-def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
-    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet."""
+def build_runtime(config: RuntimeConfig, can_bus: Any = None, **kwargs: Any) -> Runtime:
+    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet.
+    ``can_bus``: an open python-can bus to use instead of opening the config's (a capture)."""
     from drivers.drive_bus import DriveBus
 
-    bus: JointBus = DriveBus(config.bus)
+    bus: JointBus = DriveBus(config.bus, bus=can_bus)
     return Runtime(config, bus, **kwargs)
 
 

@@ -20,6 +20,13 @@ class PlotError(ValueError):
 
 
 def load_record(path: Path) -> dict[str, Any]:
+    if path.suffix.lower() == ".mcap":  # hil run / hil telemetry record --out x.mcap (docs/formats.md)
+        from hil_runtime.formats.mcap_record import McapRecordError, read_mcap_record
+
+        try:
+            return read_mcap_record(path)
+        except McapRecordError as exc:
+            raise PlotError(str(exc)) from None
     try:
         with np.load(path, allow_pickle=False) as data:
             record = {name: data[name] for name in data.files}

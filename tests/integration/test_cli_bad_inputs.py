@@ -267,10 +267,10 @@ CASES: list[Case] = [
         files={"c.yaml": f"conditions:\n  - name: C1\n    amplitude_rad: {SIX}\n    duration_s: 1.0e8\n"},
     ),
     # --record (checked before the run) and --record-cycles
-    _record_case("record-dev-full", "/dev/full", {}, "--record /dev/full: not a regular file"),
+    _record_case("record-dev-full", "/dev/full", {}, "--record /dev/full: unknown record format '(no suffix)'"),
     _record_case("record-directory", "{tmp}/d.npz", {"d.npz/x": ""}, "--record {tmp}/d.npz: a directory"),
-    _record_case("record-no-suffix", "{tmp}/run", {}, "--record {tmp}/run: the name must end in .npz"),
-    _record_case("record-no-parent", "{tmp}/no/run.npz", {}, "{tmp}/no is not an existing directory"),
+    _record_case("record-no-suffix", "{tmp}/run", {}, "--record {tmp}/run: unknown record format '(no suffix)'"),
+    _record_case("record-parent-is-a-file", "{tmp}/f/run.npz", {"f": "x"}, "{tmp}/f is a file, not a directory"),
     (
         "record-cycles<0",
         ["run", "--config", "{tmp}/r.yaml", "--record", "{tmp}/r.npz", "--record-cycles", "-1"],
