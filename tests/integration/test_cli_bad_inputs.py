@@ -270,7 +270,7 @@ CASES: list[Case] = [
     _record_case("record-dev-full", "/dev/full", {}, "--record /dev/full: unknown record format '(no suffix)'"),
     _record_case("record-directory", "{tmp}/d.npz", {"d.npz/x": ""}, "--record {tmp}/d.npz: a directory"),
     _record_case("record-no-suffix", "{tmp}/run", {}, "--record {tmp}/run: unknown record format '(no suffix)'"),
-    _record_case("record-parent-is-a-file", "{tmp}/f/run.npz", {"f": "x"}, "{tmp}/f is a file, not a directory"),
+    _record_case("record-parent-is-a-file", "{tmp}/f/run.npz", {"f": "x"}, "--record {tmp}/f: a file is in the way"),
     (
         "record-cycles<0",
         ["run", "--config", "{tmp}/r.yaml", "--record", "{tmp}/r.npz", "--record-cycles", "-1"],
