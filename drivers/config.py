@@ -58,6 +58,8 @@ class TransportConfig(_Frozen):
     data_bitrate: int | None = Field(None, gt=0)  # CAN FD data-phase bit rate, bit/s
     bridge_host: str = "127.0.0.1"  # python-can-remote server; loopback only
     bridge_port: int = Field(54701, gt=0, lt=65536)
+    # ipc: a group whose members may share the bus (directory 0770, sockets 0660); None: this user only.
+    group: str | None = None
 
     @model_validator(mode="after")
     def _check(self) -> TransportConfig:

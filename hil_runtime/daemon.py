@@ -122,7 +122,11 @@ def serve(
     runtime.lifecycle.subscribe(say_state)
     if config.loop.lock_memory:
         lock_memory(runtime.realtime)
-    control = ControlServer(config.control_socket, runtime) if config.control_socket else None
+    control = (
+        ControlServer(config.control_socket, runtime, avoid_cpus=config.loop.cpu_affinity or ())
+        if config.control_socket
+        else None
+    )
     stop_seen = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:

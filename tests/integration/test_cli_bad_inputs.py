@@ -190,6 +190,12 @@ CASES: list[Case] = [
     _target_case("target-empty", {"t.yaml": ""}, "empty file"),
     _target_case("target-binary", {"t.yaml": bytes(range(256))}, "not a UTF-8 text file"),
     _target_case("target-nan", {"t.yaml": FD + "period_s: .nan\n"}, "period_s: Input should be a finite number"),
+    _target_case(
+        "target-ipc-channel-is-a-file",
+        {"t.yaml": "bus: {interface: ipc, channel: ./afile, fd: true, data_bitrate: 5000000}\n", "afile": "x"},
+        "afile",
+        "is not a directory",
+    ),
     # inject (schema checked before the socket is even tried)
     (
         "inject-negative-inertia",
