@@ -40,13 +40,15 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
+
+from drivers.strict_input import StrictModel
 
 FromDrive = Literal["drive"]
 
 
-class _Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+class _Frozen(StrictModel):
+    """Frozen, no unknown fields, no .inf/.nan, no ``true`` or ``"1"`` read as a number."""
 
 
 class SdoInit(_Frozen):
@@ -78,6 +80,14 @@ class DriveSpec(_Frozen):
     interpolation_period: bool = True  # write 0x60C2 (the control period) where the EDS has it
     reactions: Reactions = Reactions()
     sdo: tuple[SdoInit, ...] = ()
+
+    @field_validator("rated_torque", "encoder_increments", "gear_ratio", mode="before")
+    @classmethod
+    def _number_or_drive(cls, value: object) -> object:
+        # StrictModel cannot tell a YAML boolean from a number behind the Literal alternative.
+        if isinstance(value, bool) or (isinstance(value, str) and value != "drive"):
+            raise ValueError(f"expected a number or 'drive', got {value!r}")
+        return value
 
     @field_validator("eds", mode="after")
     @classmethod

@@ -28,8 +28,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     TypeAdapter,
     ValidationError,
@@ -46,6 +44,7 @@ from drivers.config import (
     read_yaml_config,
 )
 from drivers.errors import BusLoadError
+from drivers.strict_input import StrictModel
 from sim_target.emulated.profile import DriveProfile
 from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
 
@@ -60,9 +59,9 @@ class TargetConfigError(ValueError):
     exit_code = 2
 
 
-class _Frozen(BaseModel):
-    # allow_inf_nan=False: NaN or infinity anywhere is "not a finite number", not a range error
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+class _Frozen(StrictModel):
+    """Frozen, no unknown fields, no .inf/.nan ("not a finite number", not a range error), no
+    ``true`` or ``"1"`` read as a number."""
 
 
 def _finite(values: tuple[float, ...], field: str) -> tuple[float, ...]:
@@ -206,8 +205,8 @@ class PlantConfig(_Frozen):
     joint_names: tuple[str, ...] | None = None  # None: every revolute joint, URDF order
     initial_position_rad: tuple[float, ...] | None = None
     brake_holding_torque_nm: tuple[float, ...] | None = None  # None: twice the effort limit
-    encoder_noise_rad: float = Field(0.0, ge=0)
-    velocity_noise_rad_s: float = Field(0.0, ge=0)
+    encoder_noise_rad: float = Field(0.0, ge=0, le=1.0)  # std dev; a real encoder's is ~1e-5 rad
+    velocity_noise_rad_s: float = Field(0.0, ge=0, le=100.0)
     seed: int = 0
 
 

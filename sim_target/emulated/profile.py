@@ -23,13 +23,13 @@ import math
 import os
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import Field, ValidationInfo, field_validator
+
+from drivers.strict_input import StrictModel
 
 
-class DriveProfile(BaseModel):
+class DriveProfile(StrictModel):
     """What an emulated vendor drive is: its dictionary and the motor behind it."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     eds: Path  # the vendor's EDS or DCF
     rated_torque: int = Field(gt=0)  # the motor's 0x6076, in the vendor's unit (where the EDS has none or 0)
