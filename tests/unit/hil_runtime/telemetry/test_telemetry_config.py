@@ -14,6 +14,7 @@ from hil_runtime.telemetry import (
     make_sink,
     parse_telemetry_config,
 )
+from hil_runtime.telemetry.auth import TelemetryAuth
 from hil_runtime.telemetry.config import publisher_zenoh_config, zenoh_config
 from hil_runtime.telemetry.publisher import ZenohTelemetry
 
@@ -106,7 +107,7 @@ def test_make_sink_choices(tmp_path: Path) -> None:
     users = tmp_path / "users"
     users.write_text("operator:secret\n")
     users.chmod(0o600)
-    controlled = TelemetryConfig(enabled=True, controls_enabled=True, auth={"users_file": users})
+    controlled = TelemetryConfig(enabled=True, controls_enabled=True, auth=TelemetryAuth(users_file=users))
     assert isinstance(make_sink(TelemetryConfig(), "arm", info), NullTelemetry)
     sink = make_sink(TelemetryConfig(enabled=True), "arm", info, controls=_Controls())
     assert isinstance(sink, ZenohTelemetry) and sink._controls is None  # controls not enabled: not wired
