@@ -26,12 +26,12 @@ background thread receives during start-up and SDO transfers and while the calle
 sends the master's heartbeat. Errors found by a receiving thread (heartbeat lost, EMCY,
 transport failure) are queued and raised by the caller's next ``exchange``/``enable``.
 Malformed frames, unknown COB-IDs, late and missing TPDOs never raise on their own: they are
-counted (:attr:`DriveBus.counters`); a drive missing its TPDOs for more than
-``max_missed_cycles`` consecutive cycles raises :class:`FeedbackTimeoutError`.
+counted (:attr:`DriveBus.counters`).
 
-Any run-time error raised by :meth:`exchange` (feedback timeout, drive fault, heartbeat loss, a
-drive leaving Operation Enabled, transport failure) first quick-stops every drive that still
-answers and leaves :attr:`enabled` false.
+:meth:`exchange` is :class:`drivers.joint_bus.JointBusBase`'s: set-point checks, the missed-cycle
+budget (``max_missed_cycles``), the drives' states and the fail-safe stop before any of
+:data:`drivers.errors.FATAL_ERRORS` are written there once; this class adds the CANopen cycle
+(:meth:`_cycle_internal`: quantisation with error feedback, RPDOs + SYNC out, TPDOs in).
 """
 
 from __future__ import annotations
@@ -48,31 +48,22 @@ from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
 from drivers.config import DriveBusConfig
 from drivers.emcy import EmcyConsumer
-from drivers.errors import (
-    DriveCommandError,
-    DriveError,
-    DriveFaultError,
-    DriveStateError,
-    FeedbackTimeoutError,
-    HeartbeatLostError,
-    TransportError,
-)
+from drivers.errors import FATAL_ERRORS, DriveError, DriveStateError, TransportError
 from drivers.feedback import BusCounters, DriveFeedback
+from drivers.joint_bus import JointBusBase
 from drivers.network import DriveNetwork
 from drivers.nmt import HeartbeatConsumer, HeartbeatProducer, send_command, wait_for
 from drivers.node import DriveNode
 from drivers.pdo import CyclicExchange, map_layout
 from drivers.profiles import p402
 from drivers.sdo import SdoClient
-from drivers.supervision import check_cycle, configure_master_loss, fail_safe
+from drivers.supervision import configure_master_loss, fail_safe
 from drivers.sync import SYNC_OVERFLOW_OBJECT, SyncProducer
 from drivers.transport import open_bus
 
 __all__ = ["BusCounters", "DriveBus", "DriveFeedback"]
 
 log = logging.getLogger(__name__)
-
-_RUNTIME_ERRORS = (FeedbackTimeoutError, DriveFaultError, HeartbeatLostError, DriveStateError, TransportError)
 
 
 class _Services:
@@ -90,7 +81,7 @@ class _Services:
         network.produce = self.master_heartbeat.send_if_due
 
 
-class DriveBus:
+class DriveBus(JointBusBase):
     """N CiA 402 drives in cyclic synchronous torque on one CAN bus. Not thread-safe: one caller."""
 
     def __init__(self, config: DriveBusConfig, bus: can.BusABC | None = None) -> None:
@@ -99,16 +90,13 @@ class DriveBus:
         self.bus_load = config.bus_load()  # raises BusLoadError before touching the bus
         self._bus = bus
         self._owns_bus = bus is None
-        self.node_ids = config.node_ids
-        self.n_joints = len(self.node_ids)
         self.nodes = tuple(DriveNode(i, joint, config.transport.fd) for i, joint in enumerate(config.joints))
-        self._max_torque_nm = np.array([node.max_torque_nm for node in self.nodes])
+        super().__init__(config.node_ids, [node.max_torque_nm for node in self.nodes], config.max_missed_cycles)
         self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])
         self._network = DriveNetwork(bus)  # type: ignore[arg-type]  # bus set at connect when None
         self._sync = SyncProducer()
         self._services: _Services | None = None
         self._connected = False
-        self._enabled = False
         self._cw_enable = [p402.CW_ENABLE] * self.n_joints
         self._zeros_nm = np.zeros(self.n_joints)
         # Rounding errors of the last two set-points (exchange only), the older one carried into the
@@ -133,10 +121,6 @@ class DriveBus:
             emcy=services.emcy.received,
             heartbeats=services.heartbeats.received,
         )
-
-    @property
-    def enabled(self) -> bool:
-        return self._enabled
 
     @property
     def states(self) -> tuple[State, ...]:
@@ -226,64 +210,49 @@ class DriveBus:
         if hold_torque_nm is None:
             permille, commanded = [0] * self.n_joints, self._zeros_nm
         else:
-            permille, commanded = self._setpoints(hold_torque_nm, "hold_torque_nm")
+            permille, commanded = self._quantised(self._checked_setpoint(hold_torque_nm, "hold_torque_nm"))
         feedback = p402.walk_to_enabled(
             self._cycle, self.nodes, permille, commanded, self.config.state_change_timeout_s, self._raise_pending
         )
-        for node in self.nodes:
-            node.missed_cycles = 0
+        self._reset_supervision()
         self._residual_nm[:] = 0.0
         self._enabled = True
         return feedback
 
-    def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
-        """One control cycle: send the torque set-points, return this cycle's feedback.
+    def _cycle_internal(self, setpoint_nm: np.ndarray) -> DriveFeedback:
+        """One control cycle on the bus (see :meth:`_quantised` for what is sent)."""
+        permille, commanded = self._quantised(setpoint_nm, carry=True)
+        return self._cycle(self._cw_enable, permille, commanded)
 
-        Set-points are clipped to each joint's max torque and quantised to 1 ‰ of its rated
-        torque, each cycle's rounding error added to the set-point two cycles later (error
-        feedback with the noise transfer 1 - z⁻²): the torque's running average is the one asked
-        for, never biased by up to half a step (a law with little static stiffness integrates a
-        bias into a drift: H∞ moved 5° RMS from the simulation with plain rounding), and no
-        rounding noise lands at the Nyquist frequency, where a light joint's discrete loop is
-        least damped (carrying into the next cycle, 1 - z⁻¹, doubled it there and drove MRAC's
-        wrist 3 over its velocity limit). docs/hil.md has the figures. ``commanded_torque_nm`` in
-        the result is what was actually sent.
+    def _quantised(self, wanted_nm: np.ndarray, carry: bool = False) -> tuple[list[int], np.ndarray]:
+        """(‰ of rated torque per drive, the torque in N·m those stand for) of a clipped set-point.
+
+        Set-points are quantised to 1 ‰ of each drive's rated torque. With ``carry`` (exchange
+        only) each cycle's rounding error is added to the set-point two cycles later (error
+        feedback with the noise transfer 1 - z⁻², |error| <= half a step each): the torque's
+        running average is the one asked for, never biased by up to half a step (a law with
+        little static stiffness integrates a bias into a drift: H∞ moved 5° RMS from the
+        simulation with plain rounding), and no rounding noise lands at the Nyquist frequency,
+        where a light joint's discrete loop is least damped (carrying into the next cycle,
+        1 - z⁻¹, doubled it there and drove MRAC's wrist 3 over its velocity limit). docs/hil.md
+        has the figures. ``commanded_torque_nm`` in the feedback is what was actually sent.
         """
-        if not self._enabled:
-            self._raise_pending()
-            raise DriveStateError("drives are not enabled: call enable() first")
-        try:
-            self._raise_pending()
-            permille, commanded = self._setpoints(torque_nm, "torque_nm", carry=True)  # DriveCommandError: nothing sent
-            feedback = self._cycle(self._cw_enable, permille, commanded)
-            self._raise_pending()
-            check_cycle(self.nodes, feedback, self.config.max_missed_cycles)
-        except _RUNTIME_ERRORS:
-            self._enabled = False
-            if self._connected:
-                fail_safe(self._cycle, self.nodes)
-            raise
-        return feedback
-
-    def _setpoints(self, torque_nm: np.ndarray, name: str, carry: bool = False) -> tuple[list[int], np.ndarray]:
-        """(‰ of rated torque per drive, the torque in N·m those stand for); refuses bad input.
-        ``carry``: add the rounding error of two set-points ago first, keep this one (|error| <= half
-        a step each)."""
-        torque = np.asarray(torque_nm, dtype=np.float64)
-        if torque.shape != (self.n_joints,):
-            raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self.n_joints},)")
-        if not np.isfinite(torque).all():
-            bad = [self.node_ids[i] for i in np.flatnonzero(~np.isfinite(torque))]
-            raise DriveCommandError(f"non-finite torque set-point for drive(s) {bad}")
-        wanted = np.clip(torque, -self._max_torque_nm, self._max_torque_nm)
+        wanted = wanted_nm
         if carry:
-            wanted = np.clip(wanted + self._residual_nm[1], -self._max_torque_nm, self._max_torque_nm)
+            wanted = np.clip(wanted + self._residual_nm[1], self._min_torque_nm, self._max_torque_nm)
         permille = np.rint(wanted * self._permille_per_nm)
         sent = permille / self._permille_per_nm
         if carry:
             self._residual_nm[1] = self._residual_nm[0]
             self._residual_nm[0] = wanted - sent
         return permille.astype(np.int64).tolist(), sent
+
+    def _fail_safe(self) -> None:
+        if self._connected:
+            fail_safe(self._cycle, self.nodes)
+
+    def _last_emcy_code(self, joint: int) -> int:
+        return self.nodes[joint].last_emcy_code
 
     # --- stopping --------------------------------------------------------------------------------
 
@@ -377,7 +346,7 @@ class DriveBus:
         errors = self._network.errors
         if errors:
             error = errors.popleft()
-            if isinstance(error, (DriveFaultError, HeartbeatLostError, DriveStateError, TransportError)):
+            if isinstance(error, FATAL_ERRORS):
                 self._enabled = False
             raise error
         if self._connected and not self._network.receiving:

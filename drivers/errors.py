@@ -24,9 +24,14 @@ from drivers.cia402.sdo import abort_code_text
 
 
 class DriveError(Exception):
-    """Base of every error raised by the drive layer."""
+    """Base of every error raised by the drive layer.
+
+    ``fault_kind``: the runtime's FAULT reason for it (``hil_runtime.supervisor.FaultKind`` value);
+    ``internal`` for errors that are not expected while the drives run.
+    """
 
     exit_code: int = 3
+    fault_kind: str = "internal"
 
 
 class DriveConfigError(DriveError, ValueError):
@@ -42,15 +47,20 @@ class BusLoadError(DriveConfigError):
 class TransportError(DriveError):
     """The CAN transport could not be opened or failed while running."""
 
+    fault_kind = "transport"
+
 
 class DriveCommandError(DriveError, ValueError):
     """A set-point the driver refuses to put on the bus (NaN, wrong shape)."""
 
     exit_code = 2
+    fault_kind = "command"
 
 
 class DriveFaultError(DriveError):
     """A drive reported a fault: ``code`` is the CiA 301 EMCY error code (0 if none was received)."""
+
+    fault_kind = "drive_fault"
 
     def __init__(self, node_id: int, code: int, detail: str = "") -> None:
         self.node_id = node_id
@@ -62,9 +72,13 @@ class DriveFaultError(DriveError):
 class DriveStateError(DriveError):
     """A drive did not reach the requested CiA 402 or NMT state in time."""
 
+    fault_kind = "drive_state"
+
 
 class FeedbackTimeoutError(DriveError, TimeoutError):
     """TPDOs of one or more drives were missing for more cycles than allowed."""
+
+    fault_kind = "feedback_timeout"
 
     def __init__(self, node_ids: tuple[int, ...], missed_cycles: int) -> None:
         self.node_ids = node_ids
@@ -76,6 +90,8 @@ class FeedbackTimeoutError(DriveError, TimeoutError):
 
 class HeartbeatLostError(DriveError, TimeoutError):
     """A drive's heartbeat stopped, or it reported an NMT state it must not be in."""
+
+    fault_kind = "heartbeat_lost"
 
     def __init__(self, node_id: int, detail: str) -> None:
         self.node_id = node_id
@@ -101,3 +117,15 @@ class SdoAbortError(SdoError):
 
 class SdoTimeoutError(SdoError, TimeoutError):
     """No SDO response within the configured time."""
+
+
+# The run-time errors of a running bus: :meth:`drivers.joint_bus.JointBusBase.exchange` quick-stops
+# the drives before raising any of them, and leaves the bus disabled. The one list of them (the
+# runtime maps each to its FAULT by ``fault_kind``). A DriveCommandError is not here: nothing was sent.
+FATAL_ERRORS: tuple[type[DriveError], ...] = (
+    FeedbackTimeoutError,
+    HeartbeatLostError,
+    DriveFaultError,
+    DriveStateError,
+    TransportError,
+)

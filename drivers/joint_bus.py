@@ -11,15 +11,27 @@ interface and LeRobot's motor bus play the same role). Arrays are in the config'
 
 ``exchange`` raises a :class:`drivers.errors.DriveError` subclass on a fault it detects (feedback
 timeout, heartbeat lost, EMCY / drive fault, transport failure) after quick-stopping the drives.
+:class:`JointBusBase` keeps that promise once for every implementation around one hook.
 """
 
 from __future__ import annotations
 
+import abc
+import math
+from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from drivers.cia402.state_machine import State
+from drivers.errors import (
+    FATAL_ERRORS,
+    DriveCommandError,
+    DriveFaultError,
+    DriveStateError,
+    FeedbackTimeoutError,
+)
+from drivers.feedback import DriveFeedback
 
 
 @runtime_checkable
@@ -79,3 +91,123 @@ class JointBus(Protocol):
     def fault_reset(self) -> None: ...
 
     def close(self) -> None: ...
+
+
+class JointBusBase(abc.ABC):
+    """The shared half of every JointBus: :meth:`exchange` validates, supervises and stops safely
+    around one backend hook, :meth:`_cycle_internal` (as python-can's ``BusABC.recv`` wraps
+    ``_recv_internal``). :class:`drivers.drive_bus.DriveBus` and :class:`drivers.testing.FakeJointBus`
+    are its two backends, so the promise of the module docstring is written once:
+
+    - a set-point of the wrong shape or not finite raises :class:`DriveCommandError`, nothing sent;
+      a finite one is clipped to each joint's ``max_torque_nm`` (once, here);
+    - an error queued by a receiving thread or handler (:meth:`_raise_pending`) is raised by the
+      exchange that follows it, checked once, after the cycle;
+    - a joint without fresh feedback for more than ``max_missed_cycles`` consecutive exchanges raises
+      :class:`FeedbackTimeoutError`; a fresh joint out of Operation Enabled raises
+      :class:`DriveFaultError` (Fault) or :class:`DriveStateError`;
+    - any of :data:`drivers.errors.FATAL_ERRORS` first runs :meth:`_fail_safe` (quick stop of every
+      drive that answers) and leaves :attr:`enabled` false.
+
+    The hot path allocates nothing of its own: the clipped set-point and the miss counts live in
+    buffers made here once.
+    """
+
+    def __init__(self, node_ids: Sequence[int], max_torque_nm: Sequence[float] | np.ndarray, max_missed_cycles: int):
+        self.node_ids = tuple(node_ids)
+        n = len(self.node_ids)
+        self._n = n
+        self.max_missed_cycles = max_missed_cycles
+        self._max_torque_nm = np.broadcast_to(np.asarray(max_torque_nm, dtype=np.float64), (n,)).copy()
+        self._min_torque_nm = -self._max_torque_nm
+        self._setpoint_nm = np.zeros(n)  # the clipped set-point handed to _cycle_internal
+        self._missed_cycles = [0] * n  # consecutive exchanges without fresh feedback, per joint
+        self._enabled = False
+
+    # --- the backend's hooks --------------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _cycle_internal(self, setpoint_nm: np.ndarray) -> DriveFeedback:
+        """Send the (validated, clipped) set-points, return this cycle's feedback. May raise any
+        DriveError; a fatal one is handled by :meth:`exchange`. ``setpoint_nm`` is a buffer reused
+        by the next exchange: copy what must be kept."""
+
+    @abc.abstractmethod
+    def _fail_safe(self) -> None:
+        """Quick-stop every drive that still answers; never raises."""
+
+    def _raise_pending(self) -> None:  # noqa: B027 - optional hook: a backend without threads has none
+        """Raise an error a background thread found since the last call (none by default)."""
+
+    # --- the shared work ------------------------------------------------------------------------------
+
+    @property
+    def n_joints(self) -> int:
+        return self._n
+
+    @property
+    def enabled(self) -> bool:
+        return self._enabled
+
+    def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
+        """One control cycle: send the torque set-points, return this cycle's feedback (see class doc)."""
+        if not self._enabled:
+            self._raise_pending()
+            raise DriveStateError("drives are not enabled: call enable() first")
+        try:
+            setpoint = self._checked_setpoint(torque_nm, "torque_nm")  # DriveCommandError: nothing sent
+            feedback = self._cycle_internal(setpoint)
+            # Once per exchange, after the cycle: what the cycle's own frames brought (an EMCY, a
+            # heartbeat timeout found by the receive) is raised with that cycle, as is anything
+            # queued while the caller was idle.
+            self._raise_pending()
+            self._supervise(feedback)
+        except FATAL_ERRORS:
+            self._enabled = False
+            self._fail_safe()
+            raise
+        return feedback
+
+    def _checked_setpoint(self, torque_nm: np.ndarray, name: str) -> np.ndarray:
+        """``torque_nm`` clipped to the joints' limits, in the set-point buffer; refuses bad input."""
+        torque = torque_nm if type(torque_nm) is np.ndarray else np.asarray(torque_nm, dtype=np.float64)
+        if torque.shape != (self._n,):
+            raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self._n},)")
+        # One scalar test for the healthy case (a NaN or an infinity makes the sum non-finite).
+        if not math.isfinite(torque.sum()):
+            bad = [self.node_ids[i] for i in np.flatnonzero(~np.isfinite(torque))]
+            if bad:
+                raise DriveCommandError(f"non-finite torque set-point for drive(s) {bad}")
+        return np.clip(torque, self._min_torque_nm, self._max_torque_nm, out=self._setpoint_nm)
+
+    def _supervise(self, feedback: DriveFeedback) -> None:
+        """The missed-cycle budget and the drives' states (see class doc)."""
+        missed = self._missed_cycles
+        budget = self.max_missed_cycles
+        timed_out: list[int] | None = None
+        for i, (fresh, state) in enumerate(zip(feedback.fresh.tolist(), feedback.states, strict=True)):
+            if fresh:
+                missed[i] = 0
+                if state is not State.OPERATION_ENABLED:
+                    self._raise_for_state(i, state)
+            else:
+                missed[i] += 1
+                if missed[i] > budget:
+                    timed_out = (timed_out or []) + [self.node_ids[i]]
+        if timed_out:
+            raise FeedbackTimeoutError(tuple(timed_out), budget + 1)
+
+    def _raise_for_state(self, joint: int, state: State) -> None:
+        """A fresh drive out of Operation Enabled: Fault -> DriveFaultError, else DriveStateError."""
+        node_id = self.node_ids[joint]
+        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            raise DriveFaultError(node_id, self._last_emcy_code(joint), f"statusword says {state.value}")
+        raise DriveStateError(f"drive {node_id} left operation enabled: {state.value}")
+
+    def _last_emcy_code(self, joint: int) -> int:
+        """The drive's last EMCY error code (0: none known)."""
+        return 0
+
+    def _reset_supervision(self) -> None:
+        """On enable: the miss counts start again."""
+        self._missed_cycles[:] = [0] * self._n

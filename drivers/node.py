@@ -38,7 +38,6 @@ class DriveNode:
     tpdo1_cycle: int = -1  # cycle in which TPDO1 (or the FD TPDO) last arrived
     tpdo2_cycle: int = -1
     rx_time_s: float = 0.0  # time.monotonic() of the last accepted TPDO
-    missed_cycles: int = 0  # consecutive cycles without fresh feedback
     state: State = State.UNKNOWN  # CiA 402 state from the last fresh statusword
 
     # NMT error control (heartbeat consumer) and EMCY.

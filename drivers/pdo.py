@@ -139,10 +139,7 @@ class CyclicExchange:
                 missing = sum((node.tpdo1_cycle != cycle) + (node.tpdo2_cycle != cycle) for node in nodes)
             for node, is_fresh in zip(nodes, fresh, strict=True):
                 if is_fresh:
-                    node.missed_cycles = 0
                     node.state = decode_statusword_fast(node.statusword)
-                else:
-                    node.missed_cycles += 1
             position = [node.position_counts for node in nodes]
             velocity = [node.velocity_counts_s for node in nodes]
             torque_pm = [node.torque_permille for node in nodes]

@@ -1,12 +1,12 @@
 """Supervision: what keeps the arm safe when something stops answering.
 
-On the master's side, every cycle (:func:`check_cycle`): a drive without fresh feedback for more
-than ``max_missed_cycles`` consecutive cycles raises :class:`FeedbackTimeoutError`; a drive that
-left Operation Enabled raises :class:`DriveFaultError` (Fault) or :class:`DriveStateError`. The
-heartbeat consumer (:mod:`drivers.nmt`) and the EMCY consumer (:mod:`drivers.emcy`) queue their
-errors on the network. Any run-time error first runs :func:`fail_safe`: every drive that still
-answers is quick-stopped (at most ``SAFE_STOP_CYCLES`` cycles), never raising, so the caller gets
-the original error.
+On the master's side, every cycle (:meth:`drivers.joint_bus.JointBusBase.exchange`): a drive
+without fresh feedback for more than ``max_missed_cycles`` consecutive cycles raises
+:class:`FeedbackTimeoutError`; a drive that left Operation Enabled raises :class:`DriveFaultError`
+(Fault) or :class:`DriveStateError`. The heartbeat consumer (:mod:`drivers.nmt`) and the EMCY
+consumer (:mod:`drivers.emcy`) queue their errors on the network. Any run-time error first runs
+:func:`fail_safe`: every drive that still answers is quick-stopped (at most ``SAFE_STOP_CYCLES``
+cycles), never raising, so the caller gets the original error.
 
 On the drives' side, for the master itself dying (:func:`configure_master_loss`, written at
 start-up): each drive consumes the master's heartbeat (0x1016), watches its RPDO (event timer
@@ -23,10 +23,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from drivers.cia402 import od as odx
-from drivers.cia402.state_machine import State
 from drivers.config import DriveBusConfig
-from drivers.errors import DriveConfigError, DriveError, DriveFaultError, DriveStateError, FeedbackTimeoutError
-from drivers.feedback import DriveFeedback
+from drivers.errors import DriveConfigError, DriveError
 from drivers.node import DriveNode
 from drivers.pdo import set_rpdo_timeout
 from drivers.profiles import p402
@@ -57,19 +55,6 @@ def configure_master_loss(sdo: SdoClient, node: DriveNode, config: DriveBusConfi
     if sdo.variable(node_id, odx.SYNC_TIMEOUT, 0) is not None:
         sdo.write(node_id, odx.SYNC_TIMEOUT, 0, timeout_ms)
     sdo.write(node_id, odx.ABORT_CONNECTION_OPTION, 0, ABORT_CONNECTION_QUICK_STOP)
-
-
-def check_cycle(nodes: Sequence[DriveNode], feedback: DriveFeedback, max_missed_cycles: int) -> None:
-    """Stale feedback past its budget, or a drive out of Operation Enabled: raise."""
-    timed_out = tuple(node.node_id for node in nodes if node.missed_cycles > max_missed_cycles)
-    if timed_out:
-        raise FeedbackTimeoutError(timed_out, max_missed_cycles + 1)
-    for node, fresh, state in zip(nodes, feedback.fresh, feedback.states, strict=True):
-        if not fresh or state is State.OPERATION_ENABLED:
-            continue
-        if state in p402.FAULT_STATES:
-            raise DriveFaultError(node.node_id, node.last_emcy_code, f"statusword says {state.value}")
-        raise DriveStateError(f"drive {node.node_id} left operation enabled: {state.value}")
 
 
 def fail_safe(cycle: p402.Cycle, nodes: Sequence[DriveNode]) -> None:

@@ -25,19 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.cia402.state_machine import State
-from drivers.errors import (
-    DriveCommandError,
-    DriveError,
-    DriveFaultError,
-    DriveStateError,
-    FeedbackTimeoutError,
-)
+from drivers.errors import FATAL_ERRORS, DriveError, DriveFaultError, DriveStateError
 from drivers.feedback import BusCounters, DriveFeedback
+from drivers.joint_bus import JointBusBase
 
 PlantStep = Callable[[np.ndarray, np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 
 __all__ = ["DoubleIntegrator", "FakeJointBus", "PlantStep"]
 
+_FAULTED = frozenset({State.FAULT, State.FAULT_REACTION_ACTIVE})
 _QUICK_STOPPABLE = frozenset({State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE})
 
 
@@ -54,12 +50,13 @@ class DoubleIntegrator:
         return position_rad + velocity * period_s, velocity
 
 
-class FakeJointBus:
-    """N joints on a simulated plant, satisfying :class:`drivers.joint_bus.JointBus`.
+class FakeJointBus(JointBusBase):
+    """N joints on a simulated plant, a :class:`drivers.joint_bus.JointBusBase` backend.
 
     ``max_torque_nm`` clips set-points as the drives do (``commanded_torque_nm`` is what the plant
     got); ``max_missed_cycles`` is the stale-feedback budget, as in ``DriveBusConfig``. Quick stop
-    and disable zero the torque and freeze the plant (the brake holds).
+    and disable zero the torque and freeze the plant (the brake holds). ``keep_commands=False``
+    stops :attr:`commands` growing (benchmarks and allocation tests run thousands of cycles).
     """
 
     def __init__(
@@ -73,19 +70,20 @@ class FakeJointBus:
         initial_position_rad: Sequence[float] | np.ndarray | None = None,
         max_missed_cycles: int = 1,
         node_ids: Sequence[int] | None = None,
+        keep_commands: bool = True,
     ) -> None:
         if n_joints < 1:
             raise ValueError("n_joints must be at least 1")
-        self._n = n_joints
+        ids = tuple(node_ids) if node_ids is not None else tuple(range(1, n_joints + 1))
+        if len(ids) != n_joints:
+            raise ValueError("node_ids must name one node per joint")
+        super().__init__(ids, np.asarray(max_torque_nm, dtype=np.float64), max_missed_cycles)
         self.period_s = period_s
         self.plant: PlantStep = plant or DoubleIntegrator(
             np.broadcast_to(np.asarray(inertia_kgm2, dtype=np.float64), (n_joints,)).copy()
         )
-        self.max_torque_nm = np.broadcast_to(np.asarray(max_torque_nm, dtype=np.float64), (n_joints,)).copy()
-        self.max_missed_cycles = max_missed_cycles
-        self.node_ids = tuple(node_ids) if node_ids is not None else tuple(range(1, n_joints + 1))
-        if len(self.node_ids) != n_joints:
-            raise ValueError("node_ids must name one node per joint")
+        self.max_torque_nm = self._max_torque_nm
+        self.keep_commands = keep_commands
         self.position_rad = (
             np.zeros(n_joints)
             if initial_position_rad is None
@@ -104,12 +102,10 @@ class FakeJointBus:
 
         self._states: list[State] = [State.NOT_READY_TO_SWITCH_ON] * n_joints
         self._connected = False
-        self._enabled = False
         self._cycle = 0
         self._dropped = 0
         self._next_error: DriveError | None = None
         self._stale_cycles = np.zeros(n_joints, dtype=np.int64)  # cycles each joint still misses
-        self._missed = np.zeros(n_joints, dtype=np.int64)
         self._last_position = self.position_rad.copy()
         self._last_velocity = self.velocity_rad_s.copy()
         self._last_torque = np.zeros(n_joints)
@@ -131,14 +127,6 @@ class FakeJointBus:
             self._stale_cycles[j] = cycles
 
     # --- JointBus -------------------------------------------------------------------------------
-
-    @property
-    def n_joints(self) -> int:
-        return self._n
-
-    @property
-    def enabled(self) -> bool:
-        return self._enabled
 
     @property
     def states(self) -> tuple[State, ...]:
@@ -166,30 +154,28 @@ class FakeJointBus:
         for i, state in enumerate(self._states):
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 raise DriveFaultError(self.node_ids[i], 0, "in Fault: call fault_reset() first")
-        torque = np.zeros(self._n) if hold_torque_nm is None else self._setpoint(hold_torque_nm, "hold_torque_nm")
+        torque = (
+            np.zeros(self._n)
+            if hold_torque_nm is None
+            else self._checked_setpoint(hold_torque_nm, "hold_torque_nm").copy()
+        )
         self._states = [State.OPERATION_ENABLED] * self._n
-        self._missed[:] = 0
+        self._reset_supervision()
         self._enabled = True
         return self._step(torque)
 
-    def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
-        if not self._enabled:
-            raise DriveStateError("drives are not enabled: call enable() first")
-        commanded = self._setpoint(torque_nm, "torque_nm")  # DriveCommandError: nothing applied
+    def _cycle_internal(self, setpoint_nm: np.ndarray) -> DriveFeedback:
         self.events.append("exchange")
-        self.commands.append(commanded)
+        if self.keep_commands:
+            self.commands.append(setpoint_nm.copy())
         if self._next_error is not None:
             error, self._next_error = self._next_error, None
-            self._fail_safe()
             if isinstance(error, DriveFaultError) and error.node_id in self.node_ids:
                 self._states[self.node_ids.index(error.node_id)] = State.FAULT
+            if not isinstance(error, FATAL_ERRORS):  # the base stops safely for the fatal ones
+                self._fail_safe()
             raise error
-        feedback = self._step(commanded)
-        timed_out = tuple(self.node_ids[i] for i in np.flatnonzero(self._missed > self.max_missed_cycles))
-        if timed_out:
-            self._fail_safe()
-            raise FeedbackTimeoutError(timed_out, self.max_missed_cycles + 1)
-        return feedback
+        return self._step(setpoint_nm)
 
     def quick_stop(self) -> tuple[State, ...]:
         self.events.append("quick_stop")
@@ -226,15 +212,6 @@ class FakeJointBus:
 
     # --- internals ------------------------------------------------------------------------------
 
-    def _setpoint(self, torque_nm: np.ndarray, name: str) -> np.ndarray:
-        torque = np.asarray(torque_nm, dtype=np.float64)
-        if torque.shape != (self._n,):
-            raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self._n},)")
-        if not np.isfinite(torque).all():
-            bad = np.flatnonzero(~np.isfinite(torque)).tolist()
-            raise DriveCommandError(f"non-finite torque set-point for joint(s) {bad}")
-        return np.clip(torque, -self.max_torque_nm, self.max_torque_nm)
-
     def _step(self, commanded: np.ndarray) -> DriveFeedback:
         self._cycle += 1
         sync_time = time.monotonic()
@@ -246,7 +223,6 @@ class FakeJointBus:
         fresh = self._stale_cycles <= 0
         self._stale_cycles[~fresh] -= 1
         self._dropped += int((~fresh).sum())
-        self._missed = np.where(fresh, 0, self._missed + 1)
         # A joint that misses its TPDO reports what it reported last (an older cycle's values).
         self._last_position = np.where(fresh, self.position_rad, self._last_position)
         self._last_velocity = np.where(fresh, self.velocity_rad_s, self._last_velocity)
@@ -258,7 +234,7 @@ class FakeJointBus:
             position_rad=self._last_position.copy(),
             velocity_rad_s=self._last_velocity.copy(),
             torque_nm=self._last_torque.copy(),
-            commanded_torque_nm=commanded.copy(),
+            commanded_torque_nm=commanded.copy(),  # the set-point buffer is reused next cycle
             fresh=fresh.copy(),
             rx_time_s=self._rx_time.copy(),
             states=tuple(self._states),
@@ -268,7 +244,7 @@ class FakeJointBus:
         self.events.append("fail_safe")
         self.fail_safe_count += 1
         self._enabled = False
-        self._states = [State.QUICK_STOP_ACTIVE] * self._n
+        self._states = [s if s in _FAULTED else State.QUICK_STOP_ACTIVE for s in self._states]
         self.velocity_rad_s = np.zeros(self._n)
         self.applied_torque_nm = np.zeros(self._n)
 

@@ -29,15 +29,28 @@ ConfigOption = Annotated[Path | None, typer.Option("--config", help="the daemon'
 
 def run(
     config: Annotated[Path, typer.Option("--config", help="runtime config, YAML (deploy/*.yaml)")],
-    record: Annotated[Path | None, typer.Option("--record", help="write the run's per-cycle record (.npz)")] = None,
-    record_cycles: Annotated[int, typer.Option(help="rows kept for --record (preallocated, ~330 B each)")] = 60_000,
+    record: Annotated[
+        Path | None, typer.Option("--record", help="write the run's per-cycle record (.npz, or .mcap: docs/formats.md)")
+    ] = None,
+    record_cycles: Annotated[int, typer.Option(help="rows kept for a .npz --record (~330 B each)")] = 60_000,
+    urdf: Annotated[Path | None, typer.Option("--urdf", help="the URDF attached to an .mcap record")] = None,
+    can_log: Annotated[
+        Path | None, typer.Option("--can-log", help="capture the drive bus's frames (.blf .asc .log .csv)")
+    ] = None,
     check: Annotated[bool, typer.Option("--check", help="validate config, bundle and condition; touch no bus")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the control loop on the arm's drives until SIGTERM/SIGINT (a systemd Type=notify service)."""
     from hil_runtime.daemon import check as check_config
     from hil_runtime.daemon import serve
+    from hil_runtime.record import check_record_path
 
+    if record is not None:
+        check_record_path(record)  # before anything runs: suffix known, directory writable
+    if can_log is not None:
+        from drivers.capture import check_capture_path
+
+        check_capture_path(can_log)
     if check:
         print(check_config(config))
         return
@@ -45,7 +58,7 @@ def run(
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(levelname)s %(message)s"
     )
-    code = serve(config, record, record_cycles if record is not None else 0)
+    code = serve(config, record, record_cycles if record is not None else 0, urdf, can_log)
     if code:
         raise typer.Exit(code)
 

@@ -34,6 +34,12 @@ if TYPE_CHECKING:  # only for the type of Mismatch.apply; never imported at run 
 PAPER_CONDITIONS = Path(__file__).resolve().parent / "data" / "paper_conditions.yaml"
 SHAPES = ("raised_sine", "sine", "constant")
 INITIAL_STATES = ("home", "reference")
+# The runtime precomputes the whole reference per period (hil_runtime.reference): one hour at 1 kHz
+# is 3.6 M rows, ~0.5 GB and ~1.6 s to build. Longer runs are a loop of conditions, not one.
+MAX_DURATION_S = 3600.0
+MAX_FREQUENCY_HZ = 1000.0  # no arm tracks more; keeps omega * t far from float's precision limit
+MAX_ABS_PHASE_S = 10 * MAX_DURATION_S
+_TWO_PI = 2.0 * math.pi
 
 
 class ConditionError(ValueError):
@@ -142,6 +148,23 @@ class Condition:
     def initial_position(self) -> np.ndarray:
         return self.reference(0.0)[0] if self.initial_state == "reference" else np.zeros(self.n_joints)
 
+    def extrema(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(lowest q, highest q, highest |qd|) per joint over [0, duration_s], exact (from the
+        shape, not from samples: a peak between samples or a frequency the samples alias counts)."""
+        amp = np.asarray(self.amplitude_rad, float)
+        offset = np.zeros_like(amp) if self.offset_rad is None else np.asarray(self.offset_rad, float)
+        if self.shape == "constant":
+            return offset + amp, offset + amp, np.zeros_like(amp)
+        omega = _TWO_PI * np.asarray(self.frequency_hz, float)
+        start, end = -omega * self.phase_s, omega * (self.duration_s - self.phase_s)  # the phase's span
+        sin_low, sin_high = _sin_range(start, end)
+        cos_low, cos_high = _sin_range(start + math.pi / 2, end + math.pi / 2)  # cos x = sin(x + pi/2)
+        cos_abs = np.maximum(np.abs(cos_low), np.abs(cos_high))
+        scale = 0.5 * amp if self.shape == "raised_sine" else amp
+        base = offset + (0.5 * amp if self.shape == "raised_sine" else 0.0)
+        ends = np.stack([base + scale * sin_low, base + scale * sin_high])
+        return ends.min(axis=0), ends.max(axis=0), np.abs(scale * omega) * cos_abs
+
     def check_limits(self, limits: JointLimits, source: str = "condition") -> None:
         """Refuse a reference leaving the joint position or velocity limits (one-line error)."""
         if self.n_joints != limits.n_joints:
@@ -149,14 +172,13 @@ class Condition:
                 f"{source}: {self.name}: amplitude_rad has {self.n_joints} joints, "
                 f"robot {limits.name} has {limits.n_joints}"
             )
-        t = np.linspace(0.0, self.duration_s, 2001)
-        q, qd, _ = self.reference(t)
+        lowest, highest, fastest = self.extrema()
         lower, upper = np.asarray(limits.position_lower_rad), np.asarray(limits.position_upper_rad)
         velocity = np.asarray(limits.velocity_limit_rad_s)
         checks = (
-            (np.max(q, axis=0) > upper + 1e-12, np.max(q, axis=0), upper, "position"),
-            (np.min(q, axis=0) < lower - 1e-12, np.min(q, axis=0), lower, "position"),
-            (np.max(np.abs(qd), axis=0) > velocity + 1e-12, np.max(np.abs(qd), axis=0), velocity, "velocity"),
+            (highest > upper + 1e-12, highest, upper, "position"),
+            (lowest < lower - 1e-12, lowest, lower, "position"),
+            (fastest > velocity + 1e-12, fastest, velocity, "velocity"),
         )
         for bad, worst, limit, what in checks:
             if bad.any():
@@ -165,6 +187,19 @@ class Condition:
                     f"{source}: {self.name}: reference {what} reaches {worst[j]:.3f} on joint {j + 1}, "
                     f"beyond its limit {limit[j]:.3f}"
                 )
+
+
+def _sin_range(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of sin over [start, end] per element: -1 / 1 where a trough / crest lies inside
+    (rounded outward: a crest within 1e-9 rad of the span counts), else the ends' values."""
+
+    def reaches(peak: float) -> np.ndarray:
+        first = np.ceil((start - peak) / _TWO_PI - 1e-9)
+        inside: np.ndarray = (end - start >= _TWO_PI) | (peak + first * _TWO_PI <= end + 1e-9)
+        return inside
+
+    ends_low, ends_high = np.minimum(np.sin(start), np.sin(end)), np.maximum(np.sin(start), np.sin(end))
+    return np.where(reaches(-math.pi / 2), -1.0, ends_low), np.where(reaches(math.pi / 2), 1.0, ends_high)
 
 
 # --- the file format -----------------------------------------------------------------------------
@@ -236,6 +271,15 @@ def _at_least(values: tuple[float, ...] | float, bound: float, where: str, stric
             raise ConditionError(f"{where}{index}: must be {relation} {bound:g}, got {v:g}")
 
 
+def _at_most(values: tuple[float, ...] | float, bound: float, where: str) -> None:
+    """Refuse any value above ``bound``, naming the first one."""
+    items = values if isinstance(values, tuple) else (values,)
+    for i, v in enumerate(items):
+        if v > bound:
+            index = f"[{i}]" if isinstance(values, tuple) and len(items) > 1 else ""
+            raise ConditionError(f"{where}{index}: must be <= {bound:g}, got {v:g}")
+
+
 def _section(raw: dict[str, Any], key: str, where: str, fields: dict[str, str], n: int) -> dict[str, Any]:
     value = raw.get(key)
     if not isinstance(value, dict):
@@ -300,8 +344,14 @@ def _parse_condition(raw: Any, defaults: dict[str, Any], where: str) -> Conditio
     duration = _number(merged.get("duration_s", 5.0), f"{where}.duration_s")
     if duration <= 0:
         raise ConditionError(f"{where}.duration_s: must be positive, got {duration:g}")
+    if duration > MAX_DURATION_S:
+        raise ConditionError(
+            f"{where}.duration_s: {duration:g} s is above the limit {MAX_DURATION_S:g} s "
+            "(the runtime precomputes the reference; run longer as several conditions)"
+        )
     frequency = _vector(merged.get("frequency_hz", 0.1), f"{where}.frequency_hz", n, allow_scalar=True)
     _at_least(frequency, 0.0, f"{where}.frequency_hz", strict=False)
+    _at_most(frequency, MAX_FREQUENCY_HZ, f"{where}.frequency_hz")
     disturbance: Disturbance | None = None
     if merged.get("disturbance") is not None:
         disturbance = Disturbance(**_section(merged, "disturbance", where, _DISTURBANCE_FIELDS, n))
@@ -311,6 +361,7 @@ def _parse_condition(raw: Any, defaults: dict[str, Any], where: str) -> Conditio
             )
         _at_least(disturbance.time_s, 0.0, f"{where}.disturbance.time_s", strict=False)
         _at_least(disturbance.duration_s, 0.0, f"{where}.disturbance.duration_s", strict=False)
+        _at_most(disturbance.duration_s, duration, f"{where}.disturbance.duration_s")
         if disturbance.time_s >= duration:
             raise ConditionError(
                 f"{where}.disturbance.time_s: {disturbance.time_s:g} s is not before the end of the run "
@@ -329,13 +380,16 @@ def _parse_condition(raw: Any, defaults: dict[str, Any], where: str) -> Conditio
     name = merged.get("name", where)
     if not isinstance(name, (str, int)) or isinstance(name, bool):
         raise ConditionError(f"{where}.name: expected a string, got {_short(name)}")
+    phase = _number(merged.get("phase_s", duration / 2.0), f"{where}.phase_s")
+    if abs(phase) > MAX_ABS_PHASE_S:
+        raise ConditionError(f"{where}.phase_s: |{phase:g}| s is above the limit {MAX_ABS_PHASE_S:g} s")
     return Condition(
         name=str(name),
         amplitude_rad=amplitude,
         frequency_hz=frequency,
         duration_s=duration,
         shape=shape,
-        phase_s=_number(merged.get("phase_s", duration / 2.0), f"{where}.phase_s"),
+        phase_s=phase,
         offset_rad=None if offset is None else _vector(offset, f"{where}.offset_rad", n),
         initial_state=initial,
         disturbance=disturbance,

@@ -80,12 +80,35 @@ def _say(text: str) -> None:
     print(f"hil run: {text}", file=sys.stderr, flush=True)
 
 
-def serve(config_path: Path | str, record_path: Path | None = None, record_cycles: int = 0) -> int:
+def serve(
+    config_path: Path | str,
+    record_path: Path | None = None,
+    record_cycles: int = 0,
+    urdf: Path | None = None,
+    can_log: Path | None = None,
+) -> int:
     """Run the daemon until SIGTERM/SIGINT (or loop.duration_s); the process exit code."""
     config = load_runtime_config(config_path)
     notifier = Notifier.from_environment()
-    runtime = build_runtime(config, notifier=notifier, record_cycles=record_cycles)
+    mcap = record_path is not None and record_path.suffix.lower() == ".mcap"
+    capture: Any = None
+    if can_log is not None:  # the drive bus on a bus that copies every frame to python-can's writer
+        from drivers.capture import CanCapture, CaptureBus
+        from drivers.transport import open_bus
+
+        capture = CaptureBus(open_bus(config.bus.transport), CanCapture(can_log))
+    runtime = build_runtime(config, capture, notifier=notifier, record_cycles=0 if mcap else record_cycles)
     runtime.telemetry = make_telemetry(config, runtime)
+    recording: Any = None
+    if mcap:  # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
+        from hil_runtime.formats.mcap_record import mcap_sink_for_run
+        from hil_runtime.telemetry.sink import FanOutTelemetry
+
+        assert record_path is not None
+        recording = mcap_sink_for_run(
+            record_path, config.robot, config.joint_names, runtime.bundle, config.period_s, urdf
+        )
+        runtime.telemetry = FanOutTelemetry(runtime.telemetry, recording)
     configured = threading.Event()
 
     def say_state(state: LifecycleState, fault: str | None) -> None:
@@ -134,11 +157,17 @@ def serve(config_path: Path | str, record_path: Path | None = None, record_cycle
             runtime.shutdown()
         if control is not None:
             control.close()
+        if capture is not None:  # the drive bus does not own a bus it was given
+            capture.shutdown()
         notifier.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if record_path is not None and runtime.record.n:
+    if record_path is not None and not mcap and runtime.record.n:
         runtime.record.save_npz(record_path)
+    if capture is not None:
+        _say(f"captured {capture.capture.written} CAN frames to {can_log}, {capture.capture.dropped} dropped")
+    if recording is not None:
+        _say(f"recorded {recording.recorder.states_written} cycles to {record_path}, {recording.dropped} dropped")
     if "error" in outcome:
         _say(f"loop failed: {outcome['error']!r}")
         return 1

@@ -81,3 +81,21 @@ class RunResult:
     cycles: int
     stats: dict[str, Any]
     fault_cycle: int | None = None  # exchanges in ACTIVE when the last fault was entered
+
+
+RECORD_SUFFIXES = {".npz": "npz", ".mcap": "mcap"}
+
+
+def check_record_path(path: Path, option: str = "--record") -> str:
+    """Before the run: the record's format from its suffix (``npz`` or ``mcap``), its directory
+    created and proved writable, no directory in its place. OutputError (one line, exit 2) otherwise."""
+    from hil_runtime.outputs import OutputError, prepare_output_dir
+
+    kind = RECORD_SUFFIXES.get(path.suffix.lower())
+    if kind is None:
+        known = ", ".join(RECORD_SUFFIXES)
+        raise OutputError(f"{option} {path}: unknown record format {path.suffix or '(no suffix)'!r} (use {known})")
+    if path.is_dir():
+        raise OutputError(f"{option} {path}: a directory is in the way")
+    prepare_output_dir(path.parent if str(path.parent) else Path("."), option=option)
+    return kind

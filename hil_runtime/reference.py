@@ -7,7 +7,10 @@
 
 The ramp lasts at least ``ramp_s`` and is lengthened until its peak speed is within
 ``speed_fraction`` of every joint's velocity limit. The whole table is computed before ACTIVE
-(5 s at 1 kHz: 5000 rows, 0.7 MB), so a cycle reads row ``k`` and allocates nothing.
+(5 s at 1 kHz: 5000 rows, 0.7 MB), so a cycle reads row ``k`` and allocates nothing. The
+condition's rows (:class:`ConditionTable`: up to an hour, ~0.5 GB and ~1.6 s at 1 kHz) are built
+once before the drives are ever enabled; activation adds only the ramp from the measured pose,
+so the drives never wait at zero torque while a long table is computed.
 """
 
 from __future__ import annotations
@@ -38,36 +41,73 @@ def quintic(
     return q, qd, qdd
 
 
-@dataclass
-class Reference:
-    q: np.ndarray  # (K, N)
+@dataclass(frozen=True)
+class ConditionTable:
+    """A condition sampled once per period from its t = 0 to its end: (K, N) rows each."""
+
+    q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
-    ramp_cycles: int  # rows 0..ramp_cycles-1 are the ramp
     name: str
 
-    def __post_init__(self) -> None:
-        self._hold_q = self.q[-1].copy()
+    @classmethod
+    def build(cls, condition: Condition, period_s: float) -> ConditionTable:
+        n_cond = int(math.floor(condition.duration_s / period_s + 1e-9)) + 1
+        q, qd, qdd = (np.ascontiguousarray(x, float) for x in condition.reference(np.arange(n_cond) * period_s))
+        return cls(q, qd, qdd, condition.name)
+
+
+class Reference:
+    """Rows 0..ramp_cycles-1 the ramp, then the table's rows, then the table's last position at rest."""
+
+    def __init__(
+        self, ramp: tuple[np.ndarray, np.ndarray, np.ndarray], table: ConditionTable, ramp_cycles: int, name: str
+    ) -> None:
+        self._ramp_q, self._ramp_qd, self._ramp_qdd = ramp
+        self._table = table
+        self.ramp_cycles = ramp_cycles
+        self.name = name
+        self._table_rows = table.q.shape[0]
+        self.cycles = ramp_cycles + self._table_rows
+        self._hold_q = table.q[-1].copy()
         self._zeros = np.zeros_like(self._hold_q)
-        self.cycles = self.q.shape[0]
 
     def at(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q_d, qd_d, qdd_d) for period ``k`` since activation (views; do not write)."""
-        if k < self.cycles:
-            return self.q[k], self.qd[k], self.qdd[k]
+        if k < self.ramp_cycles:
+            return self._ramp_q[k], self._ramp_qd[k], self._ramp_qdd[k]
+        j = k - self.ramp_cycles
+        if j < self._table_rows:
+            table = self._table
+            return table.q[j], table.qd[j], table.qdd[j]
         return self._hold_q, self._zeros, self._zeros
+
+    # Whole-table views for inspection and tests (copies; the loop reads rows through ``at``).
+    @property
+    def q(self) -> np.ndarray:
+        return np.concatenate([self._ramp_q, self._table.q])
+
+    @property
+    def qd(self) -> np.ndarray:
+        return np.concatenate([self._ramp_qd, self._table.qd])
+
+    @property
+    def qdd(self) -> np.ndarray:
+        return np.concatenate([self._ramp_qdd, self._table.qdd])
 
     @classmethod
     def hold(cls, q0: np.ndarray) -> Reference:
         q0 = np.asarray(q0, float).reshape(1, -1).copy()
-        return cls(q0, np.zeros_like(q0), np.zeros_like(q0), 0, "hold")
+        empty = np.zeros((0, q0.shape[1]))
+        return cls((empty, empty, empty), ConditionTable(q0, np.zeros_like(q0), np.zeros_like(q0), "hold"), 0, "hold")
 
     @classmethod
-    def condition_only(cls, condition: Condition, period_s: float) -> Reference:
-        """The condition from its t = 0, no ramp (the plant starts on it), then its end held."""
-        n_cond = int(math.floor(condition.duration_s / period_s + 1e-9)) + 1
-        q, qd, qdd = (np.ascontiguousarray(x, float) for x in condition.reference(np.arange(n_cond) * period_s))
-        return cls(q, qd, qdd, 0, condition.name)
+    def condition_only(cls, condition: Condition, period_s: float, table: ConditionTable | None = None) -> Reference:
+        """The condition from its t = 0, no ramp (the plant starts on it), then its end held.
+        ``table``: the condition's rows built beforehand (:meth:`ConditionTable.build`)."""
+        table = table or ConditionTable.build(condition, period_s)
+        empty = np.zeros((0, condition.n_joints))
+        return cls((empty, empty, empty), table, 0, condition.name)
 
     @classmethod
     def ramp_then(
@@ -78,7 +118,10 @@ class Reference:
         ramp_s: float,
         velocity_limit_rad_s: np.ndarray,
         speed_fraction: float = 0.25,
+        table: ConditionTable | None = None,
     ) -> Reference:
+        """A quintic ramp from the measured pose ``q0`` onto the condition, then the condition;
+        ``table``: its rows built beforehand (:meth:`ConditionTable.build`), else built here."""
         q0 = np.asarray(q0, float)
         if condition.n_joints != q0.shape[0]:
             raise ValueError(f"condition {condition.name} has {condition.n_joints} joints, the arm {q0.shape[0]}")
@@ -87,15 +130,13 @@ class Reference:
             q0, p1, v1, a1, ramp_s, np.asarray(velocity_limit_rad_s, float) * speed_fraction, period_s
         )
         n_ramp = round(duration / period_s)
-        n_cond = math.floor(condition.duration_s / period_s + 1e-9) + 1
-        t_cond = np.arange(n_cond) * period_s
-        cq, cqd, cqdd = (np.asarray(x, float) for x in condition.reference(t_cond))
-        if n_ramp > 0:
-            rq, rqd, rqdd = quintic(q0, p1, v1, a1, duration, np.arange(n_ramp) * period_s)
-            cq, cqd, cqdd = (np.concatenate(p) for p in ((rq, cq), (rqd, cqd), (rqdd, cqdd)))
-        return cls(
-            np.ascontiguousarray(cq), np.ascontiguousarray(cqd), np.ascontiguousarray(cqdd), n_ramp, condition.name
-        )
+        table = table or ConditionTable.build(condition, period_s)
+        if n_ramp == 0:  # already on the condition's start, at its velocity
+            empty = np.zeros((0, q0.shape[0]))
+            return cls((empty, empty, empty), table, 0, condition.name)
+        rq, rqd, rqdd = quintic(q0, p1, v1, a1, duration, np.arange(n_ramp) * period_s)
+        ramp = (np.ascontiguousarray(rq), np.ascontiguousarray(rqd), np.ascontiguousarray(rqdd))
+        return cls(ramp, table, n_ramp, condition.name)
 
 
 def ramp_duration_s(

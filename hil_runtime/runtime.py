@@ -54,7 +54,7 @@ from hil_runtime.realtime import (
     set_thread_fifo,
 )
 from hil_runtime.record import RunRecord, RunResult
-from hil_runtime.reference import Reference
+from hil_runtime.reference import ConditionTable, Reference
 from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, finite
 from hil_runtime.sdnotify import Notifier
 from hil_runtime.supervisor import Fault, FaultKind, Supervisor, classify_bus_error
@@ -109,6 +109,7 @@ class Runtime:
         n = self.bundle.n_joints
         self.record = RunRecord(record_cycles, n)
         self.reference: Reference = Reference.hold(np.zeros(n))
+        self._condition_table: ConditionTable | None = None  # built by configure, before any enable
         self.realtime = RealtimeReport()
         self._command = np.zeros(n)  # the set-points the next exchange sends
         self._ref_base = 1  # reference row of the pacer's tick 0: exchange k returns period k + 1
@@ -170,6 +171,10 @@ class Runtime:
             self._close_quietly()
             raise StartupError(f"{self.config.source}: bus: {type(exc).__name__}: {exc}") from None
         self._warm_up()
+        # The condition's rows now, before any enable: an hour at 1 kHz takes ~1.6 s to build,
+        # longer than the drives may wait for their first set-point (comm-loss, heartbeats).
+        if self.condition is not None:
+            self._condition_table = ConditionTable.build(self.condition, self.config.period_s)
         self.telemetry.start()
         self.lifecycle.apply(Transition.CONFIGURE)
 
@@ -441,7 +446,7 @@ class Runtime:
         if self.condition is None:
             return Reference.hold(q0)
         if ref.start == "condition":  # the plant was placed on the condition's start (RunStart)
-            return Reference.condition_only(self.condition, self.config.period_s)
+            return Reference.condition_only(self.condition, self.config.period_s, self._condition_table)
         return Reference.ramp_then(
             q0,
             self.condition,
@@ -449,6 +454,7 @@ class Runtime:
             ref.ramp_s,
             self.limits.velocity_limit_rad_s,
             ref.ramp_speed_fraction,
+            self._condition_table,
         )
 
     def _warm_up(self) -> None:
@@ -567,11 +573,12 @@ class Runtime:
         }
 
 
-def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
-    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet."""
+def build_runtime(config: RuntimeConfig, can_bus: Any = None, **kwargs: Any) -> Runtime:
+    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet.
+    ``can_bus``: an open python-can bus to use instead of opening the config's (a capture)."""
     from drivers.drive_bus import DriveBus
 
-    bus: JointBus = DriveBus(config.bus)
+    bus: JointBus = DriveBus(config.bus, bus=can_bus)
     return Runtime(config, bus, **kwargs)
 
 

@@ -21,6 +21,7 @@ seconds since start in real time) and the control socket (applied at once). Bad 
 from __future__ import annotations
 
 import math
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -186,14 +187,37 @@ class DrivesConfig(_Frozen):
         return self
 
 
+# pybullet steps per control period when the config gives none: lock-step keeps parity with the
+# models simulator (4.3e-4 rad over 2 s); real time must fit a period on a small machine, at a
+# parity cost stated in docs/target.md (benchmarks/bench_plant_parity.py).
+LOCKSTEP_SUBSTEPS = 32
+REALTIME_SUBSTEPS = 8
+
+
 class PlantConfig(_Frozen):
-    substeps: int = Field(32, ge=1, le=10_000)  # pybullet steps per control period
+    substeps: int | None = Field(None, ge=1, le=10_000)  # pybullet steps per period; None: per clock
     joint_names: tuple[str, ...] | None = None  # None: every revolute joint, URDF order
     initial_position_rad: tuple[float, ...] | None = None
     brake_holding_torque_nm: tuple[float, ...] | None = None  # None: twice the effort limit
     encoder_noise_rad: float = Field(0.0, ge=0)
     velocity_noise_rad_s: float = Field(0.0, ge=0)
     seed: int = 0
+
+
+class RealtimeConfig(_Frozen):
+    """The physics thread's OS settings, applied with ``clock: realtime`` (sim_target/rt_settings.py)."""
+
+    fifo_priority: int = Field(80, ge=0, le=99)  # SCHED_FIFO priority; 0: leave the default policy
+    cpus: tuple[int, ...] | None = None  # CPUs the physics thread may run on; None: any
+    lock_memory: bool = True  # mlockall: no page fault in the loop
+
+    @model_validator(mode="after")
+    def _check(self) -> RealtimeConfig:
+        if self.cpus is not None:
+            available = sorted(os.sched_getaffinity(0))
+            if not self.cpus or any(cpu not in available for cpu in self.cpus):
+                raise ValueError(f"cpus {list(self.cpus)}: this machine offers {available}")
+        return self
 
 
 class TargetConfig(_Frozen):
@@ -207,6 +231,15 @@ class TargetConfig(_Frozen):
     plant: PlantConfig = PlantConfig()
     faults: tuple[Fault, ...] = ()
     control_socket: Path | None = None  # Unix socket for run-time faults; no network traffic
+    realism: str = "ideal"  # a realism profile (ideal, realistic, harsh) or a profile YAML (docs/realism.md)
+    realtime: RealtimeConfig = RealtimeConfig()
+
+    @property
+    def substeps(self) -> int:
+        """The plant's pybullet steps per period: the config's, else the clock's default."""
+        if self.plant.substeps is not None:
+            return self.plant.substeps
+        return REALTIME_SUBSTEPS if self.clock == "realtime" else LOCKSTEP_SUBSTEPS
 
     @model_validator(mode="after")
     def _check(self) -> TargetConfig:
@@ -247,6 +280,9 @@ def load_target_config(path: Path | str) -> TargetConfig:
     if isinstance(data, dict) and isinstance(data.get("urdf"), str) and not Path(data["urdf"]).is_absolute():
         # Relative URDF paths are relative to the config file, not the working directory.
         data = {**data, "urdf": str((path.parent / data["urdf"]).resolve())}
+    realism = data.get("realism") if isinstance(data, dict) else None
+    if isinstance(realism, str) and realism not in ("ideal", "realistic", "harsh") and not Path(realism).is_absolute():
+        data = {**data, "realism": str((path.parent / realism).resolve())}  # a profile file, like urdf
     return parse_target_config(data, str(path))
 
 
@@ -391,6 +427,15 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
                 raise TargetConfigError(f"{source}: plant.{field}: negative value")
     for i, fault in enumerate(config.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
+    if config.realism != "ideal":  # before pybullet starts: the profile's one line is the only output
+        from sim_target.realism import RealismError
+        from sim_target.realism_profiles import load_realism
+
+        try:
+            physics_step_s = config.period_s / config.substeps
+            load_realism(config.realism, layout.n_joints, config.period_s, physics_step_s, [1.0] * layout.n_joints)
+        except RealismError as exc:
+            raise TargetConfigError(str(exc)) from None
     defaults = DriveBusConfig.model_fields
     try:
         check_bus_load(

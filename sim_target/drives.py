@@ -8,6 +8,7 @@ API (the server's ``DriveBank``)::
 
     drives = EmulatedDrives(bus, EmulatedDrivesConfig(node_ids=(1, 2, 3, 4, 5, 6)))
     drives.start()                       # boot-up messages, receive thread (make_drive_bank starts)
+    drives.start(own_thread=False)       # or no thread: the owner calls drives.serve_until(deadline_s)
     drives.set_sync_handler(fn)          # fn() runs on every SYNC, on the receive thread, after the
                                          # RPDO set-points are latched and the state machine stepped,
                                          # before the TPDOs go out
@@ -92,8 +93,10 @@ class _EmuNetwork(canopen.Network):
 
 
 class EmulatedDrives:
-    """The drive bank. Thread model: one receive thread does everything (SYNC, SDO, NMT,
-    heartbeats, delayed frames, the master watch); getters may be called from any thread."""
+    """The drive bank. Thread model: one thread does everything (SYNC, SDO, NMT, heartbeats,
+    delayed frames, the master watch): the bank's own receive thread (``start()``), or the owner's
+    thread calling :meth:`serve_until` (``start(own_thread=False)``: the target server, whose
+    physics then steps on that same thread); getters may be called from any thread."""
 
     def __init__(self, bus: can.BusABC, config: EmulatedDrivesConfig) -> None:
         self.config = config
@@ -137,6 +140,9 @@ class EmulatedDrives:
         self._counts = np.array([d.counts_per_rad for d in self._drives])
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._booted = False
+        self._next_check_s = 0.0
+        self._failed = False  # the bus went away: serve_until only sleeps
         self._received = 0
         self._malformed = 0
         self._unknown = 0
@@ -144,16 +150,21 @@ class EmulatedDrives:
 
     # --- the server's interface ------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Boot every drive (boot-up message, NMT pre-operational) and start receiving."""
-        if self._thread is not None:
+    def start(self, own_thread: bool = True) -> None:
+        """Boot every drive (boot-up message, NMT pre-operational) and start receiving: on a thread
+        of its own, or (``own_thread=False``) only when the owner calls :meth:`serve_until` on its
+        thread (the target server: physics and drives then share one thread, no lock hand-off)."""
+        if self._booted:
             return
+        self._booted = True
         now = time.monotonic()
         for drive in self._drives:
             self._nmt.boot(drive, now)
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="emulated-drives", daemon=True)
-        self._thread.start()
+        self._next_check_s = now
+        if own_thread:
+            self._thread = threading.Thread(target=self._run, name="emulated-drives", daemon=True)
+            self._thread.start()
 
     def set_sync_handler(self, handler: Callable[[], None] | None) -> None:
         self._sync_handler = handler
@@ -272,36 +283,45 @@ class EmulatedDrives:
         return min(self._nmt.next_due(), self._link.next_due())
 
     def _run(self) -> None:
+        while not self._stop.is_set() and not self._failed:
+            self.serve_until(time.monotonic() + _POLL_S)
+
+    def serve_until(self, deadline_s: float) -> None:
+        """Receive and handle frames (SYNC answered at once) until ``time.monotonic()`` reaches
+        ``deadline_s``, on the calling thread; heartbeats, delayed frames and the master watch are
+        serviced on the way. Returns at the deadline (or at once when stopped)."""
         bus = self._bus
         monotonic = time.monotonic
-        next_check = monotonic()
-        while not self._stop.is_set():
+        stop = self._stop
+        while not stop.is_set():
             now = monotonic()
+            if now >= deadline_s:
+                return
+            if self._failed:
+                stop.wait(deadline_s - now)
+                return
             due = self._next_due()
             if now >= due:
                 self._nmt.produce_heartbeats(now)
                 self._link.release_due(now)
                 due = self._next_due()
             try:
-                if now >= next_check:
+                if now >= self._next_check_s:
                     # Judge the master's silence only with nothing of it still queued: a stall of
                     # this thread must not pass for a silent master.
-                    next_check = now + _CHECK_PERIOD_S
+                    self._next_check_s = now + _CHECK_PERIOD_S
                     if self._drain():
                         self._watch.check(monotonic())
-                msg = bus.recv(min(_POLL_S, max(0.0, due - now)))
+                msg = bus.recv(max(0.0, min(_POLL_S, due - now, deadline_s - now)))
             except Exception:  # the bus went away: nothing left to emulate
-                if not self._stop.is_set():
+                if not stop.is_set():
                     log.exception("emulated drives: receive failed")
+                self._failed = True
                 return
             if msg is None:
                 self._watch.check(monotonic())  # nothing queued: the silence is real
                 continue
-            self._received += 1
-            try:
-                self._dispatch(msg)
-            except Exception:  # an emulator bug must not silence the drives
-                log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
+            self._handle(msg)
 
     def _drain(self) -> bool:
         """Handle every frame already queued; False if they kept coming (no empty queue seen)."""
@@ -416,8 +436,9 @@ class EmulatedDrives:
         raise ValueError(f"no emulated drive with node id {node_id} (have {self.config.node_ids})")
 
 
-def make_drive_bank(bus: can.BusABC, node_ids: tuple[int, ...], config: Any) -> EmulatedDrives:
-    """Started drives for the target server; ``config`` is a ``sim_target.config.TargetConfig``."""
+def make_drive_bank(bus: can.BusABC, node_ids: tuple[int, ...], config: Any, own_thread: bool = True) -> EmulatedDrives:
+    """Started drives for the target server; ``config`` is a ``sim_target.config.TargetConfig``.
+    ``own_thread=False``: the server serves them on its own thread (:meth:`EmulatedDrives.serve_until`)."""
     drives_cfg = config.drives
     drives = EmulatedDrives(
         bus,
@@ -427,5 +448,5 @@ def make_drive_bank(bus: can.BusABC, node_ids: tuple[int, ...], config: Any) -> 
             heartbeat_producer_ms=drives_cfg.heartbeat_producer_ms,
         ),
     )
-    drives.start()
+    drives.start(own_thread=own_thread)
     return drives

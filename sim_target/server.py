@@ -7,7 +7,16 @@ Two clocks:
   is then deterministic and comparable with the pure simulation.
 - ``realtime``: physics advances one period per tick of a monotonic clock with absolute deadlines
   (``next += period``); a late tick is counted and the missed periods skipped, never run in a
-  burst. A SYNC then answers with the latest state.
+  burst. A SYNC then answers with the latest state. Lateness (late ticks, skipped periods, worst
+  lag) is counted per run and in the status (sim_target/lateness.py); a run whose plant fell
+  behind is invalid.
+
+One thread does everything, in both clocks: it serves the drives' bus (``drives.serve_until``)
+until the next physics deadline and steps the plant itself, so physics and drives never hand off
+through a lock. Other threads (the control socket) only post faults and run starts on queues and
+read the status snapshot. With ``clock: realtime`` that thread takes SCHED_FIFO, its CPU and
+mlockall (``realtime:`` in the config; sim_target/rt_settings.py), and at start-up the target
+times its own physics step and warns, on one line, when it cannot keep the period.
 
 Faults: the plant's own (encoder noise, payload, torque impulse) are applied here; frame faults and
 drive faults go to the drive layer's hooks. They come from the config file (scheduled at ``at_s``
@@ -53,8 +62,10 @@ from sim_target.config import (
     check_run_start,
 )
 from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
+from sim_target.lateness import Lateness
 from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
 from sim_target.plant_protocol import JointState
+from sim_target.rt_settings import apply_thread_settings
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +75,9 @@ class DriveBank(Protocol):
 
     def set_sync_handler(self, handler: Callable[[], None]) -> None:
         """Call ``handler`` on every SYNC, after latching the RPDO set-points, before the TPDOs."""
+
+    def serve_until(self, deadline_s: float) -> None:
+        """Handle the bus on the calling thread until ``time.monotonic()`` reaches ``deadline_s``."""
 
     def commanded_torque_nm(self) -> np.ndarray:
         """(N,) torque each drive is commanded to deliver now (0 when not Operation Enabled)."""
@@ -89,10 +103,18 @@ class DriveBank(Protocol):
 class ServerStats:
     steps: int = 0
     syncs: int = 0
-    late_ticks: int = 0  # realtime: ticks that started after their deadline
+    late_ticks: int = 0  # realtime: ticks whose step ran past the next deadline (since start)
     skipped_periods: int = 0  # realtime: periods dropped to catch up, never run in a burst
+    worst_lag_s: float = 0.0  # realtime: the latest a tick started after its deadline
     faults_applied: int = 0
     runs_started: int = 0  # RunStart placements done (start_run)
+
+
+_LOCKSTEP_WAKE_S = 0.05  # lock-step: the loop thread looks at the fault queue at least this often
+_COST_PROBE_STEPS = 200  # physics steps timed at start-up (clock: realtime)
+# A step costing more than this share of the period leaves too little for the bus and wake-up
+# jitter: the target says at start-up that it cannot keep real time.
+_COST_WARN_FRACTION = 0.5
 
 
 class TargetServer:
@@ -103,9 +125,11 @@ class TargetServer:
         self.plant = plant
         self.drives = drives
         self.stats = ServerStats()
-        self._lock = threading.Lock()  # pybullet and the drive state are touched from two threads
+        self.lateness = Lateness.starting_now()  # this run's (since the last run start)
+        self.realtime_settings: dict[str, Any] = {}  # applied/refused, the start-up cost probe
         self._stop = threading.Event()
         self._pending: queue.SimpleQueue[Fault] = queue.SimpleQueue()
+        self._starts: queue.SimpleQueue[RunStart] = queue.SimpleQueue()
         self._scheduled: list[Fault] = []
         self.layout = TargetLayout(
             plant.joint_names,
@@ -124,20 +148,22 @@ class TargetServer:
         self._start: RunStart | None = None  # armed by start_run, placed at the first enabled step
         self._control: ControlServer | None = None
         self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
+        self._snapshot: dict[str, Any] = {}
+        self._publish_snapshot()
         drives.set_sync_handler(self._on_sync)
 
     # --- clocks ---------------------------------------------------------------------------------
 
     def _on_sync(self) -> None:
-        with self._lock:
-            self.stats.syncs += 1
-            if self.config.clock == "lockstep":
-                state = self._step_locked()
-            else:
-                state = self.plant.state()
-            self.drives.publish_feedback(state)
+        self.stats.syncs += 1
+        if self.config.clock == "lockstep":
+            self.drives.publish_feedback(self._step())
+            self._publish_snapshot()
+        else:
+            self.drives.publish_feedback(self.plant.state())
 
-    def _step_locked(self) -> JointState:
+    def _step(self) -> JointState:
+        self._take_pending()
         self._apply_due_faults()
         enabled = np.asarray(self.drives.operation_enabled(), dtype=bool)
         torque_nm = np.where(enabled, self.drives.commanded_torque_nm(), 0.0)
@@ -152,8 +178,7 @@ class TargetServer:
     def start_run(self, start: RunStart) -> None:
         """Arm a run start (thread-safe; checked first): see :class:`sim_target.config.RunStart`."""
         check_run_start(start, self.layout, "start")
-        with self._lock:
-            self._start = start
+        self._starts.put(start)  # taken by the loop thread before its next step
 
     def _place(self, start: RunStart) -> JointState:
         self._start = None
@@ -167,6 +192,7 @@ class TargetServer:
                 self._scheduled.append(fault)
         self._scheduled.sort(key=lambda fault: fault.at_s)
         self.stats.runs_started += 1
+        self.lateness = Lateness.starting_now()  # a run's validity counts from its own start
         log.info(
             "run started at %s rad (time 0), %d fault(s) scheduled",
             np.round(state.position_rad, 4).tolist(),
@@ -178,32 +204,70 @@ class TargetServer:
         """Serve until :meth:`stop` (or a signal handler calling it); then drives to a safe state."""
         try:
             if self.config.clock == "realtime":
+                self._apply_realtime_settings()
                 self._run_realtime()
             else:
-                while not self._stop.wait(0.05):  # the SYNC handler does the work
-                    with self._lock:
-                        self._apply_pending()
+                while not self._stop.is_set():  # the SYNC handler steps the plant, on this thread
+                    self.drives.serve_until(time.monotonic() + _LOCKSTEP_WAKE_S)
+                    self._publish_snapshot()
         finally:
             self.shutdown()
 
     def _run_realtime(self) -> None:
         period_s = self.config.period_s
-        next_s = time.monotonic() + period_s
+        monotonic = time.monotonic
+        stats = self.stats
+        deadline_s = monotonic() + period_s
         while not self._stop.is_set():
-            delay_s = next_s - time.monotonic()
-            if delay_s > 0:
-                self._stop.wait(delay_s)
-                if self._stop.is_set():
-                    break
-            with self._lock:
-                self._step_locked()
-            next_s += period_s
-            now_s = time.monotonic()
-            if now_s > next_s:  # overran: skip the periods already past rather than burst
-                missed = int((now_s - next_s) // period_s) + 1
-                self.stats.late_ticks += 1
-                self.stats.skipped_periods += missed
-                next_s += missed * period_s
+            self.drives.serve_until(deadline_s)  # SYNCs meanwhile are answered with the latest state
+            if self._stop.is_set():
+                break
+            tick_s, started_s = deadline_s, monotonic()
+            self.drives.publish_feedback(self._step())
+            deadline_s += period_s
+            now_s = monotonic()
+            missed = 0
+            if now_s > deadline_s:  # overran: skip the periods already past rather than burst
+                missed = int((now_s - deadline_s) // period_s) + 1
+                deadline_s += missed * period_s
+                stats.late_ticks += 1
+                stats.skipped_periods += missed
+            lag_s = started_s - tick_s
+            stats.worst_lag_s = max(stats.worst_lag_s, lag_s)
+            self.lateness.tick(lag_s, missed)
+            if stats.steps % 16 == 0:
+                self._publish_snapshot()
+
+    def _take_pending(self) -> None:
+        while True:
+            try:
+                self._start = self._starts.get_nowait()
+            except queue.Empty:
+                return
+
+    def _apply_realtime_settings(self) -> None:
+        """Time the physics step (the plant restored after), warn when it cannot keep the period,
+        then SCHED_FIFO / CPU / mlockall for this thread."""
+        period_s = self.config.period_s
+        cost_s = self.plant.probe_step_cost_s(_COST_PROBE_STEPS)
+        fraction = cost_s / period_s
+        self.realtime_settings["plant_step_us"] = round(cost_s * 1e6, 1)
+        self.realtime_settings["plant_step_fraction"] = round(fraction, 3)
+        self.realtime_settings["substeps"] = self.plant.substeps
+        if fraction > _COST_WARN_FRACTION:
+            log.warning(
+                "target: cannot keep real time: one physics step (%d substeps) costs %.0f us, %.0f %% of "
+                "the %g ms period; runs that fall behind are marked invalid (fewer plant.substeps helps)",
+                self.plant.substeps,
+                cost_s * 1e6,
+                100 * fraction,
+                period_s * 1e3,
+            )
+        rt = self.config.realtime
+        applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
+        self.realtime_settings["applied"] = applied
+        self.realtime_settings["refused"] = refused
+        self._publish_snapshot()
 
     def stop(self) -> None:
         self._stop.set()
@@ -212,12 +276,11 @@ class TargetServer:
         if self._control is not None:
             self._control.close()
             self._control = None
-        with self._lock:
-            try:
-                self.drives.safe_stop()
-            finally:
-                self.drives.close()
-                self.plant.close()
+        try:
+            self.drives.safe_stop()
+        finally:
+            self.drives.close()
+            self.plant.close()
 
     # --- faults ---------------------------------------------------------------------------------
 
@@ -256,16 +319,27 @@ class TargetServer:
         self.stats.faults_applied += 1
         log.info("fault applied at t=%.4f s: %s", at_s, fault)
 
+    def _publish_snapshot(self) -> None:
+        """What :meth:`status` answers, built on the loop thread (the only one touching pybullet
+        and the drives) and swapped in whole: a reader never sees half an update, never blocks it."""
+        state = self.plant.state()
+        period_s = self.config.period_s
+        self._snapshot = {
+            "time_s": state.time_s,
+            "position_rad": state.position_rad.round(6).tolist(),
+            "operation_enabled": np.asarray(self.drives.operation_enabled()).tolist(),
+            "payload_kg": self.plant.payload_kg,
+            **self.stats.__dict__,
+            "clock": self.config.clock,
+            "period_s": period_s,
+            "substeps": self.plant.substeps,
+            "lateness": self.lateness.as_dict(period_s) if self.config.clock == "realtime" else None,
+            "realtime": dict(self.realtime_settings),
+        }
+
     def status(self) -> dict[str, Any]:
-        with self._lock:
-            state = self.plant.state()
-            return {
-                "time_s": state.time_s,
-                "position_rad": state.position_rad.round(6).tolist(),
-                "operation_enabled": np.asarray(self.drives.operation_enabled()).tolist(),
-                "payload_kg": self.plant.payload_kg,
-                **self.stats.__dict__,
-            }
+        """The latest snapshot (at most 16 periods old in real time, 50 ms in lock-step)."""
+        return dict(self._snapshot)
 
     # --- control socket -------------------------------------------------------------------------
 
@@ -280,10 +354,10 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
     urdf = config.urdf if config.urdf is not None else default_urdf_path(config.robot or "ur5_paper")
     plant_cfg = config.plant
     try:
-        return PybulletPlant(
+        plant = PybulletPlant(
             urdf,
             period_s=config.period_s,
-            substeps=plant_cfg.substeps,
+            substeps=config.substeps,
             joint_names=plant_cfg.joint_names,
             initial_position_rad=plant_cfg.initial_position_rad,
             brake_holding_torque_nm=plant_cfg.brake_holding_torque_nm,
@@ -293,6 +367,23 @@ def make_plant(config: TargetConfig) -> PybulletPlant:
         )
     except ValueError as exc:  # PlantError and the robot loader's ModelInputError
         raise TargetConfigError(f"plant: {exc}") from None
+    if config.realism != "ideal":
+        from sim_target.realism_profiles import load_realism
+
+        try:  # RealismError names the profile file and field; the plant's own refusals say "realism:"
+            plant.use_realism(
+                load_realism(
+                    config.realism,
+                    plant.n_joints,
+                    config.period_s,
+                    config.period_s / plant.substeps,
+                    plant.torque_limit_nm,
+                )
+            )
+        except ValueError as exc:
+            plant.close()
+            raise TargetConfigError(str(exc)) from None
+    return plant
 
 
 def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBank:
@@ -302,17 +393,22 @@ def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBa
     node_ids = config.drives.node_ids or tuple(range(1, n_joints + 1))
     if len(node_ids) != n_joints:
         raise TargetConfigError(f"drives.node_ids: {len(node_ids)} ids for {n_joints} joints")
-    return drive_module.make_drive_bank(bus, node_ids, config)
+    return drive_module.make_drive_bank(bus, node_ids, config, own_thread=False)  # served by run()
 
 
-def build_server(config: TargetConfig) -> tuple[TargetServer, Callable[[], None]]:
-    """Plant, bus (and bridge), drives and control socket; returns the server and a closer."""
+def build_server(config: TargetConfig, can_log: Path | None = None) -> tuple[TargetServer, Callable[[], None]]:
+    """Plant, bus (and bridge), drives and control socket; returns the server and a closer.
+    ``can_log``: every frame the drives send or receive also goes to this capture (docs/formats.md)."""
     plant = make_plant(config)
     bridge: BridgeServer | None = None
     try:
         if config.bridge is not None:
             bridge = start_bridge_server(config.bridge.host, config.bridge.port, config.bus.channel)
         bus = open_bus(config.bus)
+        if can_log is not None:
+            from drivers.capture import CanCapture, CaptureBus
+
+            bus = CaptureBus(bus, CanCapture(can_log))
         try:
             drives = make_drives(config, bus, plant.n_joints)
         except Exception:

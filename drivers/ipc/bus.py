@@ -313,6 +313,17 @@ class IpcBus(can.BusABC):
 
     # --- receiving -------------------------------------------------------------------------------
 
+    def _wait(self, wait_s: float) -> list[tuple[int, int]]:
+        """epoll's events within ``wait_s`` (-1: forever). epoll's timeout has millisecond
+        resolution, rounded up (a 0.3 ms wait sleeps 1 ms, so a 1 kHz loop waiting for its next
+        deadline slipped a period every other tick): a finite wait goes through select() on the
+        epoll descriptor, whose timeout has microseconds, then collects the events at once."""
+        fd = self._epoll.fileno()
+        if wait_s > 0 and fd < 1024:  # select's FD_SETSIZE
+            select.select([fd], [], [], wait_s)
+            return self._epoll.poll(0)
+        return self._epoll.poll(wait_s)
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else time.monotonic() + timeout
         ready = self._ready
@@ -353,7 +364,7 @@ class IpcBus(can.BusABC):
                 if wait_s < 0:
                     wait_s = 0.0
             try:
-                events = self._epoll.poll(wait_s)
+                events = self._wait(wait_s)
             except InterruptedError:
                 events = []
             except (OSError, ValueError) as exc:  # the epoll was closed by shutdown()

@@ -129,7 +129,7 @@ def control(
 
 @telemetry_app.command()
 def record(
-    out: Annotated[Path, typer.Option("--out", help="the record to write (.npz)")],
+    out: Annotated[Path, typer.Option("--out", help="the record to write (.npz, or .mcap: docs/formats.md)")],
     seconds: Annotated[
         float, typer.Option("--seconds", help="how long to record", callback=_seconds(0.0, 7 * 86400.0))
     ] = 10.0,
@@ -137,14 +137,13 @@ def record(
     connect: ConnectOption = None,
     timeout: TimeoutOption = 3.0,
     zenoh_config: ZenohConfigOption = None,
+    urdf: Annotated[Path | None, typer.Option("--urdf", help="the URDF attached to an .mcap record")] = None,
 ) -> None:
-    """Record the state stream for N seconds into an npz (columns per field, the schema embedded)."""
-    from hil_runtime.outputs import OutputError, prepare_output_dir
+    """Record the state stream for N seconds into an npz (columns per field, the schema embedded) or an MCAP file."""
+    from hil_runtime.record import check_record_path
     from hil_runtime.telemetry.subscriber import TelemetryUnavailable, missing_samples, save_record, start_recording
 
-    if out.suffix != ".npz":
-        raise OutputError(f"--out {out}: the record is an .npz file")
-    prepare_output_dir(out.parent if str(out.parent) else Path("."), option="--out")
+    kind = check_record_path(out, option="--out")
     with _client(robot, connect, timeout, zenoh_config) as client:
         started_s = time.monotonic()
         recording = start_recording(client)  # before the queries: nothing is missed meanwhile
@@ -178,7 +177,15 @@ def record(
     period_s = config.get("period_s") or (config.get("bus") or {}).get("period_s")
     if isinstance(period_s, (int, float)) and period_s > 0:
         extra["period_s"] = float(period_s)  # plot: time = cycle x period (lock-step runs are not wall time)
-    count = save_record(recording, out, extra)
+    if kind == "mcap":
+        from hil_runtime.formats.mcap_record import save_mcap_record, urdf_of_bundle_document
+
+        urdf_path = urdf_of_bundle_document(extra.get("bundle"), schema.robot, urdf)
+        count = save_mcap_record(
+            out, arrays, schema.joints, schema.robot, recording.status, recording.events, extra, urdf_path
+        )
+    else:
+        count = save_record(recording, out, extra)
     lost = missing_samples(arrays["seq"], decimation)
     gaps = int((arrays["flags"] & 1).astype(bool).sum())
     refused = f", {recording.refused} refused ({recording.first_refusal})" if recording.refused else ""
@@ -186,6 +193,46 @@ def record(
         f"wrote {out}: {count} state samples, seq {int(arrays['seq'][0])}..{int(arrays['seq'][-1])}, "
         f"{lost} missing, {gaps} after publisher drops{refused}; published by {', '.join(sorted(publishers)) or '-'}"
     )
+
+
+@telemetry_app.command()
+def foxglove(
+    host: Annotated[str, typer.Option("--host", help="where the Foxglove WebSocket server listens")] = "127.0.0.1",
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="its port (0: any free one)")] = 8765,
+    rate_hz: Annotated[
+        float, typer.Option("--rate-hz", help="states republished per s", callback=_between(1.0, 1000.0))
+    ] = 50.0,
+    seconds: Annotated[
+        float | None,
+        typer.Option("--seconds", help="stop after [default: Ctrl-C]", callback=_seconds(0.0, 7 * 86400.0)),
+    ] = None,
+    urdf: Annotated[Path | None, typer.Option("--urdf", help="the arm's URDF [default: the bundle's]")] = None,
+    allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen beyond loopback")] = False,
+    robot: RobotOption = None,
+    connect: ConnectOption = None,
+    timeout: TimeoutOption = 3.0,
+    zenoh_config: ZenohConfigOption = None,
+) -> None:
+    """Republish the telemetry live to Foxglove (ws://HOST:PORT) with the arm's URDF (docs/formats.md)."""
+    from hil_runtime.formats.foxglove_live import FoxgloveBridge, FoxgloveError, run_bridge, urdf_text_for
+    from hil_runtime.telemetry.config import is_loopback_endpoint
+
+    if not allow_remote and not is_loopback_endpoint(f"tcp/{host}:{port}"):
+        raise FoxgloveError(f"--host {host}: not loopback (127.0.0.1/::1); pass --allow-remote to serve beyond it")
+    with _client(robot, connect, timeout, zenoh_config) as client:
+        schema = client.schema()
+        bridge = FoxgloveBridge(schema.joints, urdf_text_for(client, schema.robot, urdf), host, port, rate_hz)
+        try:
+            print(
+                f"Foxglove: open ws://{host}:{bridge.port} (hil/{client.robot}, "
+                f"{'URDF attached' if bridge.urdf_text else 'no URDF found'}); Ctrl-C to stop",
+                file=sys.stderr,
+                flush=True,
+            )
+            run_bridge(client, bridge, seconds)
+        finally:
+            bridge.close()
+    print(f"republished {bridge.states_out} of {bridge.states_in} states", file=sys.stderr)
 
 
 @telemetry_app.command()

@@ -94,6 +94,25 @@ def check_key_chunk(name: str, what: str) -> str:
     return name
 
 
+_ROS_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
+_ROS_PATH = r"^/([A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*)?$"
+
+
+class Ros2Section(BaseModel):
+    """Opt-in ``sensor_msgs/msg/JointState`` on ROS 2's ``/joint_states`` over this Zenoh session,
+    as rmw_zenoh publishes it (hil_runtime/formats/rmw_zenoh.py, docs/formats.md)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = False
+    domain_id: int = Field(0, ge=0, le=232)  # ROS_DOMAIN_ID
+    namespace: str = Field("/", pattern=_ROS_PATH)
+    node: str = Field("hil_runtime", pattern=_ROS_NAME)
+    topic: str = Field("/joint_states", pattern=_ROS_PATH)
+    frame_id: str = ""
+    decimation: int = Field(1, ge=1, le=1_000_000)  # every k-th published state (10: 100 Hz at 1 kHz)
+
+
 class TelemetryConfig(BaseModel):
     """Zenoh telemetry of one runtime (one arm). Frozen, validated once at load."""
 
@@ -129,6 +148,7 @@ class TelemetryConfig(BaseModel):
     # Zenoh link lease this runtime declares: a peer that hears nothing for this long (a hung or
     # unplugged runtime, no TCP FIN) drops its liveliness token. Zenoh's default is 10 s.
     lease_s: float = Field(1.0, ge=0.2, le=600.0)
+    ros2: Ros2Section = Ros2Section()
 
     @field_validator("robot")
     @classmethod

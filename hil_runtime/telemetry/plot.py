@@ -32,9 +32,7 @@ class PlotError(ValueError):
     exit_code = 2
 
 
-def _check_archive(path: Path) -> None:
-    """A regular file, a zip of at most MAX_ARRAYS .npy members whose headers promise no more than
-    MAX_RECORD_BYTES together (read from the headers, before any array is inflated)."""
+def _check_regular(path: Path) -> None:
     try:
         mode = os.stat(path).st_mode  # stat, not open: a FIFO would block the open
     except FileNotFoundError:
@@ -43,6 +41,11 @@ def _check_archive(path: Path) -> None:
         raise PlotError(f"{path}: cannot read it ({exc.strerror})") from None
     if not stat.S_ISREG(mode):
         raise PlotError(f"{path}: not a regular file (a FIFO, device or directory is never read)")
+
+
+def _check_archive(path: Path) -> None:
+    """A zip of at most MAX_ARRAYS .npy members whose headers promise no more than
+    MAX_RECORD_BYTES together (read from the headers, before any array is inflated)."""
     try:
         with zipfile.ZipFile(path) as archive:
             members = archive.infolist()
@@ -77,6 +80,14 @@ def _check_archive(path: Path) -> None:
 
 
 def load_record(path: Path) -> dict[str, Any]:
+    _check_regular(path)
+    if path.suffix.lower() == ".mcap":  # hil run / hil telemetry record --out x.mcap (docs/formats.md)
+        from hil_runtime.formats.mcap_record import McapRecordError, read_mcap_record
+
+        try:
+            return _checked(path, read_mcap_record(path))
+        except McapRecordError as exc:
+            raise PlotError(str(exc)) from None
     _check_archive(path)
     try:
         with np.load(path, allow_pickle=False) as data:
@@ -86,11 +97,16 @@ def load_record(path: Path) -> dict[str, Any]:
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise PlotError(f"{path}: not a telemetry record ({reason})") from None
+    return _checked(path, record)
+
+
+def _checked(path: Path, record: dict[str, Any]) -> dict[str, Any]:
+    """The columns the figures read, consistent with one another (one line naming the field if not)."""
     shape = None
     for name in SAMPLE_COLUMNS:
         if name not in record:
             raise PlotError(f"{path}: not a telemetry record (no {name!r} column)")
-        column = record[name]
+        column = record[name] = np.asarray(record[name])
         if column.ndim != 2:
             raise PlotError(f"{path}: column {name!r} is not (samples, joints)")
         if column.dtype.kind not in "fiu":
@@ -101,7 +117,7 @@ def load_record(path: Path) -> dict[str, Any]:
     assert shape is not None
     for name in OPTIONAL_COLUMNS:
         if name in record:
-            column = record[name]
+            column = record[name] = np.asarray(record[name])
             expected = shape if name == "tau_fb" else shape[:1]
             if column.shape != expected or column.dtype.kind not in "fiu":
                 raise PlotError(f"{path}: column {name!r} has shape {column.shape} {column.dtype}, expected {expected}")
@@ -110,10 +126,10 @@ def load_record(path: Path) -> dict[str, Any]:
     if shape[1] > MAX_JOINTS:
         raise PlotError(f"{path}: column 'q': {shape[1]} joints (plot draws at most {MAX_JOINTS})")
     if "period_s" in record:
-        period = record["period_s"]
+        period = record["period_s"] = np.asarray(record["period_s"])
         if period.shape != () or period.dtype.kind not in "fiu" or not 0.0 < float(period) < math.inf:
             raise PlotError(f"{path}: field period_s: {period.tolist()!r} is not a positive number of seconds")
-    if "joints" in record and (record["joints"].ndim != 1 or record["joints"].dtype.kind not in "US"):
+    if "joints" in record and (np.ndim(record["joints"]) != 1 or np.asarray(record["joints"]).dtype.kind not in "US"):
         raise PlotError(f"{path}: field joints: not a list of names")
     return record
 

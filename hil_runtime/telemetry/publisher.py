@@ -135,6 +135,8 @@ class ZenohTelemetry:
         self._source_info: Any = None
         self._source_ids: dict[str, Any] = {}
         self._source_sn: dict[str, int] = {}
+        self._ros2: Any = None  # hil_runtime.formats.rmw_zenoh.JointStatePublisher when ros2.enabled
+        self.joints = tuple(joints)
 
     # --- the loop's side ------------------------------------------------------------------------
 
@@ -177,6 +179,20 @@ class ZenohTelemetry:
         for name in self._publishers:
             self._put(name, encode_header(_KIND_OF[name], 0, time.monotonic_ns(), FLAG_WARMUP))
         self._token = session.liveliness().declare_token(f"{self.prefix}/alive")
+        if self.config.ros2.enabled:  # ROS 2's /joint_states beside hil/<robot>/ (docs/formats.md)
+            from hil_runtime.formats.rmw_zenoh import JointStatePublisher
+
+            ros2 = self.config.ros2
+            self._ros2 = JointStatePublisher(
+                session,
+                self.joints,
+                ros2.domain_id,
+                ros2.namespace,
+                ros2.node,
+                ros2.topic,
+                ros2.frame_id,
+                ros2.decimation,
+            )
         self._stop.clear()
         self._running = True
         self._thread = threading.Thread(target=self._run, name=f"telemetry-{self.robot}", daemon=True)
@@ -242,6 +258,9 @@ class ZenohTelemetry:
                 log.warning(
                     "telemetry: publisher thread still busy after %.1f s; closing anyway", self.config.close_timeout_s
                 )
+        if self._ros2 is not None:
+            self._ros2.close()
+            self._ros2 = None
         # Undeclare the token first: subscribers see the runtime leave at once, not by timeout.
         for entity in (self._token, *self._declared, *self._publishers.values()):
             try:
@@ -336,6 +355,8 @@ class ZenohTelemetry:
             try:
                 self._put("state", payload)
                 self.sent += 1
+                if self._ros2 is not None:
+                    self._ros2.publish_state_payload(payload)
             except Exception as exc:  # noqa: BLE001 - Zenoh's errors are untyped; telemetry never stops the loop
                 self.publish_errors += 1
                 if self.publish_errors == 1:

@@ -80,3 +80,41 @@ class NullTelemetry:
 
     def close(self) -> None:
         pass
+
+
+class FanOutTelemetry:
+    """Several sinks as one (the Zenoh publisher and an MCAP recorder): each call goes to each in
+    turn. A sink's close failing does not keep the others from closing; the first error is raised."""
+
+    def __init__(self, *sinks: TelemetrySink) -> None:
+        self.sinks = sinks
+
+    def start(self) -> None:
+        for sink in self.sinks:
+            sink.start()
+
+    def offer_state(self, sample: CycleState) -> None:
+        for sink in self.sinks:
+            sink.offer_state(sample)
+
+    def offer_stats(self, stats: Mapping[str, float]) -> None:
+        for sink in self.sinks:
+            sink.offer_stats(stats)
+
+    def set_status(self, state: str, fault: str | None) -> None:
+        for sink in self.sinks:
+            sink.set_status(state, fault)
+
+    def event(self, kind: str, cycle: int, detail: str) -> None:
+        for sink in self.sinks:
+            sink.event(kind, cycle, detail)
+
+    def close(self) -> None:
+        first: Exception | None = None
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except Exception as exc:  # noqa: BLE001 - every sink gets closed; the first error is raised
+                first = first or exc
+        if first is not None:
+            raise first

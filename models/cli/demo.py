@@ -34,6 +34,13 @@ def demo(
     ] = False,
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/demo"),
     target_substeps: Annotated[int, typer.Option(help="pybullet steps per control period.")] = 32,
+    realism: Annotated[
+        str,
+        typer.Option(
+            help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
+            metavar="PROFILE|FILE",
+        ),
+    ] = "ideal",
 ) -> None:
     """Run the runtime (hil run) on the pybullet arm (hil target serve) as separate processes over the
     ipc CAN bus at 1 kHz, watch its telemetry live, stop everything, write the run and its scores."""
@@ -48,6 +55,7 @@ def demo(
         duration_s=duration,
         realtime=realtime,
         target_substeps=target_substeps,
+        realism=realism,
     )
     created = not out.exists()
     try:

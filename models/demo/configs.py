@@ -20,6 +20,9 @@ def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_
         "bus": {"interface": "ipc", "channel": str(bus_dir), **CAN_FD},
         "plant": {"substeps": options.target_substeps},
         "control_socket": str(control_socket),
+        "realism": options.realism
+        if options.realism in ("ideal", "realistic", "harsh")
+        else str(Path(options.realism).resolve()),
     }
 
 

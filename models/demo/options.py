@@ -27,6 +27,7 @@ class DemoOptions:
     realtime: bool = False  # free-running: the target on its own clock, the runtime on absolute deadlines
     target_substeps: int = 32  # pybullet steps per control period
     robot: str = "ur5_paper"
+    realism: str = "ideal"  # a realism profile or profile file, applied by the target and the twin (docs/realism.md)
 
 
 def check_options(options: DemoOptions) -> None:
@@ -47,6 +48,21 @@ def check_options(options: DemoOptions) -> None:
         raise ModelInputError(f"--duration: must be a finite number of seconds >= 0.05, got {options.duration_s!r}")
     if options.target_substeps < 1:
         raise ModelInputError(f"--target-substeps: must be >= 1, got {options.target_substeps}")
+    realism_specs(options)  # a bad profile: one line naming the file and field
+
+
+def realism_specs(options: DemoOptions) -> tuple[Any, Any]:
+    """The profile bound to the target's physics step and to the simulation twin's, both checked."""
+    from models.robots import load_robot
+    from models.sim import SimConfig
+    from sim_target.realism_profiles import load_realism
+
+    robot = load_robot(options.robot)
+    sim = SimConfig()
+    n, limit = robot.n_joints, robot.torque_limit_nm
+    target = load_realism(options.realism, n, sim.period_s, sim.period_s / options.target_substeps, limit)
+    twin = load_realism(options.realism, n, sim.period_s, sim.period_s / sim.substeps, limit)
+    return target, twin
 
 
 def demo_condition(options: DemoOptions, robot: Any) -> Any:

@@ -11,7 +11,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from models.demo.options import DemoOptions
+from models.demo.options import DemoOptions, realism_specs
 
 
 def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: bool = False) -> dict[str, Any]:
@@ -43,7 +43,10 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     console.print("hil demo: simulating the same bundle on the same condition (models simulator) ...", soft_wrap=True)
     steps = round(condition.duration_s / outcome.period_s)
     hil, coverage = analysis.hil_trajectory(outcome.record, steps, outcome.period_s)
-    sim, sim_wall_s = analysis.simulate_twin(robot, options.law, options.mode, condition, _bundle_gain_set(options))
+    twin_realism = realism_specs(options)[1]
+    sim, sim_wall_s = analysis.simulate_twin(
+        robot, options.law, options.mode, condition, _bundle_gain_set(options), twin_realism
+    )
     stats = analysis.final_stats(outcome)
     recording = analysis.telemetry_recording(outcome)
     results: dict[str, Any] = {

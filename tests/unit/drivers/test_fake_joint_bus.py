@@ -103,7 +103,7 @@ def test_quick_stop_freezes_the_plant() -> None:
 
 
 class _AcceptsNaN(FakeJointBus):
-    def _setpoint(self, torque_nm: np.ndarray, name: str) -> np.ndarray:
+    def _checked_setpoint(self, torque_nm: np.ndarray, name: str) -> np.ndarray:
         torque = np.asarray(torque_nm, dtype=np.float64)
         if torque.shape != (self.n_joints,):
             raise DriveCommandError("shape")

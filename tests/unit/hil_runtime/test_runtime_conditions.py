@@ -126,3 +126,73 @@ def test_zero_frequency_and_pi_expressions_are_accepted(tmp_path: Path) -> None:
     assert c.disturbance is None
     q, qd, _ = c.reference(1.0)
     assert np.all(np.isfinite(q)) and qd == pytest.approx(np.zeros(2))
+
+
+class _Limits:
+    name = "configured"
+    n_joints = 1
+    position_lower_rad = np.array([-2.5])
+    position_upper_rad = np.array([2.5])
+    velocity_limit_rad_s = np.array([10.0])
+
+
+def test_a_peak_between_the_old_samples_is_refused() -> None:
+    # 2 Hz over 1000 s: 2001 samples land every 0.5 s, at the same phase, where sin is 0 (q = 2.4)
+    peak = Condition("peak", (0.2,), (2.0,), duration_s=1000.0, shape="sine", phase_s=0.0, offset_rad=(2.4,))
+    assert peak.reference(np.linspace(0.0, 1000.0, 2001))[0].max() < 2.5  # the samples stay inside
+    with pytest.raises(ConditionError, match="reference position reaches 2.600 on joint 1"):
+        peak.check_limits(_Limits())
+
+
+def test_a_reference_whose_every_sample_is_at_rest_is_refused() -> None:
+    # 400 Hz: period 2.5 ms = the old sample spacing over 5 s; phase puts every sample on a crest (qd = 0)
+    fast = Condition("fast", (0.1,), (400.0,), duration_s=5.0, shape="sine", phase_s=-1.0 / 1600.0)
+    assert np.abs(fast.reference(np.linspace(0.0, 5.0, 2001))[1]).max() < 1e-6
+    with pytest.raises(ConditionError, match="reference velocity reaches 251.327 on joint 1"):
+        fast.check_limits(_Limits())
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_extrema_are_the_shapes_exact_ones(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    shape = ("raised_sine", "sine", "constant")[seed % 3]
+    duration = float(rng.uniform(0.1, 3.0))
+    c = Condition(
+        "r",
+        tuple(rng.uniform(-2, 2, 3)),
+        tuple(rng.uniform(0, 2, 3)),
+        duration_s=duration,
+        shape=shape,
+        phase_s=float(rng.uniform(-3, 3)),
+        offset_rad=tuple(rng.uniform(-1, 1, 3)),
+    )
+    q, qd, _ = c.reference(np.linspace(0.0, duration, 400_001))
+    lowest, highest, fastest = c.extrema()
+    # never below what any sample reaches, and a dense sampling reaches them within its spacing
+    assert np.all(lowest <= q.min(axis=0) + 1e-12) and np.all(highest >= q.max(axis=0) - 1e-12)
+    assert np.all(fastest >= np.abs(qd).max(axis=0) - 1e-12)
+    np.testing.assert_allclose([lowest, highest, fastest], [q.min(0), q.max(0), np.abs(qd).max(0)], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ("    duration_s: 1.0e8\n", "duration_s: 1e+08 s is above the limit 3600 s"),
+        ("    frequency_hz: 1.0e4\n", "frequency_hz[0]: must be <= 1000"),
+        ("    phase_s: 1.0e300\n", "phase_s: |1e+300| s is above the limit"),
+        ("    disturbance: {time_s: 1, duration_s: 1.0e300}\n", "disturbance.duration_s: must be <= 5"),
+    ],
+)
+def test_huge_durations_frequencies_and_phases_are_refused(tmp_path: Path, extra: str, message: str) -> None:
+    path = tmp_path / "huge.yaml"
+    path.write_text(_condition(extra))
+    with pytest.raises(ConditionError) as info:
+        load_conditions(path)
+    assert message in str(info.value) and "huge.yaml" in str(info.value)
+
+
+def test_an_hour_long_condition_is_accepted(tmp_path: Path) -> None:
+    path = tmp_path / "long.yaml"
+    path.write_text(_condition("    duration_s: 3600\n"))
+    (c,) = load_conditions(path)
+    assert c.duration_s == 3600.0

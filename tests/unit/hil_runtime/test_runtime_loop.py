@@ -355,3 +355,27 @@ def test_a_reset_requested_before_a_fault_does_not_clear_it() -> None:
     timer.start()
     result = rt.run()  # waits in FAULT until stopped: nothing resets it
     assert result.state is LifecycleState.FAULT and "fault_reset" not in bus.events
+
+
+def test_the_condition_table_is_built_before_the_drives_are_enabled(monkeypatch: pytest.MonkeyPatch) -> None:
+    # An hour's table takes ~1.6 s at 1 kHz: built after enable, the drives wait at zero torque that
+    # long and fault. Every call of the condition's reference over many rows must come before enable.
+    from hil_runtime.conditions import Condition
+
+    bus = _bus()
+    rt = _runtime(bus, reference={"kind": "condition", "condition": "C1", "ramp_s": 0.1})
+    evaluate = Condition.reference
+    tables: list[bool] = []
+
+    def spy(self: Condition, t_s: Any) -> Any:
+        if np.size(t_s) > 100:
+            tables.append(bus.enabled)
+        return evaluate(self, t_s)
+
+    monkeypatch.setattr(Condition, "reference", spy)
+    rt.configure()
+    assert rt.activate()
+    assert tables == [False]  # one table, built while the drives were still disabled
+    rt.run(max_cycles=10)
+    assert tables == [False]  # the run reads rows; it builds none
+    rt.shutdown()

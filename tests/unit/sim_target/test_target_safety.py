@@ -7,6 +7,7 @@ import logging
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -120,6 +121,9 @@ class StubDrives:
 
     def commanded_torque_nm(self) -> np.ndarray:
         return np.zeros(6)
+
+    def serve_until(self, deadline_s: float) -> None:  # no bus: wait out the time
+        time.sleep(max(0.0, deadline_s - time.monotonic()))
 
     def operation_enabled(self) -> np.ndarray:
         return np.ones(6, bool)

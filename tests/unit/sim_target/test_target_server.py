@@ -4,6 +4,7 @@ stand-in for the drive layer (the real drives are exercised in tests/integration
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from sim_target.plant_protocol import JointState
 from sim_target.server import TargetServer, make_plant, send_control
 
 Q0 = [0.0, -0.5, 0.8, -0.3, 0.0, 0.0]
+NO_RT_SETTINGS = {"fifo_priority": 0, "lock_memory": False}  # not for the pytest process
 
 
 class RecordingDrives:
@@ -36,6 +38,9 @@ class RecordingDrives:
 
     def commanded_torque_nm(self) -> np.ndarray:
         return self.torque_nm
+
+    def serve_until(self, deadline_s: float) -> None:  # no bus: wait out the time
+        time.sleep(max(0.0, deadline_s - time.monotonic()))
 
     def operation_enabled(self) -> np.ndarray:
         return self.enabled
@@ -161,7 +166,7 @@ def test_control_socket_injects_faults_and_reports_status(tmp_path: Path) -> Non
 
 
 def test_realtime_clock_steps_on_its_own_and_stops_safely() -> None:
-    server, drives = make_server(clock="realtime", period_s=0.002)
+    server, drives = make_server(clock="realtime", period_s=0.002, realtime=NO_RT_SETTINGS)
     runner = threading.Thread(target=server.run)
     runner.start()
     while server.stats.steps < 5:

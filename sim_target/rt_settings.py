@@ -1,0 +1,61 @@
+"""Real-time settings of the target's physics thread: SCHED_FIFO, its own CPU, mlockall.
+
+The same calls as the runtime's (hil_runtime/realtime.py), kept here because sim_target never
+imports hil_runtime (docs/architecture.md). Each acts on the *calling thread* (Linux:
+``sched_setscheduler(0, ...)`` and ``sched_setaffinity(0, ...)`` name the calling thread), so the
+server applies them at the top of its loop, after the control-socket thread exists (that one keeps
+the default policy). A refused setting is one warning; the target runs on without it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import logging
+import os
+from collections.abc import Sequence
+
+log = logging.getLogger(__name__)
+
+_MCL_CURRENT = 1
+_MCL_FUTURE = 2
+
+
+def apply_thread_settings(
+    fifo_priority: int, cpus: Sequence[int] | None, lock_memory: bool
+) -> tuple[list[str], list[str]]:
+    """Apply what is asked to the calling thread; returns (applied, refused) descriptions."""
+    applied: list[str] = []
+    refused: list[str] = []
+
+    def note(what: str, error: str | None) -> None:
+        if error is None:
+            applied.append(what)
+        else:
+            refused.append(f"{what} ({error})")
+            log.warning("target real time: %s refused: %s; carrying on without it", what, error)
+
+    if cpus:
+        try:
+            os.sched_setaffinity(0, set(cpus))
+            note(f"CPU {list(cpus)}", None)
+        except (OSError, ValueError) as exc:
+            note(f"CPU {list(cpus)}", getattr(exc, "strerror", None) or str(exc))
+    if fifo_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+            note(f"SCHED_FIFO {fifo_priority}", None)
+        except OSError as exc:
+            note(f"SCHED_FIFO {fifo_priority}", exc.strerror or str(exc))
+    if lock_memory:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
+            err = ctypes.get_errno()
+            note("mlockall", f"{errno.errorcode.get(err, err)}: {os.strerror(err)}")
+        else:
+            note("mlockall", None)
+    return applied, refused
+
+
+__all__ = ["apply_thread_settings"]
