@@ -325,7 +325,7 @@ def test_cli_errors_are_one_line(tmp_path: Path) -> None:
     assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
     assert "no runtime alive at" in result.stderr
     result = _hil("telemetry", "record", "--out", str(tmp_path / "x.txt"), "--connect", f"tcp/127.0.0.1:{port}")
-    assert result.returncode == 2 and "the record is an .npz file" in result.stderr
+    assert result.returncode == 2 and "unknown record format '.txt' (use .npz, .mcap)" in result.stderr
     result = _hil("telemetry", "plot", str(tmp_path / "missing.npz"))
     assert result.returncode == 2 and "missing.npz: no such file" in result.stderr
     result = _hil("telemetry", "query", "schema", "--connect", "127.0.0.1:7447")
