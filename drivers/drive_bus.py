@@ -43,6 +43,7 @@ from collections.abc import Sequence
 import can
 import numpy as np
 
+from drivers.bus_guard import BusGuard, MasterPresentError, master_listen_s
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
@@ -79,6 +80,16 @@ class _Services:
         self.master_heartbeat = HeartbeatProducer(network, config.master_node_id, config.master_heartbeat_ms / 1000)
         network.supervise = self.heartbeats.check
         network.produce = self.master_heartbeat.send_if_due
+        tpdo_bases = (fr.TPDO1_BASE,) if config.transport.fd else (fr.TPDO1_BASE, fr.TPDO2_BASE)
+        self.guard = BusGuard(
+            network,
+            config.node_ids,
+            config.master_node_id,
+            (base + node.node_id for base in tpdo_bases for node in nodes),
+            config.heartbeat_producer_ms / 1000,
+            lambda: self.exchange.cycle,
+        )
+        network.watch = self.guard.watch
 
 
 class DriveBus(JointBusBase):
@@ -150,8 +161,13 @@ class DriveBus(JointBusBase):
             if self._services is None:
                 self._services = _Services(self.config, network, self.nodes, self._sync)
             network.start()
+            self._services.guard.check_no_master(master_listen_s(self.config))  # before our first frame
             self._services.master_heartbeat.start()
             self._start_up(self._services)
+            self._services.guard.arm()
+        except MasterPresentError:
+            self._close(stop_drives=False)  # not ours: not a single frame to another master's drives
+            raise
         except BaseException:
             self.close()
             raise
@@ -283,6 +299,9 @@ class DriveBus(JointBusBase):
     def close(self) -> None:
         """Disable the drives if enabled, stop their PDOs (NMT pre-operational), release the bus.
         Never raises for a failing bus: what stopped the run is the error the caller sees."""
+        self._close(stop_drives=True)
+
+    def _close(self, stop_drives: bool) -> None:
         if self._enabled:
             try:
                 self.disable()
@@ -290,7 +309,7 @@ class DriveBus(JointBusBase):
                 log.warning("disable on close failed: %s", exc)
         self._enabled = False
         network, services = self._network, self._services
-        if network.bus is not None and network.receiving:
+        if network.bus is not None and network.receiving and stop_drives:
             if services is not None:
                 services.heartbeats.armed = False
             for node_id in self.node_ids:

@@ -103,6 +103,40 @@ def _target_case(name: str, files: dict[str, str | bytes], *expected: str) -> Ca
     return (name, ["target", "serve", "--config", "{tmp}/t.yaml"], files, ["t.yaml", *expected])
 
 
+RUNTIME_YAML = (
+    (ROOT / "deploy" / "runtime.ipc.yaml").read_text().replace("../models/bundles/ur5_paper/pd", str(PD_BUNDLE))
+)
+
+
+def _runtime_case(
+    name: str,
+    pattern: str,
+    replacement: str,
+    *expected: str,
+    files: dict[str, str | bytes] | None = None,
+    where: str = "r.yaml",
+) -> Case:
+    """``hil run --config r.yaml --check`` on deploy/runtime.ipc.yaml with one edit (a regex)."""
+    text, count = re.subn(pattern, replacement, RUNTIME_YAML, count=1, flags=re.MULTILINE)
+    assert count == 1, pattern
+    return (
+        name,
+        ["run", "--config", "{tmp}/r.yaml", "--check"],
+        {"r.yaml": text, **(files or {})},
+        [where, *expected],
+    )
+
+
+def _record_case(name: str, record: str, files: dict[str, str | bytes], *expected: str) -> Case:
+    """``hil run --record PATH`` on a valid config: refused before anything is started."""
+    return (
+        name,
+        ["run", "--config", "{tmp}/r.yaml", "--record", record],
+        {"r.yaml": RUNTIME_YAML, **files},
+        list(expected),
+    )
+
+
 def _bundle_case(name: str, change: Callable[[dict[str, Any]], object], field: str) -> Case:
     """``hil experiment --modes lmpc`` on the PD bundle with its manifest edited by ``change``."""
     files: dict[str, str | bytes] = {
@@ -196,6 +230,12 @@ CASES: list[Case] = [
     _target_case("target-empty", {"t.yaml": ""}, "empty file"),
     _target_case("target-binary", {"t.yaml": bytes(range(256))}, "not a UTF-8 text file"),
     _target_case("target-nan", {"t.yaml": FD + "period_s: .nan\n"}, "period_s: Input should be a finite number"),
+    _target_case(
+        "target-ipc-channel-is-a-file",
+        {"t.yaml": "bus: {interface: ipc, channel: ./afile, fd: true, data_bitrate: 5000000}\n", "afile": "x"},
+        "afile",
+        "is not a directory",
+    ),
     # inject (schema checked before the socket is even tried)
     (
         "inject-negative-inertia",
@@ -263,6 +303,75 @@ CASES: list[Case] = [
         "{enabled: true, controls_enabled: true}",
         {},
         "controls_enabled: the stop/reset queryables need authenticated peers",
+    ),
+    # runtime configs (issue 20): non-finite or huge values, strict types, duplicate keys, wide limits
+    _runtime_case("hb-timeout-inf", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: .inf", "heartbeat_timeout_s"),
+    _runtime_case(
+        "hb-timeout-1e300", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: 1e300", "bus.heartbeat_timeout_s"
+    ),
+    _runtime_case(
+        "state-change-inf", r"state_change_timeout_s: 5.0", "state_change_timeout_s: .inf", "state_change_timeout_s"
+    ),
+    _runtime_case(
+        "sdo-timeout-1e300", r"sdo_timeout_s: 2.0", "sdo_timeout_s: 1e300", "bus.sdo_timeout_s", "less than or equal"
+    ),
+    _runtime_case("warmup-1e9", r"warmup_cycles: 200", "warmup_cycles: 1000000000", "loop.warmup_cycles"),
+    _runtime_case("ramp-inf", r"ramp_s: 2.0", "ramp_s: .inf", "reference.ramp_s"),
+    _runtime_case("ramp-1e9", r"ramp_s: 2.0", "ramp_s: 1e9", "reference.ramp_s", "less than or equal to 60"),
+    _runtime_case(
+        "duration-inf", r"  stats_interval_s: 1.0", "  stats_interval_s: 1.0\n  duration_s: .inf", "loop.duration_s"
+    ),
+    _runtime_case(
+        "node-id-true", r"node_id: 1,", "node_id: true,", "bus.joints.0.node_id: expected a number, got True"
+    ),
+    _runtime_case("period-string", r"period_s: 0.001 ", "period_s: '0.001' ", "bus.period_s: expected a number"),
+    _runtime_case("duplicate-key", r"^robot: ur5_paper", "robot: ur5_paper\nrobot: ur5_paper", "duplicate key 'robot'"),
+    _runtime_case(
+        "safety-wider-than-bundle",
+        r"position_upper_rad: null",
+        "position_upper_rad: [100, 100, 100, 100, 100, 100]",
+        "safety.position_upper_rad[0]: 100 is beyond the bundle's limit 3.14159",
+    ),
+    _runtime_case(
+        "velocity-wider-than-bundle",
+        r"velocity_limit_rad_s: null",
+        "velocity_limit_rad_s: [1e9, 1, 1, 1, 1, 1]",
+        "safety.velocity_limit_rad_s[0]: 1e+09 is beyond the bundle's limit 2.54",
+    ),
+    _runtime_case(
+        "condition-duration-1e8",
+        r"conditions_file: null",
+        "conditions_file: c.yaml",
+        "duration_s: 1e+08 s is above the limit 3600 s",
+        where="c.yaml",
+        files={"c.yaml": f"conditions:\n  - name: C1\n    amplitude_rad: {SIX}\n    duration_s: 1.0e8\n"},
+    ),
+    # --record (checked before the run) and --record-cycles
+    _record_case("record-dev-full", "/dev/full", {}, "--record /dev/full: unknown record format '(no suffix)'"),
+    _record_case("record-directory", "{tmp}/d.npz", {"d.npz/x": ""}, "--record {tmp}/d.npz: a directory"),
+    _record_case("record-no-suffix", "{tmp}/run", {}, "--record {tmp}/run: unknown record format '(no suffix)'"),
+    _record_case("record-parent-is-a-file", "{tmp}/f/run.npz", {"f": "x"}, "--record {tmp}/f: a file is in the way"),
+    (
+        "record-cycles<0",
+        ["run", "--config", "{tmp}/r.yaml", "--record", "{tmp}/r.npz", "--record-cycles", "-1"],
+        {"r.yaml": RUNTIME_YAML},
+        ["--record-cycles", "greater than or equal to 1"],
+    ),
+    (
+        "record-cycles-1e12",
+        ["run", "--config", "{tmp}/r.yaml", "--record", "{tmp}/r.npz", "--record-cycles", "1000000000000"],
+        {"r.yaml": RUNTIME_YAML},
+        ["--record-cycles", "less than or equal to 3600000"],
+    ),
+    # target configs: unbounded noise, a boolean node id
+    _target_case(
+        "target-encoder-noise-1e6", {"t.yaml": FD + "plant: {encoder_noise_rad: 1.0e6}\n"}, "plant.encoder_noise_rad"
+    ),
+    _target_case(
+        "target-node-id-true", {"t.yaml": FD + "drives: {node_ids: [true, 2, 3, 4, 5, 6]}\n"}, "drives.node_ids"
+    ),
+    _target_case(
+        "target-duplicate-key", {"t.yaml": FD + "period_s: 0.001\nperiod_s: 0.002\n"}, "duplicate key 'period_s'"
     ),
 ]
 
