@@ -185,7 +185,7 @@ def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | Non
     if not isinstance(data, dict):
         raise RuntimeConfigError(f"{source}: expected a mapping at the top level")
     try:
-        config = RuntimeConfig.model_validate({**data, "source": source})
+        config = RuntimeConfig.model_validate({**data, "source": source}, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise RuntimeConfigError(format_validation_error(source, exc)) from None
     try:
