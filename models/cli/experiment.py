@@ -72,6 +72,17 @@ def experiment(
             metavar="PROFILE|FILE",
         ),
     ] = "ideal",
+    clock: Annotated[
+        str,
+        typer.Option(
+            help="--plant hil: lockstep (each SYNC steps the arm) or realtime (both free-running; needs "
+            "--transport ipc or bridge; runs whose plant fell behind are INVALID)."
+        ),
+    ] = "lockstep",
+    cpus: Annotated[
+        str,
+        typer.Option(help="--plant hil --clock realtime: the runtime loop's and the target's CPUs: auto, none, R,T."),
+    ] = "auto",
     no_parity: Annotated[
         bool,
         typer.Option("--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison."),
@@ -95,6 +106,8 @@ def experiment(
             transport=cast("Transport", transport),  # checked (one line, exit 2) by check_hil_inputs
             target_substeps=target_substeps,
             parity=not no_parity,
+            clock=clock,
+            cpus=cpus,
             bundle_dir=lmpc_bundles,
         )
     one_of(mismatch, ("none", "paper"), "--mismatch")

@@ -140,6 +140,10 @@ def run_hil_experiment(
     results["plant"] = "hil"
     results["hil"] = {
         "transport": options.transport,
+        "clock": options.clock,
+        "invalid_runs": [
+            {k: r[k] for k in ("law", "mode", "condition", "invalid_reason")} for r in runs if not r.get("valid", True)
+        ],
         "target_substeps": options.target_substeps,
         "period_s": period_s,
         "wall_s": round(hil_wall_s, 1),
