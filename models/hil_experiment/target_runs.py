@@ -133,7 +133,7 @@ def _run_once(
     record = {k: np.array(v) for k, v in runtime.record.arrays().items()}
     lateness = None
     if config.loop.pacing == "clock":
-        record = resample_record(record, period_s)  # wall slots: a skipped period holds the last row
+        record = resample_record(record, period_s, steps)  # wall slots: a skipped period holds the last row
         lateness = target.status().get("lateness")
     run = HilRun(pad_record(record, steps, period_s), int(record["q"].shape[0]), fault, stats)
     if lateness is not None:
@@ -158,18 +158,21 @@ def _release_thread_settings() -> None:
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
 
 
-def resample_record(record: dict[str, np.ndarray], period_s: float) -> dict[str, np.ndarray]:
+def resample_record(
+    record: dict[str, np.ndarray], period_s: float, max_rows: int | None = None
+) -> dict[str, np.ndarray]:
     """A free-running record (one row per exchange, ``t_s`` on wall-clock period slots, a skipped
-    slot missing) as one row per period: a missing slot repeats the row before it (the drives held
-    that torque, the arm was last seen there)."""
+    slot missing) as one row per period, at most ``max_rows``: a missing slot repeats the row before
+    it (the drives held that torque, the arm was last seen there)."""
     rows = record["q"].shape[0]
     if rows == 0:
         return record
     slots = np.rint(record["t_s"] / period_s).astype(int)
     slots -= slots[0]
-    index = np.searchsorted(slots, np.arange(slots[-1] + 1), side="right") - 1
+    count = slots[-1] + 1 if max_rows is None else min(slots[-1] + 1, max_rows)
+    index = np.searchsorted(slots, np.arange(count), side="right") - 1
     out = {key: value[index] for key, value in record.items()}
-    out["t_s"] = np.arange(slots[-1] + 1) * period_s
+    out["t_s"] = np.arange(count) * period_s
     return out
 
 

@@ -109,6 +109,7 @@ def test_a_free_running_record_is_put_on_period_slots_holding_over_skipped_ones(
     np.testing.assert_allclose(out["q"][:, 0], [0, 1, 2, 2, 2, 3, 4])
     padded = pad_record(out, 7, 1e-3)  # one row per period: what the lock-step path checks
     np.testing.assert_allclose(padded["q"][:, 0], [0, 1, 2, 2, 2, 3, 4])
+    assert resample_record(record, 1e-3, max_rows=4)["q"].shape == (4, 1)  # the condition's length
 
 
 def test_free_running_needs_the_target_in_its_own_process() -> None:
