@@ -9,6 +9,13 @@ the composite score.
     python benchmarks/bench_hil_realtime.py --law pd --mode fb [--duration 5] [--condition C1]
     python benchmarks/bench_hil_realtime.py --law mrac --mode lmpc --duration 60   # a soak
     python benchmarks/bench_hil_realtime.py --all [--compare-lockstep]             # 6 laws x fb, lmpc
+    python benchmarks/bench_hil_realtime.py --target-only 10            # the target alone, brakes holding
+    python benchmarks/bench_hil_realtime.py --target-only 10 --master   # + a master at 1 kHz, drives enabled
+
+``--target-only``: ``hil target serve`` (deploy/target.ipc.yaml with ``clock: realtime``) for that
+many seconds, alone or with a DriveBus master exchanging zero torque at 1 kHz from this process
+(its own CPU, SCHED_FIFO): the target process's CPU share (/proc), its physics thread's, its
+lateness, and (with a master) the exchange times the master saw.
 
 Run it on a quiet machine: the figures are the machine's (docs/runtime.md); the load average
 before and after is in the JSON.
@@ -66,6 +73,102 @@ def run_one(law: str, mode: str, duration_s: float | None, condition: str, realt
     }
 
 
+def target_only(seconds: float, master: bool, substeps: int | None) -> dict[str, Any]:
+    """The realtime target in its own process, alone or under a 1 kHz master; its cost and lateness."""
+    import time
+
+    import numpy as np
+    import yaml
+
+    from sim_target.control import send_control
+    from sim_target.launch import start_hil, wait_ready
+    from sim_target.rt_settings import split_cpus
+
+    runtime_cpus, target_cpus = split_cpus("auto")
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory(prefix="bench-target-") as tmp:
+        sock = f"{tmp}/target.sock"
+        config = yaml.safe_load((root / "deploy" / "target.ipc.yaml").read_text())
+        config.update(clock="realtime", control_socket=sock, realtime={"cpus": target_cpus})
+        config["bus"]["channel"] = f"{tmp}/bus"
+        config["plant"].pop("substeps", None)  # the realtime default, unless asked
+        if substeps is not None:
+            config["plant"]["substeps"] = substeps
+        (Path(tmp) / "target.yaml").write_text(yaml.safe_dump(config))
+        process = start_hil("target", "serve", "--config", f"{tmp}/target.yaml")
+        try:
+            wait_ready(process)
+            time.sleep(1.0)  # start-up (cost probe, real-time settings) out of the window
+            exchange_us: list[float] = []
+            if master:
+                cpu_s, wall_s, exchange_us = _master(f"{tmp}/bus", seconds, runtime_cpus, process.pid)
+            else:
+                cpu0_s, wall0_s = _process_cpu_s(process.pid), time.monotonic()
+                time.sleep(seconds)
+                cpu_s, wall_s = _process_cpu_s(process.pid) - cpu0_s, time.monotonic() - wall0_s
+            status = send_control(sock, {"kind": "status"})
+        finally:
+            process.terminate()
+            process.wait(timeout=30)
+    out: dict[str, Any] = {
+        "mode": "target + master at 1 kHz, drives enabled" if master else "target alone, brakes holding",
+        "seconds": seconds,
+        "target_process_cpu_fraction": round(cpu_s / wall_s, 4),
+        "lateness_since_start": status.get("lateness"),
+        "realtime": status.get("realtime"),
+        "substeps": status.get("substeps"),
+    }
+    if exchange_us:
+        out["master_exchange_us"] = benchinfo.spread(np.array(exchange_us))
+    return out
+
+
+def _process_cpu_s(pid: int) -> float:
+    """utime + stime of the process, every thread (/proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _master(channel: str, seconds: float, cpus: tuple[int, ...] | None, pid: int) -> tuple[float, float, list[float]]:
+    """A DriveBus at 1 kHz, zero torque, drives enabled, on its own CPU with SCHED_FIFO; returns
+    the target's CPU seconds and the wall seconds of the window, and the exchange times (µs)."""
+    import time
+
+    import numpy as np
+
+    from drivers.drive_bus import DriveBus
+    from sim_target.testing.hil_target import drive_bus_config
+
+    config = drive_bus_config({"interface": "ipc", "channel": channel}, 1e-3)
+    exchange_us = []
+    with DriveBus(config) as bus:
+        bus.enable()
+        if cpus:
+            os.sched_setaffinity(0, set(cpus))
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
+        except OSError as exc:
+            print(f"bench: SCHED_FIFO refused ({exc.strerror}); the master runs without it", file=sys.stderr)
+        zero = np.zeros(6)
+        try:
+            for _ in range(500):  # settle: the target's phase lock, the caches
+                bus.exchange(zero)
+            started = deadline = time.monotonic()
+            cpu0_s = _process_cpu_s(pid)
+            while time.monotonic() - started < seconds:
+                deadline += 1e-3
+                delay = deadline - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                t0 = time.perf_counter()
+                bus.exchange(zero)
+                exchange_us.append((time.perf_counter() - t0) * 1e6)
+            cpu_s, wall_s = _process_cpu_s(pid) - cpu0_s, time.monotonic() - started
+        finally:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return cpu_s, wall_s, exchange_us
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--law", choices=LAWS, default="pd")
@@ -75,8 +178,22 @@ def main() -> None:
     parser.add_argument("--condition", default="C1")
     parser.add_argument("--cpus", default="auto", help="runtime,target CPUs: auto, none or R,T")
     parser.add_argument("--compare-lockstep", action="store_true", help="also run lock-step; compare the scores")
+    parser.add_argument("--target-only", type=float, default=None, metavar="SECONDS", help="the target's own cost")
+    parser.add_argument("--master", action="store_true", help="--target-only: under a 1 kHz master")
+    parser.add_argument("--substeps", type=int, default=None, help="--target-only: pybullet substeps")
     args = parser.parse_args()
     load_before = [round(x, 2) for x in os.getloadavg()]
+    if args.target_only is not None:
+        result = target_only(args.target_only, args.master, args.substeps)
+        result.update(
+            benchmark="hil_realtime_target",
+            command="python " + " ".join(sys.argv),
+            machine=benchinfo.machine(),
+            load_average_before=load_before,
+            load_average_after=[round(x, 2) for x in os.getloadavg()],
+        )
+        print(json.dumps(result, indent=1))
+        return
     pairs = [(law, mode) for mode in MODES for law in LAWS] if args.all else [(args.law, args.mode)]
     runs = []
     for law, mode in pairs:
