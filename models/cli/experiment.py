@@ -64,7 +64,10 @@ def experiment(
     transport: Annotated[
         str, typer.Option(help="--plant hil: virtual (one process), ipc or bridge (the target in its own process).")
     ] = "virtual",
-    target_substeps: Annotated[int, typer.Option(help="--plant hil: pybullet steps per control period.")] = 32,
+    target_substeps: Annotated[
+        int | None,
+        typer.Option(help="--plant hil: pybullet steps per control period (default: 32 lock-step, 8 real time)."),
+    ] = None,
     realism: Annotated[
         str,
         typer.Option(
@@ -101,6 +104,10 @@ def experiment(
     if plant == "hil":
         from models.hil_experiment import HilOptions
 
+        from sim_target.config import LOCKSTEP_SUBSTEPS, REALTIME_SUBSTEPS
+
+        if target_substeps is None:
+            target_substeps = REALTIME_SUBSTEPS if clock == "realtime" else LOCKSTEP_SUBSTEPS
         positive(target_substeps, "--target-substeps", integer=True)
         hil = HilOptions(
             transport=cast("Transport", transport),  # checked (one line, exit 2) by check_hil_inputs

@@ -106,6 +106,11 @@ def run_hil_experiment(
         if realism not in ("ideal", "realistic", "harsh"):
             realism = str(Path(realism).resolve())  # the target may run in another directory
         target_config = target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
+        if options.clock == "realtime":  # its physics on its own CPU, apart from the runtime's loop
+            from sim_target.rt_settings import split_cpus
+
+            target_config["clock"] = "realtime"
+            target_config["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
         with launch_target(target_config, options.transport) as target:
             for law in config.laws:
                 for mode in config.modes:
