@@ -103,7 +103,6 @@ def experiment(
     hil: HilOptions | None = None
     if plant == "hil":
         from models.hil_experiment import HilOptions
-
         from sim_target.config import LOCKSTEP_SUBSTEPS, REALTIME_SUBSTEPS
 
         if target_substeps is None:
