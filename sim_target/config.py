@@ -28,8 +28,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     TypeAdapter,
     ValidationError,
@@ -46,6 +44,8 @@ from drivers.config import (
     read_yaml_config,
 )
 from drivers.errors import BusLoadError
+from drivers.strict_input import StrictModel
+from sim_target.emulated.profile import DriveProfile
 from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
 
 # An impulse (a blow on the arm) may exceed what the joint's motor can give, not by orders of
@@ -59,9 +59,9 @@ class TargetConfigError(ValueError):
     exit_code = 2
 
 
-class _Frozen(BaseModel):
-    # allow_inf_nan=False: NaN or infinity anywhere is "not a finite number", not a range error
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+class _Frozen(StrictModel):
+    """Frozen, no unknown fields, no .inf/.nan ("not a finite number", not a range error), no
+    ``true`` or ``"1"`` read as a number."""
 
 
 def _finite(values: tuple[float, ...], field: str) -> tuple[float, ...]:
@@ -182,6 +182,8 @@ class DrivesConfig(_Frozen):
     node_ids: tuple[int, ...] | None = None  # one per joint, in joint order; None: 1..N
     encoder_counts_per_rev: int = Field(1 << 20, gt=0)  # the drives' 0x608F
     heartbeat_producer_ms: int = Field(0, ge=0, le=65535)  # until the master sets 0x1017
+    # One per joint: the drive presents a vendor's EDS/DCF and its motor (sim_target/emulated/profile.py).
+    profiles: tuple[DriveProfile, ...] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> DrivesConfig:
@@ -203,8 +205,8 @@ class PlantConfig(_Frozen):
     joint_names: tuple[str, ...] | None = None  # None: every revolute joint, URDF order
     initial_position_rad: tuple[float, ...] | None = None
     brake_holding_torque_nm: tuple[float, ...] | None = None  # None: twice the effort limit
-    encoder_noise_rad: float = Field(0.0, ge=0)
-    velocity_noise_rad_s: float = Field(0.0, ge=0)
+    encoder_noise_rad: float = Field(0.0, ge=0, le=1.0)  # std dev; a real encoder's is ~1e-5 rad
+    velocity_noise_rad_s: float = Field(0.0, ge=0, le=100.0)
     seed: int = 0
 
 
@@ -255,14 +257,14 @@ class TargetConfig(_Frozen):
 # --- loading ---------------------------------------------------------------------------------------
 
 
-def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
+def parse_target_config(data: Any, source: str = "config", base_dir: Path | None = None) -> TargetConfig:
     """Validate a mapping, then check it against its URDF and the drive bus (``check_target_config``)."""
     if data is None:
         raise TargetConfigError(f"{source}: empty (expected a mapping of target settings)")
     if not isinstance(data, dict):
         raise TargetConfigError(f"{source}: expected a mapping of target settings, got {type(data).__name__}")
     try:
-        config = TargetConfig.model_validate(data)
+        config = TargetConfig.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise TargetConfigError(format_validation_error(source, exc)) from None
     check_target_config(config, source)
@@ -287,7 +289,7 @@ def load_target_config(path: Path | str) -> TargetConfig:
     realism = data.get("realism") if isinstance(data, dict) else None
     if isinstance(realism, str) and realism not in ("ideal", "realistic", "harsh") and not Path(realism).is_absolute():
         data = {**data, "realism": str((path.parent / realism).resolve())}  # a profile file, like urdf
-    return parse_target_config(data, str(path))
+    return parse_target_config(data, str(path), path.resolve().parent)  # drives.profiles' eds: same rule
 
 
 def parse_fault(data: Any, source: str = "fault") -> Fault:
@@ -359,6 +361,12 @@ def target_layout(config: TargetConfig, source: str = "config") -> TargetLayout:
         raise TargetConfigError(
             f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}"
         )
+    profiles = config.drives.profiles
+    if profiles is not None and len(profiles) != len(chosen):
+        raise TargetConfigError(f"{source}: drives.profiles: {len(profiles)} for {len(chosen)} joints of {urdf.name}")
+    for i, profile in enumerate(profiles or ()):
+        if not profile.eds.is_file():
+            raise TargetConfigError(f"{source}: drives.profiles.{i}.eds: {profile.eds}: file not found")
     return TargetLayout(
         tuple(j.name for j in chosen),
         tuple(j.lower_rad for j in chosen),
