@@ -22,6 +22,7 @@ from hil_runtime.machine import machine
 from sim_target.faults import cases as c
 from sim_target.faults import injections as inj
 from sim_target.faults import security as sec
+from sim_target.faults import zenoh_cases
 from sim_target.faults.cases import Expect
 from sim_target.faults.report import summarize, write_outputs
 
@@ -361,6 +362,23 @@ FAULTS: tuple[FaultSpec, ...] = (
         "at start-up, before the bus",
         False,
         _startup(c.prepare_reference_out, "WIDE"),
+    ),
+)
+# Zenoh controls (issue 20): hostile sessions against stop/reset while the arm runs.
+FAULTS += (
+    FaultSpec(
+        "zenoh_control_unauthenticated",
+        "stop/reset (exact and wildcard) from Zenoh sessions without credentials or with a wrong password",
+        "refused at the handshake: no reply, ACTIVE",
+        True,
+        zenoh_cases.unauthenticated_control,
+    ),
+    FaultSpec(
+        "zenoh_control_wildcard",
+        "wildcard queries (hil/<robot>/**, hil/*/stop, hil/<robot>/re$*...) from an authenticated session",
+        "only exact keys reach stop/reset: ACTIVE",
+        True,
+        zenoh_cases.wildcard_control,
     ),
 )
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
