@@ -60,6 +60,7 @@ from sim_target.config import (
     TargetLayout,
     check_fault,
     check_run_start,
+    target_layout,
 )
 from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
 from sim_target.lateness import Lateness
@@ -144,6 +145,7 @@ class TargetServer:
             tuple(plant.position_limit_rad[:, 0]),
             tuple(plant.position_limit_rad[:, 1]),
             config.drives.node_ids or tuple(range(1, plant.n_joints + 1)),
+            *_urdf_limits(config, plant.joint_names),
         )
         for i, fault in enumerate(config.faults):
             check_fault(fault, self.layout, f"faults[{i}]")
@@ -384,6 +386,23 @@ class TargetServer:
 
 
 # --- assembly -------------------------------------------------------------------------------------
+
+
+def _urdf_limits(
+    config: TargetConfig, joint_names: tuple[str, ...]
+) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+    """The URDF's effort and velocity limits of the plant's joints (None when not readable)."""
+    try:
+        layout = target_layout(config)
+    except TargetConfigError:
+        return None, None
+    if layout.effort_nm is None or layout.velocity_limit_rad_s is None:
+        return None, None
+    effort = dict(zip(layout.joint_names, layout.effort_nm, strict=True))
+    velocity = dict(zip(layout.joint_names, layout.velocity_limit_rad_s, strict=True))
+    if any(name not in effort for name in joint_names):
+        return None, None
+    return tuple(effort[n] for n in joint_names), tuple(velocity[n] for n in joint_names)
 
 
 def make_plant(config: TargetConfig) -> PybulletPlant:
