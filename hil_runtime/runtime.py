@@ -46,7 +46,14 @@ from hil_runtime.lifecycle import Lifecycle, LifecycleError, LifecycleState, Tra
 from hil_runtime.loading import condition_for, load_bundle_for, safety_limits_for
 from hil_runtime.loop import ActiveLoop, CyclePipeline
 from hil_runtime.pacer import Pacer
-from hil_runtime.realtime import RealtimeReport, clock_pacing_risk, freeze_heap, set_thread_affinity, set_thread_fifo
+from hil_runtime.realtime import (
+    RealtimeReport,
+    clock_pacing_risk,
+    freeze_heap,
+    keep_other_threads_off,
+    set_thread_affinity,
+    set_thread_fifo,
+)
 from hil_runtime.record import RunRecord, RunResult
 from hil_runtime.reference import ConditionTable, Reference
 from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, finite
@@ -384,7 +391,10 @@ class Runtime:
             return
         self._rt_thread = ident
         loop = self.config.loop
+        # The helper threads (publisher, bus receive, Zenoh, onnxruntime) exist by now and keep
+        # SCHED_OTHER; off the loop's CPU where the machine has another.
         if loop.cpu_affinity:
+            keep_other_threads_off(loop.cpu_affinity, self.realtime)
             set_thread_affinity(loop.cpu_affinity, self.realtime)
         fifo = loop.fifo_priority is not None and set_thread_fifo(loop.fifo_priority, self.realtime)
         risk = clock_pacing_risk(self.config.period_s, fifo) if loop.pacing == "clock" else None

@@ -59,9 +59,23 @@ def runtime_config(
         # A backstop only: the demo stops the daemon with SIGTERM when the run has covered the condition.
         "duration_s": condition.duration_s + 10.0,
     }
+    if options.realtime:
+        # Free-running, the loop thread must hold its deadlines on a shared machine: SCHED_FIFO (the
+        # target's physics thread takes the same priority), memory locked, and a CPU of its own.
+        # Without these the runtime only warned "without SCHED_FIFO" (never asked for, not refused).
+        data["loop"].update(fifo_priority=80, lock_memory=True, cpu_affinity=runtime_cpus())
     data["telemetry"] = {"enabled": True, "listen": [], "connect": [endpoint], "stats_period_s": 1.0}
     data["control_socket"] = str(control_socket)
     return data
 
 
-__all__ = ["runtime_config", "target_config"]
+def runtime_cpus() -> list[int] | None:
+    """The runtime loop's CPU in a free-running demo: the last one the process may use (the target
+    is pinned apart from it); None on a one-CPU machine."""
+    import os
+
+    cpus = sorted(os.sched_getaffinity(0))
+    return [cpus[-1]] if len(cpus) > 1 else None
+
+
+__all__ = ["runtime_config", "runtime_cpus", "target_config"]
