@@ -56,6 +56,11 @@ def _runtime() -> tuple[Runtime, FakeJointBus]:
     return Runtime(config, bus, record_cycles=4 * CYCLES, telemetry=EncodingSink()), bus
 
 
+def _source_line(key: str) -> str:
+    filename, lineno = key.rsplit(":", 1)
+    return linecache.getline(filename, int(lineno))
+
+
 def _own_lines(snapshot: tracemalloc.Snapshot) -> tracemalloc.Snapshot:
     return snapshot.filter_traces(
         [
@@ -94,12 +99,9 @@ def test_a_thousand_cycles_keep_nothing_and_each_allocates_little() -> None:
     finally:
         tracemalloc.stop()
         rt.shutdown()
-    assert rt.record.n == 2 * CYCLES + 1 + 200 and rt.telemetry.offer_errors == 0  # type: ignore[attr-defined]
-    ort_line = [
-        key
-        for key in grown
-        if "self._run_bound(" in linecache.getline(*key.rsplit(":", 1)[0:1], int(key.rsplit(":", 1)[1]))
-    ]
+    assert rt.record.n == 2 * CYCLES + 1 + 200 and isinstance(rt.telemetry, EncodingSink)
+    assert rt.telemetry.offer_errors == 0
+    ort_line = [key for key in grown if "self._run_bound(" in _source_line(key)]
     ort = sum(grown.pop(key) for key in ort_line)
     assert ort <= ORT_CALL_BYTES_PER_CYCLE * CYCLES
     assert sum(grown.values()) <= 1024, grown  # the runtime's own code keeps nothing per cycle
