@@ -32,8 +32,13 @@ def run(
     record: Annotated[
         Path | None, typer.Option("--record", help="write the run's per-cycle record (.npz, or .mcap: docs/formats.md)")
     ] = None,
-    record_cycles: Annotated[int, typer.Option(help="rows kept for a .npz --record (~330 B each)")] = 60_000,
+    record_cycles: Annotated[
+        int, typer.Option(min=1, max=3_600_000, help="rows kept for a .npz --record (~330 B each)")
+    ] = 60_000,
     urdf: Annotated[Path | None, typer.Option("--urdf", help="the URDF attached to an .mcap record")] = None,
+    can_log: Annotated[
+        Path | None, typer.Option("--can-log", help="capture the drive bus's frames (.blf .asc .log .csv)")
+    ] = None,
     check: Annotated[bool, typer.Option("--check", help="validate config, bundle and condition; touch no bus")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
@@ -44,6 +49,10 @@ def run(
 
     if record is not None:
         check_record_path(record)  # before anything runs: suffix known, directory writable
+    if can_log is not None:
+        from drivers.capture import check_capture_path
+
+        check_capture_path(can_log)
     if check:
         print(check_config(config))
         return
@@ -51,7 +60,7 @@ def run(
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(levelname)s %(message)s"
     )
-    code = serve(config, record, record_cycles if record is not None else 0, urdf)
+    code = serve(config, record, record_cycles if record is not None else 0, urdf, can_log)
     if code:
         raise typer.Exit(code)
 

@@ -26,6 +26,7 @@ from hil_runtime.config import RuntimeConfig, load_runtime_config
 from hil_runtime.control import ControlServer
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.realtime import lock_memory
+from hil_runtime.record import check_record_path
 from hil_runtime.runtime import Runtime, build_runtime
 from hil_runtime.sdnotify import Notifier
 
@@ -81,13 +82,25 @@ def _say(text: str) -> None:
 
 
 def serve(
-    config_path: Path | str, record_path: Path | None = None, record_cycles: int = 0, urdf: Path | None = None
+    config_path: Path | str,
+    record_path: Path | None = None,
+    record_cycles: int = 0,
+    urdf: Path | None = None,
+    can_log: Path | None = None,
 ) -> int:
     """Run the daemon until SIGTERM/SIGINT (or loop.duration_s); the process exit code."""
     config = load_runtime_config(config_path)
+    if record_path is not None:  # before the run: a record that cannot be written is refused now
+        check_record_path(record_path)
     notifier = Notifier.from_environment()
     mcap = record_path is not None and record_path.suffix.lower() == ".mcap"
-    runtime = build_runtime(config, notifier=notifier, record_cycles=0 if mcap else record_cycles)
+    capture: Any = None
+    if can_log is not None:  # the drive bus on a bus that copies every frame to python-can's writer
+        from drivers.capture import CanCapture, CaptureBus
+        from drivers.transport import open_bus
+
+        capture = CaptureBus(open_bus(config.bus.transport), CanCapture(can_log))
+    runtime = build_runtime(config, capture, notifier=notifier, record_cycles=0 if mcap else record_cycles)
     runtime.telemetry = make_telemetry(config, runtime)
     recording: Any = None
     if mcap:  # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
@@ -109,7 +122,11 @@ def serve(
     runtime.lifecycle.subscribe(say_state)
     if config.loop.lock_memory:
         lock_memory(runtime.realtime)
-    control = ControlServer(config.control_socket, runtime) if config.control_socket else None
+    control = (
+        ControlServer(config.control_socket, runtime, avoid_cpus=config.loop.cpu_affinity or ())
+        if config.control_socket
+        else None
+    )
     stop_seen = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -147,11 +164,15 @@ def serve(
             runtime.shutdown()
         if control is not None:
             control.close()
+        if capture is not None:  # the drive bus does not own a bus it was given
+            capture.shutdown()
         notifier.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if record_path is not None and not mcap and runtime.record.n:
         runtime.record.save_npz(record_path)
+    if capture is not None:
+        _say(f"captured {capture.capture.written} CAN frames to {can_log}, {capture.capture.dropped} dropped")
     if recording is not None:
         _say(f"recorded {recording.recorder.states_written} cycles to {record_path}, {recording.dropped} dropped")
     if "error" in outcome:

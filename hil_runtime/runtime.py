@@ -129,6 +129,7 @@ class Runtime:
         )
         self._stop = False
         self._reset = False
+        self._reset_activates: bool | None = None  # None: loop.activate_on_reset decides
         self._activate = False
         self._wake = threading.Event()
         self._rt_thread: int | None = None
@@ -146,8 +147,10 @@ class Runtime:
         self._stop = True
         self._wake.set()
 
-    def request_reset(self) -> None:
-        """Clear FAULT (drive fault reset, then INACTIVE; ACTIVE again if loop.activate_on_reset)."""
+    def request_reset(self, activate: bool | None = None) -> None:
+        """Clear FAULT (drive fault reset, then INACTIVE; ACTIVE again if loop.activate_on_reset).
+        ``activate=False``: stay INACTIVE whatever the config says (a remote reset, docs/security.md)."""
+        self._reset_activates = activate
         self._reset = True
         self._wake.set()
 
@@ -359,7 +362,8 @@ class Runtime:
             return
         self.lifecycle.apply(Transition.RESET)
         self.telemetry.event("reset", self.total_cycles, "fault cleared")
-        if self.config.loop.activate_on_reset:
+        activate, self._reset_activates = self._reset_activates, None
+        if self.config.loop.activate_on_reset and activate is not False:
             self.activate()
 
     # --- helpers -------------------------------------------------------------------------------------
@@ -482,11 +486,12 @@ class Runtime:
         }
 
 
-def build_runtime(config: RuntimeConfig, **kwargs: Any) -> Runtime:
-    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet."""
+def build_runtime(config: RuntimeConfig, can_bus: Any = None, **kwargs: Any) -> Runtime:
+    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet.
+    ``can_bus``: an open python-can bus to use instead of opening the config's (a capture)."""
     from drivers.drive_bus import DriveBus
 
-    bus: JointBus = DriveBus(config.bus)
+    bus: JointBus = DriveBus(config.bus, bus=can_bus)
     return Runtime(config, bus, **kwargs)
 
 

@@ -22,11 +22,13 @@ import numpy as np
 from hil_runtime.machine import machine
 from hil_runtime.outputs import atomic_path, write_text_atomic
 from models.conditions import Condition, Mismatch
+from models.effort import deployable, effort_composite, effort_metrics, format_effort_table
 from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, LAW_TITLES, make_law
 from models.modes import make_controller
 from models.robots import RobotModel
 from models.scoring import METRICS, composite_scores, improvement, run_metrics
 from models.sim import ControllerStack, SimConfig, Trajectory, simulate
+from sim_target.realism import RealismSpec
 
 #: Plant-model mismatch of issue 3: +0.5 kg on the flange, link inertias alternately +/-20 %.
 PAPER_MISMATCH = Mismatch(payload_kg=0.5, inertia_scale=(1.2, 0.8, 1.2, 0.8, 1.2, 0.8))
@@ -41,6 +43,20 @@ class ExperimentConfig:
     timing_cycles: int = 1000  # single-robot cycles timed per (law, mode) for the t columns
     save_trajectories: bool = True
     plots: bool = True
+    realism: str = "ideal"  # a profile name (ideal, realistic, harsh) or a profile file (docs/realism.md)
+
+
+def realism_spec(config: ExperimentConfig, robot: RobotModel) -> RealismSpec:
+    """The experiment's realism profile bound to the robot and the simulator's physics step."""
+    from sim_target.realism_profiles import load_realism
+
+    return load_realism(
+        config.realism,
+        robot.n_joints,
+        config.sim.period_s,
+        config.sim.period_s / config.sim.substeps,
+        robot.torque_limit_nm,
+    )
 
 
 def _groups(conditions: list[Condition]) -> list[list[int]]:
@@ -85,6 +101,7 @@ def run_experiment(
 
     ``progress(label, total_periods)`` returns a callable advancing a progress bar.
     """
+    world = realism_spec(config, robot)  # a bad profile fails here, before any work
     out_dir.mkdir(parents=True, exist_ok=True)
     options = controller_options or {}
     runs: list[dict[str, Any]] = []
@@ -108,9 +125,9 @@ def run_experiment(
             advance = (
                 progress(f"{mode}: {len(config.laws)} laws x {len(group)} conditions", total) if progress else None
             )
-            traj = simulate(robot, stack, batch, config.sim, progress=advance)
+            traj = simulate(robot, stack, batch, config.sim, progress=advance, realism=world)
             for b, (law, condition) in enumerate((law, c) for law in config.laws for c in group_conditions):
-                runs.append(_run_record(law, mode, condition, traj, b))
+                runs.append(_run_record(law, mode, condition, traj, b, robot, config.sim.period_s))
                 trajectories[(law, mode, condition.name)] = traj.run(b)
         for law in config.laws:
             timing[law][mode] = time_controller(
@@ -159,7 +176,9 @@ def write_outputs(
     write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2))
 
 
-def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: int) -> dict[str, Any]:
+def _run_record(
+    law: str, mode: str, condition: Condition, traj: Trajectory, b: int, robot: RobotModel, period_s: float
+) -> dict[str, Any]:
     dist_time = None if traj.disturbance is None else traj.disturbance.time_s
     return {
         "law": law,
@@ -171,7 +190,16 @@ def _run_record(law: str, mode: str, condition: Condition, traj: Trajectory, b: 
         "position_limit_ratio": float(traj.position_ratio[b]),
         "velocity_limit_ratio": float(traj.velocity_ratio[b]),
         "max_abs_torque_nm": np.abs(traj.tau[b]).max(axis=0).tolist(),
+        "effort": effort_metrics(traj.tau[b], traj.qd[b], robot.torque_limit_nm, period_s),
     }
+
+
+def verdicts(runs: list[dict[str, Any]], robot: RobotModel, period_s: float) -> None:
+    """Each run's deployable verdict (docs/scoring.md), against the feedback law's run on the same
+    condition when the table has one; stored in the run record as ``verdict``."""
+    fb = {(r["law"], r["condition"]): r for r in runs if r["mode"] == "fb"}
+    for r in runs:
+        r["verdict"] = deployable(r, fb.get((r["law"], r["condition"])), robot.torque_limit_nm, period_s)
 
 
 def summarize(
@@ -180,6 +208,9 @@ def summarize(
     metrics = {(f"{r['law']}/{r['mode']}", r["condition"]): r["metrics"] for r in runs}
     failed = {(f"{r['law']}/{r['mode']}", r["condition"]) for r in runs if not (r["finite"] and r["within_limits"])}
     scores = composite_scores(metrics, failed)
+    verdicts(runs, robot, config.sim.period_s)
+    effort = {(f"{r['law']}/{r['mode']}", r["condition"]): r["effort"] for r in runs}
+    effort_scores = effort_composite(metrics, effort, failed)
     table: dict[str, dict[str, Any]] = {}
     for law in config.laws:
         row: dict[str, Any] = {}
@@ -188,9 +219,16 @@ def summarize(
                 "score": scores[f"{law}/{mode}"],
                 "time_per_cycle": timing[law][mode],
                 "failed_conditions": sorted(k for c, k in failed if c == f"{law}/{mode}"),
+                "score_effort": effort_scores[f"{law}/{mode}"],
+                "not_deployable_conditions": sorted(
+                    r["condition"]
+                    for r in runs
+                    if r["law"] == law and r["mode"] == mode and not r["verdict"]["deployable"]
+                ),
             }
             if mode != "fb" and "fb" in config.modes:
                 row[mode]["eta"] = improvement(scores[f"{law}/{mode}"], scores[f"{law}/fb"])
+                row[mode]["eta_effort"] = improvement(effort_scores[f"{law}/{mode}"], effort_scores[f"{law}/fb"])
         table[law] = row
     return {
         "robot": robot.name,
@@ -199,6 +237,7 @@ def summarize(
             "modes": list(config.modes),
             "gain_set": config.gain_set,
             "sim": asdict(config.sim),
+            "realism": config.realism,
         },
         "law_params": {law: make_law(law, robot, config.sim.period_s, config.gain_set).params for law in config.laws},
         "conditions": [
@@ -270,4 +309,4 @@ def format_table(results: dict[str, Any]) -> str:
         *notes,
         "",
     ]
-    return "\n".join(lines + footer)
+    return "\n".join(lines + footer + format_effort_table(results))

@@ -21,16 +21,24 @@ target_app = typer.Typer(name="target", help="The pybullet arm behind emulated C
 @target_app.command()
 def serve(
     config: Annotated[Path, typer.Option("--config", help="target config, YAML or TOML")],
+    can_log: Annotated[
+        Path | None, typer.Option("--can-log", help="capture the drives' CAN traffic (.blf .asc .log .csv)")
+    ] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the target until SIGINT/SIGTERM; the drives then go to a safe state and the bus closes."""
     from sim_target.config import load_target_config
 
+    if can_log is not None:
+        from drivers.capture import check_capture_path
+
+        check_capture_path(can_log)  # before anything starts
+
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(message)s")
     target_config = load_target_config(config)  # before pybullet is imported: a bad config is one line
     from sim_target.server import build_server
 
-    server, close = build_server(target_config)
+    server, close = build_server(target_config, can_log)
 
     def _stop(signum: int, _frame: object) -> None:
         server.stop()

@@ -37,6 +37,7 @@ import numpy as np
 import pybullet
 
 from sim_target.plant_protocol import JointState
+from sim_target.realism import RealismModel, RealismSpec
 from sim_target.robots import RobotLookupError, builtin_urdf_path
 
 GRAVITY_M_S2 = 9.81
@@ -163,6 +164,8 @@ class PybulletPlant:
         brake_holding_torque_nm: brake capacity per joint; default twice the URDF effort limit.
         encoder_noise_rad, velocity_noise_rad_s: standard deviations of measurement noise.
         seed: seeds the measurement noise, so a noisy run is reproducible.
+        realism: the sensing/actuation/plant profile shared with the models simulator
+            (``sim_target/realism.py``, docs/realism.md); None: today's ideal world.
     """
 
     def __init__(
@@ -177,6 +180,7 @@ class PybulletPlant:
         encoder_noise_rad: float = 0.0,
         velocity_noise_rad_s: float = 0.0,
         seed: int = 0,
+        realism: RealismSpec | None = None,
     ) -> None:
         if not period_s > 0.0:
             raise PlantError(f"period_s must be positive, got {period_s}")
@@ -210,7 +214,10 @@ class PybulletPlant:
         self._seed = int(seed)
         self._impulses: list[TorqueImpulse] = []
         self._payload_kg = 0.0
+        self._world: RealismModel | None = None
         self.reset()
+        if realism is not None:
+            self.use_realism(realism)
 
     # --- set-up -------------------------------------------------------------------------------
 
@@ -237,6 +244,9 @@ class PybulletPlant:
         self._held_indices = [index for name, index in movable.items() if name not in names]
         self.position_limit_rad = np.array([[lower[n], upper[n]] for n in names])
         self.torque_limit_nm = np.array([effort[n] for n in names], dtype=float)
+        # pybullet's mass matrix is over every movable joint, in index order
+        self._movable_indices = sorted(movable.values())
+        self._mass_matrix_index = [self._movable_indices.index(movable[name]) for name in names]
         # The payload rides on the last link of the chain (the massless flange for ur5_paper).
         self._payload_link = pybullet.getNumJoints(self._body, physicsClientId=self._client) - 1
         dyn = pybullet.getDynamicsInfo(self._body, self._payload_link, physicsClientId=self._client)
@@ -273,6 +283,9 @@ class PybulletPlant:
         self._brake_position_rad = np.array(q0, dtype=float)
         self._rng = np.random.default_rng(self._seed)
         self._held: JointState | None = None  # the true state while every brake holds a still arm
+        self._motor_mask: np.ndarray | None = None  # the brakes pybullet's motors were last set to
+        if self._world is not None:
+            self._world.reset(np.asarray(q0, dtype=float), v0)
         self._measured = self._measure()
         return self._measured
 
@@ -299,22 +312,14 @@ class PybulletPlant:
         before_rad = self._last_true.position_rad
         # A brake locks the joint where it engaged, up to its holding torque. A stiff position
         # motor rather than a velocity lock: the latter creeps by ~1e-4 rad/s under gravity.
-        true_q = self.true_state().position_rad
+        if self._world is not None:  # the drive's torque loop, then friction (docs/realism.md)
+            motor_nm = np.where(braked, 0.0, self._realism_torque(motor_nm, before_rad))
         newly_braked = braked & ~self._braked
-        self._brake_position_rad[newly_braked] = true_q[newly_braked]
+        self._brake_position_rad[newly_braked] = before_rad[newly_braked]
         self._braked = braked
-        held = self._held_indices
-        pybullet.setJointMotorControlArray(
-            self._body,
-            self._joint_indices + held,
-            pybullet.POSITION_CONTROL,
-            targetPositions=self._brake_position_rad.tolist() + [0.0] * len(held),
-            targetVelocities=[0.0] * (self.n_joints + len(held)),
-            forces=np.where(braked, self.brake_holding_torque_nm, 0.0).tolist() + [1e3] * len(held),
-            positionGains=[_BRAKE_POSITION_GAIN] * (self.n_joints + len(held)),
-            velocityGains=[1.0] * (self.n_joints + len(held)),
-            physicsClientId=self._client,
-        )
+        if self._motor_mask is None or not np.array_equal(braked, self._motor_mask):
+            # pybullet keeps motor settings between steps: sent again only when a brake changes
+            self._set_brake_motors(braked)
         if external_nm is None:  # the common case: one call, pybullet runs the substeps
             pybullet.setJointMotorControlArray(
                 self._body,
@@ -335,6 +340,77 @@ class PybulletPlant:
         if braked.all() and external_nm is None and moved_rad < _HELD_MOTION_RAD:
             self._held = JointState(self._last_true.position_rad, np.zeros(self.n_joints), motor_nm, 0.0)
         return self._measured
+
+    def _set_brake_motors(self, braked: np.ndarray) -> None:
+        held = self._held_indices
+        pybullet.setJointMotorControlArray(
+            self._body,
+            self._joint_indices + held,
+            pybullet.POSITION_CONTROL,
+            targetPositions=self._brake_position_rad.tolist() + [0.0] * len(held),
+            targetVelocities=[0.0] * (self.n_joints + len(held)),
+            forces=np.where(braked, self.brake_holding_torque_nm, 0.0).tolist() + [1e3] * len(held),
+            positionGains=[_BRAKE_POSITION_GAIN] * (self.n_joints + len(held)),
+            velocityGains=[1.0] * (self.n_joints + len(held)),
+            physicsClientId=self._client,
+        )
+        self._motor_mask = braked.copy()
+
+    def _realism_torque(self, motor_nm: np.ndarray, true_q: np.ndarray) -> np.ndarray:
+        """What the drive applies for ``motor_nm`` minus the profile's friction, held over the period
+        (the same calls, in the same order, as ``models.sim.closed_loop``)."""
+        world = self._world
+        assert world is not None  # only called with a realism profile
+        applied = world.actuate(motor_nm, true_q)
+        if world.spec.plant.has_friction:
+            qd = self.true_state().velocity_rad_s
+            mass = pybullet.calculateMassMatrix(self._body, self._all_movable_positions(), physicsClientId=self._client)
+            index = self._mass_matrix_index
+            inertia = np.array([mass[i][i] for i in index], dtype=float)
+            applied = applied - world.friction_nm(qd, inertia)
+        return applied
+
+    def _all_movable_positions(self) -> list[float]:
+        states = pybullet.getJointStates(self._body, self._movable_indices, physicsClientId=self._client)
+        return [float(s[0]) for s in states]
+
+    def use_realism(self, realism: RealismSpec) -> None:
+        """Apply a realism profile (once, before the first run; the arm is reset)."""
+        if self._world is not None:
+            raise PlantError("realism: a profile is already applied to this plant")
+        if not realism.is_ideal:
+            self._apply_plant_errors(realism)
+            self._world = RealismModel(realism)
+        self.reset()
+
+    @property
+    def realism(self) -> RealismSpec | None:
+        return None if self._world is None else self._world.spec
+
+    def _apply_plant_errors(self, realism: RealismSpec) -> None:
+        """The profile's inertial errors: link masses and inertias scaled, the payload on the flange."""
+        plant = realism.plant
+        if any(plant.payload_com_m):
+            raise PlantError(
+                "realism: plant.payload_com_m: the pybullet target cannot move a link's centre of mass at run time"
+            )
+        if realism.n_joints != self.n_joints:
+            raise PlantError(f"realism: profile bound to {realism.n_joints} joints, the arm has {self.n_joints}")
+        for link, mass_scale, inertia_scale in zip(
+            self._joint_indices, plant.mass_scale, plant.inertia_scale, strict=True
+        ):
+            if mass_scale == 1.0 and inertia_scale == 1.0:
+                continue
+            dyn = pybullet.getDynamicsInfo(self._body, link, physicsClientId=self._client)
+            pybullet.changeDynamics(
+                self._body,
+                link,
+                mass=float(dyn[0]) * float(mass_scale),
+                localInertiaDiagonal=(np.asarray(dyn[2], dtype=float) * float(inertia_scale)).tolist(),
+                physicsClientId=self._client,
+            )
+        if plant.payload_kg:
+            self.set_payload(plant.payload_kg, plant.payload_inertia_kg_m2)
 
     def _advance_held(self) -> JointState:
         """A period of a held arm: time goes on, the joints stay where the brakes hold them."""
@@ -469,6 +545,8 @@ class PybulletPlant:
         return self._noisy(true.position_rad, true.velocity_rad_s)
 
     def _noisy(self, q: np.ndarray, qd: np.ndarray) -> JointState:
+        if self._world is not None:  # what the drives report (docs/realism.md)
+            q, qd = self._world.sense(q, qd)
         if self._encoder_noise_rad > 0.0:
             q = q + self._rng.normal(0.0, self._encoder_noise_rad, self.n_joints)
         if self._velocity_noise_rad_s > 0.0:

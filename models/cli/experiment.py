@@ -65,6 +65,13 @@ def experiment(
         str, typer.Option(help="--plant hil: virtual (one process), ipc or bridge (the target in its own process).")
     ] = "virtual",
     target_substeps: Annotated[int, typer.Option(help="--plant hil: pybullet steps per control period.")] = 32,
+    realism: Annotated[
+        str,
+        typer.Option(
+            help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
+            metavar="PROFILE|FILE",
+        ),
+    ] = "ideal",
     no_parity: Annotated[
         bool,
         typer.Option("--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison."),
@@ -122,6 +129,7 @@ def experiment(
             hmpc_prediction_step_s,
             hmpc_anchor_scale,
             hil,
+            realism,
         )
     except BaseException:
         if created:
@@ -148,6 +156,7 @@ def _experiment(
     hmpc_prediction_step_s: float | None,
     hmpc_anchor_scale: float,
     hil: HilOptions | None = None,
+    realism: str = "ideal",
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -175,7 +184,11 @@ def _experiment(
         timing_cycles=timing_cycles,
         save_trajectories=not no_trajectories,
         plots=not no_plots,
+        realism=realism,
     )
+    from models.experiment import realism_spec
+
+    realism_spec(config, arm)  # a bad profile: one line, exit 2, before any work
     console = Console(stderr=True)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console) as bar:

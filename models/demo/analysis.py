@@ -58,7 +58,7 @@ def hil_trajectory(
 
 
 def simulate_twin(
-    robot: Any, law: str, mode: str, condition: Any, gain_set: str
+    robot: Any, law: str, mode: str, condition: Any, gain_set: str, realism: Any = None
 ) -> tuple[dict[str, np.ndarray], float]:
     """The models simulator on the same bundle and condition; (trajectory, wall seconds)."""
     from models.feedback import make_law
@@ -68,7 +68,7 @@ def simulate_twin(
     sim = SimConfig()
     started = time.monotonic()
     controller = make_controller(mode, make_law(law, robot, sim.period_s, gain_set), robot)
-    traj = simulate(robot, controller, [condition], sim)
+    traj = simulate(robot, controller, [condition], sim, realism=realism)
     run = traj.run(0)
     run["within_limits"] = np.asarray(bool(traj.finite[0] and traj.within_limits[0]))
     return run, time.monotonic() - started

@@ -6,21 +6,28 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from models.demo.options import DemoOptions
+from models.demo.options import DemoOptions, target_substeps
 
 
 def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_socket: Path) -> dict[str, Any]:
     """``hil target serve``'s config: the pybullet arm on the ipc bus in ``bus_dir``, a control socket."""
     from sim_target.launch import CAN_FD
+    from sim_target.rt_settings import split_cpus
 
-    return {
+    data: dict[str, Any] = {
         "robot": options.robot,
         "period_s": period_s,
         "clock": "realtime" if options.realtime else "lockstep",
         "bus": {"interface": "ipc", "channel": str(bus_dir), **CAN_FD},
-        "plant": {"substeps": options.target_substeps},
+        "plant": {"substeps": target_substeps(options)},
         "control_socket": str(control_socket),
+        "realism": options.realism
+        if options.realism in ("ideal", "realistic", "harsh")
+        else str(Path(options.realism).resolve()),
     }
+    if options.realtime:  # SCHED_FIFO and mlockall by default; its own CPU, apart from the runtime's
+        data["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
+    return data
 
 
 def runtime_config(
@@ -59,23 +66,13 @@ def runtime_config(
         # A backstop only: the demo stops the daemon with SIGTERM when the run has covered the condition.
         "duration_s": condition.duration_s + 10.0,
     }
-    if options.realtime:
-        # Free-running, the loop thread must hold its deadlines on a shared machine: SCHED_FIFO (the
-        # target's physics thread takes the same priority), memory locked, and a CPU of its own.
-        # Without these the runtime only warned "without SCHED_FIFO" (never asked for, not refused).
-        data["loop"].update(fifo_priority=80, lock_memory=True, cpu_affinity=runtime_cpus())
+    if options.realtime:  # the loop thread on its own CPU, apart from the target's physics
+        from sim_target.rt_settings import split_cpus
+
+        data["loop"].update(cpu_affinity=split_cpus(options.cpus)[0], fifo_priority=80, lock_memory=True)
     data["telemetry"] = {"enabled": True, "listen": [], "connect": [endpoint], "stats_period_s": 1.0}
     data["control_socket"] = str(control_socket)
     return data
 
 
-def runtime_cpus() -> list[int] | None:
-    """The runtime loop's CPU in a free-running demo: the last one the process may use (the target
-    is pinned apart from it); None on a one-CPU machine."""
-    import os
-
-    cpus = sorted(os.sched_getaffinity(0))
-    return [cpus[-1]] if len(cpus) > 1 else None
-
-
-__all__ = ["runtime_config", "runtime_cpus", "target_config"]
+__all__ = ["runtime_config", "target_config"]

@@ -11,7 +11,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from models.demo.options import DemoOptions
+from models.demo.options import DemoOptions, realism_specs
 
 
 def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: bool = False) -> dict[str, Any]:
@@ -43,8 +43,14 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
     console.print("hil demo: simulating the same bundle on the same condition (models simulator) ...", soft_wrap=True)
     steps = round(condition.duration_s / outcome.period_s)
     hil, coverage = analysis.hil_trajectory(outcome.record, steps, outcome.period_s)
-    sim, sim_wall_s = analysis.simulate_twin(robot, options.law, options.mode, condition, _bundle_gain_set(options))
+    twin_realism = realism_specs(options)[1]
+    sim, sim_wall_s = analysis.simulate_twin(
+        robot, options.law, options.mode, condition, _bundle_gain_set(options), twin_realism
+    )
     stats = analysis.final_stats(outcome)
+    from sim_target.lateness import invalid_reason
+
+    invalid = invalid_reason(outcome.target_lateness, outcome.period_s)
     recording = analysis.telemetry_recording(outcome)
     results: dict[str, Any] = {
         "demo": {
@@ -56,6 +62,11 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
             "steps": steps,
         },
         "fault": outcome.fault,
+        # A free-running run whose plant fell behind the wall clock tests nothing: its scores are
+        # not valid (sim_target/lateness.py). Lock-step runs have no wall clock to lag.
+        "valid": invalid is None,
+        "invalid_reason": invalid,
+        "target": {"lateness": outcome.target_lateness, "realtime": outcome.target_realtime},
         "coverage": coverage,
         "scores": analysis.compare(robot, condition, hil, sim, outcome.fault),
         "timing": analysis.timing_figures(stats, outcome.record, outcome.period_s),

@@ -133,6 +133,16 @@ def check_hil_inputs(
                 f"condition {c.name}: plant-model mismatch is not emulated by the HIL target "
                 "(it runs the nominal URDF): use --mismatch none"
             )
+    from sim_target.realism_profiles import load_realism
+
+    period_s = config.sim.period_s
+    world = load_realism(
+        config.realism, robot.n_joints, period_s, period_s / options.target_substeps, robot.torque_limit_nm
+    )
+    if any(world.plant.payload_com_m):
+        raise ModelInputError(
+            f"--realism {config.realism}: plant.payload_com_m: the HIL target cannot move the flange's centre of mass"
+        )
     for law in config.laws:
         path = bundle_path(robot.name, law, options.bundle_dir)
         manifest = path / "manifest.json"

@@ -102,7 +102,10 @@ def run_hil_experiment(
     )
     advance = progress(label, total) if progress else None
     try:
-        target_config = target_config_dict(robot.name, period_s, options.target_substeps)
+        realism = config.realism
+        if realism not in ("ideal", "realistic", "harsh"):
+            realism = str(Path(realism).resolve())  # the target may run in another directory
+        target_config = target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
         with launch_target(target_config, options.transport) as target:
             for law in config.laws:
                 for mode in config.modes:

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from models.effort import format_effort_table
 from models.feedback import LAW_TITLES
 
 #: The paper's Table II (hardware): FB score -> LMPC score per law.
@@ -53,6 +54,7 @@ def format_hil_table(results: dict[str, Any]) -> str:
         f"Every run finite and inside the joint limits: {limits}. ✗k: k conditions faulted or left the limits.",
         "",
     ]
+    lines += format_effort_table(results)
     if "parity" in results:
         lines += format_parity_table(results["parity"], modes)
     return "\n".join(lines)

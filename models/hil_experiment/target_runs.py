@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from models.conditions import Condition
+from models.effort import effort_metrics
 from models.hil_experiment.config import HilOptions, run_start, runtime_config_dict
 from models.robots import RobotModel
 from models.scoring import run_metrics
@@ -157,6 +158,7 @@ def run_record(robot: RobotModel, law: str, mode: str, condition: Condition, run
         "position_limit_ratio": position_ratio,
         "velocity_limit_ratio": velocity_ratio,
         "max_abs_torque_nm": np.abs(a["tau"]).max(axis=0).tolist(),
+        "effort": effort_metrics(a["tau"], a["qd"], robot.torque_limit_nm, float(a["t"][1] - a["t"][0]), run.rows),
         "hil": {
             "rows": run.rows,
             "steps": steps,

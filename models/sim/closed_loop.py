@@ -5,6 +5,10 @@ the reference, ask the controller for torques, saturate them to the robot's torq
 them over [t_k, t_k+1) while the plant integrates with RK4 substeps; the disturbance pulse is
 integrated exactly (the period containing it is split at the pulse edges). Plant-model mismatch
 (payload, scaled masses/inertias, viscous and Coulomb friction) changes the plant only.
+
+A realism profile (``sim_target.realism``, the same model the HIL target applies) sits between the
+plant and the controller: the controller sees what the drives would report, the plant receives what
+the torque loop would apply, minus the profile's friction; the logged ``tau`` is the command.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from models.dynamics import make_dynamics
 from models.errors import ModelInputError
 from models.robots import RobotModel
 from models.sim.controllers import Controller
+from sim_target.realism import RealismError, RealismModel, RealismSpec
 
 COULOMB_SMOOTHING_RAD_S = 0.01  # tanh(qd / v) stands in for sign(qd), keeping RK4 well-behaved
 
@@ -113,24 +118,45 @@ def _group_key(condition: Condition) -> tuple:
     return (condition.duration_s, condition.disturbance, condition.mismatch)
 
 
+def plant_mismatch(condition_mismatch: Mismatch, realism: RealismSpec | None) -> Mismatch:
+    """The plant's inertial errors: the condition's mismatch, or the realism profile's (not both:
+    two sources of one error would be ambiguous)."""
+    if realism is None or not realism.plant.has_inertial_errors:
+        return condition_mismatch
+    if not condition_mismatch.is_nominal:
+        raise RealismError(
+            f"realism {realism.name}: plant: the conditions carry a mismatch too; give the plant errors in one place"
+        )
+    p = realism.plant
+    return Mismatch(
+        payload_kg=p.payload_kg,
+        payload_com_m=p.payload_com_m,
+        mass_scale=tuple(float(x) for x in p.mass_scale),
+        inertia_scale=tuple(float(x) for x in p.inertia_scale),
+    )
+
+
 def simulate(
     robot: RobotModel,
     controller: Controller,
     conditions: list[Condition],
     config: SimConfig = SimConfig(),
     progress: object | None = None,
+    realism: RealismSpec | None = None,
 ) -> Trajectory:
     """Run ``controller`` on every condition at once (they must share duration, disturbance, mismatch).
 
     ``robot`` is the nominal robot; each condition's mismatch turns it into the plant.
     ``progress``: an optional callable(advance_in_periods) for a progress bar.
+    ``realism``: the sensing/actuation/plant profile (docs/realism.md); None or ideal: today's world.
     """
     if not conditions:
         raise ModelInputError("simulate: no conditions given")
     if len({_group_key(c) for c in conditions}) != 1:
         raise ModelInputError("simulate: conditions in one batch must share duration, disturbance and mismatch")
     first = conditions[0]
-    plant = ModelPlant(robot, first.mismatch, config)
+    plant = ModelPlant(robot, plant_mismatch(first.mismatch, realism), config)
+    world = RealismModel(realism) if realism is not None and not realism.is_ideal else None
     n, batch, dt = robot.n_joints, len(conditions), config.period_s
     steps = int(round(first.duration_s / dt))
     t = np.arange(steps) * dt
@@ -151,17 +177,25 @@ def simulate(
     dist = first.disturbance
     dist_torque = None if dist is None else np.broadcast_to(np.asarray(dist.torque_nm, float), (n,))
 
-    controller.reset(q.copy())
+    if world is not None:
+        world.reset(q, qd)
+    q_seen, qd_seen = world.sense(q, qd) if world is not None else (q, qd)
+    controller.reset(q_seen.copy())
     with np.errstate(all="ignore"):
         for k in range(steps):
             log_q[:, k], log_qd[:, k] = q, qd
-            tau = np.asarray(controller(t[k], q, qd, q_ref[:, k], qd_ref[:, k], qdd_ref[:, k]), float)
+            if k > 0 and world is not None:
+                q_seen, qd_seen = world.sense(q, qd)
+            elif world is None:
+                q_seen, qd_seen = q, qd
+            tau = np.asarray(controller(t[k], q_seen, qd_seen, q_ref[:, k], qd_ref[:, k], qdd_ref[:, k]), float)
             tau = np.clip(np.nan_to_num(tau, nan=0.0), -limit, limit)
             log_tau[:, k] = tau
             fb = getattr(controller, "last_tau_fb", None)
             if fb is not None:
                 log_fb[:, k] = fb
-            q, qd = _advance(plant, q, qd, tau, t[k], dt, dist, dist_torque)
+            applied = tau if world is None else _realism_torque(world, plant, tau, q, qd)
+            q, qd = _advance(plant, q, qd, applied, t[k], dt, dist, dist_torque)
             bad = ~(np.isfinite(q).all(1) & np.isfinite(qd).all(1))
             if bad.any():  # a diverged run is frozen where it failed and reported, never propagated
                 finite &= ~bad
@@ -184,6 +218,17 @@ def simulate(
     traj.velocity_ratio = np.max(np.abs(log_qd) / robot.velocity_limit_rad_s, axis=(1, 2))
     traj.finite = finite
     return traj
+
+
+def _realism_torque(
+    world: RealismModel, plant: ModelPlant, tau: np.ndarray, q: np.ndarray, qd: np.ndarray
+) -> np.ndarray:
+    """The torque the plant feels this period: the drive's output minus the profile's friction."""
+    applied = world.actuate(tau, q)
+    if world.spec.plant.has_friction:
+        inertia = np.diagonal(plant.dynamics.mass_matrix(q), axis1=-2, axis2=-1)
+        applied = applied - world.friction_nm(qd, inertia)
+    return applied
 
 
 def _advance(

@@ -331,6 +331,7 @@ def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseRe
         work = scratch / f"{spec.name}-{repeat}-{retries}"
         work.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()
+        c.rigs.PLANT_LATENESS.clear()
         try:
             result = spec.run(spec.name, repeat, seed, work)
         except c.RigFault as exc:
@@ -348,8 +349,22 @@ def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseRe
             )
         result.rig_retries = retries
         result.wall_s = round(time.monotonic() - started, 2)
+        _mark_plant_validity(result)
         shutil.rmtree(work, ignore_errors=True)
         return result
+
+
+def _mark_plant_validity(result: c.CaseResult) -> None:
+    """A case whose free-running plant fell behind the wall clock tested nothing: INVALID, not passed."""
+    from sim_target.lateness import invalid_reason
+
+    for lateness, period_s in c.rigs.PLANT_LATENESS:
+        reason = invalid_reason(lateness, period_s)
+        if reason is not None:
+            result.plant_invalid = reason
+            result.passed = False
+            result.failures.append(f"INVALID: {reason}")
+            return
 
 
 def select(quick: bool, only: tuple[str, ...] | None = None) -> tuple[FaultSpec, ...]:

@@ -110,6 +110,6 @@ def test_the_free_running_demo_asks_for_fifo_a_cpu_and_locked_memory(tmp_path: P
     free = runtime_config(DemoOptions(realtime=True), *args)["loop"]
     assert free["fifo_priority"] >= 1 and free["lock_memory"] is True
     if len(os.sched_getaffinity(0)) > 1:
-        assert free["cpu_affinity"] == [max(os.sched_getaffinity(0))]
+        assert free["cpu_affinity"] and len(free["cpu_affinity"]) < len(os.sched_getaffinity(0))
     lockstep = runtime_config(DemoOptions(realtime=False), *args)["loop"]
     assert "fifo_priority" not in lockstep
