@@ -150,6 +150,16 @@ class CanCapture:
             self._logger.stop()
         os.replace(self._tmp, self.path)
 
+    def abandon(self) -> None:
+        """Stop without keeping anything (a run refused before it started)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._thread.join()
+        self._logger.stop()
+        self._tmp.unlink(missing_ok=True)
+
 
 class CaptureBus(can.BusABC):
     """A python-can bus that copies every frame it sends or receives to a :class:`CanCapture`.

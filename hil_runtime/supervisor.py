@@ -51,6 +51,7 @@ class FaultKind(str, enum.Enum):
     DRIVE_FAULT = "drive_fault"
     DRIVE_STATE = "drive_state"
     TRANSPORT = "transport"
+    BUS_INTRUDER = "bus_intruder"  # a second sender or a second master on the bus (drivers/bus_guard.py)
     COMMAND = "command"
     OVERRUN_BUDGET = "overrun_budget"
     INTERNAL = "internal"
