@@ -318,7 +318,11 @@ FAULTS: tuple[FaultSpec, ...] = (
         False,
         _ip(
             inj.starve_cpu,
-            Expect(may_fault=("feedback_timeout", "stale_feedback"), counters=("overruns",), max_cycles=None),
+            Expect(
+                may_fault=("feedback_timeout", "stale_feedback", "overrun_budget"),
+                counters=("overruns",),
+                max_cycles=None,
+            ),
             observe_cycles=2500,
             config_extra={"loop": {"pacing": "clock", "time_base": "cycles"}},
         ),
