@@ -309,6 +309,22 @@ FAULTS: tuple[FaultSpec, ...] = (
             observe_cycles=1500,
         ),
     ),
+    *(
+        FaultSpec(
+            f"realism_{profile}",
+            f"the {profile} world from activation (docs/realism.md)",
+            "not a fault: tolerated, or a limit FAULT",
+            False,
+            _ip(
+                lambda rig, rng: None,
+                Expect(may_fault=c.LIMIT_FAULTS, event=False, max_cycles=None),
+                fault_at_activation=True,
+                observe_cycles=1500,
+                target_extra={"realism": profile},
+            ),
+        )
+        for profile in ("realistic", "harsh")
+    ),
     FaultSpec(
         "reference_out_of_limits",
         "a reference that would leave the limits",
