@@ -23,10 +23,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import benchinfo
 import numpy as np
 import yaml
 
-import benchinfo
 from models.conditions import load_conditions
 from models.experiment import ExperimentConfig, run_experiment
 from models.feedback import LAW_TITLES
@@ -97,6 +97,24 @@ def sweep(args: argparse.Namespace) -> dict[str, Any]:
         "wall_s": round(time.monotonic() - started, 1),
         "machine": benchinfo.machine("numpy", "pin"),
         "command": "python " + " ".join(sys.argv),
+    }
+
+
+def merge(paths: list[Path]) -> dict[str, Any]:
+    """One result from sweeps over disjoint noise levels (same laws, modes, conditions, base)."""
+    parts = [json.loads(p.read_text()) for p in paths]
+    first = parts[0]
+    for part in parts[1:]:
+        for key in ("base_profile", "conditions", "duration_s"):
+            if part[key] != first[key]:
+                raise SystemExit(f"--merge: {key} differs between the files")
+    noises = sorted(n for part in parts for n in part["noise_rad"])
+    return {
+        **first,
+        "noise_rad": noises,
+        "points": [p for part in parts for p in part["points"]],
+        "wall_s": sum(part["wall_s"] for part in parts),
+        "command": [part["command"] for part in parts],
     }
 
 
@@ -187,8 +205,16 @@ def main() -> None:
     parser.add_argument("--plot", type=Path, default=None)
     parser.add_argument("--table", type=Path, default=None)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="JSON files of sweeps run apart (e.g. noise levels split "
+        "over processes): one table and plot from them, no new runs",
+    )
     args = parser.parse_args()
-    result = sweep(args)
+    result = merge(args.merge) if args.merge else sweep(args)
     text = json.dumps(result, indent=2)
     print(text)
     if args.json is not None:
