@@ -21,11 +21,13 @@ from typing import Any, Literal
 from urllib.parse import urlparse
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from drivers.busload import DEFAULT_LIMIT, TPDO_FD_SYNC_BYTES, BusLoad, check_bus_load
 from drivers.cia402.scaling import INT16_MAX, JointScaling, check_torque_range
+from drivers.drive_spec import DriveSpec
 from drivers.errors import DriveConfigError
+from drivers.strict_input import StrictModel, error_location, load_yaml_unique
 
 Interface = Literal["virtual", "socketcan", "remote", "slcan", "ipc"]
 LOOPBACK_NAMES = frozenset({"localhost", "ip6-localhost"})
@@ -40,8 +42,8 @@ def is_loopback_host(host: str) -> bool:
         return False
 
 
-class _Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+class _Frozen(StrictModel):
+    """Frozen, no unknown fields, no .inf/.nan, no ``true`` or ``"1"`` read as a number."""
 
 
 class TransportConfig(_Frozen):
@@ -57,6 +59,8 @@ class TransportConfig(_Frozen):
     data_bitrate: int | None = Field(None, gt=0)  # CAN FD data-phase bit rate, bit/s
     bridge_host: str = "127.0.0.1"  # python-can-remote server; loopback only
     bridge_port: int = Field(54701, gt=0, lt=65536)
+    # ipc: a group whose members may share the bus (directory 0770, sockets 0660); None: this user only.
+    group: str | None = None
 
     @model_validator(mode="after")
     def _check(self) -> TransportConfig:
@@ -95,11 +99,18 @@ class JointDriveConfig(_Frozen):
     rated_torque_mnm: int | None = Field(None, gt=0)
     # Encoder counts per joint revolution; None adopts the drive's 0x608F, else it must match.
     encoder_counts_per_rev: int | None = Field(None, gt=0)
+    # A real drive described by its own EDS/DCF: scaling, reactions, SDO init list (drivers/drive_spec.py).
+    # None: the emulated drive of drivers/cia402/data, scaled by the two fields above.
+    drive: DriveSpec | None = None
 
     @model_validator(mode="after")
     def _check(self) -> JointDriveConfig:
         if not math.isfinite(self.max_torque_nm):
             raise ValueError("max_torque_nm must be finite")
+        if self.drive is not None:
+            if self.rated_torque_mnm is not None or self.encoder_counts_per_rev is not None:
+                raise ValueError("with a drive section, give the scaling there (drive.rated_torque, ...)")
+            return self  # its scaling is checked against the EDS and the drive (drivers/eds_check.py)
         check_torque_range(self.max_torque_nm, self.effective_rated_torque_mnm)
         return self
 
@@ -120,16 +131,18 @@ class JointDriveConfig(_Frozen):
 class DriveBusConfig(_Frozen):
     transport: TransportConfig = TransportConfig()
     joints: tuple[JointDriveConfig, ...] = Field(min_length=1)
-    period_s: float = Field(gt=0)  # control period: one SYNC per period
+    period_s: float = Field(gt=0, le=1.0)  # control period: one SYNC per period
     heartbeat_producer_ms: int = Field(50, ge=1, le=65535)  # written to every drive's 0x1017
     # Defaults that hold on a loaded 2-core machine with the drives in another Python process
     # (docs/drivers.md, "Timeouts and what they trade"); a real bus can be much tighter
     # (deploy/runtime.can0.yaml).
-    heartbeat_timeout_s: float = Field(1.0, gt=0)  # no heartbeat for this long: HeartbeatLostError
-    feedback_timeout_s: float = Field(0.02, gt=0)  # wait for TPDOs after SYNC, per cycle
-    max_missed_cycles: int = Field(25, ge=0)  # consecutive cycles a drive may miss before raising
-    sdo_timeout_s: float = Field(0.3, gt=0)
-    state_change_timeout_s: float = Field(2.0, gt=0)  # NMT / CiA 402 transitions at start-up
+    # Upper bounds: a start-up or a stop that waits longer than these is hung, and the daemon must
+    # still answer SIGTERM (docs/security.md, "Configs").
+    heartbeat_timeout_s: float = Field(1.0, gt=0, le=60.0)  # no heartbeat for this long: HeartbeatLostError
+    feedback_timeout_s: float = Field(0.02, gt=0, le=1.0)  # wait for TPDOs after SYNC, per cycle
+    max_missed_cycles: int = Field(25, ge=0, le=10_000)  # consecutive cycles a drive may miss before raising
+    sdo_timeout_s: float = Field(0.3, gt=0, le=10.0)
+    state_change_timeout_s: float = Field(2.0, gt=0, le=60.0)  # NMT / CiA 402 transitions at start-up
     quick_stop_option: int = Field(2, ge=0, le=8)  # written to 0x605A
     # The master's own heartbeat (NMT node id, period): the drives consume it (0x1016).
     master_node_id: int = Field(127, ge=1, le=127)
@@ -207,7 +220,7 @@ def read_yaml_config(path: Path, error: type[Exception], what: str) -> Any:
     nested YAML. Shared by the drive-bus, runtime, target and conditions loaders."""
     text = read_config_text(path, error, what)
     try:
-        return yaml.safe_load(text)
+        return load_yaml_unique(text)  # a key given twice is refused, not silently the last one
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
@@ -221,15 +234,16 @@ def format_validation_error(source: str, exc: ValidationError) -> str:
     """One line naming the file and the first failing field (pydantic's own message is multi-line)."""
     errors = exc.errors()
     first = errors[0]
-    loc = ".".join(str(part) for part in first["loc"]) or "(top level)"
+    loc = ".".join(str(part) for part in error_location(first)) or "(top level)"
     more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
     return f"{source}: {loc}: {first['msg']}{more}"
 
 
-def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
-    """Validate a mapping (e.g. one section of a larger config) and check the bus-load budget."""
+def parse_drive_bus_config(data: Any, source: str = "config", base_dir: Path | None = None) -> DriveBusConfig:
+    """Validate a mapping (e.g. one section of a larger config) and check the bus-load budget;
+    relative ``drive.eds`` paths are taken relative to ``base_dir``."""
     try:
-        config = DriveBusConfig.model_validate(data)
+        config = DriveBusConfig.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise DriveConfigError(format_validation_error(source, exc)) from None
     config.bus_load(source)
@@ -238,4 +252,5 @@ def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
 
 def load_drive_bus_config(path: Path | str) -> DriveBusConfig:
     path = Path(path)
-    return parse_drive_bus_config(read_yaml_config(path, DriveConfigError, "a drive-bus config"), str(path))
+    data = read_yaml_config(path, DriveConfigError, "a drive-bus config")
+    return parse_drive_bus_config(data, str(path), path.resolve().parent)

@@ -42,11 +42,14 @@ from collections.abc import Sequence
 
 import can
 import numpy as np
+from canopen.objectdictionary import ODVariable
 
+from drivers.bus_guard import BusGuard, MasterPresentError, master_listen_s
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
 from drivers.config import DriveBusConfig
+from drivers.eds_check import check_bus, raise_first_error
 from drivers.emcy import EmcyConsumer
 from drivers.errors import FATAL_ERRORS, DriveError, DriveStateError, TransportError
 from drivers.feedback import BusCounters, DriveFeedback
@@ -73,12 +76,25 @@ class _Services:
         self, config: DriveBusConfig, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer
     ) -> None:
         self.sdo = SdoClient(network, nodes, config.eds_path or odx.EDS_PATH, config.sdo_timeout_s)
+        # SYNCs carry the counter when every drive takes 0x1019, or some drive echoes it (CAN FD).
+        has_overflow = [self.sdo.variable(node.node_id, odx.SYNC_OVERFLOW, 0) is not None for node in nodes]
+        sync.carry_counter(all(has_overflow) or any(node.fd_sync_echo for node in nodes))
         self.heartbeats = HeartbeatConsumer(network, nodes, config.heartbeat_timeout_s)
         self.emcy = EmcyConsumer(network, nodes)
         self.exchange = CyclicExchange(network, nodes, sync, config.feedback_timeout_s, config.transport.fd)
         self.master_heartbeat = HeartbeatProducer(network, config.master_node_id, config.master_heartbeat_ms / 1000)
         network.supervise = self.heartbeats.check
         network.produce = self.master_heartbeat.send_if_due
+        tpdo_bases = (fr.TPDO1_BASE,) if config.transport.fd else (fr.TPDO1_BASE, fr.TPDO2_BASE)
+        self.guard = BusGuard(
+            network,
+            config.node_ids,
+            config.master_node_id,
+            (base + node.node_id for base in tpdo_bases for node in nodes),
+            config.heartbeat_producer_ms / 1000,
+            lambda: self.exchange.cycle,
+        )
+        network.watch = self.guard.watch
 
 
 class DriveBus(JointBusBase):
@@ -88,6 +104,9 @@ class DriveBus(JointBusBase):
         """``bus``: an already open python-can bus to use (not closed by :meth:`close`)."""
         self.config = config
         self.bus_load = config.bus_load()  # raises BusLoadError before touching the bus
+        # Every drive's EDS against what the runtime maps and writes, and the bus's COB-IDs:
+        # DriveConfigError naming the file, node and object before anything is written to a drive.
+        raise_first_error(check_bus(config))
         self._bus = bus
         self._owns_bus = bus is None
         self.nodes = tuple(DriveNode(i, joint, config.transport.fd) for i, joint in enumerate(config.joints))
@@ -150,12 +169,18 @@ class DriveBus(JointBusBase):
             if self._services is None:
                 self._services = _Services(self.config, network, self.nodes, self._sync)
             network.start()
+            self._services.guard.check_no_master(master_listen_s(self.config))  # before our first frame
             self._services.master_heartbeat.start()
             self._start_up(self._services)
+            self._services.guard.arm()
+        except MasterPresentError:
+            self._close(stop_drives=False)  # not ours: not a single frame to another master's drives
+            raise
         except BaseException:
             self.close()
             raise
         self._services.exchange.refresh_scaling()
+        self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])  # as read at start-up
         self._connected = True
         network.last_cycle_end_s = time.monotonic()
         network.caller_receives = True
@@ -171,9 +196,10 @@ class DriveBus(JointBusBase):
         for node in nodes:
             p402.configure(sdo, node, config)
             sdo.write(node.node_id, odx.HEARTBEAT_PRODUCER, 0, config.heartbeat_producer_ms)
-            sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
+            if sdo.variable(node.node_id, odx.SYNC_OVERFLOW, 0) is not None:
+                sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
             configure_master_loss(sdo, node, config)
-            map_layout(sdo, node, services.exchange.layout)
+            map_layout(sdo, node, services.exchange.layout_for(node))
             p402.check_mode(sdo, node)
         for node in nodes:
             send_command(network, fr.NmtCommand.START, node.node_id)
@@ -283,6 +309,9 @@ class DriveBus(JointBusBase):
     def close(self) -> None:
         """Disable the drives if enabled, stop their PDOs (NMT pre-operational), release the bus.
         Never raises for a failing bus: what stopped the run is the error the caller sees."""
+        self._close(stop_drives=True)
+
+    def _close(self, stop_drives: bool) -> None:
         if self._enabled:
             try:
                 self.disable()
@@ -290,7 +319,7 @@ class DriveBus(JointBusBase):
                 log.warning("disable on close failed: %s", exc)
         self._enabled = False
         network, services = self._network, self._services
-        if network.bus is not None and network.receiving:
+        if network.bus is not None and network.receiving and stop_drives:
             if services is not None:
                 services.heartbeats.armed = False
             for node_id in self.node_ids:
@@ -329,6 +358,16 @@ class DriveBus(JointBusBase):
 
     def sdo_read_int(self, node_id: int, index: int, subindex: int = 0) -> int:
         return self._sdo().read_int(node_id, index, subindex)
+
+    def sdo_variable(self, node_id: int, index: int, subindex: int = 0) -> ODVariable | None:
+        """The drive's EDS entry of an object (None: not in its dictionary)."""
+        return self._sdo().variable(node_id, index, subindex)
+
+    def layout_for(self, node: DriveNode) -> odx.PdoLayout:
+        """The PDO layout mapped on ``node`` at start-up."""
+        if self._services is None:
+            raise DriveStateError("not connected: call connect() first")
+        return self._services.exchange.layout_for(node)
 
     def nmt(self, command: fr.NmtCommand, node_id: int = 0) -> None:
         if self._network.bus is None:

@@ -54,6 +54,8 @@ class DriveNetwork:
         # queue was drained (heartbeat consumer check); ``produce`` any time (the master's heartbeat).
         self.supervise: Callable[[float], None] | None = None
         self.produce: Callable[[float], None] | None = None
+        # Sees every received frame first (drivers.bus_guard: a second sender or master).
+        self.watch: Callable[[can.Message, float], None] | None = None
         self.caller_receives = False  # True once cycles run: they receive on the caller's thread
         self.last_cycle_end_s = 0.0
         self.frames_sent = 0
@@ -102,6 +104,9 @@ class DriveNetwork:
     def dispatch(self, msg: can.Message, now: float) -> None:
         """Under rx_lock: hand one frame to its service."""
         self.frames_received += 1
+        watch = self.watch
+        if watch is not None:
+            watch(msg, now)
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self.malformed += 1
             return

@@ -32,7 +32,9 @@ def run(
     record: Annotated[
         Path | None, typer.Option("--record", help="write the run's per-cycle record (.npz, or .mcap: docs/formats.md)")
     ] = None,
-    record_cycles: Annotated[int, typer.Option(help="rows kept for a .npz --record (~330 B each)")] = 60_000,
+    record_cycles: Annotated[
+        int, typer.Option(min=1, max=3_600_000, help="rows kept for a .npz --record (~330 B each)")
+    ] = 60_000,
     urdf: Annotated[Path | None, typer.Option("--urdf", help="the URDF attached to an .mcap record")] = None,
     can_log: Annotated[
         Path | None, typer.Option("--can-log", help="capture the drive bus's frames (.blf .asc .log .csv)")

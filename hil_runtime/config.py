@@ -47,11 +47,15 @@ import os
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from drivers.config import DriveBusConfig, format_validation_error, read_yaml_config
 from drivers.errors import DriveConfigError
+from drivers.strict_input import StrictModel
 from hil_runtime.telemetry.config import TelemetryConfig
+
+MAX_RAMP_S = 60.0  # the reference's ramp from the measured pose (precomputed, like the condition)
+MAX_RUN_S = 7 * 86400.0  # loop.duration_s: a week; null runs until stopped
 
 
 class RuntimeConfigError(ValueError):
@@ -60,8 +64,8 @@ class RuntimeConfigError(ValueError):
     exit_code = 2
 
 
-class _Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+class _Frozen(StrictModel):
+    """Frozen, no unknown fields, no .inf/.nan, no ``true`` or ``"1"`` read as a number."""
 
 
 class BundleSection(_Frozen):
@@ -77,7 +81,7 @@ class ReferenceSection(_Frozen):
     kind: Literal["condition", "hold"] = "condition"
     conditions_file: Path | None = None  # None: the paper's five (hil_runtime/data)
     condition: str | None = None  # required for kind: condition
-    ramp_s: float = Field(2.0, ge=0.0)  # shortest ramp from the measured pose onto the reference start
+    ramp_s: float = Field(2.0, ge=0.0, le=MAX_RAMP_S)  # shortest ramp from the measured pose onto the reference start
     # The ramp is lengthened so its peak speed stays below this fraction of each joint's limit.
     ramp_speed_fraction: float = Field(0.25, gt=0.0, le=1.0)
     # ramp: from the measured pose onto the condition (above). condition: the condition from its
@@ -106,10 +110,10 @@ class LoopSection(_Frozen):
     cpu_affinity: tuple[int, ...] | None = None  # CPUs for the loop thread only
     fifo_priority: int | None = Field(None, ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     lock_memory: bool = False  # mlockall; needs LimitMEMLOCK (systemd) or CAP_IPC_LOCK
-    warmup_cycles: int = Field(200, ge=0)  # policy/supervisor calls before ACTIVE
+    warmup_cycles: int = Field(200, ge=0, le=100_000)  # policy/supervisor calls before ACTIVE
     stats_window: int = Field(4096, ge=16, le=1 << 20)  # cycles kept for median/p99/max
-    stats_interval_s: float = Field(1.0, gt=0.0)  # stats to telemetry / STATUS= this often
-    duration_s: float | None = Field(None, gt=0.0)  # leave ACTIVE (stop, exit 0) after this long
+    stats_interval_s: float = Field(1.0, gt=0.0, le=3600.0)  # stats to telemetry / STATUS= this often
+    duration_s: float | None = Field(None, gt=0.0, le=MAX_RUN_S)  # leave ACTIVE (stop, exit 0) after this long
     idle_poll_s: float = Field(0.01, gt=0.0, le=1.0)  # INACTIVE/FAULT: how often requests are read
     activate_on_reset: bool = True  # a reset goes on to ACTIVE (ramp from the measured pose)
 
@@ -120,7 +124,7 @@ class SafetySection(_Frozen):
     position_lower_rad: tuple[float, ...] | None = None
     position_upper_rad: tuple[float, ...] | None = None
     velocity_limit_rad_s: tuple[float, ...] | None = None
-    max_stale_cycles: int = Field(1, ge=0)  # consecutive cycles with stale feedback before FAULT
+    max_stale_cycles: int = Field(1, ge=0, le=1000)  # consecutive cycles with stale feedback before FAULT
 
     @model_validator(mode="after")
     def _check(self) -> SafetySection:
@@ -181,7 +185,7 @@ def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | Non
     if not isinstance(data, dict):
         raise RuntimeConfigError(f"{source}: expected a mapping at the top level")
     try:
-        config = RuntimeConfig.model_validate({**data, "source": source})
+        config = RuntimeConfig.model_validate({**data, "source": source}, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise RuntimeConfigError(format_validation_error(source, exc)) from None
     try:

@@ -16,6 +16,7 @@ does the work, so nothing here touches the bus.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -62,7 +63,8 @@ class ControlServer:
     socket handling (claiming the path, mode 0660, removing only its own socket) is
     drivers.json_socket's, shared with the simulated target."""
 
-    def __init__(self, path: Path, target: ControlTarget) -> None:
+    def __init__(self, path: Path, target: ControlTarget, avoid_cpus: Iterable[int] = ()) -> None:
+        """``avoid_cpus``: the loop thread's CPUs (``loop.cpu_affinity``), never used for clients."""
         self.path = Path(path)
         try:
             self._server = JsonLineServer(
@@ -71,6 +73,7 @@ class ControlServer:
                 in_use_by="another runtime (hil run)",
                 thread_name="hil-control",
                 create_parent=True,
+                avoid_cpus=avoid_cpus,
             )
         except SocketPathError as exc:
             raise ControlError(f"control socket {self.path}: {exc}") from None
@@ -80,7 +83,8 @@ class ControlServer:
 
 
 def send_command(path: Path | str, command: str, timeout_s: float = 2.0) -> dict[str, Any]:
-    """One request to a running daemon; :class:`ControlError` when nobody answers."""
+    """One request to a running daemon; :class:`ControlError` when nobody answers, the socket is
+    another user's, or the daemon refuses (``{"ok": false, "error": ...}``)."""
     path = Path(path)
     try:
         reply = request_json_line(path, {"command": command}, timeout_s)
@@ -92,4 +96,6 @@ def send_command(path: Path | str, command: str, timeout_s: float = 2.0) -> dict
         raise ControlError(f"control socket {path}: unreadable reply") from None
     if not isinstance(reply, dict):
         raise ControlError(f"control socket {path}: unreadable reply (not a JSON object)")
+    if reply.get("ok") is not True:
+        raise ControlError(f"control socket {path}: {command} refused: {reply.get('error', 'no reason given')}")
     return reply

@@ -26,6 +26,7 @@ from hil_runtime.config import RuntimeConfig, load_runtime_config
 from hil_runtime.control import ControlServer
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.realtime import lock_memory
+from hil_runtime.record import check_record_path
 from hil_runtime.runtime import Runtime, build_runtime
 from hil_runtime.sdnotify import Notifier
 
@@ -89,6 +90,8 @@ def serve(
 ) -> int:
     """Run the daemon until SIGTERM/SIGINT (or loop.duration_s); the process exit code."""
     config = load_runtime_config(config_path)
+    if record_path is not None:  # before the run: a record that cannot be written is refused now
+        check_record_path(record_path)
     notifier = Notifier.from_environment()
     mcap = record_path is not None and record_path.suffix.lower() == ".mcap"
     capture: Any = None
@@ -119,7 +122,11 @@ def serve(
     runtime.lifecycle.subscribe(say_state)
     if config.loop.lock_memory:
         lock_memory(runtime.realtime)
-    control = ControlServer(config.control_socket, runtime) if config.control_socket else None
+    control = (
+        ControlServer(config.control_socket, runtime, avoid_cpus=config.loop.cpu_affinity or ())
+        if config.control_socket
+        else None
+    )
     stop_seen = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:

@@ -49,6 +49,19 @@ def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimi
     lower = np.asarray(safety.position_lower_rad, float) if safety.position_lower_rad is not None else -position
     upper = np.asarray(safety.position_upper_rad, float) if safety.position_upper_rad is not None else position
     vmax = np.asarray(safety.velocity_limit_rad_s, float) if safety.velocity_limit_rad_s is not None else velocity
+    # The config may tighten the bundle's limits (the URDF's, which the exporter copied), never widen
+    # them: the law was trained and checked inside them, and the arm's own description ends there.
+    for name, values, bound, beyond in (
+        ("position_lower_rad", lower, -position, lower < -position - 1e-9),
+        ("position_upper_rad", upper, position, upper > position + 1e-9),
+        ("velocity_limit_rad_s", vmax, velocity, vmax > velocity + 1e-9),
+    ):
+        if beyond.any():
+            j = int(np.flatnonzero(beyond)[0])
+            raise RuntimeConfigError(
+                f"{config.source}: safety.{name}[{j}]: {values[j]:g} is beyond the bundle's limit {bound[j]:g} "
+                f"(limits of {config.bundle.path}, from the robot's URDF): the config may only tighten it"
+            )
     drives = np.array([j.max_torque_nm for j in config.bus.joints])
     torque = np.minimum(np.asarray(bundle.torque_limit_nm, float), drives)
     try:

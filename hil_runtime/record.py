@@ -7,6 +7,9 @@ loop's :class:`~hil_runtime.telemetry.sink.CycleState`); ``hil run --record`` sa
 
 from __future__ import annotations
 
+import contextlib
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,6 +18,8 @@ import numpy as np
 
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.telemetry.sink import CycleState
+
+MAX_RECORD_CYCLES = 3_600_000  # an hour at 1 kHz, ~1.2 GB preallocated (~330 B a row); hil run --record-cycles
 
 
 class RunRecord:
@@ -67,8 +72,13 @@ class RunRecord:
         """Written whole or not at all (a temporary name, then a rename): never half a file."""
         from hil_runtime.outputs import atomic_path
 
-        with atomic_path(path) as tmp:
-            np.savez_compressed(tmp, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+        # Through an open file: np.savez appends '.npz' to a name without it, and the renamed file
+        # would then be missing while the written one stayed behind as a hidden partial file.
+        with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+            np.savez_compressed(handle, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+            handle.flush()
+            with contextlib.suppress(OSError):  # a pipe or a special file cannot be synced
+                os.fsync(handle.fileno())
 
 
 @dataclass
@@ -88,7 +98,8 @@ RECORD_SUFFIXES = {".npz": "npz", ".mcap": "mcap"}
 
 def check_record_path(path: Path, option: str = "--record") -> str:
     """Before the run: the record's format from its suffix (``npz`` or ``mcap``), its directory
-    created and proved writable, no directory in its place. OutputError (one line, exit 2) otherwise."""
+    created and proved writable (a probe file), no directory, device, FIFO or socket in its place
+    (``/dev/full``: the record would be lost after the run). OutputError (one line, exit 2) otherwise."""
     from hil_runtime.outputs import OutputError, prepare_output_dir
 
     kind = RECORD_SUFFIXES.get(path.suffix.lower())
@@ -97,5 +108,7 @@ def check_record_path(path: Path, option: str = "--record") -> str:
         raise OutputError(f"{option} {path}: unknown record format {path.suffix or '(no suffix)'!r} (use {known})")
     if path.is_dir():
         raise OutputError(f"{option} {path}: a directory is in the way")
+    if path.exists() and not stat.S_ISREG(path.stat().st_mode):
+        raise OutputError(f"{option} {path}: not a regular file (a device, FIFO or socket is in the way)")
     prepare_output_dir(path.parent if str(path.parent) else Path("."), option=option)
     return kind

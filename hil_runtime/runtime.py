@@ -120,6 +120,7 @@ class Runtime:
         self._wall_time = (config.loop.pacing == "clock") if base == "auto" else (base == "wall")
         self._stop = False
         self._reset = False
+        self._reset_activates: bool | None = None  # None: loop.activate_on_reset decides
         self._activate = False
         self._wake = threading.Event()
         self._rt_thread: int | None = None
@@ -139,8 +140,10 @@ class Runtime:
         self._stop = True
         self._wake.set()
 
-    def request_reset(self) -> None:
-        """Clear FAULT (drive fault reset, then INACTIVE; ACTIVE again if loop.activate_on_reset)."""
+    def request_reset(self, activate: bool | None = None) -> None:
+        """Clear FAULT (drive fault reset, then INACTIVE; ACTIVE again if loop.activate_on_reset).
+        ``activate=False``: stay INACTIVE whatever the config says (a remote reset, docs/security.md)."""
+        self._reset_activates = activate
         self._reset = True
         self._wake.set()
 
@@ -433,7 +436,8 @@ class Runtime:
             return
         self.lifecycle.apply(Transition.RESET)
         self.telemetry.event("reset", self.total_cycles, "fault cleared")
-        if self.config.loop.activate_on_reset:
+        activate, self._reset_activates = self._reset_activates, None
+        if self.config.loop.activate_on_reset and activate is not False:
             self.activate()
 
     # --- helpers -------------------------------------------------------------------------------------

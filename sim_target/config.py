@@ -11,7 +11,7 @@ Example (deploy/target.virtual.yaml)::
     plant: {substeps: 32, initial_position_rad: [0, -0.5, 0.8, 0, 0, 0]}
     faults:
       - {kind: impulse, at_s: 2.0, duration_s: 2.0e-5, torque_nm: [1, 1, 5, 5, 10, 10]}
-    control_socket: /tmp/hil-target.sock      # optional: run-time fault injection
+    control_socket: /run/hil/target.sock      # optional: run-time fault injection
 
 Faults share one schema between the file (scheduled at ``at_s``, simulated seconds in lock-step,
 seconds since start in real time) and the control socket (applied at once). Bad input raises
@@ -28,8 +28,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     TypeAdapter,
     ValidationError,
@@ -46,7 +44,13 @@ from drivers.config import (
     read_yaml_config,
 )
 from drivers.errors import BusLoadError
+from drivers.strict_input import StrictModel
+from sim_target.emulated.profile import DriveProfile
 from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
+
+# An impulse (a blow on the arm) may exceed what the joint's motor can give, not by orders of
+# magnitude: 1e30 N·m would only produce NaN states. The paper's is at most 0.6× the UR5 limits.
+IMPULSE_EFFORT_FACTOR = 10.0
 
 
 class TargetConfigError(ValueError):
@@ -55,9 +59,9 @@ class TargetConfigError(ValueError):
     exit_code = 2
 
 
-class _Frozen(BaseModel):
-    # allow_inf_nan=False: NaN or infinity anywhere is "not a finite number", not a range error
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+class _Frozen(StrictModel):
+    """Frozen, no unknown fields, no .inf/.nan ("not a finite number", not a range error), no
+    ``true`` or ``"1"`` read as a number."""
 
 
 def _finite(values: tuple[float, ...], field: str) -> tuple[float, ...]:
@@ -178,6 +182,8 @@ class DrivesConfig(_Frozen):
     node_ids: tuple[int, ...] | None = None  # one per joint, in joint order; None: 1..N
     encoder_counts_per_rev: int = Field(1 << 20, gt=0)  # the drives' 0x608F
     heartbeat_producer_ms: int = Field(0, ge=0, le=65535)  # until the master sets 0x1017
+    # One per joint: the drive presents a vendor's EDS/DCF and its motor (sim_target/emulated/profile.py).
+    profiles: tuple[DriveProfile, ...] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> DrivesConfig:
@@ -199,8 +205,8 @@ class PlantConfig(_Frozen):
     joint_names: tuple[str, ...] | None = None  # None: every revolute joint, URDF order
     initial_position_rad: tuple[float, ...] | None = None
     brake_holding_torque_nm: tuple[float, ...] | None = None  # None: twice the effort limit
-    encoder_noise_rad: float = Field(0.0, ge=0)
-    velocity_noise_rad_s: float = Field(0.0, ge=0)
+    encoder_noise_rad: float = Field(0.0, ge=0, le=1.0)  # std dev; a real encoder's is ~1e-5 rad
+    velocity_noise_rad_s: float = Field(0.0, ge=0, le=100.0)
     seed: int = 0
 
 
@@ -213,10 +219,10 @@ class RealtimeConfig(_Frozen):
 
     @model_validator(mode="after")
     def _check(self) -> RealtimeConfig:
-        if self.cpus is not None:
-            available = sorted(os.sched_getaffinity(0))
-            if not self.cpus or any(cpu not in available for cpu in self.cpus):
-                raise ValueError(f"cpus {list(self.cpus)}: this machine offers {available}")
+        if self.cpus is not None:  # the machine's CPUs (a CPU outside this process's mask: a warning later)
+            count = os.cpu_count() or 1
+            if not self.cpus or any(not 0 <= cpu < count for cpu in self.cpus):
+                raise ValueError(f"cpus {list(self.cpus)}: this machine has CPUs 0..{count - 1}")
         return self
 
 
@@ -251,14 +257,14 @@ class TargetConfig(_Frozen):
 # --- loading ---------------------------------------------------------------------------------------
 
 
-def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
+def parse_target_config(data: Any, source: str = "config", base_dir: Path | None = None) -> TargetConfig:
     """Validate a mapping, then check it against its URDF and the drive bus (``check_target_config``)."""
     if data is None:
         raise TargetConfigError(f"{source}: empty (expected a mapping of target settings)")
     if not isinstance(data, dict):
         raise TargetConfigError(f"{source}: expected a mapping of target settings, got {type(data).__name__}")
     try:
-        config = TargetConfig.model_validate(data)
+        config = TargetConfig.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise TargetConfigError(format_validation_error(source, exc)) from None
     check_target_config(config, source)
@@ -283,7 +289,7 @@ def load_target_config(path: Path | str) -> TargetConfig:
     realism = data.get("realism") if isinstance(data, dict) else None
     if isinstance(realism, str) and realism not in ("ideal", "realistic", "harsh") and not Path(realism).is_absolute():
         data = {**data, "realism": str((path.parent / realism).resolve())}  # a profile file, like urdf
-    return parse_target_config(data, str(path))
+    return parse_target_config(data, str(path), path.resolve().parent)  # drives.profiles' eds: same rule
 
 
 def parse_fault(data: Any, source: str = "fault") -> Fault:
@@ -323,6 +329,8 @@ class TargetLayout:
     lower_rad: tuple[float, ...]
     upper_rad: tuple[float, ...]
     node_ids: tuple[int, ...]
+    effort_nm: tuple[float, ...] | None = None  # URDF effort limits (None: not known)
+    velocity_limit_rad_s: tuple[float, ...] | None = None  # URDF velocity limits
 
     @property
     def n_joints(self) -> int:
@@ -353,11 +361,19 @@ def target_layout(config: TargetConfig, source: str = "config") -> TargetLayout:
         raise TargetConfigError(
             f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}"
         )
+    profiles = config.drives.profiles
+    if profiles is not None and len(profiles) != len(chosen):
+        raise TargetConfigError(f"{source}: drives.profiles: {len(profiles)} for {len(chosen)} joints of {urdf.name}")
+    for i, profile in enumerate(profiles or ()):
+        if not profile.eds.is_file():
+            raise TargetConfigError(f"{source}: drives.profiles.{i}.eds: {profile.eds}: file not found")
     return TargetLayout(
         tuple(j.name for j in chosen),
         tuple(j.lower_rad for j in chosen),
         tuple(j.upper_rad for j in chosen),
         tuple(node_ids),
+        tuple(j.effort_nm for j in chosen),
+        tuple(j.velocity_rad_s for j in chosen),
     )
 
 
@@ -374,6 +390,14 @@ def check_fault(fault: Fault, layout: TargetLayout, source: str = "fault") -> No
 
     if isinstance(fault, ImpulseFault) and len(fault.torque_nm) != layout.n_joints:
         raise TargetConfigError(f"{source}: torque_nm: {len(fault.torque_nm)} values for {layout.n_joints} joints")
+    if isinstance(fault, ImpulseFault) and layout.effort_nm is not None:
+        limits = zip(fault.torque_nm, layout.effort_nm, layout.joint_names, strict=True)
+        for i, (torque, effort, name) in enumerate(limits):
+            if abs(torque) > IMPULSE_EFFORT_FACTOR * effort:
+                raise TargetConfigError(
+                    f"{source}: torque_nm[{i}]: {torque:g} N·m is beyond {IMPULSE_EFFORT_FACTOR:g}× joint '{name}' "
+                    f"effort limit ({effort:g} N·m)"
+                )
     if isinstance(fault, (DriveFault, HeartbeatFault)):
         known(fault.node_id, "node_id")
     if isinstance(fault, FrameFault) and fault.node_ids is not None:
@@ -395,6 +419,14 @@ def check_run_start(start: RunStart, layout: TargetLayout, source: str = "start"
             raise TargetConfigError(
                 f"{source}: position_rad[{i}]: {q:g} rad is outside joint '{name}' limits [{lo:g}, {hi:g}]"
             )
+    if start.velocity_rad_s is not None and layout.velocity_limit_rad_s is not None:
+        for i, (v, limit, name) in enumerate(
+            zip(start.velocity_rad_s, layout.velocity_limit_rad_s, layout.joint_names, strict=True)
+        ):
+            if not abs(v) <= limit:
+                raise TargetConfigError(
+                    f"{source}: velocity_rad_s[{i}]: {v:g} rad/s is beyond joint '{name}' velocity limit {limit:g}"
+                )
     for i, fault in enumerate(start.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
 
@@ -427,6 +459,12 @@ def check_target_config(config: TargetConfig, source: str = "config") -> TargetL
                 raise TargetConfigError(f"{source}: plant.{field}: negative value")
     for i, fault in enumerate(config.faults):
         check_fault(fault, layout, f"{source}: faults[{i}]")
+    if config.bus.interface == "ipc":
+        from drivers.ipc.directory import channel_problem
+
+        problem = channel_problem(config.bus.channel, config.bus.group)
+        if problem is not None:
+            raise TargetConfigError(f"{source}: bus.channel: {problem}")
     if config.realism != "ideal":  # before pybullet starts: the profile's one line is the only output
         from sim_target.realism import RealismError
         from sim_target.realism_profiles import load_realism

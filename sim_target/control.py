@@ -49,6 +49,7 @@ class ControlServer:
                 lambda line: _control_reply(target, line),
                 in_use_by="another running target",
                 thread_name="target-control",
+                create_parent=True,  # /run/hil when no service made it
             )
         except SocketPathError as exc:
             raise TargetConfigError(f"control_socket {self.path}: {exc}") from None

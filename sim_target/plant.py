@@ -283,6 +283,7 @@ class PybulletPlant:
         self._brake_position_rad = np.array(q0, dtype=float)
         self._rng = np.random.default_rng(self._seed)
         self._held: JointState | None = None  # the true state while every brake holds a still arm
+        self._motor_mask: np.ndarray | None = None  # the brakes pybullet's motors were last set to
         if self._world is not None:
             self._world.reset(np.asarray(q0, dtype=float), v0)
         self._measured = self._measure()
@@ -311,24 +312,14 @@ class PybulletPlant:
         before_rad = self._last_true.position_rad
         # A brake locks the joint where it engaged, up to its holding torque. A stiff position
         # motor rather than a velocity lock: the latter creeps by ~1e-4 rad/s under gravity.
-        true_q = self.true_state().position_rad
         if self._world is not None:  # the drive's torque loop, then friction (docs/realism.md)
-            motor_nm = np.where(braked, 0.0, self._realism_torque(motor_nm, true_q))
+            motor_nm = np.where(braked, 0.0, self._realism_torque(motor_nm, before_rad))
         newly_braked = braked & ~self._braked
-        self._brake_position_rad[newly_braked] = true_q[newly_braked]
+        self._brake_position_rad[newly_braked] = before_rad[newly_braked]
         self._braked = braked
-        held = self._held_indices
-        pybullet.setJointMotorControlArray(
-            self._body,
-            self._joint_indices + held,
-            pybullet.POSITION_CONTROL,
-            targetPositions=self._brake_position_rad.tolist() + [0.0] * len(held),
-            targetVelocities=[0.0] * (self.n_joints + len(held)),
-            forces=np.where(braked, self.brake_holding_torque_nm, 0.0).tolist() + [1e3] * len(held),
-            positionGains=[_BRAKE_POSITION_GAIN] * (self.n_joints + len(held)),
-            velocityGains=[1.0] * (self.n_joints + len(held)),
-            physicsClientId=self._client,
-        )
+        if self._motor_mask is None or not np.array_equal(braked, self._motor_mask):
+            # pybullet keeps motor settings between steps: sent again only when a brake changes
+            self._set_brake_motors(braked)
         if external_nm is None:  # the common case: one call, pybullet runs the substeps
             pybullet.setJointMotorControlArray(
                 self._body,
@@ -349,6 +340,21 @@ class PybulletPlant:
         if braked.all() and external_nm is None and moved_rad < _HELD_MOTION_RAD:
             self._held = JointState(self._last_true.position_rad, np.zeros(self.n_joints), motor_nm, 0.0)
         return self._measured
+
+    def _set_brake_motors(self, braked: np.ndarray) -> None:
+        held = self._held_indices
+        pybullet.setJointMotorControlArray(
+            self._body,
+            self._joint_indices + held,
+            pybullet.POSITION_CONTROL,
+            targetPositions=self._brake_position_rad.tolist() + [0.0] * len(held),
+            targetVelocities=[0.0] * (self.n_joints + len(held)),
+            forces=np.where(braked, self.brake_holding_torque_nm, 0.0).tolist() + [1e3] * len(held),
+            positionGains=[_BRAKE_POSITION_GAIN] * (self.n_joints + len(held)),
+            velocityGains=[1.0] * (self.n_joints + len(held)),
+            physicsClientId=self._client,
+        )
+        self._motor_mask = braked.copy()
 
     def _realism_torque(self, motor_nm: np.ndarray, true_q: np.ndarray) -> np.ndarray:
         """What the drive applies for ``motor_nm`` minus the profile's friction, held over the period

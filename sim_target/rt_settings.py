@@ -58,4 +58,28 @@ def apply_thread_settings(
     return applied, refused
 
 
-__all__ = ["apply_thread_settings"]
+def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, ...] | None]:
+    """(runtime CPUs, target CPUs) for a free-running HIL run on this machine.
+
+    ``auto``: the last CPU this process may use for the runtime's loop, the one before it for the
+    target's physics (on a 2-core machine they then never share a core; with one CPU, no pinning);
+    ``none``: no pinning; ``R,T``: CPU R for the runtime, T for the target. ValueError (one line)
+    for anything else or a CPU this process may not use."""
+    spec = spec.strip().lower()
+    available = sorted(os.sched_getaffinity(0))
+    if spec == "none":
+        return None, None
+    if spec == "auto":
+        return ((available[-1],), (available[-2],)) if len(available) >= 2 else (None, None)
+    parts = spec.split(",")
+    try:
+        runtime_cpu, target_cpu = (int(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"--cpus: expected auto, none or RUNTIME,TARGET (two CPU numbers), got {spec!r}") from None
+    for cpu in (runtime_cpu, target_cpu):
+        if cpu not in available:
+            raise ValueError(f"--cpus: CPU {cpu} is not one this process may use ({available})")
+    return (runtime_cpu,), (target_cpu,)
+
+
+__all__ = ["apply_thread_settings", "split_cpus"]

@@ -60,6 +60,7 @@ from sim_target.config import (
     TargetLayout,
     check_fault,
     check_run_start,
+    target_layout,
 )
 from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
 from sim_target.lateness import Lateness
@@ -76,8 +77,9 @@ class DriveBank(Protocol):
     def set_sync_handler(self, handler: Callable[[], None]) -> None:
         """Call ``handler`` on every SYNC, after latching the RPDO set-points, before the TPDOs."""
 
-    def serve_until(self, deadline_s: float) -> None:
-        """Handle the bus on the calling thread until ``time.monotonic()`` reaches ``deadline_s``."""
+    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
+        """Handle the bus on the calling thread until ``time.monotonic()`` reaches ``deadline_s``
+        (or, with ``return_on_sync``, until a SYNC was handled)."""
 
     def commanded_torque_nm(self) -> np.ndarray:
         """(N,) torque each drive is commanded to deliver now (0 when not Operation Enabled)."""
@@ -111,6 +113,13 @@ class ServerStats:
 
 
 _LOCKSTEP_WAKE_S = 0.05  # lock-step: the loop thread looks at the fault queue at least this often
+# Phase lock of the physics ticks to the master's SYNC (TargetServer._lock_phase_to_sync): the
+# tick lands this fraction of a period after a SYNC (the master's jitter must not bring the next
+# SYNC into a running tick); each SYNC corrects a quarter of the phase error, at most an eighth
+# of a period (SYNC jitter is filtered, never a burst of ticks).
+_TICK_AFTER_SYNC = 0.25
+_PHASE_GAIN = 0.25
+_MAX_PHASE_STEP = 0.125
 _COST_PROBE_STEPS = 200  # physics steps timed at start-up (clock: realtime)
 # A step costing more than this share of the period leaves too little for the bus and wake-up
 # jitter: the target says at start-up that it cannot keep real time.
@@ -136,6 +145,7 @@ class TargetServer:
             tuple(plant.position_limit_rad[:, 0]),
             tuple(plant.position_limit_rad[:, 1]),
             config.drives.node_ids or tuple(range(1, plant.n_joints + 1)),
+            *_urdf_limits(config, plant.joint_names),
         )
         for i, fault in enumerate(config.faults):
             check_fault(fault, self.layout, f"faults[{i}]")
@@ -149,6 +159,7 @@ class TargetServer:
         self._control: ControlServer | None = None
         self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
         self._snapshot: dict[str, Any] = {}
+        self._deadline_s = 0.0  # real time: the next physics tick (time.monotonic())
         self._publish_snapshot()
         drives.set_sync_handler(self._on_sync)
 
@@ -159,8 +170,23 @@ class TargetServer:
         if self.config.clock == "lockstep":
             self.drives.publish_feedback(self._step())
             self._publish_snapshot()
-        else:
-            self.drives.publish_feedback(self.plant.state())
+            return
+        self._lock_phase_to_sync(time.monotonic())
+        self.drives.publish_feedback(self.plant.state())
+
+    def _lock_phase_to_sync(self, sync_s: float) -> None:
+        """Real time: move the next physics tick towards ``_TICK_AFTER_SYNC`` of a period after
+        this SYNC, a bounded step per SYNC (a PLL, as a CiA 402 drive synchronises its cycle to
+        SYNC). A tick then never runs while a SYNC waits: the SYNC is answered at once. (Whatever
+        the phase, a torque latched at one SYNC is integrated over the next period: one period
+        from a sample to the torque computed from it, as with a real cyclic drive, where
+        lock-step has none.) The tick rate stays the master's, i.e. the wall clock's; without
+        SYNCs the ticks run on at their own period."""
+        period_s = self.config.period_s
+        error_s = self._deadline_s - (sync_s + period_s * _TICK_AFTER_SYNC)
+        error_s = (error_s + period_s / 2) % period_s - period_s / 2  # the nearest tick, (-T/2, T/2]
+        step_s = max(-_MAX_PHASE_STEP * period_s, min(_MAX_PHASE_STEP * period_s, _PHASE_GAIN * error_s))
+        self._deadline_s -= step_s
 
     def _step(self) -> JointState:
         self._take_pending()
@@ -217,14 +243,18 @@ class TargetServer:
         period_s = self.config.period_s
         monotonic = time.monotonic
         stats = self.stats
-        deadline_s = monotonic() + period_s
+        self._deadline_s = monotonic() + period_s
         while not self._stop.is_set():
-            self.drives.serve_until(deadline_s)  # SYNCs meanwhile are answered with the latest state
+            # SYNCs meanwhile are answered with the latest state; each may move the deadline.
+            self.drives.serve_until(self._deadline_s, return_on_sync=True)
             if self._stop.is_set():
                 break
-            tick_s, started_s = deadline_s, monotonic()
+            started_s = monotonic()
+            if started_s < self._deadline_s:
+                continue
+            tick_s = self._deadline_s
             self.drives.publish_feedback(self._step())
-            deadline_s += period_s
+            deadline_s = tick_s + period_s
             now_s = monotonic()
             missed = 0
             if now_s > deadline_s:  # overran: skip the periods already past rather than burst
@@ -232,6 +262,7 @@ class TargetServer:
                 deadline_s += missed * period_s
                 stats.late_ticks += 1
                 stats.skipped_periods += missed
+            self._deadline_s = deadline_s
             lag_s = started_s - tick_s
             stats.worst_lag_s = max(stats.worst_lag_s, lag_s)
             self.lateness.tick(lag_s, missed)
@@ -348,6 +379,23 @@ class TargetServer:
 
 
 # --- assembly -------------------------------------------------------------------------------------
+
+
+def _urdf_limits(
+    config: TargetConfig, joint_names: tuple[str, ...]
+) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+    """The URDF's effort and velocity limits of the plant's joints (None when not readable)."""
+    try:
+        layout = target_layout(config)
+    except TargetConfigError:
+        return None, None
+    if layout.effort_nm is None or layout.velocity_limit_rad_s is None:
+        return None, None
+    effort = dict(zip(layout.joint_names, layout.effort_nm, strict=True))
+    velocity = dict(zip(layout.joint_names, layout.velocity_limit_rad_s, strict=True))
+    if any(name not in effort for name in joint_names):
+        return None, None
+    return tuple(effort[n] for n in joint_names), tuple(velocity[n] for n in joint_names)
 
 
 def make_plant(config: TargetConfig) -> PybulletPlant:

@@ -29,6 +29,8 @@ class UrdfJoint:
     type: str  # revolute, continuous, prismatic, fixed, ...
     lower_rad: float
     upper_rad: float
+    effort_nm: float = math.inf  # <limit effort>; inf when the URDF gives none
+    velocity_rad_s: float = math.inf  # <limit velocity>
 
 
 def _number(path: Path, element: ET.Element, attribute: str, where: str, default: str | None = None) -> float:
@@ -85,6 +87,7 @@ def read_urdf_joints(path: Path) -> list[UrdfJoint]:
     for joint in root.findall("joint"):
         name, kind = joint.get("name", "?"), joint.get("type", "?")
         lower, upper = -math.inf, math.inf
+        effort, velocity = math.inf, math.inf
         if kind in ("revolute", "prismatic"):
             limit = joint.find("limit")
             if limit is None:
@@ -94,8 +97,10 @@ def read_urdf_joints(path: Path) -> list[UrdfJoint]:
             upper = _number(path, limit, "upper", where, "0")
             if lower > upper:
                 raise UrdfError(f"{path}: {where}: lower {lower:g} above upper {upper:g}")
-            for attribute in ("effort", "velocity"):
-                if _number(path, limit, attribute, where) < 0:
+            effort = _number(path, limit, "effort", where)
+            velocity = _number(path, limit, "velocity", where)
+            for attribute, value in (("effort", effort), ("velocity", velocity)):
+                if value < 0:
                     raise UrdfError(f"{path}: {where} {attribute}: negative")
-        joints.append(UrdfJoint(name, kind, lower, upper))
+        joints.append(UrdfJoint(name, kind, lower, upper, effort or math.inf, velocity or math.inf))
     return joints

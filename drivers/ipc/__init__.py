@@ -3,8 +3,11 @@ over Unix SOCK_SEQPACKET sockets, frames in SocketCAN's layout (docs/ipc_bus.md)
 
 - :mod:`drivers.ipc.frame`: ``struct can_frame`` / ``struct canfd_frame`` encode and decode.
 - :mod:`drivers.ipc.bus`: :class:`~drivers.ipc.bus.IpcBus`, registered as ``can.Bus(interface="ipc")``.
+- :mod:`drivers.ipc.directory`: the bus directory (where a name points, who may join) and the
+  sender each received frame carries.
 """
 
-from drivers.ipc.bus import IpcBus, IpcBusStats, bus_directory
+from drivers.ipc.bus import IpcBus, IpcBusStats
+from drivers.ipc.directory import IpcMessage, Sender, bus_directory
 
-__all__ = ["IpcBus", "IpcBusStats", "bus_directory"]
+__all__ = ["IpcBus", "IpcBusStats", "IpcMessage", "Sender", "bus_directory"]

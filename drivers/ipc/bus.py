@@ -7,8 +7,16 @@ goes straight from sender to receiver as one datagram in SocketCAN's layout
 twice the round-trip median of direct delivery on a 2-core machine and adds a process that
 competes for the CPUs, so there is none (docs/ipc_bus.md gives the figures).
 
-    bus = can.Bus(interface="ipc", channel="/tmp/hil-can", fd=True)   # a directory, created if missing
-    bus = can.Bus(interface="ipc", channel="hil")                      # a name: <tmp>/hil-can-<uid>/hil
+    bus = can.Bus(interface="ipc", channel="/run/hil/can", fd=True)   # a directory, created if missing
+    bus = can.Bus(interface="ipc", channel="hil")        # a name: $XDG_RUNTIME_DIR/hil-can/hil or /run/hil/can/hil
+
+Only its owner joins (docs/security.md): the directory must be the current user's (or, with
+``group``, that group's), writable by no one else, under parents nobody else can write to; it is
+created 0700 (0770 with a group), each socket 0600 (0660), and every peer's ``SO_PEERCRED`` is
+checked on connect and accept (another uid, unless root or in the group: refused, counted in
+``stats.peers_refused``). Each received frame carries its sender (:class:`IpcMessage`,
+``msg.sender``: which connection, pid and uid), so a receiver can tell two senders of one
+identifier apart (drivers/bus_guard.py).
 
 Semantics, as close to python-can's ``virtual`` and SocketCAN as sockets allow:
 
@@ -37,7 +45,6 @@ import secrets
 import select
 import socket
 import stat
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -46,7 +53,9 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
+from drivers.ipc.directory import IpcMessage, IpcPathError, Sender, bus_directory
 from drivers.ipc.frame import CANFD_MTU, FrameError, decode, encode, rx_overflow_frame
+from drivers.ownership import OwnershipError, group_id, peer_allowed, peer_credentials, private_directory
 
 if TYPE_CHECKING:
     from drivers.config import TransportConfig
@@ -58,16 +67,6 @@ MAX_PATH_BYTES = 107  # sun_path is 108 bytes with the terminating NUL
 DEFAULT_QUEUE_BYTES = 1 << 20  # per peer pair: ~2700 FD frames queued before a slow reader loses some
 _CONNECT_TIMEOUT_S = 1.0
 _WAKE = b"\x00"  # one byte on the loopback pair: shutdown wakes a blocked reader
-
-
-def bus_directory(channel: str | os.PathLike[str]) -> Path:
-    """The directory a channel names: a path as given, a bare name under the user's temp dir."""
-    text = os.fspath(channel)
-    if not text:
-        raise ValueError("ipc bus channel is empty")
-    if os.sep in text or text.startswith("."):
-        return Path(text)
-    return Path(tempfile.gettempdir()) / f"hil-can-{os.getuid()}" / text
 
 
 @dataclass
@@ -82,18 +81,20 @@ class IpcBusStats:
     peers_joined: int = 0  # connections made or accepted, this bus's lifetime
     peers_left: int = 0
     stale_sockets_removed: int = 0
+    peers_refused: int = 0  # connections from or to another user's process (SO_PEERCRED)
 
 
 class _Peer:
     """One connection to another bus instance (or the loopback pair to ourselves)."""
 
-    __slots__ = ("dropped", "fd", "overflowed", "sock")
+    __slots__ = ("dropped", "fd", "overflowed", "sender", "sock")
 
-    def __init__(self, sock: socket.socket) -> None:
+    def __init__(self, sock: socket.socket, sender: Sender | None = None) -> None:
         self.sock = sock
         self.fd = sock.fileno()
         self.dropped = 0
         self.overflowed = False  # frames were lost: the RX-overflow error frame goes first next time
+        self.sender = sender
 
 
 class IpcBus(can.BusABC):
@@ -106,10 +107,12 @@ class IpcBus(can.BusABC):
         receive_own_messages: bool = False,
         fd: bool = False,
         queue_bytes: int = DEFAULT_QUEUE_BYTES,
+        group: str | int | None = None,
         **kwargs: Any,
     ) -> None:
         """``channel``: the bus directory (or a name, see :func:`bus_directory`); ``fd``: CAN FD;
-        ``queue_bytes``: kernel buffer per peer pair (SO_SNDBUF, capped by net.core.wmem_max).
+        ``queue_bytes``: kernel buffer per peer pair (SO_SNDBUF, capped by net.core.wmem_max);
+        ``group``: a group whose members may share the bus (None: this user only).
         Other python-can arguments (``bitrate``, ``data_bitrate``...) are accepted and ignored."""
         if not hasattr(socket, "SOCK_SEQPACKET") or not hasattr(select, "epoll"):
             raise can.CanInterfaceNotImplementedError("the ipc bus needs Linux (AF_UNIX SOCK_SEQPACKET, epoll)")
@@ -117,6 +120,11 @@ class IpcBus(can.BusABC):
         self.directory = bus_directory(channel).absolute()
         self.channel_info = f"ipc bus {self.directory}"
         self.stats = IpcBusStats()
+        try:
+            self._group_gid = group_id(group)
+        except KeyError:
+            raise can.CanInitializationError(f"ipc bus: no such group {group!r}") from None
+        self._next_peer = 0
         self._fd = bool(fd)
         self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
         self._receive_own = bool(receive_own_messages)
@@ -130,7 +138,7 @@ class IpcBus(can.BusABC):
         self._loop_tx, self._loop_rx = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._loop_tx.setblocking(False)
         self._loop_rx.setblocking(False)
-        self._loop = _Peer(self._loop_rx)
+        self._loop = _Peer(self._loop_rx, Sender(0, os.getpid(), os.geteuid()))
         self._loop_out = _Peer(self._loop_tx)
         self._epoll.register(self._loop.fd, select.EPOLLIN)
         self._listen: socket.socket | None = None
@@ -150,8 +158,12 @@ class IpcBus(can.BusABC):
 
     def _join(self) -> None:
         try:
-            self.directory.mkdir(parents=True, exist_ok=True)
-            dir_fd = os.open(self.directory, os.O_RDONLY | os.O_DIRECTORY)
+            private_directory(self.directory, self._group_gid)
+            dir_fd = os.open(self.directory, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+        except OwnershipError as exc:
+            raise IpcPathError(f"ipc bus: {exc}") from exc
+        except (NotADirectoryError, FileExistsError, PermissionError) as exc:
+            raise IpcPathError(f"ipc bus: cannot use directory {self.directory}: {exc.strerror}") from exc
         except OSError as exc:
             raise can.CanInitializationError(f"ipc bus: cannot use directory {self.directory}: {exc.strerror}") from exc
         try:
@@ -167,6 +179,7 @@ class IpcBus(can.BusABC):
             listen = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
             try:
                 listen.bind(os.fspath(path))
+                os.chmod(path, 0o660 if self._group_gid is not None else 0o600)  # not the umask's 0755
                 listen.listen(socket.SOMAXCONN)
                 listen.setblocking(False)
             except OSError as exc:
@@ -203,15 +216,29 @@ class IpcBus(can.BusABC):
             if not isinstance(exc, FileNotFoundError):
                 log.warning("ipc bus: peer %s not joined: %s", path, exc)
             return
-        self._add_peer(sock)
+        self._add_peer(sock, f"listening at {path}")
 
-    def _add_peer(self, sock: socket.socket) -> None:
+    def _sender_of(self, sock: socket.socket, where: str) -> Sender | None:
+        """The peer's identity, or None (and the socket closed) when it is another user's."""
+        creds = peer_credentials(sock)
+        if not peer_allowed(creds, self._group_gid):
+            sock.close()
+            self.stats.peers_refused += 1
+            log.warning("ipc bus %s: refused a peer of uid %d (pid %d) %s", self.directory, creds.uid, creds.pid, where)
+            return None
+        self._next_peer += 1
+        return Sender(self._next_peer, creds.pid, creds.uid)
+
+    def _add_peer(self, sock: socket.socket, where: str) -> None:
+        sender = self._sender_of(sock, where)
+        if sender is None:
+            return
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self._queue_bytes)
         except OSError:
             pass  # the default buffer still works
         sock.setblocking(False)
-        peer = _Peer(sock)
+        peer = _Peer(sock, sender)
         self._peers[peer.fd] = peer
         self._epoll.register(peer.fd, select.EPOLLIN)
         self.stats.peers_joined += 1
@@ -232,7 +259,7 @@ class IpcBus(can.BusABC):
                 except OSError as exc:
                     log.warning("ipc bus: accept failed: %s", exc)
                     break
-                self._add_peer(sock)
+                self._add_peer(sock, "connecting")
             self._publish_targets()
 
     def _drop_peer(self, peer: _Peer) -> None:
@@ -349,10 +376,12 @@ class IpcBus(can.BusABC):
                     self.stats.fd_frames_ignored += 1
                     continue
                 try:
-                    msg = decode(data, self.channel, time.time(), peer is not self._loop)
+                    msg = decode(data, self.channel, time.time(), peer is not self._loop, IpcMessage)
                 except FrameError:
                     self.stats.malformed += 1
                     continue
+                if isinstance(msg, IpcMessage):
+                    msg.sender = peer.sender
                 self.stats.frames_received += 1
                 return msg, False
             if self._closed:
@@ -434,5 +463,13 @@ class IpcBus(can.BusABC):
 
 
 def open_bus(config: TransportConfig) -> IpcBus:
-    """The row of ``drivers.transport.BACKENDS``: ``transport: {interface: ipc, channel: DIR}``."""
-    return IpcBus(config.channel, fd=config.fd)
+    """The row of ``drivers.transport.BACKENDS``: ``transport: {interface: ipc, channel: DIR}``.
+    A directory that cannot be used (a file, another user's) is bad input: DriveConfigError, exit 2."""
+    from drivers.errors import DriveConfigError
+
+    try:
+        return IpcBus(config.channel, fd=config.fd, group=config.group)
+    except IpcPathError as exc:
+        raise DriveConfigError(f"channel {config.channel!r}: {exc}") from None
+    except ValueError as exc:  # bus_directory: an empty channel
+        raise DriveConfigError(f"channel {config.channel!r}: {exc}") from None

@@ -81,8 +81,15 @@ def encode(msg: can.Message) -> bytes:
     return _CAN_FRAME.pack(can_id, length, 0, 0, 0, data)
 
 
-def decode(frame: bytes, channel: str | None = None, timestamp: float = 0.0, is_rx: bool = True) -> can.Message:
-    """A :class:`can.Message` from SocketCAN bytes; :class:`FrameError` if they are not a frame."""
+def decode(
+    frame: bytes,
+    channel: str | None = None,
+    timestamp: float = 0.0,
+    is_rx: bool = True,
+    message_type: type[can.Message] = can.Message,
+) -> can.Message:
+    """A :class:`can.Message` (or ``message_type``) from SocketCAN bytes; :class:`FrameError` if
+    they are not a frame."""
     size = len(frame)
     if size == CAN_MTU:
         can_id, length, _pad, _res0, _len8_dlc, payload = _CAN_FRAME.unpack(frame)
@@ -98,7 +105,7 @@ def decode(frame: bytes, channel: str | None = None, timestamp: float = 0.0, is_
     else:
         raise FrameError(f"datagram of {size} bytes is neither a CAN ({CAN_MTU}) nor a CAN FD ({CANFD_MTU}) frame")
     remote = bool(can_id & CAN_RTR_FLAG)
-    return can.Message(
+    return message_type(
         timestamp=timestamp,
         arbitration_id=can_id & CAN_EFF_MASK,
         is_extended_id=bool(can_id & CAN_EFF_FLAG),

@@ -59,7 +59,7 @@ class TelemetryControls(Protocol):
 
     def request_stop(self) -> None: ...
 
-    def request_reset(self) -> None: ...
+    def request_reset(self, activate: bool | None = None) -> None: ...
 
 
 class TelemetryStartError(RuntimeError):
@@ -122,6 +122,7 @@ class ZenohTelemetry:
         self._dropped_seen = 0
         self.offer_errors = 0
         self.publish_errors = 0
+        self.refused_controls = 0  # control queries for a key expression other than exactly theirs
         self._unknown_stats: set[str] = set()
 
         self._running = False
@@ -131,6 +132,11 @@ class ZenohTelemetry:
         self._publishers: dict[str, Any] = {}
         self._declared: list[Any] = []
         self._token: Any = None
+        self._source_info: Any = None
+        self._source_ids: dict[str, Any] = {}
+        self._source_sn: dict[str, int] = {}
+        self._ros2: Any = None  # hil_runtime.formats.rmw_zenoh.JointStatePublisher when ros2.enabled
+        self.joints = tuple(joints)
 
     # --- the loop's side ------------------------------------------------------------------------
 
@@ -158,12 +164,35 @@ class ZenohTelemetry:
             self._declared.append(session.declare_queryable(f"{self.prefix}/{name}", self._replier(name, payload)))
         if self._controls is not None:
             controls = self._controls
-            for name, request in (("stop", controls.request_stop), ("reset", controls.request_reset)):
+            # A remote reset clears the FAULT only: the drives are enabled again by a local decision
+            # (the control socket), unless the config says otherwise (docs/security.md, "Zenoh").
+            activate = None if self.config.remote_reset_activates else False
+            requests = (("stop", controls.request_stop), ("reset", lambda: controls.request_reset(activate=activate)))
+            for name, request in requests:
                 self._declared.append(session.declare_queryable(f"{self.prefix}/{name}", self._control(name, request)))
+        # Every put carries this session's id (Zenoh's source info): subscribers show which session
+        # publishes as hil/<robot> and warn when several do (an impersonator, docs/security.md).
+        self._source_info = zenoh.SourceInfo
+        self._source_ids = {name: publisher.id for name, publisher in self._publishers.items()}
+        self._source_sn = dict.fromkeys(self._publishers, 0)
         # The first put on a new publisher is ~100x slower: pay it here, flagged so readers skip it.
-        for name, publisher in self._publishers.items():
-            publisher.put(encode_header(_KIND_OF[name], 0, time.monotonic_ns(), FLAG_WARMUP))
+        for name in self._publishers:
+            self._put(name, encode_header(_KIND_OF[name], 0, time.monotonic_ns(), FLAG_WARMUP))
         self._token = session.liveliness().declare_token(f"{self.prefix}/alive")
+        if self.config.ros2.enabled:  # ROS 2's /joint_states beside hil/<robot>/ (docs/formats.md)
+            from hil_runtime.formats.rmw_zenoh import JointStatePublisher
+
+            ros2 = self.config.ros2
+            self._ros2 = JointStatePublisher(
+                session,
+                self.joints,
+                ros2.domain_id,
+                ros2.namespace,
+                ros2.node,
+                ros2.topic,
+                ros2.frame_id,
+                ros2.decimation,
+            )
         self._stop.clear()
         self._running = True
         self._thread = threading.Thread(target=self._run, name=f"telemetry-{self.robot}", daemon=True)
@@ -229,6 +258,9 @@ class ZenohTelemetry:
                 log.warning(
                     "telemetry: publisher thread still busy after %.1f s; closing anyway", self.config.close_timeout_s
                 )
+        if self._ros2 is not None:
+            self._ros2.close()
+            self._ros2 = None
         # Undeclare the token first: subscribers see the runtime leave at once, not by timeout.
         for entity in (self._token, *self._declared, *self._publishers.values()):
             try:
@@ -305,7 +337,6 @@ class ZenohTelemetry:
 
     def _drain_state(self) -> None:
         states, row = self._states, self._row
-        publisher = self._publishers["state"]
         while states:
             try:
                 payload: bytes | bytearray = states.popleft()
@@ -322,8 +353,10 @@ class ZenohTelemetry:
                 payload = bytearray(payload)
                 payload[7] |= FLAG_GAP
             try:
-                publisher.put(payload)
+                self._put("state", payload)
                 self.sent += 1
+                if self._ros2 is not None:
+                    self._ros2.publish_state_payload(payload)
             except Exception as exc:  # noqa: BLE001 - Zenoh's errors are untyped; telemetry never stops the loop
                 self.publish_errors += 1
                 if self.publish_errors == 1:
@@ -339,8 +372,13 @@ class ZenohTelemetry:
         values["telemetry_dropped"] = float(self.dropped)
         return values
 
-    def _put(self, name: str, payload: bytes) -> None:
-        self._publishers[name].put(payload)
+    def _put(self, name: str, payload: bytes | bytearray) -> None:
+        source_id = self._source_ids.get(name)
+        if source_id is None:  # a publisher not declared by start() carries no source info
+            self._publishers[name].put(payload)
+            return
+        sn = self._source_sn[name] = self._source_sn[name] + 1
+        self._publishers[name].put(payload, source_info=self._source_info(source_id, sn))
 
     # --- queryables (run on Zenoh's threads) -----------------------------------------------------
 
@@ -356,6 +394,17 @@ class ZenohTelemetry:
         key = f"{self.prefix}/{name}"
 
         def control(query: Any) -> None:
+            # Zenoh hands a queryable every query whose key expression intersects its own:
+            # hil/<robot>/**, hil/*/stop, hil/<robot>/re$*... Access-control rules match key
+            # expressions too, so a wildcard can slip past a rule written for the exact key. A
+            # control acts only on a query for exactly its key; anything else is refused, unanswered
+            # by a success.
+            asked = str(query.key_expr)
+            if asked != key:
+                self.refused_controls += 1
+                log.warning("telemetry: %s refused: query for %r, not exactly %r", name, asked, key)
+                query.reply_err(_json_bytes({"ok": False, "request": name, "error": f"only {key} itself"}))
+                return
             try:
                 request()
             except Exception as exc:  # noqa: BLE001 - report to the caller, keep the runtime going

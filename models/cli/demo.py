@@ -33,7 +33,14 @@ def demo(
         bool, typer.Option("--gui", help="Also open pybullet's viewer on the arm (needs a display).")
     ] = False,
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/demo"),
-    target_substeps: Annotated[int, typer.Option(help="pybullet steps per control period.")] = 32,
+    target_substeps: Annotated[
+        int | None,
+        typer.Option(help="pybullet steps per control period (default: 32 lock-step, 8 --realtime; docs/target.md)."),
+    ] = None,
+    cpus: Annotated[
+        str,
+        typer.Option(help="--realtime: CPUs of the runtime's loop and the target's physics: auto, none or R,T."),
+    ] = "auto",
     realism: Annotated[
         str,
         typer.Option(
@@ -55,6 +62,7 @@ def demo(
         duration_s=duration,
         realtime=realtime,
         target_substeps=target_substeps,
+        cpus=cpus,
         realism=realism,
     )
     created = not out.exists()
@@ -67,6 +75,8 @@ def demo(
     s, t = results["scores"], results["timing"]
     m_hil, m_sim = s["metrics"]["hil"], s["metrics"]["sim"]
     title = f"{LAW_TITLES.get(options.law, options.law)} {options.mode.upper()} on {options.condition}"
+    if results.get("invalid_reason"):
+        print(f"{title}: INVALID run ({results['invalid_reason']}): its scores are not valid")
     if results["fault"]:
         drives = "quick-stopped" if results["shutdown"].get("drives_stopped") else "not confirmed stopped"
         print(
@@ -84,6 +94,11 @@ def demo(
         f"{t['period_us']['median']}/{t['period_us']['p99']}/{t['period_us']['max']} µs, compute "
         f"{t['compute_us']['median']}/{t['compute_us']['p99']}/{t['compute_us']['max']} µs"
     )
+    from models.demo.report import target_line
+
+    line = target_line(results.get("target") or {})
+    if line is not None:
+        print(line)
     stop = results["shutdown"]
     clean = not (stop["processes_alive"] or stop["ipc_sockets_left"] or stop["control_sockets_left"])
     print(

@@ -6,24 +6,28 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from models.demo.options import DemoOptions
+from models.demo.options import DemoOptions, target_substeps
 
 
 def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_socket: Path) -> dict[str, Any]:
     """``hil target serve``'s config: the pybullet arm on the ipc bus in ``bus_dir``, a control socket."""
     from sim_target.launch import CAN_FD
+    from sim_target.rt_settings import split_cpus
 
-    return {
+    data: dict[str, Any] = {
         "robot": options.robot,
         "period_s": period_s,
         "clock": "realtime" if options.realtime else "lockstep",
         "bus": {"interface": "ipc", "channel": str(bus_dir), **CAN_FD},
-        "plant": {"substeps": options.target_substeps},
+        "plant": {"substeps": target_substeps(options)},
         "control_socket": str(control_socket),
         "realism": options.realism
         if options.realism in ("ideal", "realistic", "harsh")
         else str(Path(options.realism).resolve()),
     }
+    if options.realtime:  # SCHED_FIFO and mlockall by default; its own CPU, apart from the runtime's
+        data["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
+    return data
 
 
 def runtime_config(
@@ -62,6 +66,10 @@ def runtime_config(
         # A backstop only: the demo stops the daemon with SIGTERM when the run has covered the condition.
         "duration_s": condition.duration_s + 10.0,
     }
+    if options.realtime:  # the loop thread on its own CPU, apart from the target's physics
+        from sim_target.rt_settings import split_cpus
+
+        data["loop"].update(cpu_affinity=split_cpus(options.cpus)[0], fifo_priority=80, lock_memory=True)
     data["telemetry"] = {"enabled": True, "listen": [], "connect": [endpoint], "stats_period_s": 1.0}
     data["control_socket"] = str(control_socket)
     return data

@@ -25,7 +25,8 @@ class DemoOptions:
     condition: str = DEFAULT_CONDITION
     duration_s: float | None = None  # None: the condition's own (5 s for the paper's)
     realtime: bool = False  # free-running: the target on its own clock, the runtime on absolute deadlines
-    target_substeps: int = 32  # pybullet steps per control period
+    target_substeps: int | None = None  # pybullet steps per control period; None: the target's per clock
+    cpus: str = "auto"  # --realtime: auto, none or RUNTIME,TARGET (sim_target.rt_settings.split_cpus)
     robot: str = "ur5_paper"
     realism: str = "ideal"  # a realism profile or profile file, applied by the target and the twin (docs/realism.md)
 
@@ -46,9 +47,24 @@ def check_options(options: DemoOptions) -> None:
         raise ModelInputError(f"{manifest}: no bundle for law '{options.law}' (export one with `hil pipeline`)")
     if options.duration_s is not None and not (math.isfinite(options.duration_s) and options.duration_s >= 0.05):
         raise ModelInputError(f"--duration: must be a finite number of seconds >= 0.05, got {options.duration_s!r}")
-    if options.target_substeps < 1:
+    if options.target_substeps is not None and options.target_substeps < 1:
         raise ModelInputError(f"--target-substeps: must be >= 1, got {options.target_substeps}")
+    from sim_target.rt_settings import split_cpus
+
+    try:
+        split_cpus(options.cpus)
+    except ValueError as exc:
+        raise ModelInputError(str(exc)) from None
     realism_specs(options)  # a bad profile: one line naming the file and field
+
+
+def target_substeps(options: DemoOptions) -> int:
+    """The target's pybullet steps per period: the option's, else its clock's default (sim_target/config.py)."""
+    from sim_target.config import LOCKSTEP_SUBSTEPS, REALTIME_SUBSTEPS
+
+    if options.target_substeps is not None:
+        return options.target_substeps
+    return REALTIME_SUBSTEPS if options.realtime else LOCKSTEP_SUBSTEPS
 
 
 def realism_specs(options: DemoOptions) -> tuple[Any, Any]:
@@ -60,7 +76,7 @@ def realism_specs(options: DemoOptions) -> tuple[Any, Any]:
     robot = load_robot(options.robot)
     sim = SimConfig()
     n, limit = robot.n_joints, robot.torque_limit_nm
-    target = load_realism(options.realism, n, sim.period_s, sim.period_s / options.target_substeps, limit)
+    target = load_realism(options.realism, n, sim.period_s, sim.period_s / target_substeps(options), limit)
     twin = load_realism(options.realism, n, sim.period_s, sim.period_s / sim.substeps, limit)
     return target, twin
 

@@ -83,6 +83,25 @@ def plot_tracking_error(
     return path
 
 
+def target_line(target: dict[str, Any]) -> str | None:
+    """The free-running target's lateness over the run, one line; None in lock-step."""
+    late = target.get("lateness")
+    if not late:
+        return None
+    rt = target.get("realtime") or {}
+    return (
+        f"target: {late['periods']} periods, late ticks {late['late_ticks']}, skipped {late['skipped_periods']} "
+        f"({100 * late['skipped_fraction']:.3f} %), worst lag {late['worst_lag_s'] * 1e6:.0f} µs, physics thread "
+        f"{100 * late['cpu_fraction']:.1f} % of a core ({rt.get('substeps', '?')} substeps; "
+        f"{', '.join(rt.get('applied') or []) or 'no real-time setting'})"
+    )
+
+
+def _target_lines(target: dict[str, Any]) -> list[str]:
+    line = target_line(target)
+    return [] if line is None else ["", line[0].upper() + line[1:] + "."]
+
+
 def format_summary(results: dict[str, Any]) -> str:
     demo, scores, timing, stop = results["demo"], results["scores"], results["timing"], results["shutdown"]
     law = LAW_TITLES.get(demo["law"], demo["law"])
@@ -99,6 +118,11 @@ def format_summary(results: dict[str, Any]) -> str:
         ),
         "",
     ]
+    if results.get("invalid_reason"):
+        lines += [
+            f"**INVALID RUN**: {results['invalid_reason']}. The scores below are not valid HIL scores.",
+            "",
+        ]
     if results.get("fault"):
         lines += [
             (
@@ -154,6 +178,7 @@ def format_summary(results: dict[str, Any]) -> str:
             f"{results['telemetry']['samples']} states, {results['telemetry']['missing']} missing. Machine load "
             f"average {results['load_average']}."
         ),
+        *_target_lines(results.get("target") or {}),
         "",
         "## Stop",
         "",

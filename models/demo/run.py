@@ -48,6 +48,9 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
         robot, options.law, options.mode, condition, _bundle_gain_set(options), twin_realism
     )
     stats = analysis.final_stats(outcome)
+    from sim_target.lateness import invalid_reason
+
+    invalid = invalid_reason(outcome.target_lateness, outcome.period_s)
     recording = analysis.telemetry_recording(outcome)
     results: dict[str, Any] = {
         "demo": {
@@ -59,6 +62,11 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
             "steps": steps,
         },
         "fault": outcome.fault,
+        # A free-running run whose plant fell behind the wall clock tests nothing: its scores are
+        # not valid (sim_target/lateness.py). Lock-step runs have no wall clock to lag.
+        "valid": invalid is None,
+        "invalid_reason": invalid,
+        "target": {"lateness": outcome.target_lateness, "realtime": outcome.target_realtime},
         "coverage": coverage,
         "scores": analysis.compare(robot, condition, hil, sim, outcome.fault),
         "timing": analysis.timing_figures(stats, outcome.record, outcome.period_s),

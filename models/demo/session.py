@@ -74,6 +74,10 @@ class HilOutcome:
     logs: dict[str, str]
     work_dir: str
     period_s: float
+    # The target's lateness over the run (sim_target/lateness.py; None in lock-step) and its
+    # real-time settings, read from its status at the run's end.
+    target_lateness: dict[str, Any] | None = None
+    target_realtime: dict[str, Any] | None = None
 
 
 @dataclass
@@ -140,6 +144,8 @@ class _HilRun:
         self.client: Any = None  # hil_runtime.telemetry.subscriber.TelemetryClient
         self.payloads: dict[str, list[bytes]] = {"state": [], "status": [], "events": [], "stats": []}
         self.fault: str | None = None
+        self.target_lateness: dict[str, Any] | None = None
+        self.target_realtime: dict[str, Any] | None = None
         self.documents: dict[str, Any] = {}
         self.schema: Any = None
         self.shutdown: dict[str, Any] = {}
@@ -229,6 +235,16 @@ class _HilRun:
                 self.tick()
             time.sleep(POLL_S)
         self.wall["run_s"] = time.monotonic() - (self.active_at or self.runtime_started)
+        self._read_target_lateness()
+
+    def _read_target_lateness(self) -> None:
+        """The target's lateness since the run start, before anything is stopped."""
+        from sim_target.control import send_control
+
+        with contextlib.suppress(OSError, ValueError):
+            status = send_control(self.target_sock, {"kind": "status"}, timeout_s=5.0)
+            self.target_lateness = status.get("lateness")
+            self.target_realtime = status.get("realtime")
 
     def _poll(self) -> bool:
         """One look at the daemon; True when the run is over (covered, or FAULT)."""
@@ -346,6 +362,8 @@ class _HilRun:
             self.logs,
             str(self.work),
             self.period_s,
+            self.target_lateness,
+            self.target_realtime,
         )
 
 

@@ -47,6 +47,16 @@ def step(link: FrameLink, drive: EmulatedDrive) -> None:
     if drive.nmt is not fr.NmtState.OPERATIONAL:
         drive.applied_permille = 0
         return
+    if drive.state is State.OPERATION_ENABLED and drive.controlword & 0x008F == 0x000F:
+        # The cyclic case: "enable operation" (bits 0-3 set, no fault reset) keeps an enabled
+        # drive enabled (apply_controlword's table returns the same state); only the new target
+        # torque is latched.
+        drive.previous_controlword = drive.controlword
+        limit = drive.max_torque_permille
+        target = drive.target_permille
+        drive.limited = not -limit <= target <= limit
+        drive.applied_permille = max(-limit, min(limit, target))
+        return
     previous_state = drive.state
     drive.state = apply_controlword(drive.state, drive.controlword, drive.previous_controlword, drive.quick_stop_option)
     drive.previous_controlword = drive.controlword

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from hil_runtime.machine import machine
 from sim_target.faults import cases as c
 from sim_target.faults import injections as inj
+from sim_target.faults import zenoh_cases
 from sim_target.faults.cases import Expect
 from sim_target.faults.report import summarize, write_outputs
 
@@ -333,6 +334,23 @@ FAULTS: tuple[FaultSpec, ...] = (
         _startup(c.prepare_reference_out, "WIDE"),
     ),
 )
+# Zenoh controls (issue 20): hostile sessions against stop/reset while the arm runs.
+FAULTS += (
+    FaultSpec(
+        "zenoh_control_unauthenticated",
+        "stop/reset (exact and wildcard) from Zenoh sessions without credentials or with a wrong password",
+        "refused at the handshake: no reply, ACTIVE",
+        True,
+        zenoh_cases.unauthenticated_control,
+    ),
+    FaultSpec(
+        "zenoh_control_wildcard",
+        "wildcard queries (hil/<robot>/**, hil/*/stop, hil/<robot>/re$*...) from an authenticated session",
+        "only exact keys reach stop/reset: ACTIVE",
+        True,
+        zenoh_cases.wildcard_control,
+    ),
+)
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)
 
 
@@ -343,6 +361,7 @@ def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseRe
         work = scratch / f"{spec.name}-{repeat}-{retries}"
         work.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()
+        c.rigs.PLANT_LATENESS.clear()
         try:
             result = spec.run(spec.name, repeat, seed, work)
         except c.RigFault as exc:
@@ -360,8 +379,22 @@ def run_case(spec: FaultSpec, repeat: int, seed: int, scratch: Path) -> c.CaseRe
             )
         result.rig_retries = retries
         result.wall_s = round(time.monotonic() - started, 2)
+        _mark_plant_validity(result)
         shutil.rmtree(work, ignore_errors=True)
         return result
+
+
+def _mark_plant_validity(result: c.CaseResult) -> None:
+    """A case whose free-running plant fell behind the wall clock tested nothing: INVALID, not passed."""
+    from sim_target.lateness import invalid_reason
+
+    for lateness, period_s in c.rigs.PLANT_LATENESS:
+        reason = invalid_reason(lateness, period_s)
+        if reason is not None:
+            result.plant_invalid = reason
+            result.passed = False
+            result.failures.append(f"INVALID: {reason}")
+            return
 
 
 def select(quick: bool, only: tuple[str, ...] | None = None) -> tuple[FaultSpec, ...]:

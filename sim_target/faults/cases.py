@@ -69,6 +69,7 @@ class CaseResult:
     passed: bool = False
     failures: list[str] = field(default_factory=list)
     rig_retries: int = 0
+    plant_invalid: str | None = None  # why the free-running plant's lateness voids the case (lateness.py)
     wall_s: float = 0.0
     detail: dict[str, Any] = field(default_factory=dict)
 

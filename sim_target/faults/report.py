@@ -61,6 +61,7 @@ def summarize(spec: FaultSpec, results: list[c.CaseResult]) -> dict[str, Any]:
         "arm_in_limits": tri([r.arm_in_limits for r in results]),
         "rig_retries": sum(r.rig_retries for r in results),
         "pass": all(r.passed for r in results),
+        "plant_invalid": sorted({r.plant_invalid for r in results if r.plant_invalid}),
         "failures": sorted({f for r in results for f in r.failures}),
     }
 
@@ -123,7 +124,14 @@ def format_table(document: dict[str, Any]) -> str:
                     row["daemon_alive"],
                     row["telemetry_event"],
                     row["arm_in_limits"],
-                    ("**pass**" if row["pass"] else "**FAIL**: " + "; ".join(row["failures"])) + " |",
+                    (
+                        "**INVALID** (the plant fell behind real time): " + "; ".join(row["plant_invalid"])
+                        if row.get("plant_invalid")
+                        else "**pass**"
+                        if row["pass"]
+                        else "**FAIL**: " + "; ".join(row["failures"])
+                    )
+                    + " |",
                 ]
             )
         )

@@ -65,7 +65,9 @@ def runtime_config_dict(
     loop: dict[str, Any] | None = None,
     **sections: Any,
 ) -> dict[str, Any]:
-    """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing."""
+    """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing. A
+    ``telemetry`` section completes the campaign's own (controls, auth: the Zenoh cases)."""
+    telemetry = sections.pop("telemetry", None) or {}
     data: dict[str, Any] = {
         "robot": "ur5_paper",
         "bundle": {"path": str(bundle), "mode": "lmpc"},
@@ -91,6 +93,7 @@ def runtime_config_dict(
             "listen": [f"tcp/127.0.0.1:{telemetry_port}"],
             "stats_period_s": STATS_INTERVAL_S,
             "close_timeout_s": 0.5,
+            **telemetry,
         }
     return data
 
@@ -240,6 +243,7 @@ def in_process_rig(
             yield rig
         finally:
             rig.close()
+            note_plant_lateness(target)
 
 
 # --- hil run as its own process ---------------------------------------------------------------------
@@ -327,11 +331,24 @@ def daemon_rig(
         try:
             yield rig
         finally:
+            note_plant_lateness(target)
             if process.poll() is None:
                 process.send_signal(signal.SIGCONT)
                 process.send_signal(signal.SIGTERM)
                 rig.wait_exit(30)
             notify.close()
+
+
+# What each rig's target reported of its lateness (sim_target/lateness.py) when its case ended;
+# campaign.run_case empties it before a case and marks the case invalid if its plant fell behind.
+PLANT_LATENESS: list[tuple[dict[str, Any] | None, float]] = []
+
+
+def note_plant_lateness(target: Any) -> None:
+    """Keep the target's lateness over the case (None in lock-step); a target gone says nothing."""
+    with contextlib.suppress(Exception):  # the case's own outcome matters more than this read
+        status = target.status()
+        PLANT_LATENESS.append((status.get("lateness"), float(status.get("period_s", PERIOD_S))))
 
 
 def target_drives_enabled(target: Any) -> list[bool]:
@@ -347,6 +364,7 @@ __all__ = [
     "RpdoTap",
     "TelemetryWatch",
     "daemon_rig",
+    "note_plant_lateness",
     "free_port",
     "in_process_rig",
     "runtime_config_dict",

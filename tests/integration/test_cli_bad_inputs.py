@@ -16,6 +16,8 @@ from pathlib import Path
 from subprocess import run
 from typing import Any
 
+from tests.unit.hil_runtime.telemetry import npz_files
+
 ROOT = Path(__file__).resolve().parents[2]
 UR5_URDF = (ROOT / "models" / "robots" / "data" / "ur5_paper.urdf").read_text()
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
@@ -46,6 +48,44 @@ def _experiment(mode: str) -> list[str]:
 EXPERIMENT = [*_experiment("fb"), "--out", "{tmp}/out"]
 LMPC = [*_experiment("lmpc"), "--out", "{tmp}/out", "--lmpc-bundles", "{tmp}/bundles"]
 Case = tuple[str, list[str], dict[str, str | bytes], list[str]]
+FIFO = "\x00fifo"  # as a file's content: make a named pipe there instead
+
+
+def _plot_case(name: str, content: str | bytes, *expected: str) -> Case:
+    """``hil telemetry plot run.npz`` with ``content`` as the record (issue 20)."""
+    return (name, ["telemetry", "plot", "{tmp}/run.npz"], {"run.npz": content}, ["{tmp}/run.npz", *expected])
+
+
+def _runtime_yaml(telemetry: str) -> str:
+    """A runtime config ``hil run --check`` accepts, with ``telemetry`` as its telemetry section."""
+    joints = "".join(
+        f"    - {{name: {name}, node_id: {i + 1}, max_torque_nm: 30.0}}\n"
+        for i, name in enumerate(
+            (
+                "shoulder_pan_joint",
+                "shoulder_lift_joint",
+                "elbow_joint",
+                "wrist_1_joint",
+                "wrist_2_joint",
+                "wrist_3_joint",
+            )
+        )
+    )
+    return (
+        f"robot: ur5_paper\nbundle: {{path: {PD_BUNDLE}, mode: lmpc}}\n"
+        "bus:\n  transport: {interface: virtual, channel: check, fd: true, data_bitrate: 5000000}\n"
+        f"  period_s: 0.001\n  joints:\n{joints}reference: {{kind: hold}}\ntelemetry: {telemetry}\n"
+    )
+
+
+def _telemetry_check_case(name: str, telemetry: str, files: dict[str, str | bytes], *expected: str) -> Case:
+    """``hil run --config rt.yaml --check`` with ``telemetry`` as its section (issue 20)."""
+    return (
+        name,
+        ["run", "--config", "{tmp}/rt.yaml", "--check"],
+        {"rt.yaml": _runtime_yaml(telemetry), **files},
+        ["rt.yaml", *expected],
+    )
 
 
 def _conditions_case(name: str, text: str | bytes, *expected: str) -> Case:
@@ -61,6 +101,40 @@ def _urdf_case(name: str, text: str | bytes, *expected: str) -> Case:
 def _target_case(name: str, files: dict[str, str | bytes], *expected: str) -> Case:
     """``hil target serve --config t.yaml`` with ``files`` (t.yaml and what it names)."""
     return (name, ["target", "serve", "--config", "{tmp}/t.yaml"], files, ["t.yaml", *expected])
+
+
+RUNTIME_YAML = (
+    (ROOT / "deploy" / "runtime.ipc.yaml").read_text().replace("../models/bundles/ur5_paper/pd", str(PD_BUNDLE))
+)
+
+
+def _runtime_case(
+    name: str,
+    pattern: str,
+    replacement: str,
+    *expected: str,
+    files: dict[str, str | bytes] | None = None,
+    where: str = "r.yaml",
+) -> Case:
+    """``hil run --config r.yaml --check`` on deploy/runtime.ipc.yaml with one edit (a regex)."""
+    text, count = re.subn(pattern, replacement, RUNTIME_YAML, count=1, flags=re.MULTILINE)
+    assert count == 1, pattern
+    return (
+        name,
+        ["run", "--config", "{tmp}/r.yaml", "--check"],
+        {"r.yaml": text, **(files or {})},
+        [where, *expected],
+    )
+
+
+def _record_case(name: str, record: str, files: dict[str, str | bytes], *expected: str) -> Case:
+    """``hil run --record PATH`` on a valid config: refused before anything is started."""
+    return (
+        name,
+        ["run", "--config", "{tmp}/r.yaml", "--record", record],
+        {"r.yaml": RUNTIME_YAML, **files},
+        list(expected),
+    )
 
 
 def _bundle_case(name: str, change: Callable[[dict[str, Any]], object], field: str) -> Case:
@@ -156,6 +230,12 @@ CASES: list[Case] = [
     _target_case("target-empty", {"t.yaml": ""}, "empty file"),
     _target_case("target-binary", {"t.yaml": bytes(range(256))}, "not a UTF-8 text file"),
     _target_case("target-nan", {"t.yaml": FD + "period_s: .nan\n"}, "period_s: Input should be a finite number"),
+    _target_case(
+        "target-ipc-channel-is-a-file",
+        {"t.yaml": "bus: {interface: ipc, channel: ./afile, fd: true, data_bitrate: 5000000}\n", "afile": "x"},
+        "afile",
+        "is not a directory",
+    ),
     # inject (schema checked before the socket is even tried)
     (
         "inject-negative-inertia",
@@ -190,6 +270,109 @@ CASES: list[Case] = [
     ),
     _bundle_case("bundle-torque-edited", lambda m: m["limits"].__setitem__("torque_nm", [1.0] * 6), "limits.torque_nm"),
     _bundle_case("bundle-wrong-urdf-sha", lambda m: m["robot"].__setitem__("urdf_sha256", "0" * 64), "urdf_sha256"),
+    # telemetry (issue 20)
+    _plot_case("plot-truncated", npz_files.truncated(), "not a telemetry record"),
+    _plot_case("plot-mismatched", npz_files.mismatched(), "column 'q_ref' has shape (60, 3), 'q' (50, 3)"),
+    _plot_case("plot-period-string", npz_files.period_string(), "field period_s: 'fast' is not a positive number"),
+    _plot_case("plot-600-joints", npz_files.many_joints(), "column 'q': 600 joints (plot draws at most 32)"),
+    _plot_case("plot-inflating", npz_files.inflating(), "1040 MiB uncompressed (limit 1024 MiB)"),
+    _plot_case("plot-fifo", FIFO, "not a regular file"),
+    ("telemetry-timeout-nan", ["telemetry", "query", "schema", "--timeout", "nan"], {}, ["--timeout", "nan"]),
+    ("telemetry-timeout<0", ["telemetry", "watch", "--timeout", "-1"], {}, ["--timeout", "-1.0"]),
+    ("telemetry-seconds-nan", ["telemetry", "record", "--out", "x.npz", "--seconds", "nan"], {}, ["--seconds", "nan"]),
+    _telemetry_check_case(
+        "telemetry-zenoh-config-0.0.0.0",
+        "{enabled: true, zenoh_config: z.json5}",
+        {"z.json5": '{ listen: { endpoints: ["tcp/0.0.0.0:7447"] } }'},
+        "zenoh_config 'z.json5': listen/endpoints 'tcp/0.0.0.0:7447' is not loopback",
+    ),
+    _telemetry_check_case(
+        "telemetry-zenoh-config-connect-remote",
+        "{enabled: true, listen: [tcp/127.0.0.1:7447], zenoh_config: z.json5}",
+        {"z.json5": '{ connect: { endpoints: ["tcp/192.0.2.7:7447"] } }'},
+        "zenoh_config 'z.json5': connect/endpoints 'tcp/192.0.2.7:7447' is not loopback",
+    ),
+    _telemetry_check_case(
+        "telemetry-zenoh-config-default-listen",
+        "{enabled: true, zenoh_config: z.json5}",
+        {"z.json5": "{ mode: 'peer' }"},
+        "listen/endpoints 'tcp/[::]:0' (Zenoh's default: the file sets none) is not loopback",
+    ),
+    _telemetry_check_case(
+        "telemetry-controls-unauthenticated",
+        "{enabled: true, controls_enabled: true}",
+        {},
+        "controls_enabled: the stop/reset queryables need authenticated peers",
+    ),
+    # runtime configs (issue 20): non-finite or huge values, strict types, duplicate keys, wide limits
+    _runtime_case("hb-timeout-inf", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: .inf", "heartbeat_timeout_s"),
+    _runtime_case(
+        "hb-timeout-1e300", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: 1e300", "bus.heartbeat_timeout_s"
+    ),
+    _runtime_case(
+        "state-change-inf", r"state_change_timeout_s: 5.0", "state_change_timeout_s: .inf", "state_change_timeout_s"
+    ),
+    _runtime_case(
+        "sdo-timeout-1e300", r"sdo_timeout_s: 2.0", "sdo_timeout_s: 1e300", "bus.sdo_timeout_s", "less than or equal"
+    ),
+    _runtime_case("warmup-1e9", r"warmup_cycles: 200", "warmup_cycles: 1000000000", "loop.warmup_cycles"),
+    _runtime_case("ramp-inf", r"ramp_s: 2.0", "ramp_s: .inf", "reference.ramp_s"),
+    _runtime_case("ramp-1e9", r"ramp_s: 2.0", "ramp_s: 1e9", "reference.ramp_s", "less than or equal to 60"),
+    _runtime_case(
+        "duration-inf", r"  stats_interval_s: 1.0", "  stats_interval_s: 1.0\n  duration_s: .inf", "loop.duration_s"
+    ),
+    _runtime_case(
+        "node-id-true", r"node_id: 1,", "node_id: true,", "bus.joints.0.node_id: expected a number, got True"
+    ),
+    _runtime_case("period-string", r"period_s: 0.001 ", "period_s: '0.001' ", "bus.period_s: expected a number"),
+    _runtime_case("duplicate-key", r"^robot: ur5_paper", "robot: ur5_paper\nrobot: ur5_paper", "duplicate key 'robot'"),
+    _runtime_case(
+        "safety-wider-than-bundle",
+        r"position_upper_rad: null",
+        "position_upper_rad: [100, 100, 100, 100, 100, 100]",
+        "safety.position_upper_rad[0]: 100 is beyond the bundle's limit 3.14159",
+    ),
+    _runtime_case(
+        "velocity-wider-than-bundle",
+        r"velocity_limit_rad_s: null",
+        "velocity_limit_rad_s: [1e9, 1, 1, 1, 1, 1]",
+        "safety.velocity_limit_rad_s[0]: 1e+09 is beyond the bundle's limit 2.54",
+    ),
+    _runtime_case(
+        "condition-duration-1e8",
+        r"conditions_file: null",
+        "conditions_file: c.yaml",
+        "duration_s: 1e+08 s is above the limit 3600 s",
+        where="c.yaml",
+        files={"c.yaml": f"conditions:\n  - name: C1\n    amplitude_rad: {SIX}\n    duration_s: 1.0e8\n"},
+    ),
+    # --record (checked before the run) and --record-cycles
+    _record_case("record-dev-full", "/dev/full", {}, "--record /dev/full: unknown record format '(no suffix)'"),
+    _record_case("record-directory", "{tmp}/d.npz", {"d.npz/x": ""}, "--record {tmp}/d.npz: a directory"),
+    _record_case("record-no-suffix", "{tmp}/run", {}, "--record {tmp}/run: unknown record format '(no suffix)'"),
+    _record_case("record-parent-is-a-file", "{tmp}/f/run.npz", {"f": "x"}, "--record {tmp}/f: a file is in the way"),
+    (
+        "record-cycles<0",
+        ["run", "--config", "{tmp}/r.yaml", "--record", "{tmp}/r.npz", "--record-cycles", "-1"],
+        {"r.yaml": RUNTIME_YAML},
+        ["--record-cycles", "greater than or equal to 1"],
+    ),
+    (
+        "record-cycles-1e12",
+        ["run", "--config", "{tmp}/r.yaml", "--record", "{tmp}/r.npz", "--record-cycles", "1000000000000"],
+        {"r.yaml": RUNTIME_YAML},
+        ["--record-cycles", "less than or equal to 3600000"],
+    ),
+    # target configs: unbounded noise, a boolean node id
+    _target_case(
+        "target-encoder-noise-1e6", {"t.yaml": FD + "plant: {encoder_noise_rad: 1.0e6}\n"}, "plant.encoder_noise_rad"
+    ),
+    _target_case(
+        "target-node-id-true", {"t.yaml": FD + "drives: {node_ids: [true, 2, 3, 4, 5, 6]}\n"}, "drives.node_ids"
+    ),
+    _target_case(
+        "target-duplicate-key", {"t.yaml": FD + "period_s: 0.001\nperiod_s: 0.002\n"}, "duplicate key 'period_s'"
+    ),
 ]
 
 
@@ -202,7 +385,9 @@ def _run_case(
     for relative, content in files.items():
         path = tmp / relative
         path.parent.mkdir(parents=True, exist_ok=True)
-        if isinstance(content, bytes):
+        if content == FIFO:
+            os.mkfifo(path)
+        elif isinstance(content, bytes):
             path.write_bytes(content)
         else:
             path.write_text(content)

@@ -12,6 +12,7 @@ import can
 import numpy as np
 import pytest
 
+from drivers.bus_guard import BusIntruderError
 from drivers.cia402.state_machine import State
 from drivers.errors import (
     DriveCommandError,
@@ -108,10 +109,11 @@ def test_malformed_frames_are_counted_on_both_ends() -> None:
         assert rig.driver.counters.malformed == 6
         assert rig.drives.counters.malformed == 4
         assert rig.driver.counters.unknown_cob_id == 4  # 0x3FF and the master-to-drive frames
-        for _ in range(5):  # and the bus still works
-            feedback = rig.driver.exchange(np.ones(2))
-        assert feedback.fresh.all()
-        assert rig.driver.counters.dropped == 0
+        # Frames only a master sends, and a drive's frames from someone else: not junk to count
+        # and forget but a second master and a second sender (drivers/bus_guard.py): FAULT.
+        with pytest.raises(BusIntruderError, match="second (master on the bus|sender of)"):
+            rig.driver.exchange(np.ones(2))
+        assert not rig.driver.enabled
     finally:
         intruder.shutdown()
         rig.close()
@@ -267,7 +269,9 @@ def test_drive_reboot_is_reported() -> None:
     intruder = can.Bus(interface="virtual", channel=rig.config.transport.channel, ignore_config=True)
     try:
         rig.driver.enable()
-        intruder.send(can.Message(arbitration_id=0x000, data=b"\x81\x02", is_extended_id=False))
+        # Drive 2's boot-up message, as after a power cycle (an NMT reset from here would be a
+        # second master, drivers/bus_guard.py, refused before the drive could reboot).
+        intruder.send(can.Message(arbitration_id=0x702, data=b"\x00", is_extended_id=False))
         with pytest.raises(DriveStateError, match="drive 2: rebooted"):
             for _ in range(100):
                 rig.driver.exchange(np.zeros(2))

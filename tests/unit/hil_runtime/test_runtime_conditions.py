@@ -73,7 +73,7 @@ BAD_FILES = [
     (_condition("    disturbance: {time_s: 1, torque_nm: [1, 2]}\n"), "disturbance.torque_nm: expected 6 values"),
     (_condition("    disturbance: {duration_s: -1}\n"), "disturbance.duration_s: must be >= 0"),
     (_condition("    duration_s: 0\n"), "duration_s: must be positive"),
-    (_condition("    name: [1]\n"), "conditions[0].name: expected a string"),
+    ("conditions:\n  - name: [1]\n    amplitude_rad: [0]\n", "conditions[0].name: expected a string"),
     ("", "empty file"),
     ("colour: red\nconditions:\n  - amplitude_rad: [0]\n", "unknown top-level field 'colour'"),
     (_condition("  - name: A\n    amplitude_rad: [0, 0, 0, 0, 0, 0]\n"), "duplicate name 'A'"),

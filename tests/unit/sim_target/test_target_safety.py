@@ -122,7 +122,7 @@ class StubDrives:
     def commanded_torque_nm(self) -> np.ndarray:
         return np.zeros(6)
 
-    def serve_until(self, deadline_s: float) -> None:  # no bus: wait out the time
+    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:  # no bus: wait
         time.sleep(max(0.0, deadline_s - time.monotonic()))
 
     def operation_enabled(self) -> np.ndarray:

@@ -39,7 +39,7 @@ class RecordingDrives:
     def commanded_torque_nm(self) -> np.ndarray:
         return self.torque_nm
 
-    def serve_until(self, deadline_s: float) -> None:  # no bus: wait out the time
+    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:  # no bus: wait
         time.sleep(max(0.0, deadline_s - time.monotonic()))
 
     def operation_enabled(self) -> np.ndarray:
