@@ -57,7 +57,7 @@ def test_torque_step_limit_is_libfranka_rate_scaled_by_the_limit() -> None:
     np.testing.assert_allclose(max_torque_step_nm(np.array([87.0, 174.0]), 1e-3), [1.0, 2.0])
 
 
-def _run(chatter: list[float], step: list[float], peak: list[float] = (0.5, 0.5), **extra: Any) -> dict[str, Any]:
+def _run(chatter: list[float], step: list[float], peak: tuple[float, ...] = (0.5, 0.5), **extra: Any) -> dict[str, Any]:
     return {
         "finite": True,
         "within_limits": True,
@@ -82,7 +82,7 @@ def test_deployable_rules() -> None:
     # a limit trip and a command at the torque limit
     assert "limit trip" in deployable({**ok, "within_limits": False}, None, LIMIT, T_S)["reasons"][0]
     assert not deployable({**ok, "hil": {"fault": "velocity_limit: x"}}, None, LIMIT, T_S)["deployable"]
-    assert not deployable(_run([0.1, 0.1], [0.5, 0.2], peak=[1.0, 0.2]), None, LIMIT, T_S)["deployable"]
+    assert not deployable(_run([0.1, 0.1], [0.5, 0.2], peak=(1.0, 0.2)), None, LIMIT, T_S)["deployable"]
 
 
 def test_effort_composite_weights_and_ranking() -> None:
