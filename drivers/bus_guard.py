@@ -45,6 +45,8 @@ MAX_TPDO_CREDIT = 16  # SYNCs left unanswered (lost TPDOs) that later frames may
 class BusIntruderError(TransportError):
     """A second sender of a drive's identifier, or a second master, on the bus: FAULT (exit 3)."""
 
+    fault_kind = "bus_intruder"
+
 
 class MasterPresentError(BusIntruderError):
     """At start-up the bus already has a master: refused before sending anything (exit 2)."""

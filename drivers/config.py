@@ -25,6 +25,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from drivers.busload import DEFAULT_LIMIT, TPDO_FD_SYNC_BYTES, BusLoad, check_bus_load
 from drivers.cia402.scaling import INT16_MAX, JointScaling, check_torque_range
+from drivers.drive_spec import DriveSpec
 from drivers.errors import DriveConfigError
 from drivers.strict_input import StrictModel, error_location, load_yaml_unique
 
@@ -98,11 +99,18 @@ class JointDriveConfig(_Frozen):
     rated_torque_mnm: int | None = Field(None, gt=0)
     # Encoder counts per joint revolution; None adopts the drive's 0x608F, else it must match.
     encoder_counts_per_rev: int | None = Field(None, gt=0)
+    # A real drive described by its own EDS/DCF: scaling, reactions, SDO init list (drivers/drive_spec.py).
+    # None: the emulated drive of drivers/cia402/data, scaled by the two fields above.
+    drive: DriveSpec | None = None
 
     @model_validator(mode="after")
     def _check(self) -> JointDriveConfig:
         if not math.isfinite(self.max_torque_nm):
             raise ValueError("max_torque_nm must be finite")
+        if self.drive is not None:
+            if self.rated_torque_mnm is not None or self.encoder_counts_per_rev is not None:
+                raise ValueError("with a drive section, give the scaling there (drive.rated_torque, ...)")
+            return self  # its scaling is checked against the EDS and the drive (drivers/eds_check.py)
         check_torque_range(self.max_torque_nm, self.effective_rated_torque_mnm)
         return self
 
@@ -231,10 +239,11 @@ def format_validation_error(source: str, exc: ValidationError) -> str:
     return f"{source}: {loc}: {first['msg']}{more}"
 
 
-def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
-    """Validate a mapping (e.g. one section of a larger config) and check the bus-load budget."""
+def parse_drive_bus_config(data: Any, source: str = "config", base_dir: Path | None = None) -> DriveBusConfig:
+    """Validate a mapping (e.g. one section of a larger config) and check the bus-load budget;
+    relative ``drive.eds`` paths are taken relative to ``base_dir``."""
     try:
-        config = DriveBusConfig.model_validate(data)
+        config = DriveBusConfig.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise DriveConfigError(format_validation_error(source, exc)) from None
     config.bus_load(source)
@@ -243,4 +252,5 @@ def parse_drive_bus_config(data: Any, source: str = "config") -> DriveBusConfig:
 
 def load_drive_bus_config(path: Path | str) -> DriveBusConfig:
     path = Path(path)
-    return parse_drive_bus_config(read_yaml_config(path, DriveConfigError, "a drive-bus config"), str(path))
+    data = read_yaml_config(path, DriveConfigError, "a drive-bus config")
+    return parse_drive_bus_config(data, str(path), path.resolve().parent)

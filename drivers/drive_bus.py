@@ -42,12 +42,14 @@ from collections.abc import Sequence
 
 import can
 import numpy as np
+from canopen.objectdictionary import ODVariable
 
 from drivers.bus_guard import BusGuard, MasterPresentError, master_listen_s
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
 from drivers.config import DriveBusConfig
+from drivers.eds_check import check_bus, raise_first_error
 from drivers.emcy import EmcyConsumer
 from drivers.errors import FATAL_ERRORS, DriveError, DriveStateError, TransportError
 from drivers.feedback import BusCounters, DriveFeedback
@@ -74,6 +76,9 @@ class _Services:
         self, config: DriveBusConfig, network: DriveNetwork, nodes: Sequence[DriveNode], sync: SyncProducer
     ) -> None:
         self.sdo = SdoClient(network, nodes, config.eds_path or odx.EDS_PATH, config.sdo_timeout_s)
+        # SYNCs carry the counter when every drive takes 0x1019, or some drive echoes it (CAN FD).
+        has_overflow = [self.sdo.variable(node.node_id, odx.SYNC_OVERFLOW, 0) is not None for node in nodes]
+        sync.carry_counter(all(has_overflow) or any(node.fd_sync_echo for node in nodes))
         self.heartbeats = HeartbeatConsumer(network, nodes, config.heartbeat_timeout_s)
         self.emcy = EmcyConsumer(network, nodes)
         self.exchange = CyclicExchange(network, nodes, sync, config.feedback_timeout_s, config.transport.fd)
@@ -99,6 +104,9 @@ class DriveBus(JointBusBase):
         """``bus``: an already open python-can bus to use (not closed by :meth:`close`)."""
         self.config = config
         self.bus_load = config.bus_load()  # raises BusLoadError before touching the bus
+        # Every drive's EDS against what the runtime maps and writes, and the bus's COB-IDs:
+        # DriveConfigError naming the file, node and object before anything is written to a drive.
+        raise_first_error(check_bus(config))
         self._bus = bus
         self._owns_bus = bus is None
         self.nodes = tuple(DriveNode(i, joint, config.transport.fd) for i, joint in enumerate(config.joints))
@@ -172,6 +180,7 @@ class DriveBus(JointBusBase):
             self.close()
             raise
         self._services.exchange.refresh_scaling()
+        self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])  # as read at start-up
         self._connected = True
         network.last_cycle_end_s = time.monotonic()
         network.caller_receives = True
@@ -187,9 +196,10 @@ class DriveBus(JointBusBase):
         for node in nodes:
             p402.configure(sdo, node, config)
             sdo.write(node.node_id, odx.HEARTBEAT_PRODUCER, 0, config.heartbeat_producer_ms)
-            sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
+            if sdo.variable(node.node_id, odx.SYNC_OVERFLOW, 0) is not None:
+                sdo.write(node.node_id, *SYNC_OVERFLOW_OBJECT)  # SYNCs carry a counter
             configure_master_loss(sdo, node, config)
-            map_layout(sdo, node, services.exchange.layout)
+            map_layout(sdo, node, services.exchange.layout_for(node))
             p402.check_mode(sdo, node)
         for node in nodes:
             send_command(network, fr.NmtCommand.START, node.node_id)
@@ -348,6 +358,16 @@ class DriveBus(JointBusBase):
 
     def sdo_read_int(self, node_id: int, index: int, subindex: int = 0) -> int:
         return self._sdo().read_int(node_id, index, subindex)
+
+    def sdo_variable(self, node_id: int, index: int, subindex: int = 0) -> ODVariable | None:
+        """The drive's EDS entry of an object (None: not in its dictionary)."""
+        return self._sdo().variable(node_id, index, subindex)
+
+    def layout_for(self, node: DriveNode) -> odx.PdoLayout:
+        """The PDO layout mapped on ``node`` at start-up."""
+        if self._services is None:
+            raise DriveStateError("not connected: call connect() first")
+        return self._services.exchange.layout_for(node)
 
     def nmt(self, command: fr.NmtCommand, node_id: int = 0) -> None:
         if self._network.bus is None:

@@ -79,7 +79,8 @@ def claim_socket_path(path: Path, in_use_by: str, create_parent: bool = False) -
 
 class JsonLineServer:
     """Answers each request line with ``reply(line)`` (a JSON object) from one thread that serves
-    every connection (a selector): at most ``max_clients`` at once (more are told so and closed),
+    every connection (a selector): at most ``max_clients`` at once (a newcomer closes the one idle
+    longest, so idle connections never lock a command out),
     each closed after ``idle_timeout_s`` without a request, a line longer than ``max_line_bytes``
     or nested deeper than ``MAX_DEPTH`` answered with an error, never parsed. So no client, or
     3,000 of them, costs more than this one thread; ``avoid_cpus`` keeps it off the control loop's
@@ -123,7 +124,7 @@ class JsonLineServer:
         self._clients: dict[socket.socket, _Client] = {}
         self._selector = selectors.DefaultSelector()
         self._selector.register(listen, selectors.EVENT_READ)
-        self.refused = 0  # connections turned away: too many clients
+        self.evicted = 0  # connections closed to make room for a newer one (too many clients)
         self.timed_out = 0  # connections closed for idling
         self._thread = threading.Thread(target=self._serve, name=thread_name, daemon=True)
         self._thread.start()
@@ -162,10 +163,12 @@ class JsonLineServer:
                 return
             sock.setblocking(False)
             if len(self._clients) >= self._max_clients:
-                self.refused += 1
-                self._send(sock, {"ok": False, "error": f"too many clients (at most {self._max_clients})"})
-                sock.close()
-                continue
+                # Full: the client idle the longest makes room. Refusing the newcomer instead would
+                # let a few idle connections lock the operator's `hil stop` out.
+                oldest = min(self._clients, key=lambda s: self._clients[s].last_active_s)
+                self.evicted += 1
+                self._send(oldest, {"ok": False, "error": f"closed: too many clients (at most {self._max_clients})"})
+                self._drop(oldest)
             self._clients[sock] = _Client(time.monotonic())
             self._selector.register(sock, selectors.EVENT_READ)
 

@@ -25,7 +25,8 @@ class DriveNode:
     fd: bool  # CAN FD layout (one tagged TPDO) or classical (TPDO1 + TPDO2)
     sdo_node: canopen.RemoteNode | None = None  # canopen's SDO client for this drive (start-up only)
     # Scaling: counts per radian read from 0x608F at start-up; ‰ of rated torque per N·m.
-    counts_per_rad: float = 1.0
+    counts_per_rad: float = 1.0  # signed: negative for a joint turning against its drive (polarity -1)
+    zero_offset_rad: float = 0.0  # joint angle = drive angle - this (a drive section's zero_offset_rad)
     permille_per_nm: float = 1.0
     max_torque_nm: float = 0.0
     rpdo: can.Message = field(init=False)  # reused every cycle: RPDO1 packed in place
@@ -61,3 +62,10 @@ class DriveNode:
     @property
     def node_id(self) -> int:
         return self.joint.node_id
+
+    @property
+    def fd_sync_echo(self) -> bool:
+        """With CAN FD, does this drive's TPDO echo the SYNC counter (0x2100 of the emulated drive's
+        EDS)? A vendor's drive (a ``drive`` section) sends the untagged 12-byte TPDO: its 0x2100 is
+        the vendor's own object."""
+        return self.fd and self.joint.drive is None

@@ -75,7 +75,7 @@ class CyclicExchange:
         self.sync = sync
         self.feedback_timeout_s = feedback_timeout_s
         self.fd = fd
-        self.layout = odx.FD_SYNC_LAYOUT if fd else odx.CLASSICAL_LAYOUT
+        self.layout = odx.FD_SYNC_LAYOUT if fd else odx.CLASSICAL_LAYOUT  # the emulated drive's
         self.tpdos_per_drive = 1 if fd else 2
         self.cycle = 0
         self.late = 0  # TPDOs after their deadline, of an older SYNC, or twice in one cycle
@@ -85,16 +85,26 @@ class CyclicExchange:
         self._frames = [*(node.rpdo for node in self.nodes), sync.msg]
         self._counts_per_rad = np.ones(len(self.nodes))
         self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])
+        self._zero_offset_rad: np.ndarray | None = None
         for node in self.nodes:
-            if fd:
+            if fd and not node.fd_sync_echo:
+                network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd_plain, node)
+            elif fd:
                 network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd, node)
             else:
                 network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo1, node)
                 network.subscribe(fr.TPDO2_BASE + node.node_id, self.on_tpdo2, node)
 
+    def layout_for(self, node: DriveNode) -> odx.PdoLayout:
+        """The emulated drive's layout, or with CAN FD the untagged one for a vendor's drive."""
+        return self.layout if not self.fd or node.fd_sync_echo else odx.FD_LAYOUT
+
     def refresh_scaling(self) -> None:
-        """After start-up read each drive's encoder resolution."""
+        """After start-up: each drive's scaling as read from it (encoder, rated torque, offset)."""
         self._counts_per_rad = np.array([node.counts_per_rad for node in self.nodes])
+        self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])
+        offsets = np.array([node.zero_offset_rad for node in self.nodes])
+        self._zero_offset_rad = offsets if offsets.any() else None
 
     # --- one cycle -------------------------------------------------------------------------------
 
@@ -150,10 +160,13 @@ class CyclicExchange:
             if supervise is not None:
                 supervise(now)
         counts_per_rad = self._counts_per_rad
+        position_rad = np.array(position, dtype=np.float64) / counts_per_rad
+        if self._zero_offset_rad is not None:
+            position_rad -= self._zero_offset_rad
         feedback = DriveFeedback(
             cycle=cycle,
             sync_time_s=sync_time,
-            position_rad=np.array(position, dtype=np.float64) / counts_per_rad,
+            position_rad=position_rad,
             velocity_rad_s=np.array(velocity, dtype=np.float64) / counts_per_rad,
             torque_nm=np.array(torque_pm, dtype=np.float64) / self._permille_per_nm,
             commanded_torque_nm=np.array(commanded_nm, dtype=np.float64),
@@ -197,6 +210,19 @@ class CyclicExchange:
         self._pending -= 1
         node.velocity_counts_s = velocity
         node.rx_time_s = now
+
+    def on_tpdo_fd_plain(self, node: DriveNode, msg: can.Message, now: float) -> None:
+        """A vendor's drive on CAN FD: the 12-byte TPDO without the SYNC counter echo (stale
+        feedback is recognised by the drain only, as with classical CAN)."""
+        statusword, torque, position, velocity = fr.decode_tpdo_fd(msg.data)
+        if decode_statusword_fast(statusword) is State.UNKNOWN:
+            raise fr.MalformedFrameError("statusword")
+        if self._accept_tpdo1(node):
+            node.statusword = statusword
+            node.torque_permille = torque
+            node.position_counts = position
+            node.velocity_counts_s = velocity if velocity is not None else 0
+            node.rx_time_s = now
 
     def on_tpdo_fd(self, node: DriveNode, msg: can.Message, now: float) -> None:
         (statusword, torque, position, velocity), counter = fr.decode_tpdo_fd_sync(msg.data)

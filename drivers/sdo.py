@@ -22,6 +22,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
+from drivers.eds_check import load_dictionary
 from drivers.errors import DriveCommandError, SdoAbortError, SdoTimeoutError
 from drivers.network import DriveNetwork
 from drivers.node import DriveNode
@@ -48,7 +49,12 @@ class SdoClient:
         self._canopen = _CanopenNetwork(network)
         self._by_id: dict[int, DriveNode] = {}
         for node in nodes:
-            remote = canopen.RemoteNode(node.node_id, odx.load_object_dictionary(node.node_id, eds_path))
+            spec = node.joint.drive
+            if spec is None:
+                od = odx.load_object_dictionary(node.node_id, eds_path)
+            else:  # a vendor's EDS/DCF: checked against the runtime's needs by drivers.eds_check
+                od = load_dictionary(spec.eds, node.node_id)
+            remote = canopen.RemoteNode(node.node_id, od)
             remote.sdo.RESPONSE_TIMEOUT = timeout_s
             self._canopen.add_node(remote)
             node.sdo_node = remote

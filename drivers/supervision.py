@@ -41,20 +41,29 @@ def configure_master_loss(sdo: SdoClient, node: DriveNode, config: DriveBusConfi
     if config.comm_loss_timeout_s is None:
         return
     node_id = node.node_id
-    for index, subindex in ((odx.CONSUMER_HEARTBEAT, 1), (odx.ABORT_CONNECTION_OPTION, 0)):
+    spec = node.joint.drive
+    needed = [(odx.ABORT_CONNECTION_OPTION, 0)]
+    if spec is None or sdo.variable(node_id, odx.RPDO1_COMM, 5) is None:
+        needed.append((odx.CONSUMER_HEARTBEAT, 1))  # a vendor's drive may watch the RPDO alone
+    for index, subindex in needed:
         if sdo.variable(node_id, index, subindex) is None:
             raise DriveConfigError(
                 f"joints.{node.index}: the EDS of drive {node_id} has no 0x{index:04X}:{subindex:02X}, needed "
                 "for the drive to stop on loss of the master (comm_loss_timeout_s: null runs without)"
             )
     timeout_ms = max(1, round(config.comm_loss_timeout_s * 1000))
-    sdo.write(node_id, odx.CONSUMER_HEARTBEAT, 1, (config.master_node_id << 16) | timeout_ms)
+    if sdo.variable(node_id, odx.CONSUMER_HEARTBEAT, 1) is not None:
+        sdo.write(node_id, odx.CONSUMER_HEARTBEAT, 1, (config.master_node_id << 16) | timeout_ms)
     set_rpdo_timeout(sdo, node_id, timeout_ms)
     if sdo.variable(node_id, odx.COMM_CYCLE_PERIOD, 0) is not None:
         sdo.write(node_id, odx.COMM_CYCLE_PERIOD, 0, round(config.period_s * 1e6))
-    if sdo.variable(node_id, odx.SYNC_TIMEOUT, 0) is not None:
+    # 0x2101 is the emulated drive's SYNC timeout; on a vendor's drive it is another object.
+    if spec is None and sdo.variable(node_id, odx.SYNC_TIMEOUT, 0) is not None:
         sdo.write(node_id, odx.SYNC_TIMEOUT, 0, timeout_ms)
-    sdo.write(node_id, odx.ABORT_CONNECTION_OPTION, 0, ABORT_CONNECTION_QUICK_STOP)
+    option = ABORT_CONNECTION_QUICK_STOP
+    if spec is not None and spec.reactions.abort_connection is not None:
+        option = spec.reactions.abort_connection
+    sdo.write(node_id, odx.ABORT_CONNECTION_OPTION, 0, option)
 
 
 def fail_safe(cycle: p402.Cycle, nodes: Sequence[DriveNode]) -> None:

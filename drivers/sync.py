@@ -18,10 +18,16 @@ class SyncProducer:
         self.msg = can.Message(arbitration_id=fr.SYNC_COB_ID, data=bytearray(1), is_extended_id=False)
 
     def advance(self) -> int:
-        """The next SYNC's counter, written into :attr:`msg`."""
+        """The next SYNC's counter, written into :attr:`msg` (when it carries one)."""
         self.counter = counter = fr.next_sync_counter(self.counter)
-        self.msg.data[0] = counter
+        if self.msg.dlc:
+            self.msg.data[0] = counter
         return counter
+
+    def carry_counter(self, enabled: bool) -> None:
+        """SYNC with the counter byte, or empty (a drive without 0x1019 expects no data, CiA 301)."""
+        self.msg.data = bytearray(1 if enabled else 0)
+        self.msg.dlc = len(self.msg.data)
 
 
 #: Written to every drive at start-up: the SYNC counter overflow (the SYNCs carry a counter).

@@ -24,6 +24,7 @@ import typer
 from hil_runtime.bundle_cli import register as _register_bundle_commands
 from hil_runtime.bus_cli import register as _register_bus_commands
 from hil_runtime.commands import register as _register_runtime_commands
+from hil_runtime.drives_cli import register as _register_drives_commands
 from hil_runtime.telemetry.cli import register as _register_telemetry_commands
 
 app = typer.Typer(
@@ -42,6 +43,8 @@ _register_telemetry_commands(app)
 _register_bundle_commands(app)
 # hil bus decode (hil_runtime/bus_cli.py).
 _register_bus_commands(app)
+# hil drives scan | check | jog (hil_runtime/drives_cli.py).
+_register_drives_commands(app)
 
 
 def _flags_show_no_type() -> None:

@@ -100,18 +100,24 @@ def serve(
         from drivers.transport import open_bus
 
         capture = CaptureBus(open_bus(config.bus.transport), CanCapture(can_log))
-    runtime = build_runtime(config, capture, notifier=notifier, record_cycles=0 if mcap else record_cycles)
-    runtime.telemetry = make_telemetry(config, runtime)
     recording: Any = None
-    if mcap:  # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
-        from hil_runtime.formats.mcap_record import mcap_sink_for_run
-        from hil_runtime.telemetry.sink import FanOutTelemetry
+    try:
+        runtime = build_runtime(config, capture, notifier=notifier, record_cycles=0 if mcap else record_cycles)
+        runtime.telemetry = make_telemetry(config, runtime)
+        if mcap:  # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
+            from hil_runtime.formats.mcap_record import mcap_sink_for_run
+            from hil_runtime.telemetry.sink import FanOutTelemetry
 
-        assert record_path is not None
-        recording = mcap_sink_for_run(
-            record_path, config.robot, config.joint_names, runtime.bundle, config.period_s, urdf
-        )
-        runtime.telemetry = FanOutTelemetry(runtime.telemetry, recording)
+            assert record_path is not None
+            recording = mcap_sink_for_run(
+                record_path, config.robot, config.joint_names, runtime.bundle, config.period_s, urdf
+            )
+            runtime.telemetry = FanOutTelemetry(runtime.telemetry, recording)
+    except BaseException:
+        if capture is not None:  # a refused start-up (bad bundle...) leaves no capture file
+            capture.bus.shutdown()
+            capture.capture.abandon()
+        raise
     configured = threading.Event()
 
     def say_state(state: LifecycleState, fault: str | None) -> None:

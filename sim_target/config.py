@@ -45,6 +45,7 @@ from drivers.config import (
 )
 from drivers.errors import BusLoadError
 from drivers.strict_input import StrictModel
+from sim_target.emulated.profile import DriveProfile
 from sim_target.robots import DEFAULT_ROBOT, RobotLookupError, builtin_urdf_path
 
 # An impulse (a blow on the arm) may exceed what the joint's motor can give, not by orders of
@@ -148,7 +149,8 @@ class RunStart(_Frozen):
     At the first period in which every drive is in Operation Enabled, after that period's step,
     the arm is placed at ``position_rad`` moving at ``velocity_rad_s``, simulated time restarts at
     0 and ``faults`` are scheduled from there (their ``at_s`` in the new time; the config's faults
-    are dropped). The TPDOs of that SYNC report the placed state. A test rig's privilege (a real
+    are dropped). The TPDOs of that SYNC report the placed state (free-running: the arm is placed at
+    that SYNC, before its answer, without a step). A test rig's privilege (a real
     arm cannot be placed): it lets a HIL run start exactly where a simulation starts.
     """
 
@@ -181,6 +183,8 @@ class DrivesConfig(_Frozen):
     node_ids: tuple[int, ...] | None = None  # one per joint, in joint order; None: 1..N
     encoder_counts_per_rev: int = Field(1 << 20, gt=0)  # the drives' 0x608F
     heartbeat_producer_ms: int = Field(0, ge=0, le=65535)  # until the master sets 0x1017
+    # One per joint: the drive presents a vendor's EDS/DCF and its motor (sim_target/emulated/profile.py).
+    profiles: tuple[DriveProfile, ...] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> DrivesConfig:
@@ -254,14 +258,14 @@ class TargetConfig(_Frozen):
 # --- loading ---------------------------------------------------------------------------------------
 
 
-def parse_target_config(data: Any, source: str = "config") -> TargetConfig:
+def parse_target_config(data: Any, source: str = "config", base_dir: Path | None = None) -> TargetConfig:
     """Validate a mapping, then check it against its URDF and the drive bus (``check_target_config``)."""
     if data is None:
         raise TargetConfigError(f"{source}: empty (expected a mapping of target settings)")
     if not isinstance(data, dict):
         raise TargetConfigError(f"{source}: expected a mapping of target settings, got {type(data).__name__}")
     try:
-        config = TargetConfig.model_validate(data)
+        config = TargetConfig.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise TargetConfigError(format_validation_error(source, exc)) from None
     check_target_config(config, source)
@@ -286,7 +290,7 @@ def load_target_config(path: Path | str) -> TargetConfig:
     realism = data.get("realism") if isinstance(data, dict) else None
     if isinstance(realism, str) and realism not in ("ideal", "realistic", "harsh") and not Path(realism).is_absolute():
         data = {**data, "realism": str((path.parent / realism).resolve())}  # a profile file, like urdf
-    return parse_target_config(data, str(path))
+    return parse_target_config(data, str(path), path.resolve().parent)  # drives.profiles' eds: same rule
 
 
 def parse_fault(data: Any, source: str = "fault") -> Fault:
@@ -358,6 +362,12 @@ def target_layout(config: TargetConfig, source: str = "config") -> TargetLayout:
         raise TargetConfigError(
             f"{source}: drives.node_ids: {len(node_ids)} ids for {len(chosen)} joints of {urdf.name}"
         )
+    profiles = config.drives.profiles
+    if profiles is not None and len(profiles) != len(chosen):
+        raise TargetConfigError(f"{source}: drives.profiles: {len(profiles)} for {len(chosen)} joints of {urdf.name}")
+    for i, profile in enumerate(profiles or ()):
+        if not profile.eds.is_file():
+            raise TargetConfigError(f"{source}: drives.profiles.{i}.eds: {profile.eds}: file not found")
     return TargetLayout(
         tuple(j.name for j in chosen),
         tuple(j.lower_rad for j in chosen),

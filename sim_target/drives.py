@@ -57,6 +57,7 @@ from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.scaling import counts_per_rad_from_resolution
 from drivers.cia402.state_machine import State
+from drivers.eds_check import load_dictionary
 from drivers.joint_bus import JointReadings
 from sim_target.emulated import p402, pdo
 from sim_target.emulated.link import FrameLink
@@ -135,7 +136,12 @@ class EmulatedDrives:
         self._network = _EmuNetwork(self)
         counts_per_rad = counts_per_rad_from_resolution(config.encoder_counts_per_rev)
         for index, node_id in enumerate(config.node_ids):
-            node = canopen.LocalNode(node_id, odx.load_object_dictionary(node_id, eds))
+            profile = config.profiles[index] if config.profiles is not None else None
+            if profile is None:
+                od = odx.load_object_dictionary(node_id, eds)
+            else:  # a vendor's dictionary: imported as is (it lacks the emulated drive's own objects)
+                od = load_dictionary(profile.eds, node_id)
+            node = canopen.LocalNode(node_id, od)
             # This bank runs NMT and heartbeats itself; canopen's NmtSlave would start a python-can
             # periodic task on 0x1017 writes.
             node._write_callbacks.remove(node.nmt.on_write)
@@ -143,6 +149,11 @@ class EmulatedDrives:
             faults = config.frame_faults
             policy = FaultPolicy(faults, random.Random(faults.seed * 1000 + node_id))
             drive = EmulatedDrive(index, node_id, node, counts_per_rad, policy)
+            if profile is not None:
+                drive.profile = profile
+                drive.counts_per_rad = profile.counts_per_rad
+                drive.torque_unit_nm = profile.joint_nm_per_unit_permille
+                drive.units_per_nm = 1.0 / profile.joint_nm_per_unit_permille
             self._objects.attach(drive)
             self._drives.append(drive)
             self._objects.reset(drive, communication_only=False)
@@ -186,7 +197,9 @@ class EmulatedDrives:
     def commanded_torque_nm(self) -> np.ndarray:
         return np.array(
             [
-                d.applied_permille * d.rated_torque_mnm * 1e-6 if d.state is State.OPERATION_ENABLED else 0.0
+                d.applied_permille * d.rated_torque_mnm * d.torque_unit_nm
+                if d.state is State.OPERATION_ENABLED
+                else 0.0
                 for d in self._drives
             ]
         )
@@ -439,7 +452,10 @@ class EmulatedDrives:
         return (
             [_clip_int(q * d.counts_per_rad, _INT32_MIN, _INT32_MAX) for d, q in zip(drives, position, strict=True)],
             [_clip_int(v * d.counts_per_rad, _INT32_MIN, _INT32_MAX) for d, v in zip(drives, velocity, strict=True)],
-            [_clip_int(t * 1e6 / d.rated_torque_mnm, -32768, 32767) for d, t in zip(drives, torque, strict=True)],
+            [
+                _clip_int(t * d.units_per_nm / d.rated_torque_mnm, -32768, 32767)
+                for d, t in zip(drives, torque, strict=True)
+            ],
         )
 
     # --- sending ---------------------------------------------------------------------------------
@@ -469,6 +485,7 @@ def make_drive_bank(bus: can.BusABC, node_ids: tuple[int, ...], config: Any, own
             node_ids=tuple(node_ids),
             encoder_counts_per_rev=drives_cfg.encoder_counts_per_rev,
             heartbeat_producer_ms=drives_cfg.heartbeat_producer_ms,
+            profiles=drives_cfg.profiles,
         ),
     )
     drives.start(own_thread=own_thread)

@@ -44,12 +44,23 @@ def configure(sdo: SdoClient, node: DriveNode, config: DriveBusConfig) -> None:
     its encoder resolution, and write mode, torque scale and limits and the quick stop option
     (the reaction to a lost master is :func:`drivers.supervision.configure_master_loss`)."""
     i, joint, node_id = node.index, node.joint, node.node_id
+    where = str(joint.drive.eds) if joint.drive is not None else f"joints.{i}"
     device_type = sdo.read_int(node_id, odx.DEVICE_TYPE)
     if device_type & 0xFFFF != DEVICE_PROFILE:
-        raise DriveConfigError(f"joints.{i}: drive {node_id} device type 0x{device_type:08X} is not CiA 402")
+        raise DriveConfigError(
+            f"{where}: node {node_id}: 0x1000:00: device type 0x{device_type:08X}, "
+            f"profile {device_type & 0xFFFF}, not CiA 402"
+        )
     modes = sdo.read_int(node_id, odx.SUPPORTED_MODES)
     if not modes & CST_MODE_BIT:
-        raise DriveConfigError(f"joints.{i}: drive {node_id} does not support cyclic synchronous torque")
+        raise DriveConfigError(
+            f"{where}: node {node_id}: 0x6502:00: 0x{modes:08X}: the drive does not support cyclic synchronous torque"
+        )
+    if joint.drive is not None:  # a drive with its own EDS: scaling, reactions, SDO init list
+        from drivers.commissioning import configure_spec
+
+        configure_spec(sdo, node, config)
+        return
     increments = sdo.read_int(node_id, odx.ENCODER_RESOLUTION, 1)
     revolutions = sdo.read_int(node_id, odx.ENCODER_RESOLUTION, 2)
     if joint.encoder_counts_per_rev is not None and joint.encoder_counts_per_rev * revolutions != increments:

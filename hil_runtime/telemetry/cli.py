@@ -35,7 +35,33 @@ ConnectOption = Annotated[
     list[str] | None,
     typer.Option("--connect", help=f"the runtime's Zenoh endpoint (repeatable) [default: {DEFAULT_LISTEN}]"),
 ]
-TimeoutOption = Annotated[float, typer.Option("--timeout", help="seconds to wait for the runtime's replies")]
+
+
+def _seconds(low: float, high: float) -> Callable[[typer.Context, typer.CallbackParam, float | None], float | None]:
+    """A callback refusing a duration outside (low, high]: NaN passes typer's own min/max checks
+    (every comparison with it is false) and then hangs a wait (issue 20)."""
+
+    def check(ctx: typer.Context, param: typer.CallbackParam, value: float | None) -> float | None:
+        if value is not None and not low < value <= high:  # False for NaN too
+            raise typer.BadParameter(f"{value!r}: must be a number of seconds in ({low:g}, {high:g}]")
+        return value
+
+    return check
+
+
+def _between(low: float, high: float) -> Callable[[typer.Context, typer.CallbackParam, float], float]:
+    def check(ctx: typer.Context, param: typer.CallbackParam, value: float) -> float:
+        if not low <= value <= high:  # False for NaN too
+            raise typer.BadParameter(f"{value!r}: must be in [{low:g}, {high:g}]")
+        return value
+
+    return check
+
+
+TimeoutOption = Annotated[
+    float,
+    typer.Option("--timeout", help="seconds to wait for the runtime's replies", callback=_seconds(0.0, 3600.0)),
+]
 ZenohConfigOption = Annotated[
     Path | None, typer.Option("--zenoh-config", help="a Zenoh json5 file (TLS, access control, routers)")
 ]
@@ -104,7 +130,9 @@ def control(
 @telemetry_app.command()
 def record(
     out: Annotated[Path, typer.Option("--out", help="the record to write (.npz, or .mcap: docs/formats.md)")],
-    seconds: Annotated[float, typer.Option("--seconds", min=0.01, help="how long to record")] = 10.0,
+    seconds: Annotated[
+        float, typer.Option("--seconds", help="how long to record", callback=_seconds(0.0, 7 * 86400.0))
+    ] = 10.0,
     robot: RobotOption = None,
     connect: ConnectOption = None,
     timeout: TimeoutOption = 3.0,
@@ -121,14 +149,24 @@ def record(
         recording = start_recording(client)  # before the queries: nothing is missed meanwhile
         schema = client.schema()
         recording.schema = schema
+        repliers = client.schema_repliers()
         extra: dict[str, Any] = {}
         for name in ("config", "bundle"):
             try:
                 extra[name] = client.query_json(name)
             except TelemetryUnavailable:
                 extra[name] = None
-        print(f"recording hil/{client.robot}/state for {seconds:g} s ...", file=sys.stderr, flush=True)
+        print(
+            f"recording hil/{client.robot}/state for {seconds:g} s (schema from {', '.join(repliers) or '-'}) ...",
+            file=sys.stderr,
+            flush=True,
+        )
         time.sleep(max(0.0, started_s + seconds - time.monotonic()))
+        publishers = dict(client.publishers)
+        warning = client.impersonation_warning(repliers)
+    if warning is not None:
+        print(warning, file=sys.stderr, flush=True)
+    extra["publishers"] = {"samples": publishers, "schema_repliers": repliers}
     arrays = recording.arrays()
     if len(arrays["seq"]) == 0:
         raise TelemetryUnavailable(
@@ -153,7 +191,7 @@ def record(
     refused = f", {recording.refused} refused ({recording.first_refusal})" if recording.refused else ""
     print(
         f"wrote {out}: {count} state samples, seq {int(arrays['seq'][0])}..{int(arrays['seq'][-1])}, "
-        f"{lost} missing, {gaps} after publisher drops{refused}"
+        f"{lost} missing, {gaps} after publisher drops{refused}; published by {', '.join(sorted(publishers)) or '-'}"
     )
 
 
@@ -161,8 +199,13 @@ def record(
 def foxglove(
     host: Annotated[str, typer.Option("--host", help="where the Foxglove WebSocket server listens")] = "127.0.0.1",
     port: Annotated[int, typer.Option("--port", min=0, max=65535, help="its port (0: any free one)")] = 8765,
-    rate_hz: Annotated[float, typer.Option("--rate-hz", min=1.0, max=1000.0, help="states republished per s")] = 50.0,
-    seconds: Annotated[float | None, typer.Option("--seconds", min=0.1, help="stop after [default: Ctrl-C]")] = None,
+    rate_hz: Annotated[
+        float, typer.Option("--rate-hz", help="states republished per s", callback=_between(1.0, 1000.0))
+    ] = 50.0,
+    seconds: Annotated[
+        float | None,
+        typer.Option("--seconds", help="stop after [default: Ctrl-C]", callback=_seconds(0.0, 7 * 86400.0)),
+    ] = None,
     urdf: Annotated[Path | None, typer.Option("--urdf", help="the arm's URDF [default: the bundle's]")] = None,
     allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen beyond loopback")] = False,
     robot: RobotOption = None,
@@ -219,6 +262,8 @@ class _WatchState:
         self.refused = 0
         self.last_refusal = ""
         self.gaps = 0
+        self.publishers: dict[str, int] = {}  # samples per publishing Zenoh session (the client's)
+        self.repliers: list[str] = []  # sessions that answered the schema query
 
     def rates(self) -> tuple[float, float]:
         """(samples per second received, share of them with any fallback) over the window."""
@@ -285,6 +330,13 @@ def _render(state: _WatchState, robot: str, joints: tuple[str, ...]) -> Any:
         parts.append(Text(line, style="dim"))
     if state.refused:
         parts.append(Text(f"{state.refused} payloads refused: {state.last_refusal}", style="red"))
+    from hil_runtime.telemetry.subscriber import impersonation_warning
+
+    warning = impersonation_warning(f"hil/{robot}", list(state.publishers), state.repliers)
+    if warning is not None:
+        parts.append(Text(warning.replace("warning:", "WARNING:", 1), style="bold red"))
+    elif state.publishers or state.repliers:
+        parts.append(Text(f"published by Zenoh session {next(iter(state.publishers or state.repliers))}", style="dim"))
     return Group(*parts)
 
 
@@ -295,6 +347,8 @@ def attach_watch(client: Any, schema: Any) -> _WatchState:
     from hil_runtime.telemetry.codec import TelemetryDecodeError
 
     state = _WatchState()
+    state.publishers = client.publishers  # the client counts each sample's session
+    state.repliers = client.schema_repliers()
 
     def subscribe(key: str, decode: Callable[[bytes], tuple[Any, Any]], use: Callable[[Any], None]) -> None:
         # One handler shape for every key: decode, count a refusal, skip WARMUP puts, hand on.
@@ -350,8 +404,10 @@ def watch(
     connect: ConnectOption = None,
     timeout: TimeoutOption = 3.0,
     zenoh_config: ZenohConfigOption = None,
-    refresh_hz: Annotated[float, typer.Option("--refresh-hz", min=0.5, max=60.0)] = 10.0,
-    seconds: Annotated[float | None, typer.Option("--seconds", min=0.1, help="exit after this long")] = None,
+    refresh_hz: Annotated[float, typer.Option("--refresh-hz", callback=_between(0.5, 60.0))] = 10.0,
+    seconds: Annotated[
+        float | None, typer.Option("--seconds", help="exit after this long", callback=_seconds(0.0, 7 * 86400.0))
+    ] = None,
 ) -> None:
     """A live view: each joint's q, q_ref, error and torque; rate, fallback share, state, fault, alive/lost."""
     from rich.console import Console

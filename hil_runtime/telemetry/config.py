@@ -8,13 +8,18 @@
       state_decimation: 1                 # publish every k-th cycle's state
       queue_size: 1024                    # state samples held for the publisher thread
       stats_period_s: 1.0                 # stats and status republished at this period
-      controls_enabled: false             # the stop/reset queryables exist only when true
+      controls_enabled: false             # the stop/reset queryables exist only when true (needs auth)
+      auth: null                          # {users_file, control_users}: Zenoh user/password (auth.py)
+      remote_reset_activates: false       # a Zenoh reset stays INACTIVE unless true (and loop.activate_on_reset)
       express: false                      # true: no batching (lower latency, loses samples under load)
       lease_s: 1.0                        # subscribers see a hung runtime lost after this long
 
 Bad input raises :class:`TelemetryConfigError` (exit code 2) with one line naming the source and
 field. Endpoints must be loopback unless ``allow_remote`` is set: nothing leaves the machine by
 accident, and multicast and gossip scouting are always off (peers are named, never discovered).
+The endpoints checked are those of the merged configuration (a ``zenoh_config`` file's included,
+and Zenoh's own default when nothing names any). Controls need authenticated peers: ``auth``, or a
+``zenoh_config`` file with a usrpwd dictionary (docs/security.md, "Zenoh").
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from hil_runtime.telemetry.auth import TelemetryAuth, read_users_file
 
 if TYPE_CHECKING:
     import zenoh
@@ -62,7 +69,7 @@ def _endpoint_host(endpoint: str) -> str | None:
         return None
     if proto not in _IP_PROTOCOLS:
         raise ValueError(f"endpoint {endpoint!r}: unknown protocol {proto!r}")
-    address = address.split("#", 1)[0]  # zenoh endpoint metadata/config follows '#'
+    address = address.split("#", 1)[0].split("?", 1)[0]  # zenoh endpoint metadata follows '?', config '#'
     host, colon, port = address.rpartition(":")
     if not colon or not port.isdigit() or not 0 <= int(port) < 65536:
         raise ValueError(f"endpoint {endpoint!r}: missing or bad port")
@@ -126,7 +133,12 @@ class TelemetryConfig(BaseModel):
     event_queue_size: int = Field(256, ge=2, le=1 << 16)
     stats_period_s: float = Field(1.0, gt=0.0, le=3600.0)  # stats + status republish period
     publish_period_s: float = Field(0.001, gt=0.0, le=1.0)  # how often the publisher thread drains
-    controls_enabled: bool = False  # declare hil/<robot>/stop and /reset queryables
+    controls_enabled: bool = False  # declare hil/<robot>/stop and /reset queryables (needs authentication)
+    # Zenoh user/password authentication of every peer (and who may query the controls).
+    auth: TelemetryAuth | None = None
+    # A reset over Zenoh clears a FAULT to INACTIVE; re-enabling the drives is a local decision
+    # (the control socket, or loop.activate_on_reset for a local reset) unless this is true.
+    remote_reset_activates: bool = False
     # express: each sample leaves at once in its own batch. Off (default), Zenoh batches samples
     # for up to 1 ms, so its 16-batch queue holds seconds of samples instead of 16: on a loaded
     # 2-core machine express lost 0.6-6 % of 1 kHz samples, batching none, at the same loop cost
@@ -165,6 +177,8 @@ class TelemetryConfig(BaseModel):
             raise ValueError("client mode needs connect endpoints (the router)")
         if self.zenoh_config is not None and not self.zenoh_config.is_file():
             raise ValueError(f"zenoh_config {str(self.zenoh_config)!r} is not a file")
+        if self.zenoh_config is not None or self.controls_enabled:
+            check_merged(self)
         return self
 
     def key_prefix(self, robot: str) -> str:
@@ -213,6 +227,78 @@ def zenoh_config(
     return conf
 
 
+def _json_at(conf: zenoh.Config, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # noqa: BLE001 - zenoh raises its own untyped error for a key it lacks
+        return None
+
+
+def merged_endpoints(conf: zenoh.Config, mode: str, field: str) -> list[str]:
+    """``listen``/``connect`` endpoints of a Zenoh config: a list, or one list per mode."""
+    value = _json_at(conf, f"{field}/endpoints")
+    if isinstance(value, dict):
+        value = value.get(mode, [])
+    return [str(endpoint) for endpoint in value or []]
+
+
+def check_merged(config: TelemetryConfig) -> None:
+    """What the runtime's Zenoh session will really do, file and fields merged: loopback endpoints
+    only (unless ``allow_remote``), and authenticated peers when the controls are enabled."""
+    try:
+        conf = publisher_zenoh_config(config)
+    except ImportError:
+        raise ValueError("zenoh_config and controls_enabled need eclipse-zenoh installed") from None
+    except TelemetryConfigError as exc:
+        raise ValueError(str(exc)) from None
+    where = f"zenoh_config {str(config.zenoh_config)!r}: " if config.zenoh_config is not None else ""
+    if not config.allow_remote:
+        for field in ("listen", "connect"):
+            for endpoint in merged_endpoints(conf, config.mode, field):
+                try:
+                    loopback = is_loopback_endpoint(endpoint)
+                except ValueError as exc:
+                    raise ValueError(f"{where}{field}/endpoints: {exc}") from None
+                if not loopback:
+                    default = "" if _file_sets(config, field) else " (Zenoh's default: the file sets none)"
+                    raise ValueError(
+                        f"{where}{field}/endpoints {endpoint!r}{default} is not loopback (127.0.0.1/::1); "
+                        "set allow_remote: true to publish beyond this machine"
+                    )
+    dictionary = _json_at(conf, "transport/auth/usrpwd/dictionary_file")
+    if dictionary and config.auth is None:  # the file's own dictionary: held to the same rules
+        read_users_file(Path(str(dictionary)))
+    if config.controls_enabled and not dictionary:
+        raise ValueError(
+            "controls_enabled: the stop/reset queryables need authenticated peers: set auth.users_file "
+            "(Zenoh user/password), or a zenoh_config with transport/auth/usrpwd/dictionary_file"
+        )
+    if config.auth is not None and config.auth.access_control() is not None and _file_has_access_control(config):
+        raise ValueError(
+            f"{where}access_control is set and so is auth.control_users: keep one (put the rule in the file)"
+        )
+
+
+def _file_has_access_control(config: TelemetryConfig) -> bool:
+    if config.zenoh_config is None:
+        return False
+    import zenoh
+
+    return bool(_json_at(zenoh.Config.from_file(str(config.zenoh_config)), "access_control/enabled"))
+
+
+def _file_sets(config: TelemetryConfig, field: str) -> bool:
+    """Whether the endpoints come from the runtime config or the json5 file (not Zenoh's default)."""
+    if config.zenoh_config is None or field in config.model_fields_set:
+        return True
+    import zenoh
+
+    return bool(
+        _json_at(zenoh.Config.from_file(str(config.zenoh_config)), f"{field}/endpoints")
+        != _json_at(zenoh.Config(), f"{field}/endpoints")
+    )
+
+
 def publisher_zenoh_config(config: TelemetryConfig) -> zenoh.Config:
     """The runtime's session: with a json5 file, only endpoints set explicitly override the file's."""
     explicit = config.model_fields_set
@@ -227,4 +313,10 @@ def publisher_zenoh_config(config: TelemetryConfig) -> zenoh.Config:
     # instead, with a deeper queue to ride out short scheduling hiccups (docs/telemetry.md).
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_WAIT_US))
     conf.insert_json5("transport/link/tx/queue/size/data_high", str(TX_QUEUE_BATCHES))
+    if config.auth is not None:
+        # Every peer that opens a link to this session must present a user:password of the file.
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(config.auth.users_file)))
+        access_control = config.auth.access_control()
+        if access_control is not None:
+            conf.insert_json5("access_control", json.dumps(access_control))
     return conf

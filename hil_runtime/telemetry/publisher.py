@@ -34,14 +34,12 @@ from typing import Any, Protocol, runtime_checkable
 from hil_runtime.telemetry.codec import (
     FLAG_GAP,
     FLAG_WARMUP,
-    MAGIC,
-    SCHEMA_VERSION,
-    STATE_HEAD,
     STATS_FIELDS,
     Kind,
     build_schema,
     encode_header,
     encode_json,
+    encode_state,
     encode_stats,
     state_size,
 )
@@ -59,7 +57,7 @@ class TelemetryControls(Protocol):
 
     def request_stop(self) -> None: ...
 
-    def request_reset(self) -> None: ...
+    def request_reset(self, activate: bool | None = None) -> None: ...
 
 
 class TelemetryStartError(RuntimeError):
@@ -122,6 +120,7 @@ class ZenohTelemetry:
         self._dropped_seen = 0
         self.offer_errors = 0
         self.publish_errors = 0
+        self.refused_controls = 0  # control queries for a key expression other than exactly theirs
         self._unknown_stats: set[str] = set()
 
         self._running = False
@@ -131,6 +130,9 @@ class ZenohTelemetry:
         self._publishers: dict[str, Any] = {}
         self._declared: list[Any] = []
         self._token: Any = None
+        self._source_info: Any = None
+        self._source_ids: dict[str, Any] = {}
+        self._source_sn: dict[str, int] = {}
         self._ros2: Any = None  # hil_runtime.formats.rmw_zenoh.JointStatePublisher when ros2.enabled
         self.joints = tuple(joints)
 
@@ -160,11 +162,20 @@ class ZenohTelemetry:
             self._declared.append(session.declare_queryable(f"{self.prefix}/{name}", self._replier(name, payload)))
         if self._controls is not None:
             controls = self._controls
-            for name, request in (("stop", controls.request_stop), ("reset", controls.request_reset)):
+            # A remote reset clears the FAULT only: the drives are enabled again by a local decision
+            # (the control socket), unless the config says otherwise (docs/security.md, "Zenoh").
+            activate = None if self.config.remote_reset_activates else False
+            requests = (("stop", controls.request_stop), ("reset", lambda: controls.request_reset(activate=activate)))
+            for name, request in requests:
                 self._declared.append(session.declare_queryable(f"{self.prefix}/{name}", self._control(name, request)))
+        # Every put carries this session's id (Zenoh's source info): subscribers show which session
+        # publishes as hil/<robot> and warn when several do (an impersonator, docs/security.md).
+        self._source_info = zenoh.SourceInfo
+        self._source_ids = {name: publisher.id for name, publisher in self._publishers.items()}
+        self._source_sn = dict.fromkeys(self._publishers, 0)
         # The first put on a new publisher is ~100x slower: pay it here, flagged so readers skip it.
-        for name, publisher in self._publishers.items():
-            publisher.put(encode_header(_KIND_OF[name], 0, time.monotonic_ns(), FLAG_WARMUP))
+        for name in self._publishers:
+            self._put(name, encode_header(_KIND_OF[name], 0, time.monotonic_ns(), FLAG_WARMUP))
         self._token = session.liveliness().declare_token(f"{self.prefix}/alive")
         if self.config.ros2.enabled:  # ROS 2's /joint_states beside hil/<robot>/ (docs/formats.md)
             from hil_runtime.formats.rmw_zenoh import JointStatePublisher
@@ -198,17 +209,7 @@ class ZenohTelemetry:
         s = sample
         try:
             states.append(
-                b"".join(
-                    (
-                        STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, _STATE, 0, s.seq, s.t_ns, s.fallback, s.compute_s),
-                        s.q.tobytes(),
-                        s.qd.tobytes(),
-                        s.q_ref.tobytes(),
-                        s.qd_ref.tobytes(),
-                        s.tau.tobytes(),
-                        s.tau_fb.tobytes(),
-                    )
-                )
+                encode_state(s.seq, s.t_ns, (s.q, s.qd, s.q_ref, s.qd_ref, s.tau, s.tau_fb), s.fallback, s.compute_s)
             )
         except (AttributeError, TypeError, ValueError, OverflowError, struct.error) as exc:
             # A caller bug (lists, negative seq) must not stop the arm: count it, say it once.
@@ -324,7 +325,6 @@ class ZenohTelemetry:
 
     def _drain_state(self) -> None:
         states, row = self._states, self._row
-        publisher = self._publishers["state"]
         while states:
             try:
                 payload: bytes | bytearray = states.popleft()
@@ -341,7 +341,7 @@ class ZenohTelemetry:
                 payload = bytearray(payload)
                 payload[7] |= FLAG_GAP
             try:
-                publisher.put(payload)
+                self._put("state", payload)
                 self.sent += 1
                 if self._ros2 is not None:
                     self._ros2.publish_state_payload(payload)
@@ -360,8 +360,13 @@ class ZenohTelemetry:
         values["telemetry_dropped"] = float(self.dropped)
         return values
 
-    def _put(self, name: str, payload: bytes) -> None:
-        self._publishers[name].put(payload)
+    def _put(self, name: str, payload: bytes | bytearray) -> None:
+        source_id = self._source_ids.get(name)
+        if source_id is None:  # a publisher not declared by start() carries no source info
+            self._publishers[name].put(payload)
+            return
+        sn = self._source_sn[name] = self._source_sn[name] + 1
+        self._publishers[name].put(payload, source_info=self._source_info(source_id, sn))
 
     # --- queryables (run on Zenoh's threads) -----------------------------------------------------
 
@@ -377,6 +382,17 @@ class ZenohTelemetry:
         key = f"{self.prefix}/{name}"
 
         def control(query: Any) -> None:
+            # Zenoh hands a queryable every query whose key expression intersects its own:
+            # hil/<robot>/**, hil/*/stop, hil/<robot>/re$*... Access-control rules match key
+            # expressions too, so a wildcard can slip past a rule written for the exact key. A
+            # control acts only on a query for exactly its key; anything else is refused, unanswered
+            # by a success.
+            asked = str(query.key_expr)
+            if asked != key:
+                self.refused_controls += 1
+                log.warning("telemetry: %s refused: query for %r, not exactly %r", name, asked, key)
+                query.reply_err(_json_bytes({"ok": False, "request": name, "error": f"only {key} itself"}))
+                return
             try:
                 request()
             except Exception as exc:  # noqa: BLE001 - report to the caller, keep the runtime going

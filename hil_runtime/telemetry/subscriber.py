@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -34,6 +34,7 @@ from hil_runtime.telemetry.config import (
 
 QUERYABLES = ("schema", "config", "bundle")
 CONTROLS = ("stop", "reset")
+UNKNOWN_SOURCE = "unknown"  # a sample without Zenoh source info (the runtime's always carry it)
 
 
 class TelemetryUnavailable(RuntimeError):
@@ -51,6 +52,9 @@ class TelemetryClient:
         self.prefix = f"{KEY_PREFIX}/{robot}"
         self.timeout_s = timeout_s
         self._declared: list[Any] = []
+        # Samples received per publishing session (Zenoh id from the source info): more than one
+        # session publishing as hil/<robot> is another runtime of that name, or an impersonator.
+        self.publishers: dict[str, int] = {}
 
     @classmethod
     def open(
@@ -138,10 +142,38 @@ class TelemetryClient:
     # --- subscriptions (callbacks run on Zenoh's threads) ----------------------------------------
 
     def subscribe(self, name: str, callback: Callable[[bytes], None]) -> None:
-        """Payload bytes of ``hil/<robot>/<name>`` (state, stats, status, events)."""
-        self._declared.append(
-            self.session.declare_subscriber(f"{self.prefix}/{name}", lambda sample: callback(sample.payload.to_bytes()))
+        """Payload bytes of ``hil/<robot>/<name>`` (state, stats, status, events); the publishing
+        session of each sample is counted in :attr:`publishers`."""
+        publishers = self.publishers
+
+        def on_sample(sample: Any) -> None:
+            info = sample.source_info
+            source = str(info.source_id.zid) if info is not None else UNKNOWN_SOURCE
+            publishers[source] = publishers.get(source, 0) + 1
+            callback(sample.payload.to_bytes())
+
+        self._declared.append(self.session.declare_subscriber(f"{self.prefix}/{name}", on_sample))
+
+    def schema_repliers(self, timeout_s: float = 1.0) -> list[str]:
+        """The Zenoh ids of every session answering ``hil/<robot>/schema`` (all of them, not the first)."""
+        import zenoh
+
+        repliers: set[str] = set()
+        replies = self.session.get(
+            f"{self.prefix}/schema",
+            timeout=timeout_s,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
         )
+        for reply in replies:
+            if reply.ok is not None:
+                replier = reply.replier_id
+                repliers.add(str(replier.zid) if replier is not None else UNKNOWN_SOURCE)
+        return sorted(repliers)
+
+    def impersonation_warning(self, repliers: Sequence[str] = ()) -> str | None:
+        """One line when more than one session publishes as (or answers for) this robot."""
+        return impersonation_warning(self.prefix, self.publishers, repliers)
 
     def watch_alive(self, callback: Callable[[bool], None]) -> None:
         """``callback(True)`` when the runtime's liveliness token appears (or already exists),
@@ -154,6 +186,19 @@ class TelemetryClient:
         self._declared.append(
             self.session.liveliness().declare_subscriber(f"{self.prefix}/alive", on_sample, history=True)
         )
+
+
+def impersonation_warning(prefix: str, publishers: Iterable[str], repliers: Iterable[str]) -> str | None:
+    """Several sessions among the samples' sources (``unknown``: a sample without source info,
+    never the runtime's) or among the schema's repliers: one line naming them, else None."""
+    samples, answers = sorted(set(publishers)), sorted(set(repliers))
+    if len(samples) <= 1 and len(answers) <= 1 and (not samples or not answers or samples == answers):
+        return None
+    return (
+        f"warning: several Zenoh sessions publish as {prefix} (samples from {', '.join(samples) or '-'}; "
+        f"schema from {', '.join(answers) or '-'}): another runtime with this robot name, or an impersonator "
+        "(docs/security.md)"
+    )
 
 
 def _close_session(session: Any) -> None:

@@ -12,6 +12,7 @@ import canopen
 
 from drivers.cia402 import frames as fr
 from drivers.cia402.state_machine import State
+from sim_target.emulated.profile import DriveProfile
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class EmulatedDrivesConfig:
     heartbeat_producer_ms: int = 0  # 0x1017 until the master writes it
     eds_path: Path | None = None
     frame_faults: FrameFaults = FrameFaults()  # applied to every drive from the start
+    profiles: tuple[DriveProfile, ...] | None = None  # one per drive: a vendor's dictionary and motor
 
     def __post_init__(self) -> None:
         if not self.node_ids or len(set(self.node_ids)) != len(self.node_ids):
@@ -43,6 +45,8 @@ class EmulatedDrivesConfig:
             fr.check_node_id(node_id)
         if self.encoder_counts_per_rev <= 0:
             raise ValueError("encoder_counts_per_rev must be positive")
+        if self.profiles is not None and len(self.profiles) != len(self.node_ids):
+            raise ValueError(f"{len(self.profiles)} drive profiles for {len(self.node_ids)} drives")
 
 
 @dataclass(frozen=True)
@@ -104,7 +108,11 @@ class EmulatedDrive:
     applied_permille: int = 0
     limited: bool = False
     # cached from the object dictionary (refreshed on SDO write and on reset)
-    rated_torque_mnm: int = 1000
+    rated_torque_mnm: int = 1000  # 0x6076 as the drive holds it (in its own unit with a profile)
+    # Joint N·m per (per mille x one unit of 0x6076): 1e-6 for 0x6076 in mN·m, no gear; a profile's own.
+    torque_unit_nm: float = 1e-6
+    units_per_nm: float = 1e6  # 1 / torque_unit_nm, kept exact for the default drive (bit-identical frames)
+    profile: DriveProfile | None = None  # a vendor's dictionary and motor (sim_target/emulated/profile.py)
     max_torque_permille: int = 1000
     quick_stop_option: int = 2
     heartbeat_ms: int = 0

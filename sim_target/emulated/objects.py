@@ -12,7 +12,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import canopen
 import numpy as np
 from canopen.sdo.exceptions import SdoAbortedError
 
@@ -54,24 +53,34 @@ class ObjectServer:
         for index in list(store):
             if not communication_only or 0x1000 <= index <= 0x1FFF:
                 del store[index]
-        store.setdefault(odx.ENCODER_RESOLUTION, {})[1] = self.encoder_counts_per_rev.to_bytes(4, "little")
+        od = drive.node.object_dictionary
+        profile = drive.profile
+        if profile is None:
+            store.setdefault(odx.ENCODER_RESOLUTION, {})[1] = self.encoder_counts_per_rev.to_bytes(4, "little")
+        else:
+            _present_motor(drive, od, store, profile)
         if self.heartbeat_producer_ms:
             store.setdefault(odx.HEARTBEAT_PRODUCER, {})[0] = self.heartbeat_producer_ms.to_bytes(2, "little")
-        od = drive.node.object_dictionary
 
-        def value(index: int, subindex: int = 0) -> int:
-            entry = od[index]
-            var = entry if isinstance(entry, canopen.objectdictionary.ODVariable) else entry[subindex]
+        def value(index: int, subindex: int = 0, fallback: int | None = None) -> int:
+            var = odx.lookup_variable(od, index, subindex)
+            if var is None and fallback is not None:  # a vendor's dictionary without this object
+                return fallback
+            if var is None:
+                raise ValueError(f"object 0x{index:04X}:{subindex}: not in the EDS")
             raw = store.get(index, {}).get(subindex)
             if raw is not None:
                 return int(var.decode_raw(raw))
-            if var.default is None:
-                raise ValueError(f"object 0x{index:04X}:{subindex}: no value and no default in the EDS")
-            return int(var.default)
+            for known in (var.value, var.default):  # a DCF's ParameterValue, then the EDS default
+                if isinstance(known, int):
+                    return known
+            if fallback is not None:
+                return fallback
+            raise ValueError(f"object 0x{index:04X}:{subindex}: no value and no default in the EDS")
 
-        drive.rated_torque_mnm = value(odx.RATED_TORQUE)
-        drive.max_torque_permille = value(odx.MAX_TORQUE)
-        drive.quick_stop_option = value(odx.QUICK_STOP_OPTION)
+        drive.rated_torque_mnm = value(odx.RATED_TORQUE, fallback=profile.rated_torque if profile else None)
+        drive.max_torque_permille = value(odx.MAX_TORQUE, fallback=0xFFFF)  # none: the drive's current limit
+        drive.quick_stop_option = value(odx.QUICK_STOP_OPTION, fallback=2)
         drive.heartbeat_ms = value(odx.HEARTBEAT_PRODUCER)
         drive.rpdo_valid = not value(odx.RPDO1_COMM, 1) & odx.PDO_COB_ID_INVALID
         drive.tpdo1_valid = not value(odx.TPDO1_COMM, 1) & odx.PDO_COB_ID_INVALID
@@ -81,11 +90,12 @@ class ObjectServer:
             for mapping in (odx.RPDO1_MAP, odx.TPDO1_MAP, odx.TPDO2_MAP)
         }
         pdo.set_tpdo1_layout(drive, len(drive.mappings[odx.TPDO1_MAP]))
-        consumer = value(odx.CONSUMER_HEARTBEAT, 1)
+        consumer = value(odx.CONSUMER_HEARTBEAT, 1, fallback=0)
         drive.master_node_id, drive.master_heartbeat_timeout_ms = (consumer >> 16) & 0x7F, consumer & 0xFFFF
-        drive.rpdo_timeout_ms = value(odx.RPDO1_COMM, 5)
-        drive.sync_timeout_ms = value(odx.SYNC_TIMEOUT)
-        drive.abort_connection_option = value(odx.ABORT_CONNECTION_OPTION)
+        drive.rpdo_timeout_ms = value(odx.RPDO1_COMM, 5, fallback=0)
+        # 0x2101 is the emulated drive's own SYNC timeout; a vendor's 0x2101 is something else.
+        drive.sync_timeout_ms = value(odx.SYNC_TIMEOUT) if profile is None else 0
+        drive.abort_connection_option = value(odx.ABORT_CONNECTION_OPTION, fallback=1)
         drive.last_master_heartbeat_s = drive.last_rpdo_s = drive.last_sync_s = 0.0
         now = time.monotonic()
         self.schedule_heartbeat(drive, now)
@@ -103,7 +113,7 @@ class ObjectServer:
                 return drive.error_code
             if index == odx.ERROR_REGISTER:
                 return drive.error_register
-            if index == odx.SYNC_COUNTER_ECHO:
+            if index == odx.SYNC_COUNTER_ECHO and drive.profile is None:
                 return self.sync_counter()
             if index == odx.MODES_DISPLAY:
                 mode = drive.node.data_store.get(odx.MODES_OF_OPERATION, {}).get(0)
@@ -117,7 +127,7 @@ class ObjectServer:
                     return clamp32(round(float(feedback[0][i]) * drive.counts_per_rad))
                 if index == odx.VELOCITY_ACTUAL:
                     return clamp32(round(float(feedback[1][i]) * drive.counts_per_rad))
-                return clamp16(round(float(feedback[2][i]) * 1e6 / drive.rated_torque_mnm))
+                return clamp16(round(float(feedback[2][i]) * drive.units_per_nm / drive.rated_torque_mnm))
             return None
 
         return read
@@ -151,7 +161,7 @@ class ObjectServer:
                 drive.master_node_id, drive.master_heartbeat_timeout_ms = master, value & 0xFFFF
                 drive.last_master_heartbeat_s = 0.0  # monitoring starts at the next heartbeat
                 self.on_watch_change(time.monotonic())
-            elif index == odx.SYNC_TIMEOUT:
+            elif index == odx.SYNC_TIMEOUT and drive.profile is None:
                 drive.sync_timeout_ms = value
                 self.on_watch_change(time.monotonic())
             elif index == odx.ABORT_CONNECTION_OPTION:
@@ -171,3 +181,20 @@ def clamp32(value: int) -> int:
 
 def clamp16(value: int) -> int:
     return max(-32768, min(32767, value))
+
+
+def _present_motor(drive: EmulatedDrive, od: Any, store: dict[int, dict[int, bytes]], profile: Any) -> None:
+    """A vendor's dictionary with the profile's motor behind it: 0x6076 and 0x608F hold the motor's
+    values where the EDS has them (a DCF's commissioned value, or an EDS default of 0, would not be
+    this motor's), 0x1000 the device type the profile answers with."""
+    for index, subindex, number in (
+        (odx.RATED_TORQUE, 0, profile.rated_torque),
+        (odx.ENCODER_RESOLUTION, 1, profile.encoder_increments),
+        (odx.ENCODER_RESOLUTION, 2, 1),
+        (0x6091, 1, round(profile.gear_ratio)),  # gear ratio: motor revolutions
+        (0x6091, 2, 1),  # per shaft revolution
+        (odx.DEVICE_TYPE, 0, profile.device_type),
+    ):
+        var = odx.lookup_variable(od, index, subindex)
+        if var is not None and number is not None:
+            store.setdefault(index, {})[subindex] = var.encode_raw(number)

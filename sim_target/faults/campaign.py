@@ -21,6 +21,8 @@ from typing import TYPE_CHECKING, Any
 from hil_runtime.machine import machine
 from sim_target.faults import cases as c
 from sim_target.faults import injections as inj
+from sim_target.faults import security as sec
+from sim_target.faults import zenoh_cases
 from sim_target.faults.cases import Expect
 from sim_target.faults.report import summarize, write_outputs
 
@@ -91,6 +93,50 @@ def _telemetry_sent(rig: Any, result: c.CaseResult) -> None:
 
 TWO = "2 cycles"
 F = ("feedback_timeout", "stale_feedback")
+SECURITY_FAULTS: tuple[FaultSpec, ...] = (  # issue 20, sim_target/faults/security.py
+    FaultSpec(
+        "forged_tpdo",
+        "forged TPDO: another station answers each SYNC first with drive 3's TPDO (+0.03 rad)",
+        TWO,
+        True,
+        _ip(sec.forge_tpdo, Expect(("bus_intruder",))),
+    ),
+    FaultSpec(
+        "second_sender",
+        "a second sender of a drive's heartbeat (another ipc peer, SO_PEERCRED)",
+        TWO,
+        False,
+        _ip(sec.second_sender, Expect(("bus_intruder",)), transport="ipc"),
+    ),
+    FaultSpec(
+        "second_master_nmt",
+        "a second master's NMT command on the bus while running",
+        TWO,
+        False,
+        _ip(sec.foreign_nmt, Expect(("bus_intruder",))),
+    ),
+    FaultSpec(
+        "second_master_startup",
+        "hil run on a bus that already has a master",
+        "at start-up, before sending: exit 2",
+        True,
+        sec.second_master_at_start_up,
+    ),
+    FaultSpec(
+        "squatted_bus_directory",
+        "the ipc bus directory made first by another user",
+        "at start-up: exit 2",
+        False,
+        sec.squatted_bus_directory,
+    ),
+    FaultSpec(
+        "squatted_control_socket",
+        "a fake runtime of another user at the control socket's path",
+        "the client refuses: exit 2",
+        True,
+        sec.squatted_control_socket,
+    ),
+)
 FAULTS: tuple[FaultSpec, ...] = (
     FaultSpec(
         "tpdo_drop_1_one",
@@ -149,9 +195,9 @@ FAULTS: tuple[FaultSpec, ...] = (
     FaultSpec(
         "wrong_length_flood",
         "wrong-length TPDO/heartbeat/EMCY frames on our drives' COB-IDs, 0.3 s",
-        "tolerated, counted malformed",
+        f"a second sender: {TWO}",
         False,
-        _ip(inj.flood("wrong_length"), Expect(counters=("bus.malformed",), max_cycles=None)),
+        _ip(inj.flood("wrong_length"), Expect(("bus_intruder",))),
     ),
     FaultSpec(
         "unknown_cob_flood",
@@ -272,7 +318,11 @@ FAULTS: tuple[FaultSpec, ...] = (
         False,
         _ip(
             inj.starve_cpu,
-            Expect(may_fault=("feedback_timeout", "stale_feedback"), counters=("overruns",), max_cycles=None),
+            Expect(
+                may_fault=("feedback_timeout", "stale_feedback", "overrun_budget"),
+                counters=("overruns",),
+                max_cycles=None,
+            ),
             observe_cycles=2500,
             config_extra={"loop": {"pacing": "clock", "time_base": "cycles"}},
         ),
@@ -309,12 +359,30 @@ FAULTS: tuple[FaultSpec, ...] = (
             observe_cycles=1500,
         ),
     ),
+    *SECURITY_FAULTS,
     FaultSpec(
         "reference_out_of_limits",
         "a reference that would leave the limits",
         "at start-up, before the bus",
         False,
         _startup(c.prepare_reference_out, "WIDE"),
+    ),
+)
+# Zenoh controls (issue 20): hostile sessions against stop/reset while the arm runs.
+FAULTS += (
+    FaultSpec(
+        "zenoh_control_unauthenticated",
+        "stop/reset (exact and wildcard) from Zenoh sessions without credentials or with a wrong password",
+        "refused at the handshake: no reply, ACTIVE",
+        True,
+        zenoh_cases.unauthenticated_control,
+    ),
+    FaultSpec(
+        "zenoh_control_wildcard",
+        "wildcard queries (hil/<robot>/**, hil/*/stop, hil/<robot>/re$*...) from an authenticated session",
+        "only exact keys reach stop/reset: ACTIVE",
+        True,
+        zenoh_cases.wildcard_control,
     ),
 )
 QUICK = tuple(spec.name for spec in FAULTS if spec.quick)

@@ -65,7 +65,9 @@ def runtime_config_dict(
     loop: dict[str, Any] | None = None,
     **sections: Any,
 ) -> dict[str, Any]:
-    """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing."""
+    """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing. A
+    ``telemetry`` section completes the campaign's own (controls, auth: the Zenoh cases)."""
+    telemetry = sections.pop("telemetry", None) or {}
     data: dict[str, Any] = {
         "robot": "ur5_paper",
         "bundle": {"path": str(bundle), "mode": "lmpc"},
@@ -91,6 +93,7 @@ def runtime_config_dict(
             "listen": [f"tcp/127.0.0.1:{telemetry_port}"],
             "stats_period_s": STATS_INTERVAL_S,
             "close_timeout_s": 0.5,
+            **telemetry,
         }
     return data
 

@@ -62,7 +62,7 @@ class _Controls:
     def request_stop(self) -> None:
         self.stop = True
 
-    def request_reset(self) -> None:
+    def request_reset(self, activate: bool | None = None) -> None:
         self.resets += 1
 
 
@@ -73,14 +73,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--rate-hz", type=float, default=1000.0)
     parser.add_argument("--timing", type=Path, default=None)
-    parser.add_argument("--controls", action="store_true")
+    parser.add_argument("--controls", type=Path, default=None, metavar="USERS_FILE", help="controls, usrpwd users")
     parser.add_argument("--off", action="store_true", help="telemetry disabled (NullTelemetry)")
     args = parser.parse_args(argv)
 
     from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink
+    from hil_runtime.telemetry.auth import TelemetryAuth
 
     config = TelemetryConfig(
-        enabled=not args.off, listen=(f"tcp/127.0.0.1:{args.port}",), controls_enabled=args.controls
+        enabled=not args.off,
+        listen=(f"tcp/127.0.0.1:{args.port}",),
+        controls_enabled=args.controls is not None,
+        auth=None if args.controls is None else TelemetryAuth(users_file=args.controls),
     )
     controls = _Controls()
     info = {
@@ -88,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         "config": {"robot": args.robot, "period_s": 1.0 / args.rate_hz},
         "bundle": {"bundle_id": "fake:000000000000", "law": "pd", "files": {"policy.onnx": "0" * 64}},
     }
-    sink = make_sink(config, args.robot, info, controls if args.controls else None)
+    sink = make_sink(config, args.robot, info, controls if args.controls is not None else None)
     stopping = {"flag": False}
     signal.signal(signal.SIGTERM, lambda *_: stopping.__setitem__("flag", True))
     sink.start()

@@ -16,6 +16,8 @@ from pathlib import Path
 from subprocess import run
 from typing import Any
 
+from tests.unit.hil_runtime.telemetry import npz_files
+
 ROOT = Path(__file__).resolve().parents[2]
 UR5_URDF = (ROOT / "models" / "robots" / "data" / "ur5_paper.urdf").read_text()
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
@@ -46,6 +48,44 @@ def _experiment(mode: str) -> list[str]:
 EXPERIMENT = [*_experiment("fb"), "--out", "{tmp}/out"]
 LMPC = [*_experiment("lmpc"), "--out", "{tmp}/out", "--lmpc-bundles", "{tmp}/bundles"]
 Case = tuple[str, list[str], dict[str, str | bytes], list[str]]
+FIFO = "\x00fifo"  # as a file's content: make a named pipe there instead
+
+
+def _plot_case(name: str, content: str | bytes, *expected: str) -> Case:
+    """``hil telemetry plot run.npz`` with ``content`` as the record (issue 20)."""
+    return (name, ["telemetry", "plot", "{tmp}/run.npz"], {"run.npz": content}, ["{tmp}/run.npz", *expected])
+
+
+def _runtime_yaml(telemetry: str) -> str:
+    """A runtime config ``hil run --check`` accepts, with ``telemetry`` as its telemetry section."""
+    joints = "".join(
+        f"    - {{name: {name}, node_id: {i + 1}, max_torque_nm: 30.0}}\n"
+        for i, name in enumerate(
+            (
+                "shoulder_pan_joint",
+                "shoulder_lift_joint",
+                "elbow_joint",
+                "wrist_1_joint",
+                "wrist_2_joint",
+                "wrist_3_joint",
+            )
+        )
+    )
+    return (
+        f"robot: ur5_paper\nbundle: {{path: {PD_BUNDLE}, mode: lmpc}}\n"
+        "bus:\n  transport: {interface: virtual, channel: check, fd: true, data_bitrate: 5000000}\n"
+        f"  period_s: 0.001\n  joints:\n{joints}reference: {{kind: hold}}\ntelemetry: {telemetry}\n"
+    )
+
+
+def _telemetry_check_case(name: str, telemetry: str, files: dict[str, str | bytes], *expected: str) -> Case:
+    """``hil run --config rt.yaml --check`` with ``telemetry`` as its section (issue 20)."""
+    return (
+        name,
+        ["run", "--config", "{tmp}/rt.yaml", "--check"],
+        {"rt.yaml": _runtime_yaml(telemetry), **files},
+        ["rt.yaml", *expected],
+    )
 
 
 def _conditions_case(name: str, text: str | bytes, *expected: str) -> Case:
@@ -266,6 +306,40 @@ CASES: list[Case] = [
         "not a PEM public key",
         files={"lab.pub": "not a key"},
     ),
+    # telemetry (issue 20)
+    _plot_case("plot-truncated", npz_files.truncated(), "not a telemetry record"),
+    _plot_case("plot-mismatched", npz_files.mismatched(), "column 'q_ref' has shape (60, 3), 'q' (50, 3)"),
+    _plot_case("plot-period-string", npz_files.period_string(), "field period_s: 'fast' is not a positive number"),
+    _plot_case("plot-600-joints", npz_files.many_joints(), "column 'q': 600 joints (plot draws at most 32)"),
+    _plot_case("plot-inflating", npz_files.inflating(), "1040 MiB uncompressed (limit 1024 MiB)"),
+    _plot_case("plot-fifo", FIFO, "not a regular file"),
+    ("telemetry-timeout-nan", ["telemetry", "query", "schema", "--timeout", "nan"], {}, ["--timeout", "nan"]),
+    ("telemetry-timeout<0", ["telemetry", "watch", "--timeout", "-1"], {}, ["--timeout", "-1.0"]),
+    ("telemetry-seconds-nan", ["telemetry", "record", "--out", "x.npz", "--seconds", "nan"], {}, ["--seconds", "nan"]),
+    _telemetry_check_case(
+        "telemetry-zenoh-config-0.0.0.0",
+        "{enabled: true, zenoh_config: z.json5}",
+        {"z.json5": '{ listen: { endpoints: ["tcp/0.0.0.0:7447"] } }'},
+        "zenoh_config 'z.json5': listen/endpoints 'tcp/0.0.0.0:7447' is not loopback",
+    ),
+    _telemetry_check_case(
+        "telemetry-zenoh-config-connect-remote",
+        "{enabled: true, listen: [tcp/127.0.0.1:7447], zenoh_config: z.json5}",
+        {"z.json5": '{ connect: { endpoints: ["tcp/192.0.2.7:7447"] } }'},
+        "zenoh_config 'z.json5': connect/endpoints 'tcp/192.0.2.7:7447' is not loopback",
+    ),
+    _telemetry_check_case(
+        "telemetry-zenoh-config-default-listen",
+        "{enabled: true, zenoh_config: z.json5}",
+        {"z.json5": "{ mode: 'peer' }"},
+        "listen/endpoints 'tcp/[::]:0' (Zenoh's default: the file sets none) is not loopback",
+    ),
+    _telemetry_check_case(
+        "telemetry-controls-unauthenticated",
+        "{enabled: true, controls_enabled: true}",
+        {},
+        "controls_enabled: the stop/reset queryables need authenticated peers",
+    ),
     # runtime configs (issue 20): non-finite or huge values, strict types, duplicate keys, wide limits
     _runtime_case("hb-timeout-inf", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: .inf", "heartbeat_timeout_s"),
     _runtime_case(
@@ -347,7 +421,9 @@ def _run_case(
     for relative, content in files.items():
         path = tmp / relative
         path.parent.mkdir(parents=True, exist_ok=True)
-        if isinstance(content, bytes):
+        if content == FIFO:
+            os.mkfifo(path)
+        elif isinstance(content, bytes):
             path.write_bytes(content)
         else:
             path.write_text(content)

@@ -72,3 +72,15 @@ def test_hil_run_records_mcap_and_captures_can_for_one_second(tmp_path: Path) ->
 @pytest.mark.heavy
 def test_ten_seconds_at_1_khz_lose_no_cycle_and_no_frame(tmp_path: Path) -> None:
     _run(tmp_path, 10.0)
+
+
+def test_a_refused_start_up_leaves_no_capture_or_record(tmp_path: Path) -> None:
+    from hil_runtime.bundle import BundleError
+
+    (tmp_path / "empty_bundle").mkdir()
+    config = runtime_config({"interface": "virtual", "channel": unique_channel()})
+    config["bundle"]["path"] = str(tmp_path / "empty_bundle")
+    (tmp_path / "rt.yaml").write_text(yaml.safe_dump(config))
+    with pytest.raises(BundleError):
+        serve(tmp_path / "rt.yaml", tmp_path / "run.mcap", can_log=tmp_path / "run.blf")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty_bundle", "rt.yaml"]

@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,6 +28,7 @@ import pytest
 pytest.importorskip("zenoh")
 
 from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink
+from hil_runtime.telemetry.auth import TelemetryAuth, write_client_config, write_users_file
 from hil_runtime.telemetry.codec import Schema
 from hil_runtime.telemetry.sink import TelemetrySink
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
@@ -56,12 +58,14 @@ def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str
 class FakeLoop:
     """The fake loop as a child process, started and ready (publishers warm, token declared)."""
 
-    def __init__(self, port: int, seconds: float = 60.0, timing: Path | None = None, controls: bool = False) -> None:
+    def __init__(
+        self, port: int, seconds: float = 60.0, timing: Path | None = None, controls: Path | None = None
+    ) -> None:
         command = [sys.executable, str(FAKE_LOOP), "--port", str(port), "--seconds", str(seconds)]
         if timing is not None:
             command += ["--timing", str(timing)]
-        if controls:
-            command.append("--controls")
+        if controls is not None:
+            command += ["--controls", str(controls)]
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert self.process.stdout is not None and self.process.stderr is not None
         line = self.process.stdout.readline().strip()
@@ -230,17 +234,29 @@ class _Controls:
     def __init__(self) -> None:
         self.stops = 0
         self.resets = 0
+        self.reset_activates: list[bool | None] = []
 
     def request_stop(self) -> None:
         self.stops += 1
 
-    def request_reset(self) -> None:
+    def request_reset(self, activate: bool | None = None) -> None:
         self.resets += 1
+        self.reset_activates.append(activate)
 
 
-def _sink(port: int, controls: _Controls | None) -> TelemetrySink:
+def credentials(tmp_path: Path) -> tuple[Path, Path]:
+    """A usrpwd dictionary (operator, viewer) and the operator's client json5 file."""
+    users = write_users_file(tmp_path / "zenoh-users", {"operator": "s3cret", "viewer": "v1ew"})
+    return users, write_client_config(tmp_path / "operator.json5", "operator", "s3cret")
+
+
+def _sink(port: int, controls: _Controls | None, users: Path | None = None) -> TelemetrySink:
     config = TelemetryConfig(
-        enabled=True, listen=(f"tcp/127.0.0.1:{port}",), controls_enabled=controls is not None, stats_period_s=0.2
+        enabled=True,
+        listen=(f"tcp/127.0.0.1:{port}",),
+        controls_enabled=controls is not None,
+        stats_period_s=0.2,
+        auth=None if users is None else TelemetryAuth(users_file=users),
     )
     info = {
         "joints": list(JOINTS),
@@ -250,14 +266,15 @@ def _sink(port: int, controls: _Controls | None) -> TelemetrySink:
     return make_sink(config, "arm_q", info, controls)
 
 
-def test_queryables_status_stats_events_and_controls() -> None:
+def test_queryables_status_stats_events_and_controls(tmp_path: Path) -> None:
     port = _free_port()
     controls = _Controls()
-    sink = _sink(port, controls)
+    users, operator = credentials(tmp_path)
+    sink = _sink(port, controls, users)
     sink.start()
     received: dict[str, list[bytes]] = {"status": [], "stats": [], "events": []}
     try:
-        with TelemetryClient.open([f"tcp/127.0.0.1:{port}"], None, timeout_s=5.0) as client:
+        with TelemetryClient.open([f"tcp/127.0.0.1:{port}"], None, timeout_s=5.0, config_file=operator) as client:
             assert client.robot == "arm_q"  # found by its liveliness token
             schema = client.schema()
             assert schema.joints == JOINTS
@@ -276,6 +293,7 @@ def test_queryables_status_stats_events_and_controls() -> None:
     finally:
         sink.close()
     assert controls.stops == 1 and controls.resets == 1
+    assert controls.reset_activates == [False]  # a remote reset never enables the drives by itself
     statuses = [schema.decode_status(p)[1] for p in received["status"] if not schema.decode_status(p)[0].warmup]
     assert {"state": "FAULT", "fault": "EMCY node 2", "bundle_id": "pd:0123"} in statuses
     events = [schema.decode_event(p)[1] for p in received["events"]]
@@ -307,7 +325,7 @@ def test_cli_errors_are_one_line(tmp_path: Path) -> None:
     assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
     assert "no runtime alive at" in result.stderr
     result = _hil("telemetry", "record", "--out", str(tmp_path / "x.txt"), "--connect", f"tcp/127.0.0.1:{port}")
-    assert result.returncode == 2 and "the record is an .npz file" in result.stderr
+    assert result.returncode == 2 and "unknown record format '.txt' (use .npz, .mcap)" in result.stderr
     result = _hil("telemetry", "plot", str(tmp_path / "missing.npz"))
     assert result.returncode == 2 and "missing.npz: no such file" in result.stderr
     result = _hil("telemetry", "query", "schema", "--connect", "127.0.0.1:7447")
@@ -336,31 +354,81 @@ def test_watch_shows_the_arm_live() -> None:
         assert text in last_frame, (text, last_frame)
 
 
-def _acl_example(interfaces: str | None = None) -> str:
-    """The access-control json5 block of docs/telemetry.md (the one after <!-- acl-example -->)."""
+def _acl_example(users: Path, interfaces: str | None = None) -> str:
+    """The access-control json5 block of docs/telemetry.md (the one after <!-- acl-example -->),
+    with this test's users file."""
     text = (REPO / "docs" / "telemetry.md").read_text()
     block = text.split("<!-- acl-example -->", 1)[1].split("```json5\n", 1)[1].split("```", 1)[0]
+    assert 'dictionary_file: "/etc/hil/zenoh-users"' in block
+    block = block.replace("/etc/hil/zenoh-users", str(users))
     if interfaces is not None:
         assert 'interfaces: ["eth0", "wlan0"]' in block
         block = block.replace('interfaces: ["eth0", "wlan0"]', f"interfaces: {interfaces}")
     return block
 
 
+# Queries whose key expressions intersect hil/arm_q/stop or /reset without being them.
+WILDCARDS = ("hil/arm_q/**", "hil/*/stop", "hil/*/reset", "hil/arm_q/re$*", "hil/arm_q/st$*", "hil/**", "hil/arm_q/*")
+
+
+def _reply(reply: Any) -> tuple[str, bytes]:
+    if reply.ok is not None:
+        return "ok", reply.ok.payload.to_bytes()
+    return "err", reply.err.payload.to_bytes()
+
+
+def raw_gets(
+    endpoint: str, keys: tuple[str, ...], user: str | None = None, password: str | None = None
+) -> dict[str, list[tuple[str, bytes]]]:
+    """Every reply to each of ``keys`` (sent at once) from a plain Zenoh session (no hil code),
+    as (ok|err, payload)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    if user is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    session = zenoh.open(conf)
+    try:
+        time.sleep(0.3)  # the link is up (or refused)
+        pending = {key: session.get(key, timeout=1.0, target=zenoh.QueryTarget.ALL) for key in keys}
+        return {key: [_reply(r) for r in replies] for key, replies in pending.items()}
+    finally:
+        session.close()
+
+
 @pytest.mark.parametrize(("interfaces", "stop_allowed"), [('["lo"]', False), (None, True)])
 def test_the_documented_access_control_restricts_the_controls(
     tmp_path: Path, interfaces: str | None, stop_allowed: bool
 ) -> None:
-    """With the docs' rule applied to loopback, stop is refused and schema still answers; as
-    documented (network interfaces only), a stop from this machine goes through."""
+    """The docs' file verbatim (users file and interfaces substituted): an unauthenticated session
+    gets nothing; wildcard queries never reach stop/reset; with the rule applied to loopback, the
+    exact stop is refused and schema still answers; as documented (network interfaces only), an
+    authenticated stop from this machine goes through."""
+    users, operator = credentials(tmp_path)
     acl = tmp_path / "acl.json5"
-    acl.write_text(_acl_example(interfaces))
+    acl.write_text(_acl_example(users, interfaces))
     port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
     controls = _Controls()
-    config = TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), controls_enabled=True, zenoh_config=acl)
+    config = TelemetryConfig(enabled=True, listen=(endpoint,), controls_enabled=True, zenoh_config=acl)
     sink = make_sink(config, "arm_q", {"joints": list(JOINTS)}, controls)
     sink.start()
     try:
-        with TelemetryClient.open([f"tcp/127.0.0.1:{port}"], "arm_q", timeout_s=5.0) as client:
+        every = ("hil/arm_q/stop", "hil/arm_q/reset", "hil/arm_q/schema", *WILDCARDS)
+        for user, password in ((None, None), ("operator", "wrong")):
+            answered = {key: r for key, r in raw_gets(endpoint, every, user, password).items() if r}
+            assert answered == {}, f"{user or 'no user'}: replies without authentication"
+        answers = raw_gets(endpoint, WILDCARDS, "operator", "s3cret")
+        for key, replies in answers.items():
+            assert not [p for kind, p in replies if kind == "ok" and b'"request"' in p], (key, replies)
+        assert any(kind == "ok" for kind, _ in answers["hil/arm_q/**"]), "the operator's session is not connected"
+        assert controls.stops == 0 and controls.resets == 0, "a wildcard query reached a control"
+        with TelemetryClient.open([endpoint], "arm_q", timeout_s=5.0, config_file=operator) as client:
             assert client.schema().joints == JOINTS
             if stop_allowed:
                 assert client.query_json("stop") == {"ok": True, "request": "stop"}

@@ -14,6 +14,7 @@ from hil_runtime.telemetry import (
     make_sink,
     parse_telemetry_config,
 )
+from hil_runtime.telemetry.auth import TelemetryAuth
 from hil_runtime.telemetry.config import publisher_zenoh_config, zenoh_config
 from hil_runtime.telemetry.publisher import ZenohTelemetry
 
@@ -92,24 +93,28 @@ def test_json5_file_keeps_its_endpoints_unless_set(tmp_path: Path) -> None:
     bad = tmp_path / "bad.json5"
     bad.write_text("{ listen: ")
     with pytest.raises(TelemetryConfigError, match="bad.json5: not a valid Zenoh json5 config"):
-        publisher_zenoh_config(TelemetryConfig(enabled=True, zenoh_config=bad))
+        parse_telemetry_config({"enabled": True, "zenoh_config": str(bad)})
 
 
 class _Controls:
     def request_stop(self) -> None: ...
 
-    def request_reset(self) -> None: ...
+    def request_reset(self, activate: bool | None = None) -> None: ...
 
 
-def test_make_sink_choices() -> None:
+def test_make_sink_choices(tmp_path: Path) -> None:
     info = {"joints": ["a", "b"]}
+    users = tmp_path / "users"
+    users.write_text("operator:secret\n")
+    users.chmod(0o600)
+    controlled = TelemetryConfig(enabled=True, controls_enabled=True, auth=TelemetryAuth(users_file=users))
     assert isinstance(make_sink(TelemetryConfig(), "arm", info), NullTelemetry)
     sink = make_sink(TelemetryConfig(enabled=True), "arm", info, controls=_Controls())
     assert isinstance(sink, ZenohTelemetry) and sink._controls is None  # controls not enabled: not wired
-    sink = make_sink(TelemetryConfig(enabled=True, controls_enabled=True), "arm", info, controls=_Controls())
+    sink = make_sink(controlled, "arm", info, controls=_Controls())
     assert isinstance(sink, ZenohTelemetry) and sink._controls is not None
     with pytest.raises(TelemetryConfigError, match="controls_enabled: the runtime passed no controls"):
-        make_sink(TelemetryConfig(enabled=True, controls_enabled=True), "arm", info, controls=None)
+        make_sink(controlled, "arm", info, controls=None)
     with pytest.raises(TelemetryConfigError, match=r"info\['joints'\] must list the joint names"):
         make_sink(TelemetryConfig(enabled=True), "arm", {})
     with pytest.raises(TelemetryConfigError, match="telemetry: robot .* cannot be a Zenoh key chunk"):

@@ -27,6 +27,11 @@ class _Client:
     def __init__(self) -> None:
         self.handlers: dict[str, Callable[[bytes], None]] = {}
         self.alive: Callable[[bool], None] | None = None
+        self.publishers: dict[str, int] = {}
+        self.repliers: list[str] = []
+
+    def schema_repliers(self) -> list[str]:
+        return self.repliers
 
     def subscribe(self, key: str, handler: Callable[[bytes], None]) -> None:
         self.handlers[key] = handler
@@ -70,3 +75,25 @@ def test_each_key_is_decoded_warmup_skipped_and_refusals_counted() -> None:
     assert state.alive is True
     client.alive(False)
     assert state.alive is False
+
+
+def _text(renderable: object) -> str:
+    from rich.console import Console
+
+    console = Console(width=200, record=True, file=open("/dev/null", "w"))  # noqa: SIM115 - closed with the console
+    console.print(renderable)
+    return console.export_text()
+
+
+def test_the_view_names_the_publishing_session_and_warns_when_several_publish() -> None:
+    from hil_runtime.telemetry.cli import render_watch
+
+    client = _Client()
+    client.repliers = ["aaa1"]
+    state = attach_watch(client, Schema(build_schema("arm", JOINTS)))
+    client.publishers["aaa1"] = 10  # the client counts each sample's session; the view reads the same dict
+    text = _text(render_watch(state, "arm", JOINTS))
+    assert "published by Zenoh session aaa1" in text and "WARNING" not in text
+    client.publishers["bbb2"] = 3  # a second session publishing as hil/arm
+    text = _text(render_watch(state, "arm", JOINTS))
+    assert "WARNING: several Zenoh sessions publish as hil/arm (samples from aaa1, bbb2; schema from aaa1)" in text
