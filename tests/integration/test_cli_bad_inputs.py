@@ -297,6 +297,7 @@ CASES: list[Case] = [
         "  mode: lmpc\n  trusted_keys: [lab.pub]",
         "signatures: none by a trusted key",
         files={"lab.pub": LAB_PUBLIC_PEM},
+        where=f"bundle {PD_BUNDLE}/manifest.json",
     ),
     _runtime_case(
         "bundle-trusted-key-not-a-key",
