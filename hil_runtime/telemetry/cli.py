@@ -204,9 +204,13 @@ def foxglove(
     ] = 50.0,
     seconds: Annotated[
         float | None,
-        typer.Option("--seconds", help="stop after [default: Ctrl-C]", callback=_seconds(0.0, 7 * 86400.0)),
+        typer.Option(
+            "--seconds", help="stop after this long (default: at Ctrl-C)", callback=_seconds(0.0, 7 * 86400.0)
+        ),
     ] = None,
-    urdf: Annotated[Path | None, typer.Option("--urdf", help="the arm's URDF [default: the bundle's]")] = None,
+    urdf: Annotated[
+        Path | None, typer.Option("--urdf", help="the arm's URDF (default: the bundle's robot, found by its sha256)")
+    ] = None,
     allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen beyond loopback")] = False,
     robot: RobotOption = None,
     connect: ConnectOption = None,
