@@ -149,6 +149,14 @@ class CanCapture:
         finally:
             self._logger.stop()
         os.replace(self._tmp, self.path)
+        if self.dropped or self.error is not None:
+            log.warning(
+                "CAN capture %s: %d frames written, %d dropped%s",
+                self.path,
+                self.written,
+                self.dropped,
+                f", writer failed: {self.error!r}" if self.error is not None else "",
+            )
 
     def abandon(self) -> None:
         """Stop without keeping anything (a run refused before it started)."""

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 IDENTITY = 0x1018
 DEVICE_NAME = 0x1008
+POLARITY = 0x607E  # CiA 402 polarity: bit 7 position, bit 6 velocity
 NMT_NAMES = {0x00: "boot-up", 0x04: "stopped", 0x05: "operational", 0x7F: "pre-operational"}
 
 
@@ -174,6 +175,18 @@ def read_back(bus: DriveBus) -> list[Finding]:
         )
         max_permille = node.joint.max_torque_nm * abs(node.permille_per_nm)
         r.add("ok", odx.TARGET_TORQUE, 0, f"torque limit {node.joint.max_torque_nm} N·m = {max_permille:.0f} per mille")
+        polarity_flags = r.read(POLARITY)
+        if polarity_flags is not None:
+            # 0x607E bit 7 flips positions, bit 6 velocities: one without the other breaks any loop.
+            position_flip, velocity_flip = bool(polarity_flags & 0x80), bool(polarity_flags & 0x40)
+            level: Level = "ok" if position_flip == velocity_flip else "error"
+            r.add(
+                level,
+                POLARITY,
+                0,
+                f"0x{polarity_flags:02X}: the drive's own polarity (position "
+                f"{'reversed' if position_flip else 'normal'}, velocity {'reversed' if velocity_flip else 'normal'})",
+            )
         reactions = spec.reactions if spec is not None else None
         quick_stop = reactions.quick_stop if reactions is not None else None
         r.expect(odx.QUICK_STOP_OPTION, 0, quick_stop if quick_stop is not None else bus.config.quick_stop_option)

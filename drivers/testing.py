@@ -56,7 +56,8 @@ class FakeJointBus(JointBusBase):
     ``max_torque_nm`` clips set-points as the drives do (``commanded_torque_nm`` is what the plant
     got); ``max_missed_cycles`` is the stale-feedback budget, as in ``DriveBusConfig``. Quick stop
     and disable zero the torque and freeze the plant (the brake holds). ``keep_commands=False``
-    stops :attr:`commands` growing (benchmarks and allocation tests run thousands of cycles).
+    stops :attr:`commands` and the "exchange" entries of :attr:`events` growing (benchmarks and
+    allocation tests run thousands of cycles).
     """
 
     def __init__(
@@ -165,8 +166,8 @@ class FakeJointBus(JointBusBase):
         return self._step(torque)
 
     def _cycle_internal(self, setpoint_nm: np.ndarray) -> DriveFeedback:
-        self.events.append("exchange")
         if self.keep_commands:
+            self.events.append("exchange")
             self.commands.append(setpoint_nm.copy())
         if self._next_error is not None:
             error, self._next_error = self._next_error, None

@@ -83,6 +83,14 @@ def reset(socket_path: SocketOption = None, config: ConfigOption = None) -> None
     )
 
 
+def activate(socket_path: SocketOption = None, config: ConfigOption = None) -> None:
+    """INACTIVE -> ACTIVE: enable the drives (e.g. after a reset over Zenoh, which stops at INACTIVE)."""
+    from hil_runtime.control import send_command
+
+    reply = send_command(_socket_of(socket_path, config), "activate")
+    print(f"activation requested (state was {reply.get('state')})")
+
+
 def stop(socket_path: SocketOption = None, config: ConfigOption = None) -> None:
     """Stop the daemon's loop as SIGTERM does (quick stop, disable, exit 0)."""
     from hil_runtime.control import send_command
@@ -95,4 +103,5 @@ def register(app: typer.Typer) -> None:
     app.command("run")(run)
     app.command("status")(status)
     app.command("reset")(reset)
+    app.command("activate")(activate)
     app.command("stop")(stop)

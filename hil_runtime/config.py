@@ -32,6 +32,7 @@
       position_upper_rad: null
       velocity_limit_rad_s: null
       max_stale_cycles: 1
+      overrun_budget: 20                 # late periods in a row before FAULT overrun_budget
     telemetry: {enabled: false}          # hil_runtime.telemetry
     control_socket: /run/hil/runtime.sock   # hil status / hil reset / hil stop; null: none
 
@@ -125,6 +126,8 @@ class SafetySection(_Frozen):
     position_upper_rad: tuple[float, ...] | None = None
     velocity_limit_rad_s: tuple[float, ...] | None = None
     max_stale_cycles: int = Field(1, ge=0, le=1000)  # consecutive cycles with stale feedback before FAULT
+    # Late periods in a row (an overrun and the periods it skipped) before FAULT overrun_budget.
+    overrun_budget: int = Field(20, ge=1, le=100_000)
 
     @model_validator(mode="after")
     def _check(self) -> SafetySection:

@@ -65,7 +65,7 @@ def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimi
     drives = np.array([j.max_torque_nm for j in config.bus.joints])
     torque = np.minimum(np.asarray(bundle.torque_limit_nm, float), drives)
     try:
-        return SafetyLimits(lower, upper, vmax, torque, safety.max_stale_cycles)
+        return SafetyLimits(lower, upper, vmax, torque, safety.max_stale_cycles, safety.overrun_budget)
     except ValueError as exc:
         raise RuntimeConfigError(f"{config.source}: safety: {exc}") from None
 

@@ -101,6 +101,9 @@ class Pacer:
         self.cycles = 0  # cycles actually run
         self.overruns = 0  # cycles that started after their deadline (the one before ran too long)
         self.skipped = 0  # periods skipped because of overruns
+        # Periods in a row without an on-time start: each overrun and the periods it skipped (0
+        # when this cycle started on time); the supervisor's overrun budget reads it.
+        self.late_run = 0
         self.started_s = 0.0
         self._next_s = 0.0
         self._last_start_s = math.nan
@@ -118,6 +121,7 @@ class Pacer:
         self.cycles = 0
         self.overruns = 0
         self.skipped = 0
+        self.late_run = 0
         for stats in (self.period_stats, self.compute_stats, self.exchange_stats):
             stats.reset()
         return now
@@ -143,11 +147,13 @@ class Pacer:
                 now = clock()
                 self.tick += 1
                 self._next_s = deadline
+                self.late_run = 0
             else:  # the last cycle ran past this deadline: an overrun
                 late = int((now - deadline) // self.period_s)  # whole periods already past: skipped
                 self.overruns += 1
                 self.skipped += late
                 self.tick += 1 + late
+                self.late_run += 1 + late
                 self._next_s = deadline + late * self.period_s
         if self.cycles > 0:
             self.period_stats.add(now - self._last_start_s)

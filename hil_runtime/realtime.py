@@ -5,6 +5,9 @@
 - :func:`set_thread_fifo` / :func:`set_thread_affinity`: SCHED_FIFO and CPU affinity for the
   *calling thread only* (``os.sched_setscheduler(0, ...)`` acts on the calling thread on Linux).
   Threads created afterwards inherit them, so the runtime starts its helper threads first.
+- :func:`keep_other_threads_off`: every other thread of the process (publisher, bus receive,
+  Zenoh's and onnxruntime's own) moved off the loop's CPUs, where the machine has others; they
+  keep SCHED_OTHER (created before the loop thread took SCHED_FIFO).
 - :func:`freeze_heap` / :class:`GcQuiet`: ``gc.collect(); gc.freeze()`` before the drives are
   enabled (the survivors are never scanned again) and ``gc.disable()`` while ACTIVE, so no
   collection pauses the loop; re-enabled after.
@@ -15,12 +18,14 @@ and the docs' figures.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import errno
 import gc
 import logging
 import os
+import threading
 from dataclasses import dataclass, field
 from typing import Self
 
@@ -72,6 +77,26 @@ def set_thread_affinity(cpus: tuple[int, ...], report: RealtimeReport | None = N
     except (OSError, ValueError, AttributeError) as exc:
         return report.note(f"CPU affinity {list(cpus)}", False, getattr(exc, "strerror", None) or str(exc))
     return report.note(f"CPU affinity {list(cpus)}", True)
+
+
+def keep_other_threads_off(cpus: tuple[int, ...], report: RealtimeReport | None = None) -> bool:
+    """Move every thread of this process but the calling one off ``cpus`` (the loop's), when the
+    calling thread may run elsewhere too (call it before pinning the calling thread); threads
+    created later inherit their creator's affinity."""
+    report = report or RealtimeReport()
+    try:
+        others = set(os.sched_getaffinity(0)) - set(cpus)
+        if not others:
+            return report.note("helper threads off the loop's CPU", False, "no other CPU")
+        me = threading.get_native_id()
+        for name in os.listdir("/proc/self/task"):
+            tid = int(name)
+            if tid != me:
+                with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+                    os.sched_setaffinity(tid, others)
+    except (OSError, ValueError, AttributeError) as exc:
+        return report.note("helper threads off the loop's CPU", False, getattr(exc, "strerror", None) or str(exc))
+    return report.note(f"helper threads on CPU {sorted(others)}", True)
 
 
 def clock_pacing_risk(period_s: float, fifo_applied: bool) -> str | None:

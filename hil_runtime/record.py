@@ -40,11 +40,11 @@ class RunRecord:
         self.tau = np.zeros((capacity, n_joints))  # the command the supervisor chose
         self.tau_fb = np.zeros((capacity, n_joints))
         self.fallback = np.zeros(capacity)
-        self.compute_s = np.zeros(capacity)  # this cycle's loop work, policy call included
+        self.compute_s = np.zeros(capacity)  # feedback to set-points (hil_runtime.loop: one meaning)
         self.exchange_s = np.zeros(capacity)  # this cycle's wait on the bus
 
     def add(self, sample: CycleState, t_s: float, wall_s: float, exchange_s: float) -> int:
-        """Store one row; returns its index (-1 when full). The loop fills compute_s at the cycle's end."""
+        """Store one row; returns its index (-1 when full)."""
         i = self.n
         if i >= self.capacity:
             self.overflow += 1
@@ -58,6 +58,7 @@ class RunRecord:
         self.tau[i] = sample.tau
         self.tau_fb[i] = sample.tau_fb
         self.fallback[i] = sample.fallback
+        self.compute_s[i] = sample.compute_s
         self.exchange_s[i] = exchange_s
         self.n = i + 1
         return i

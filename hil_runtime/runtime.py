@@ -9,9 +9,9 @@ A library first, the daemon second (``hil run`` wraps it, :mod:`hil_runtime.daem
     runtime.record.arrays()                        # t_s, q, qd, q_ref, qd_ref, tau, tau_fb, fallback
     runtime.shutdown()                             # quick stop, disable, close: FINALIZED
 
-Per cycle (ACTIVE), on one thread:
+Per cycle (ACTIVE), on one thread (:mod:`hil_runtime.loop`, the loop apart from this lifecycle):
 
-    pacer.wait ─▶ bus.exchange(set-points) ─▶ supervisor.check_feedback ─▶ reference row
+    pacer.wait ─▶ overrun budget ─▶ bus.exchange(set-points) ─▶ supervisor.check_feedback ─▶ reference row
         ─▶ controller.step (one onnxruntime call) ─▶ supervisor.select_torque ─▶ next set-points
         ─▶ telemetry.offer_state (bounded, never blocks) ─▶ record ─▶ watchdog ping (sd_notify)
 
@@ -37,19 +37,20 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DriveError
-from drivers.joint_bus import JointBus, JointFeedback
-from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle
+from drivers.joint_bus import JointBus
+from hil_runtime.bundle import BundleError, PolicyBundle
 from hil_runtime.conditions import ConditionError
 from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.controller import Controller
 from hil_runtime.lifecycle import Lifecycle, LifecycleError, LifecycleState, Transition
 from hil_runtime.loading import condition_for, load_bundle_for, safety_limits_for
+from hil_runtime.loop import ActiveLoop, CyclePipeline
 from hil_runtime.pacer import Pacer
 from hil_runtime.realtime import (
-    GcQuiet,
     RealtimeReport,
     clock_pacing_risk,
     freeze_heap,
+    keep_other_threads_off,
     set_thread_affinity,
     set_thread_fifo,
 )
@@ -58,7 +59,7 @@ from hil_runtime.reference import ConditionTable, Reference
 from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, finite
 from hil_runtime.sdnotify import Notifier
 from hil_runtime.supervisor import Fault, FaultKind, Supervisor, classify_bus_error
-from hil_runtime.telemetry.sink import CycleState, NullTelemetry, TelemetrySink
+from hil_runtime.telemetry.sink import NullTelemetry, TelemetrySink
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +99,6 @@ class Runtime:
         self.condition = condition_for(config, self.limits)
         self.controller = Controller(self.bundle, config.bundle.mode)
         self.supervisor = Supervisor(self.limits, config.joint_names)
-        self.telemetry: TelemetrySink = telemetry if telemetry is not None else NullTelemetry()
         self.notifier = notifier if notifier is not None else Notifier(None)
         self.lifecycle = Lifecycle()
         self.lifecycle.subscribe(self._on_lifecycle)
@@ -108,16 +108,25 @@ class Runtime:
         )
         n = self.bundle.n_joints
         self.record = RunRecord(record_cycles, n)
-        self.reference: Reference = Reference.hold(np.zeros(n))
         self._condition_table: ConditionTable | None = None  # built by configure, before any enable
         self.realtime = RealtimeReport()
-        self._command = np.zeros(n)  # the set-points the next exchange sends
-        self._ref_base = 1  # reference row of the pacer's tick 0: exchange k returns period k + 1
-        self._t0_s = 0.0  # clock at activation
+        self.pipeline = CyclePipeline(
+            self.supervisor, self.controller, self.record, config.joint_names, config.period_s, clock
+        )
+        self.telemetry = telemetry if telemetry is not None else NullTelemetry()
         # Wall time: a skipped period moves the reference on (a real arm moved meanwhile); cycles:
         # one reference row per exchange (a lock-stepped target advanced exactly one period).
         base = config.loop.time_base
-        self._wall_time = (config.loop.pacing == "clock") if base == "auto" else (base == "wall")
+        self.loop = ActiveLoop(
+            self.pacer,
+            bus,
+            self.pipeline,
+            self.notifier,
+            wall_time=(config.loop.pacing == "clock") if base == "auto" else (base == "wall"),
+            stats_interval_s=config.loop.stats_interval_s,
+            publish_stats=self._publish_stats,
+            stop_requested=lambda: self._stop,
+        )
         self._stop = False
         self._reset = False
         self._reset_activates: bool | None = None  # None: loop.activate_on_reset decides
@@ -127,8 +136,6 @@ class Runtime:
         self._ready_sent = False
         self._activations = 0
         self._faults = 0
-        self.total_cycles = 0  # exchanges in ACTIVE
-        self._sample = CycleState.zeros(n)  # this cycle's state, handed to telemetry and the record
         self.last_fault: Fault | None = None
         self.fault_cycle: int | None = None  # total_cycles when the last fault was entered
         self._last_stats: dict[str, Any] = {}
@@ -155,6 +162,25 @@ class Runtime:
     @property
     def state(self) -> LifecycleState:
         return self.lifecycle.state
+
+    @property
+    def total_cycles(self) -> int:
+        """Exchanges in ACTIVE (one that raised included: its frames went out)."""
+        return self.pipeline.cycle
+
+    @property
+    def telemetry(self) -> TelemetrySink:
+        return self._telemetry
+
+    @telemetry.setter
+    def telemetry(self, sink: TelemetrySink) -> None:
+        """Replaceable until configure() (the daemon wires the Zenoh sink to the runtime it reports on)."""
+        self._telemetry = sink
+        self.pipeline.telemetry = sink
+
+    @property
+    def reference(self) -> Reference:
+        return self.pipeline.reference
 
     # --- lifecycle transitions (the loop's thread) -----------------------------------------------
     def configure(self) -> None:
@@ -200,11 +226,12 @@ class Runtime:
         if fault is not None:
             self._enter_fault(fault)
             return False
-        self.reference = self._build_reference(q0)
+        pipeline = self.pipeline
+        pipeline.reference = self._build_reference(q0)
         self.controller.reset(q0)
-        self._ref_base = 1
-        self._t0_s = now = self._clock()
-        fault = self._compute(feedback, 0, now, now)
+        self.loop.ref_base = 1
+        pipeline.t0_s = now = self._clock()
+        fault = pipeline.run(feedback, 0, now, now)
         if fault is not None:
             self._enter_fault(fault)
             return False
@@ -296,112 +323,11 @@ class Runtime:
         self.notifier.watchdog_if_due(self._clock())
 
     def _run_active(self, max_cycles: int | None, duration_ticks: int | None) -> str:
-        pacer = self.pacer
-        bus = self.bus
-        clock = self._clock
-        notifier = self.notifier
-        compute = self._compute
-        exchange_stats = pacer.exchange_stats
-        compute_stats = pacer.compute_stats
-        stats_interval = self.config.loop.stats_interval_s
-        command = self._command
-        record = self.record
-        base = self._ref_base
-        wall_time = self._wall_time  # reference index: period slots (skips included) or exchanges
-        k = base
-        reason = "stop"
-        with GcQuiet():
-            pacer.start()
-            next_stats = clock() + stats_interval
-            while True:
-                start = pacer.wait()
-                if self._stop:
-                    break
-                self.total_cycles += 1  # an exchange that raises still happened (frames went out)
-                try:
-                    feedback = bus.exchange(command)
-                except DriveError as exc:  # the driver has quick-stopped the drives already
-                    self._enter_fault(classify_bus_error(exc))
-                    reason = "fault"
-                    break
-                except Exception as exc:  # noqa: BLE001 - nothing may crash the loop
-                    self._enter_fault(Fault(FaultKind.INTERNAL, f"exchange: {exc!r}"))
-                    reason = "fault"
-                    break
-                received = clock()
-                try:
-                    k = base + (pacer.tick if wall_time else pacer.cycles - 1)
-                    fault = compute(feedback, k, start, received)
-                except Exception as exc:  # a bug must still stop the arm safely
-                    log.exception("loop computation failed")
-                    fault = Fault(FaultKind.INTERNAL, f"{type(exc).__name__}: {exc}")
-                if fault is not None:
-                    self._enter_fault(fault)
-                    reason = "fault"
-                    break
-                done = clock()
-                exchange_stats.add(received - start)
-                compute_stats.add(done - received)
-                if record.n and not record.overflow:
-                    record.compute_s[record.n - 1] = done - received
-                notifier.watchdog_if_due(done)
-                if done >= next_stats:
-                    next_stats = done + stats_interval
-                    self._publish_stats()
-                if max_cycles is not None and pacer.cycles >= max_cycles:
-                    reason = "cycles"
-                    break
-                if duration_ticks is not None and k >= duration_ticks:
-                    reason = "duration"
-                    break
-        if pacer.cycles:
-            self._ref_base = k + 1  # a later run() goes on along the reference
+        reason = self.loop.run(max_cycles, duration_ticks)
+        if reason == "fault" and self.loop.fault is not None:
+            self._enter_fault(self.loop.fault)
         self._publish_stats()
         return reason
-
-    def _compute(self, feedback: JointFeedback, k: int, start_s: float, received_s: float) -> Fault | None:
-        """Feedback -> supervisor -> reference row k -> policy -> supervisor -> self._command.
-
-        ``start_s``: the cycle's start (before the exchange); ``received_s``: when feedback came in.
-        """
-        q = feedback.position_rad
-        qd = feedback.velocity_rad_s
-        supervisor = self.supervisor
-        fault = supervisor.check_feedback(q, qd, feedback.fresh)
-        if fault is not None:
-            return fault
-        if supervisor.stale_run == 1:  # the first stale cycle: said at once (FAULT past max_stale_cycles)
-            stale = [self.config.joint_names[i] for i in np.flatnonzero(~np.asarray(feedback.fresh, bool))]
-            self.telemetry.event(
-                "stale_feedback", self.total_cycles, f"no fresh feedback from {', '.join(stale)}; last values held"
-            )
-        q_d, qd_d, qdd_d = self.reference.at(k)
-        controller = self.controller
-        try:
-            tau, tau_fb, fallback = controller.step(q, qd, q_d, qd_d, qdd_d)
-        except NonFiniteOutputError as exc:  # nothing finite to command: its own FAULT, not a bug
-            return Fault(FaultKind.POLICY_NONFINITE, str(exc))
-        command = self._command
-        fault = supervisor.select_torque(tau, tau_fb, fallback, command)
-        if fault is not None:
-            return fault
-        controller.commit(command)
-        # compute_s here: this cycle's work up to the hand-off (the pacer's stats hold the full cycle's)
-        sample = self._sample
-        sample.seq += 1
-        sample.t_ns = time.monotonic_ns()
-        sample.q = q
-        sample.qd = qd
-        sample.q_ref = q_d
-        sample.qd_ref = qd_d
-        sample.tau = command
-        sample.tau_fb = tau_fb
-        sample.fallback = fallback
-        sample.compute_s = self._clock() - received_s
-        self.telemetry.offer_state(sample)
-        if self.record.capacity:
-            self.record.add(sample, k * self.pacer.period_s, start_s - self._t0_s, received_s - start_s)
-        return None
 
     # --- faults, reset -------------------------------------------------------------------------------
     def _enter_fault(self, fault: Fault) -> None:
@@ -458,26 +384,10 @@ class Runtime:
         )
 
     def _warm_up(self) -> None:
-        """Run the policy, the supervisor and the reference code paths before ACTIVE (onnxruntime's
-        first calls allocate), then restore the controller and counters."""
-        n = self.bundle.n_joints
+        """The cycle's pipeline before ACTIVE (onnxruntime's first calls allocate), nothing sent."""
         mid = 0.5 * (self.limits.position_lower_rad + self.limits.position_upper_rad)
-        fresh = np.ones(n, dtype=bool)
-        reference = Reference.hold(mid)
-        self.controller.reset(mid)
-        scratch = np.zeros(n)
-        zeros = np.zeros(n)
-        for k in range(self.config.loop.warmup_cycles):
-            self.supervisor.check_feedback(mid, zeros, fresh)
-            q_d, qd_d, qdd_d = reference.at(k)
-            tau, tau_fb, fallback = self.controller.step(mid, zeros, q_d, qd_d, qdd_d)
-            self.supervisor.select_torque(tau, tau_fb, fallback, scratch)
-            self.controller.commit(scratch)
-            self.pacer.compute_stats.add(0.0)
-        self.pacer.summary()
-        self.pacer.compute_stats.reset()
-        self.supervisor.reset_counters()
-        self.controller.reset(mid)
+        self.pipeline.warm_up(self.config.loop.warmup_cycles, mid)
+        self.pacer.summary()  # its buffers touched once too
 
     def _apply_thread_settings(self) -> None:
         ident = threading.get_ident()
@@ -485,7 +395,10 @@ class Runtime:
             return
         self._rt_thread = ident
         loop = self.config.loop
+        # The helper threads (publisher, bus receive, Zenoh, onnxruntime) exist by now and keep
+        # SCHED_OTHER; off the loop's CPU where the machine has another.
         if loop.cpu_affinity:
+            keep_other_threads_off(loop.cpu_affinity, self.realtime)
             set_thread_affinity(loop.cpu_affinity, self.realtime)
         fifo = loop.fifo_priority is not None and set_thread_fifo(loop.fifo_priority, self.realtime)
         risk = clock_pacing_risk(self.config.period_s, fifo) if loop.pacing == "clock" else None

@@ -10,6 +10,11 @@ Feedback (:meth:`Supervisor.check_feedback`), before the policy runs:
     |velocity| above its limit                         -> FAULT velocity_limit
     stale feedback more than max_stale_cycles in a row -> FAULT stale_feedback
 
+Timing (:meth:`Supervisor.check_overruns`), before the exchange of a cycle that started late:
+
+    more than overrun_budget late periods in a row     -> FAULT overrun_budget
+    (an overrun and the periods it skipped; the drives hold the last set-point meanwhile)
+
 Policy output (:meth:`Supervisor.select_torque`), after it:
 
     tau finite                       -> tau (clipped to the torque limit)
@@ -48,6 +53,7 @@ class FaultKind(str, enum.Enum):
     TRANSPORT = "transport"
     BUS_INTRUDER = "bus_intruder"  # a second sender or a second master on the bus (drivers/bus_guard.py)
     COMMAND = "command"
+    OVERRUN_BUDGET = "overrun_budget"
     INTERNAL = "internal"
 
 
@@ -67,6 +73,7 @@ class SafetyLimits:
     velocity_limit_rad_s: np.ndarray
     torque_limit_nm: np.ndarray
     max_stale_cycles: int = 1
+    overrun_budget: int = 20  # late periods in a row tolerated (docs/runtime.md, "Overruns")
 
     def __post_init__(self) -> None:
         n = self.torque_limit_nm.shape
@@ -164,6 +171,17 @@ class Supervisor:
         j = int(np.argmax(np.abs(qd) - self._vmax))
         return Fault(
             FaultKind.VELOCITY_LIMIT, f"{self.joint_names[j]} at {qd[j]:.4f} rad/s, limit ±{self._vmax[j]:.4f}"
+        )
+
+    # --- timing -------------------------------------------------------------------------------------
+    def check_overruns(self, late_periods: int) -> Fault | None:
+        """None while ``late_periods`` (in a row) is within the budget; else FAULT overrun_budget."""
+        budget = self.limits.overrun_budget
+        if late_periods <= budget:
+            return None
+        return Fault(
+            FaultKind.OVERRUN_BUDGET,
+            f"{late_periods} late periods in a row, budget {budget}: the drives held a stale set-point too long",
         )
 
     # --- policy output --------------------------------------------------------------------------

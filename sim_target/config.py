@@ -149,7 +149,8 @@ class RunStart(_Frozen):
     At the first period in which every drive is in Operation Enabled, after that period's step,
     the arm is placed at ``position_rad`` moving at ``velocity_rad_s``, simulated time restarts at
     0 and ``faults`` are scheduled from there (their ``at_s`` in the new time; the config's faults
-    are dropped). The TPDOs of that SYNC report the placed state. A test rig's privilege (a real
+    are dropped). The TPDOs of that SYNC report the placed state (free-running: the arm is placed at
+    that SYNC, before its answer, without a step). A test rig's privilege (a real
     arm cannot be placed): it lets a HIL run start exactly where a simulation starts.
     """
 

@@ -46,12 +46,13 @@ _MOVABLE_JOINT_TYPES = (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)
 # 1e-3 rad over 2 s for joint moves of a few tenths of a radian (benchmarks/bench_plant_parity.py).
 DEFAULT_SUBSTEPS = 32
 _BRAKE_POSITION_GAIN = 0.5  # fraction of the position error the brake motor removes per substep
-# Every joint braked and not one moved by more than this over a period: the brakes hold the arm at
-# a fixed point of pybullet's solver (its reported velocity there is a constant ~1e-5 rad/s
-# artefact, the position does not change in the last bit), and the periods after it are not
-# integrated until something changes (a drive enabled, a payload, an impulse, a reset): a held
-# arm cost pybullet 2-3 times a free period (its position motors), most of an idle target's CPU.
-_HELD_MOTION_RAD = 1e-12
+# Every joint braked and not one moved by more than this over a period: the brakes hold the arm
+# (at 8+ substeps at a fixed point of pybullet's solver, to the last bit; at 4, in a 6e-9 rad limit
+# cycle; its reported velocity there is a ~1e-5 rad/s artefact), and the periods after it are not
+# integrated until something changes (a drive enabled, a payload, an impulse, a reset): a held arm
+# cost pybullet 2-3 times a free period (its position motors), most of an idle target's CPU. A
+# brake that slips (load over its holding torque) accelerates far past this and is integrated.
+_HELD_MOTION_RAD = 1e-8
 
 
 class PlantError(ValueError):

@@ -172,6 +172,13 @@ class TargetServer:
             self._publish_snapshot()
             return
         self._lock_phase_to_sync(time.monotonic())
+        self._take_pending()
+        if self._start is not None and np.asarray(self.drives.operation_enabled(), dtype=bool).all():
+            # Placed at the SYNC that finds every drive enabled, and that SYNC answered with the
+            # placed state (as in lock-step): the master's first torque is computed on it, not on
+            # the pose the arm had before (a saturated torque on the placed arm, 2 ms to a fault).
+            self.drives.publish_feedback(self._place(self._start))
+            return
         self.drives.publish_feedback(self.plant.state())
 
     def _lock_phase_to_sync(self, sync_s: float) -> None:

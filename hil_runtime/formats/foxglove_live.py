@@ -6,7 +6,7 @@ A Foxglove WebSocket server (the ``foxglove-sdk`` package; 127.0.0.1:8765 by def
 |---|---|---|
 | ``/joint_states`` | ``sensor_msgs/msg/JointState`` (JSON) | measured q [rad], q̇ [rad/s], applied τ [N·m] |
 | ``/joint_reference`` | ``sensor_msgs/msg/JointState`` (JSON) | q_ref, q̇_ref, the law's τ_fb |
-| ``/tf`` | ``foxglove.FrameTransforms`` | every URDF joint's transform at the measured q |
+| ``/tf`` | ``foxglove.FrameTransforms`` | each URDF joint at the measured q; under ``reference/`` at q_ref |
 | ``/robot_description`` | ``std_msgs/msg/String`` (JSON) | the arm's URDF (republished every second) |
 | ``/hil/cycle`` ``/hil/stats`` ``/hil/status`` ``/hil/events`` | JSON schemas of the MCAP record | |
 
@@ -46,6 +46,7 @@ JOINT_STATE_JSON_SCHEMA = {
     },
 }
 STRING_JSON_SCHEMA = {"type": "object", "properties": {"data": {"type": "string"}}}
+REFERENCE_PREFIX = "reference/"  # /tf frames of the reference arm (q_ref)
 
 
 class FoxgloveError(ValueError):
@@ -153,25 +154,32 @@ class FoxgloveBridge:
             {"seq": seq, "fallback": float(sample["fallback"]), "compute_s": float(sample["compute_s"])}, log_time=t_ns
         )
         if self.frames:
-            self._tf.log(self._transforms(q, t_ns), log_time=t_ns)
+            self._tf.log(self._transforms(q, np.asarray(sample["q_ref"]), t_ns), log_time=t_ns)
         self.states_out += 1
 
-    def _transforms(self, q: np.ndarray, t_ns: int) -> Any:
+    def _transforms(self, q: np.ndarray, q_ref: np.ndarray, t_ns: int) -> Any:
+        """The measured arm's link frames, and the reference arm's under ``reference/`` (a second
+        URDF layer with that frame prefix draws it beside the measured one)."""
         m = self._messages
-        sec, nsec = divmod(t_ns, 1_000_000_000)
-        transforms = []
-        for frame in self.frames:
-            i = self._index.get(frame.name)
-            translation, rotation = frame.transform(float(q[i]) if i is not None else 0.0)
-            transforms.append(
-                m.FrameTransform(
-                    timestamp=m.Timestamp(sec=sec, nsec=nsec),
-                    parent_frame_id=frame.parent,
-                    child_frame_id=frame.child,
-                    translation=m.Vector3(x=translation[0], y=translation[1], z=translation[2]),
-                    rotation=m.Quaternion(x=rotation[0], y=rotation[1], z=rotation[2], w=rotation[3]),
-                )
+        stamp = m.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
+
+        def transform(parent: str, child: str, translation: Any, rotation: Any) -> Any:
+            return m.FrameTransform(
+                timestamp=stamp,
+                parent_frame_id=parent,
+                child_frame_id=child,
+                translation=m.Vector3(x=translation[0], y=translation[1], z=translation[2]),
+                rotation=m.Quaternion(x=rotation[0], y=rotation[1], z=rotation[2], w=rotation[3]),
             )
+
+        transforms = []
+        for prefix, positions in (("", q), (REFERENCE_PREFIX, q_ref)):
+            for frame in self.frames:
+                i = self._index.get(frame.name)
+                translation, rotation = frame.transform(float(positions[i]) if i is not None else 0.0)
+                transforms.append(transform(prefix + frame.parent, prefix + frame.child, translation, rotation))
+        root = self.frames[0].parent  # the reference arm stands where the measured one does
+        transforms.append(transform(root, REFERENCE_PREFIX + root, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
         return m.FrameTransforms(transforms=transforms)
 
     def on_json(self, topic: str, body: dict[str, Any], t_ns: int) -> None:

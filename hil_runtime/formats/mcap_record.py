@@ -359,8 +359,17 @@ def save_mcap_record(
     """``hil telemetry record --out x.mcap``: received state rows (``seq``, ``t_ns``, q, qd, q_ref,
     qd_ref, tau, tau_fb, fallback, compute_s), status and events (each with its ``t_ns``) and JSON
     documents (config, bundle: attachments) into one MCAP file; returns the rows written."""
-    attachments = {f"{name}.json": _json(doc) for name, doc in (documents or {}).items() if doc is not None}
-    recorder = McapRecorder(path, joints, robot, urdf=(urdf.name, urdf.read_bytes()) if urdf is not None else None)
+    attachments = {
+        f"{name}.json": _json(doc) for name, doc in (documents or {}).items() if isinstance(doc, (dict, list))
+    }
+    period_s = (documents or {}).get("period_s")
+    recorder = McapRecorder(
+        path,
+        joints,
+        robot,
+        urdf=(urdf.name, urdf.read_bytes()) if urdf is not None else None,
+        metadata={"period_s": repr(float(period_s))} if isinstance(period_s, (int, float)) else None,
+    )
     try:
         for name, data in attachments.items():
             now_ns = time.time_ns()
@@ -396,11 +405,19 @@ def read_mcap_record(path: Path) -> dict[str, Any]:
         raise McapRecordError(f"{path}: reading MCAP needs the mcap package: pip install mcap") from None
     columns: dict[str, list[Any]] = {name: [] for name in ("t_ns", "q", "qd", "tau", "q_ref", "qd_ref", "tau_fb")}
     joints: list[str] = []
+    seq: list[int] = []
+    metadata: dict[str, str] = {}
     try:
         with open(path, "rb") as stream:
             reader = make_reader(stream)
-            topics = [JOINT_STATES_TOPIC, REFERENCE_TOPIC]
+            for record_metadata in reader.iter_metadata():
+                if record_metadata.name == "hil":
+                    metadata = dict(record_metadata.metadata)
+            topics = [JOINT_STATES_TOPIC, REFERENCE_TOPIC, CYCLE_TOPIC]
             for _schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                if channel.topic == CYCLE_TOPIC:
+                    seq.append(int(json.loads(message.data)["seq"]))
+                    continue
                 decoded = decode_joint_state(message.data)
                 if channel.topic == JOINT_STATES_TOPIC:
                     joints = joints or decoded["name"]
@@ -412,7 +429,7 @@ def read_mcap_record(path: Path) -> dict[str, Any]:
                         columns[name].append(decoded[key])
     except FileNotFoundError:
         raise McapRecordError(f"{path}: no such file") from None
-    except (McapError, ValueError, EOFError, OSError, KeyError, struct.error) as exc:
+    except (McapError, ValueError, EOFError, OSError, KeyError, TypeError, struct.error) as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise McapRecordError(f"{path}: not a readable MCAP record ({reason})") from None
     if not columns["t_ns"]:
@@ -425,4 +442,9 @@ def read_mcap_record(path: Path) -> dict[str, Any]:
     t_ns = np.asarray(columns["t_ns"], dtype=np.int64)
     record["t_s"] = (t_ns - t_ns[0]) * 1e-9
     record["joints"] = np.asarray(joints)
+    # Cycles x period when both are known: a lock-stepped run's wall time is not its time (plot.py).
+    period_s = _finite_or_none(metadata.get("period_s"))
+    if period_s is not None and period_s > 0 and len(seq) == len(t_ns):
+        record["seq"] = np.asarray(seq, dtype=np.int64)
+        record["period_s"] = np.asarray(period_s)
     return record

@@ -336,11 +336,25 @@ def encode_state(
     compute_s: float,
     flags: int = 0,
 ) -> bytes:
-    """One state payload (q, qd, q_ref, qd_ref, tau, tau_fb in ``blocks``); the ring writes the same bytes."""
-    body = np.concatenate([np.asarray(block, dtype="<f8") for block in blocks])
-    return (
-        STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, int(Kind.STATE), flags, seq, t_ns, fallback, compute_s) + body.tobytes()
+    """One state payload (q, qd, q_ref, qd_ref, tau, tau_fb in ``blocks``, float64 arrays): the one
+    encoder of the layout, called by the publisher's per-cycle hand-off (one join, no concatenated
+    copy). A block that is not an array raises AttributeError; one of another dtype or length gives
+    a payload of the wrong size, which the publisher refuses (counted)."""
+    q, qd, q_ref, qd_ref, tau, tau_fb = blocks
+    return b"".join(
+        (
+            STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, _STATE_KIND, flags, seq, t_ns, fallback, compute_s),
+            q.tobytes(),
+            qd.tobytes(),
+            q_ref.tobytes(),
+            qd_ref.tobytes(),
+            tau.tobytes(),
+            tau_fb.tobytes(),
+        )
     )
+
+
+_STATE_KIND = int(Kind.STATE)
 
 
 def encode_stats(seq: int, t_ns: int, values: Mapping[str, float], fields: Sequence[str] = STATS_FIELDS) -> bytes:

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from hil_runtime.telemetry.auth import TelemetryAuth
+from hil_runtime.telemetry.auth import TelemetryAuth, read_users_file
 
 if TYPE_CHECKING:
     import zenoh
@@ -265,7 +265,10 @@ def check_merged(config: TelemetryConfig) -> None:
                         f"{where}{field}/endpoints {endpoint!r}{default} is not loopback (127.0.0.1/::1); "
                         "set allow_remote: true to publish beyond this machine"
                     )
-    if config.controls_enabled and not _json_at(conf, "transport/auth/usrpwd/dictionary_file"):
+    dictionary = _json_at(conf, "transport/auth/usrpwd/dictionary_file")
+    if dictionary and config.auth is None:  # the file's own dictionary: held to the same rules
+        read_users_file(Path(str(dictionary)))
+    if config.controls_enabled and not dictionary:
         raise ValueError(
             "controls_enabled: the stop/reset queryables need authenticated peers: set auth.users_file "
             "(Zenoh user/password), or a zenoh_config with transport/auth/usrpwd/dictionary_file"

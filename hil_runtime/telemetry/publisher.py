@@ -34,14 +34,12 @@ from typing import Any, Protocol, runtime_checkable
 from hil_runtime.telemetry.codec import (
     FLAG_GAP,
     FLAG_WARMUP,
-    MAGIC,
-    SCHEMA_VERSION,
-    STATE_HEAD,
     STATS_FIELDS,
     Kind,
     build_schema,
     encode_header,
     encode_json,
+    encode_state,
     encode_stats,
     state_size,
 )
@@ -211,17 +209,7 @@ class ZenohTelemetry:
         s = sample
         try:
             states.append(
-                b"".join(
-                    (
-                        STATE_HEAD.pack(MAGIC, SCHEMA_VERSION, _STATE, 0, s.seq, s.t_ns, s.fallback, s.compute_s),
-                        s.q.tobytes(),
-                        s.qd.tobytes(),
-                        s.q_ref.tobytes(),
-                        s.qd_ref.tobytes(),
-                        s.tau.tobytes(),
-                        s.tau_fb.tobytes(),
-                    )
-                )
+                encode_state(s.seq, s.t_ns, (s.q, s.qd, s.q_ref, s.qd_ref, s.tau, s.tau_fb), s.fallback, s.compute_s)
             )
         except (AttributeError, TypeError, ValueError, OverflowError, struct.error) as exc:
             # A caller bug (lists, negative seq) must not stop the arm: count it, say it once.

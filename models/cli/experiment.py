@@ -64,7 +64,10 @@ def experiment(
     transport: Annotated[
         str, typer.Option(help="--plant hil: virtual (one process), ipc or bridge (the target in its own process).")
     ] = "virtual",
-    target_substeps: Annotated[int, typer.Option(help="--plant hil: pybullet steps per control period.")] = 32,
+    target_substeps: Annotated[
+        int | None,
+        typer.Option(help="--plant hil: pybullet steps per control period (default: 32 lock-step, 8 real time)."),
+    ] = None,
     realism: Annotated[
         str,
         typer.Option(
@@ -72,6 +75,17 @@ def experiment(
             metavar="PROFILE|FILE",
         ),
     ] = "ideal",
+    clock: Annotated[
+        str,
+        typer.Option(
+            help="--plant hil: lockstep (each SYNC steps the arm) or realtime (both free-running; needs "
+            "--transport ipc or bridge; runs whose plant fell behind are INVALID)."
+        ),
+    ] = "lockstep",
+    cpus: Annotated[
+        str,
+        typer.Option(help="--plant hil --clock realtime: the runtime loop's and the target's CPUs: auto, none, R,T."),
+    ] = "auto",
     no_parity: Annotated[
         bool,
         typer.Option("--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison."),
@@ -89,12 +103,17 @@ def experiment(
     hil: HilOptions | None = None
     if plant == "hil":
         from models.hil_experiment import HilOptions
+        from sim_target.config import LOCKSTEP_SUBSTEPS, REALTIME_SUBSTEPS
 
+        if target_substeps is None:
+            target_substeps = REALTIME_SUBSTEPS if clock == "realtime" else LOCKSTEP_SUBSTEPS
         positive(target_substeps, "--target-substeps", integer=True)
         hil = HilOptions(
             transport=cast("Transport", transport),  # checked (one line, exit 2) by check_hil_inputs
             target_substeps=target_substeps,
             parity=not no_parity,
+            clock=clock,
+            cpus=cpus,
             bundle_dir=lmpc_bundles,
         )
     one_of(mismatch, ("none", "paper"), "--mismatch")

@@ -27,7 +27,7 @@ HIL_MODES = ("fb", "lmpc")
 # The drives' own master-loss watch (comm_loss_timeout_s) stays on: a dead experiment process
 # still leaves the arm quick-stopped, after 10 s.
 DRIVER_TIMEOUTS = {
-    "feedback_timeout_s": 2.0,
+    "feedback_timeout_s": 1.0,  # the driver config's upper bound (drivers/config.py, issue 20)
     "heartbeat_timeout_s": 10.0,
     "sdo_timeout_s": 5.0,
     "state_change_timeout_s": 10.0,
@@ -41,6 +41,10 @@ class HilOptions:
     target_substeps: int = 32  # pybullet steps per control period (docs/hil.md: integration)
     parity: bool = True  # also simulate, compare run by run
     bundle_dir: Path | None = None  # LMPC/FB bundles; None: models/bundles (the shipped ones)
+    # lockstep: each SYNC steps the arm (deterministic); realtime: both free-running on the wall
+    # clock, the target in its own process, each on its own CPU (docs/hil.md, docs/runtime.md)
+    clock: str = "lockstep"
+    cpus: str = "auto"  # realtime: the runtime loop's and the target's CPUs (sim_target.rt_settings.split_cpus)
 
 
 def conditions_yaml(conditions: list[Condition]) -> str:
@@ -125,6 +129,18 @@ def check_hil_inputs(
         raise ModelInputError(f"--transport: unknown '{options.transport}' (known: {', '.join(TRANSPORTS)})")
     if options.target_substeps < 1:
         raise ModelInputError(f"--target-substeps: must be >= 1, got {options.target_substeps}")
+    if options.clock not in ("lockstep", "realtime"):
+        raise ModelInputError(f"--clock: unknown '{options.clock}' (known: lockstep, realtime)")
+    if options.clock == "realtime" and options.transport == "virtual":
+        raise ModelInputError(
+            "--clock realtime: the target must run in its own process (the GIL would pace both): --transport ipc"
+        )
+    from sim_target.rt_settings import split_cpus
+
+    try:
+        split_cpus(options.cpus)
+    except ValueError as exc:
+        raise ModelInputError(str(exc)) from None
     if robot.name not in robot_names():
         raise ModelInputError(f"--robot: --plant hil needs a built-in robot (known: {', '.join(robot_names())})")
     for c in conditions:

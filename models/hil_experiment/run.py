@@ -106,6 +106,11 @@ def run_hil_experiment(
         if realism not in ("ideal", "realistic", "harsh"):
             realism = str(Path(realism).resolve())  # the target may run in another directory
         target_config = target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
+        if options.clock == "realtime":  # its physics on its own CPU, apart from the runtime's loop
+            from sim_target.rt_settings import split_cpus
+
+            target_config["clock"] = "realtime"
+            target_config["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
         with launch_target(target_config, options.transport) as target:
             for law in config.laws:
                 for mode in config.modes:
@@ -140,6 +145,10 @@ def run_hil_experiment(
     results["plant"] = "hil"
     results["hil"] = {
         "transport": options.transport,
+        "clock": options.clock,
+        "invalid_runs": [
+            {k: r[k] for k in ("law", "mode", "condition", "invalid_reason")} for r in runs if not r.get("valid", True)
+        ],
         "target_substeps": options.target_substeps,
         "period_s": period_s,
         "wall_s": round(hil_wall_s, 1),

@@ -43,10 +43,12 @@ def format_hil_table(results: dict[str, Any]) -> str:
         cells += [f"{row[m]['time_per_cycle']['median_ms'] * 1e3:.1f}" for m in modes]
         lines.append("| " + " | ".join(cells) + " |")
     limits = "yes" if results["all_runs_finite_and_within_limits"] else "NO (see results.json runs)"
+    clock = "free-running (both on the wall clock)" if hil.get("clock") == "realtime" else "lock-stepped"
+    invalid = hil.get("invalid_runs") or []
     lines += [
         "",
         f"HIL: the runtime (hil_runtime) drives the pybullet target over CAN ({hil['transport']} transport), "
-        f"lock-stepped at {hil['period_s'] * 1e3:g} ms, {hil['target_substeps']} physics substeps per period; "
+        f"{clock} at {hil['period_s'] * 1e3:g} ms, {hil['target_substeps']} physics substeps per period; "
         f"{hil['simulated_s']:g} s simulated in {hil['wall_s']:g} s. Robot {results['robot']}; conditions: "
         f"{', '.join(c['name'] for c in results['conditions'])}; gain set '{results['config']['gain_set']}'.",
         "Scores: the simulation's composite (docs/scoring.md), normalized per condition among the runs of this "
@@ -54,6 +56,13 @@ def format_hil_table(results: dict[str, Any]) -> str:
         f"Every run finite and inside the joint limits: {limits}. ✗k: k conditions faulted or left the limits.",
         "",
     ]
+    if invalid:
+        lines += [
+            f"**INVALID** runs ({len(invalid)}; the plant fell behind real time, their scores are not valid and "
+            "are counted in ✗k): "
+            + "; ".join(f"{r['law']}/{r['mode']}/{r['condition']}: {r['invalid_reason']}" for r in invalid),
+            "",
+        ]
     lines += format_effort_table(results)
     if "parity" in results:
         lines += format_parity_table(results["parity"], modes)

@@ -37,6 +37,8 @@ class HilRun:
     fault: str | None
     stats: dict[str, Any]
     rig_retries: int = 0  # runs done again after a fault of the rig (RIG_FAULTS)
+    lateness: dict[str, Any] | None = None  # the free-running target's, over this run (sim_target/lateness.py)
+    invalid_reason: str | None = None  # why the plant's lateness voids this run; None: valid
 
     @property
     def rig_fault(self) -> bool:
@@ -69,6 +71,18 @@ def run_on_target(
         conditions_file,
         condition.name,
     )
+    if options.clock == "realtime":  # free-running: wall-clock deadlines, the loop on its own CPU
+        from sim_target.rt_settings import split_cpus
+
+        data["loop"] = {
+            "pacing": "clock",
+            "time_base": "wall",
+            "duration_s": condition.duration_s,
+            "stats_interval_s": 3600.0,
+            "stats_window": min(int(round(condition.duration_s / period_s)) + 1000, 1 << 20),
+            "cpu_affinity": split_cpus(options.cpus)[0],
+            "fifo_priority": 80,
+        }
     config = parse_runtime_config(data, f"hil experiment {law}/{mode}/{condition.name}")
     retries = 0
     while True:
@@ -97,7 +111,10 @@ def _run_once(
     try:
         runtime.configure()
         target.start_run(parse_run_start(run_start(condition), "start"))
-        if runtime.activate():
+        active = runtime.activate()
+        if active and config.loop.pacing == "clock":  # free-running: no chunks, no pause between them
+            runtime.run(stop_on_fault=True)  # until loop.duration_s of wall time in ACTIVE, or a fault
+        elif active:
             done = 0
             while done < steps - 1:  # row 0 is the activation's feedback (t = 0)
                 result = runtime.run(max_cycles=min(CHUNK_CYCLES, steps - 1 - done), stop_on_fault=True)
@@ -111,11 +128,52 @@ def _run_once(
         stats = runtime.stats()
     finally:
         runtime.shutdown()
+        if config.loop.pacing == "clock":
+            _release_thread_settings()
     record = {k: np.array(v) for k, v in runtime.record.arrays().items()}
+    lateness = None
+    if config.loop.pacing == "clock":
+        record = resample_record(record, period_s, steps)  # wall slots: a skipped period holds the last row
+        lateness = target.status().get("lateness")
     run = HilRun(pad_record(record, steps, period_s), int(record["q"].shape[0]), fault, stats)
+    if lateness is not None:
+        from sim_target.lateness import invalid_reason
+
+        run.lateness = lateness
+        run.invalid_reason = invalid_reason(lateness, period_s)
     if advance is not None:  # a rig fault runs again: take its periods back; else count the rest as done
         advance(-shown if run.rig_fault else steps - 1 - shown)
     return run
+
+
+def _release_thread_settings() -> None:
+    """The loop ran on this thread with SCHED_FIFO on one CPU: back to the default policy and every
+    CPU, so the next run's bus threads (created before its loop starts) do not inherit them."""
+    import contextlib
+    import os
+
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+
+
+def resample_record(
+    record: dict[str, np.ndarray], period_s: float, max_rows: int | None = None
+) -> dict[str, np.ndarray]:
+    """A free-running record (one row per exchange, ``t_s`` on wall-clock period slots, a skipped
+    slot missing) as one row per period, at most ``max_rows``: a missing slot repeats the row before
+    it (the drives held that torque, the arm was last seen there)."""
+    rows = record["q"].shape[0]
+    if rows == 0:
+        return record
+    slots = np.rint(record["t_s"] / period_s).astype(int)
+    slots -= slots[0]
+    count = slots[-1] + 1 if max_rows is None else min(slots[-1] + 1, max_rows)
+    index = np.searchsorted(slots, np.arange(count), side="right") - 1
+    out = {key: value[index] for key, value in record.items()}
+    out["t_s"] = np.arange(count) * period_s
+    return out
 
 
 def pad_record(record: dict[str, np.ndarray], steps: int, period_s: float) -> dict[str, np.ndarray]:
@@ -148,13 +206,18 @@ def run_record(robot: RobotModel, law: str, mode: str, condition: Condition, run
     velocity_ratio = float(np.max(np.abs(a["qd"]) / robot.velocity_limit_rad_s)) if finite else math.inf
     stats = run.stats
     compute_us = a["compute_s"][1 : run.rows] * 1e6 if run.rows > 1 else np.zeros(1)
+    valid = run.invalid_reason is None
     return {
         "law": law,
         "mode": mode,
         "condition": condition.name,
         "metrics": run_metrics(a["t"], a["q"], a["q_ref"], dist_time),
         "finite": finite,
-        "within_limits": finite and run.fault is None and position_ratio <= 1.0 and velocity_ratio <= 1.0,
+        # An INVALID run (its free-running plant fell behind the wall clock) is kept out of the
+        # scores like a failed one: its figures are not a test of the controller.
+        "within_limits": valid and finite and run.fault is None and position_ratio <= 1.0 and velocity_ratio <= 1.0,
+        "valid": valid,
+        "invalid_reason": run.invalid_reason,
         "position_limit_ratio": position_ratio,
         "velocity_limit_ratio": velocity_ratio,
         "max_abs_torque_nm": np.abs(a["tau"]).max(axis=0).tolist(),
@@ -172,8 +235,18 @@ def run_record(robot: RobotModel, law: str, mode: str, condition: Condition, run
             "fallback_cycles": int((a["fallback"][: run.rows] > 0).sum()),
             "saturations": int(stats.get("saturations", 0)),
             "bus": {k[4:]: v for k, v in stats.items() if k.startswith("bus_")},
+            "plant_lateness": run.lateness,
         },
     }
 
 
-__all__ = ["CHUNK_CYCLES", "RIG_FAULTS", "RIG_RETRIES", "HilRun", "pad_record", "run_on_target", "run_record"]
+__all__ = [
+    "CHUNK_CYCLES",
+    "RIG_FAULTS",
+    "RIG_RETRIES",
+    "HilRun",
+    "pad_record",
+    "resample_record",
+    "run_on_target",
+    "run_record",
+]

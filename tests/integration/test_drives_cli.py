@@ -218,3 +218,22 @@ def test_a_node_answering_with_another_device_profile(tmp_path: Path, capsys: py
     code, out, err = run_cli(capsys, "drives", "scan", "--interface", "virtual", "--channel", channel)
     assert code == 0  # nothing on that channel any more: an empty table
     assert "0 node(s) answered" in out
+
+
+def test_check_reads_back_the_sdo_init_list_and_refuses_a_half_reversed_drive(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An SDO init entry is written at start-up and read back by ``check``; here it sets 0x607E to
+    reverse positions but not velocities, which no torque loop survives: exit 2 naming it."""
+    channel = unique_channel()
+    joints = vendor_bus_joints("nanotec_c5")
+    joints[3]["drive"]["sdo"] = [{"index": 0x607E, "sub_index": 0, "value": 0x80}]
+    config = runtime_yaml(tmp_path / "runtime.yaml", channel, joints)
+    drives = {"node_ids": list(NODE_IDS), "profiles": target_profiles("nanotec_c5")}
+    with target_in_process(channel, 0.001, drives=drives) as target:
+        code, out, err = run_cli(capsys, "drives", "check", "--config", str(config))
+        assert not target.drives.operation_enabled().any()
+    assert code == 2, err
+    assert "SDO init: 128" in out  # written, read back equal
+    assert err.count("\n") == 1
+    assert "nanotec_c5_e_2_09.eds: node 4: 0x607E:00: 0x80: the drive's own polarity (position reversed" in err

@@ -20,6 +20,8 @@ from tests.integration.test_cli_bad_inputs import Case, _run_case
 ROOT = Path(__file__).resolve().parents[2]
 RUNTIME_YAML = (ROOT / "deploy" / "runtime.ipc.yaml").read_text()
 YAML = b"robot: ur5_paper\nperiod_s: 0.001\n"
+# The ipc deploy config with its bundle found from anywhere (its path is relative to deploy/).
+RUNTIME_ABS = RUNTIME_YAML.replace("../models/bundles", str(ROOT / "models" / "bundles"))
 
 
 def _capture(path: Path, count: int) -> list[can.Message]:
@@ -89,6 +91,12 @@ CASES: list[Case] = [
         ["target", "serve", "--config", "{tmp}/t.yaml", "--can-log", "{tmp}/none/run.blf"],
         {"t.yaml": "robot: ur5_paper\n"},
         ["--can-log {tmp}/none/run.blf", "no directory"],
+    ),
+    (
+        "mcap-urdf-of-another-arm",
+        ["run", "--config", "{tmp}/rt.yaml", "--record", "{tmp}/run.mcap", "--urdf", "{tmp}/arm.urdf"],
+        {"rt.yaml": RUNTIME_ABS, "arm.urdf": "<robot name='other'/>"},
+        ["--urdf {tmp}/arm.urdf", "sha256 differs from the bundle's robot.urdf_sha256"],
     ),
     (
         "telemetry-record-suffix",

@@ -93,3 +93,4 @@ def test_a_foxglove_client_connects_sees_the_channels_and_receives_the_arm() -> 
     assert state["effort"] == pytest.approx([10 * p for p in state["position"]])
     assert "<robot" in json.loads(got["/robot_description"])["data"]
     assert b"shoulder_link" in got["/tf"] and b"flange" in got["/tf"]  # every link's frame
+    assert b"reference/flange" in got["/tf"] and b"reference/base_link" in got["/tf"]  # the reference arm

@@ -107,3 +107,18 @@ def test_a_server_that_closes_without_answering_is_one_line(tmp_path: Path) -> N
         with pytest.raises(ControlError, match=r"mute.sock: the server closed the connection without answering"):
             send_command(path, "status", timeout_s=5.0)
         thread.join(5.0)
+
+
+def test_hil_activate_asks_the_daemon_to_activate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The local way back to ACTIVE after a Zenoh reset (which stops at INACTIVE, docs/security.md)."""
+    from hil_runtime.cli import main
+
+    path = tmp_path / "rt.sock"
+    target = Target()
+    server = ControlServer(path, target)
+    try:
+        assert main(["activate", "--socket", str(path)]) == 0
+    finally:
+        server.close()
+    assert target.requests == ["activate"]
+    assert "activation requested (state was FAULT)" in capsys.readouterr().out

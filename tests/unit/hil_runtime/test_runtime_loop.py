@@ -246,7 +246,7 @@ def test_fb_mode_commands_the_law_torque_and_the_state_records_it() -> None:
     assert not np.allclose(sent, 7.0)  # the law's torque, not the policy's
     # The next state's applied-torque slot holds what was commanded; the rest is the graph's.
     state = rt.controller.state
-    np.testing.assert_allclose(state[2:8], rt._command)
+    np.testing.assert_allclose(state[2:8], rt.pipeline.command)
     assert state[0] == pytest.approx(bundle.states_seen[-1][0] + 1.0)
 
 

@@ -67,7 +67,11 @@ def test_a_missing_socket_never_raises() -> None:
 
 
 def _runtime(notifier: Notifier, bundle: StubBundle) -> Runtime:
-    config = parse_runtime_config(config_dict(loop={"pacing": "clock", "idle_poll_s": 0.005}), "rt.yaml")
+    # The stall below is longer than the overrun budget allows a real arm: this test is about the
+    # watchdog, so the budget is set past it (the budget's own tests: test_overruns.py).
+    config = parse_runtime_config(
+        config_dict(loop={"pacing": "clock", "idle_poll_s": 0.005}, safety={"overrun_budget": 100_000}), "rt.yaml"
+    )
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
     return Runtime(config, bus, bundle=bundle, notifier=notifier)
 

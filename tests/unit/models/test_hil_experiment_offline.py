@@ -97,3 +97,29 @@ def test_per_run_scores_normalize_within_a_condition() -> None:
 def test_paper_table_ii_values() -> None:  # the paper's Table II (hardware), FB -> LMPC
     assert PAPER_TABLE_II["pd"] == (0.997, 0.661) and PAPER_TABLE_II["smc"] == (0.245, 0.007)
     assert set(PAPER_TABLE_II) == {"pd", "pid", "adrc", "hinf", "smc", "mrac"}
+
+
+def test_a_free_running_record_is_put_on_period_slots_holding_over_skipped_ones() -> None:
+    from models.hil_experiment.target_runs import resample_record
+
+    t_s = np.array([0.0, 1.0, 2.0, 5.0, 6.0]) * 1e-3  # slots 3 and 4 skipped by the loop
+    record = {"t_s": t_s, "q": np.arange(5, dtype=float)[:, None], "compute_s": np.ones(5)}
+    out = resample_record(record, 1e-3)
+    np.testing.assert_allclose(out["t_s"], np.arange(7) * 1e-3)
+    np.testing.assert_allclose(out["q"][:, 0], [0, 1, 2, 2, 2, 3, 4])
+    padded = pad_record(out, 7, 1e-3)  # one row per period: what the lock-step path checks
+    np.testing.assert_allclose(padded["q"][:, 0], [0, 1, 2, 2, 2, 3, 4])
+    assert resample_record(record, 1e-3, max_rows=4)["q"].shape == (4, 1)  # the condition's length
+
+
+def test_free_running_needs_the_target_in_its_own_process() -> None:
+    from models.errors import ModelInputError
+    from models.experiment import ExperimentConfig
+    from models.hil_experiment.config import HilOptions, check_hil_inputs
+
+    robot = load_robot("ur5_paper")
+    config = ExperimentConfig(laws=("pd",), modes=("fb",))
+    with pytest.raises(ModelInputError, match="--clock realtime: the target must run in its own process"):
+        check_hil_inputs(robot, [], config, HilOptions(clock="realtime"))
+    with pytest.raises(ModelInputError, match="--clock: unknown 'fast'"):
+        check_hil_inputs(robot, [], config, HilOptions(clock="fast", transport="ipc"))

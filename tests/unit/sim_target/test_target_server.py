@@ -189,3 +189,18 @@ def test_lockstep_run_returns_on_stop_with_drives_safe() -> None:
     runner.join(timeout=10)
     assert not runner.is_alive()
     assert drives.events == ["safe_stop", "close"]
+
+
+def test_realtime_places_a_run_start_at_the_sync_that_finds_the_drives_enabled() -> None:
+    from sim_target.config import RunStart
+
+    server, drives = make_server(clock="realtime", realtime=NO_RT_SETTINGS)
+    start = [0.1, -0.4, 0.7, -0.2, 0.1, 0.1]
+    server.start_run(RunStart(kind="start", position_rad=tuple(start)))
+    drives.enabled = np.array([True] * 5 + [False])
+    assert drives.sync().time_s == 0.0 and server.stats.runs_started == 0  # not every drive enabled yet
+    drives.enabled = np.ones(6, dtype=bool)
+    state = drives.sync()  # the SYNC's answer carries the placed arm, not the pose before it
+    np.testing.assert_allclose(state.position_rad, start, atol=1e-12)
+    assert server.stats.runs_started == 1 and server.stats.steps == 0
+    server.shutdown()

@@ -158,12 +158,18 @@ def test_the_plot_reader_gets_the_columns_back(tmp_path: Path) -> None:
         },
     }
     events = [{"seq": 1, "t_ns": 1_000_000_000, "kind": "activated", "cycle": 0, "detail": ""}]
-    assert save_mcap_record(path, arrays, JOINTS, "arm", events=events, documents={"config": {"a": 1}}) == 50
+    assert (
+        save_mcap_record(path, arrays, JOINTS, "arm", events=events, documents={"config": {"a": 1}, "period_s": 1e-3})
+        == 50
+    )
     record = read_mcap_record(path)
     for name in ("q", "qd", "q_ref", "qd_ref", "tau", "tau_fb"):
         np.testing.assert_array_equal(record[name], arrays[name])
     np.testing.assert_allclose(record["t_s"], np.arange(50) * 1e-3)
     assert list(record["joints"]) == list(JOINTS)
+    assert float(record["period_s"]) == 1e-3 and list(record["seq"]) == list(range(50))  # plot: cycles x period
+    with path.open("rb") as stream:
+        assert {a.name for a in mcap_reader.make_reader(stream).iter_attachments()} == {"config.json"}
 
 
 @pytest.mark.parametrize(

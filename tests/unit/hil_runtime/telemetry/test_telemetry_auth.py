@@ -116,3 +116,17 @@ def test_control_users_and_a_file_with_its_own_access_control_are_refused(tmp_pa
     }
     with pytest.raises(TelemetryConfigError, match="access_control is set and so is auth.control_users"):
         parse_telemetry_config(data, "rt.yaml")
+
+
+def test_a_dictionary_named_by_the_zenoh_config_file_is_held_to_the_same_rules(tmp_path: Path) -> None:
+    users = tmp_path / "users"
+    users.write_text("operator:s3cret\n")
+    users.chmod(0o644)
+    path = tmp_path / "z.json5"
+    document = {
+        "listen": {"endpoints": ["tcp/127.0.0.1:7447"]},
+        "transport": {"auth": {"usrpwd": {"dictionary_file": str(users)}}},
+    }
+    path.write_text(json.dumps(document))
+    with pytest.raises(TelemetryConfigError, match="is readable or writable by others"):
+        parse_telemetry_config({"controls_enabled": True, "zenoh_config": str(path)}, "rt.yaml")

@@ -89,3 +89,26 @@ def test_results_json_has_numbers_and_nulls_only(tmp_path: Path) -> None:
         "7": "a key that is not a string",
     }
     assert "NaN" not in text and "Infinity" not in text
+
+
+def test_a_free_running_run_whose_plant_fell_behind_is_marked_invalid() -> None:
+    from sim_target.lateness import invalid_reason
+
+    late = {
+        "periods": 5000,
+        "late_ticks": 7,
+        "skipped_periods": 9,
+        "skipped_fraction": 9 / 5000,
+        "worst_lag_s": 4e-4,
+        "cpu_fraction": 0.2,
+    }
+    results = _results(None)
+    results["demo"]["realtime"] = True
+    results["invalid_reason"] = invalid_reason(late, 1e-3)
+    results["target"] = {"lateness": late, "realtime": {"substeps": 8, "applied": ["SCHED_FIFO 80"]}}
+    summary = report.format_summary(results)
+    assert "**INVALID RUN**: the plant skipped 9 of 5000 periods (0.18 % > 0.1 %)" in summary
+    assert "not valid HIL scores" in summary
+    assert "Target: 5000 periods, late ticks 7, skipped 9 (0.180 %), worst lag 400 µs" in summary
+    clean = report.format_summary(_results(None))
+    assert "INVALID" not in clean and "Target:" not in clean  # lock-step: no wall clock to lag

@@ -1,0 +1,158 @@
+"""The free-running target's lateness and the rule that voids a HIL run (sim_target/lateness.py),
+the held arm, the SYNC phase lock and the start-up cost warning (sim_target/server.py)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from unittest import mock
+
+import numpy as np
+import pybullet
+import pytest
+
+from sim_target.config import parse_target_config
+from sim_target.lateness import Lateness, invalid_reason
+from sim_target.plant import PybulletPlant
+from sim_target.rt_settings import split_cpus
+from sim_target.server import TargetServer, make_plant
+
+Q0 = [0.0, -0.5, 0.8, -0.3, 0.0, 0.0]
+PERIOD_S = 1e-3
+
+
+def test_a_run_is_invalid_above_a_tenth_of_a_percent_skipped_or_one_period_of_lag() -> None:
+    assert invalid_reason(None, PERIOD_S) is None  # lock-step: no wall clock to lag
+    ok = {"periods": 5000, "skipped_periods": 5, "worst_lag_s": 0.9e-3}
+    assert invalid_reason(ok, PERIOD_S) is None
+    skipped = invalid_reason({**ok, "skipped_periods": 6}, PERIOD_S)
+    assert skipped is not None and "skipped 6 of 5000 periods" in skipped
+    lagged = invalid_reason({**ok, "worst_lag_s": 1.2e-3}, PERIOD_S)
+    assert lagged is not None and "lagged the wall clock by 1.20 ms" in lagged
+
+
+def test_lateness_counts_ticks_skips_and_the_worst_lag() -> None:
+    late = Lateness.starting_now()
+    late.tick(50e-6, 0)
+    late.tick(300e-6, 2)
+    late.tick(10e-6, 0)
+    out = late.as_dict(PERIOD_S)
+    assert (out["periods"], out["late_ticks"], out["skipped_periods"]) == (5, 1, 2)
+    assert out["worst_lag_s"] == pytest.approx(300e-6) and out["skipped_fraction"] == pytest.approx(0.4)
+    assert invalid_reason(out, PERIOD_S) is not None
+
+
+def test_a_held_arm_is_not_integrated_until_something_changes() -> None:
+    with PybulletPlant(period_s=PERIOD_S, substeps=8, initial_position_rad=Q0) as plant:
+        braked, free = np.ones(6, dtype=bool), np.zeros(6, dtype=bool)
+        for _ in range(20):
+            plant.step(np.zeros(6), braked)
+        q_held = plant.state().position_rad.copy()
+        with mock.patch.object(pybullet, "stepSimulation", side_effect=AssertionError("integrated")):
+            for _ in range(100):
+                state = plant.step(np.zeros(6), braked)
+        assert state.time_s == pytest.approx(120 * PERIOD_S)
+        np.testing.assert_array_equal(state.position_rad, q_held)
+        np.testing.assert_array_equal(state.velocity_rad_s, np.zeros(6))
+        # What pybullet would have done with the brakes holding: the same pose, to 1e-8 rad.
+        plant._held = None
+        np.testing.assert_allclose(plant.step(np.zeros(6), braked).position_rad, q_held, rtol=0, atol=1e-8)
+        # A payload, or a drive enabled, is integrated again at once.
+        plant.set_payload(40.0)
+        calls = []
+        with mock.patch.object(pybullet, "stepSimulation", wraps=pybullet.stepSimulation) as step:
+            plant.step(np.zeros(6), braked)
+            plant.step(np.zeros(6), free)
+            calls = step.call_args_list
+        assert len(calls) == 2
+        assert not np.array_equal(plant.state().position_rad, q_held)  # unbraked under gravity: it falls
+
+
+class _Drives:
+    """A drive layer with no bus: serve_until waits out the time; a SYNC is a direct call."""
+
+    def __init__(self) -> None:
+        self.handler = None
+        self.published = 0
+
+    def set_sync_handler(self, handler: object) -> None:
+        self.handler = handler
+
+    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
+        time.sleep(max(0.0, deadline_s - time.monotonic()))
+
+    def commanded_torque_nm(self) -> np.ndarray:
+        return np.zeros(6)
+
+    def operation_enabled(self) -> np.ndarray:
+        return np.ones(6, dtype=bool)
+
+    def publish_feedback(self, state: object) -> None:
+        self.published += 1
+
+    def apply_fault(self, fault: object) -> None: ...
+
+    def silence_heartbeat(self, node_id: int, silent: bool = True) -> None: ...
+
+    def safe_stop(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _server(**overrides: object) -> TargetServer:
+    data = {
+        "clock": "realtime",
+        "plant": {"substeps": 4, "initial_position_rad": Q0},
+        "bus": {"interface": "virtual", "channel": "lateness", "fd": True, "data_bitrate": 5_000_000},
+        "realtime": {"fifo_priority": 0, "lock_memory": False},  # not for the pytest process
+        **overrides,
+    }
+    config = parse_target_config(data)
+    return TargetServer(config, make_plant(config), _Drives())  # type: ignore[arg-type]  # a stand-in
+
+
+def test_the_physics_tick_locks_to_a_quarter_period_after_sync() -> None:
+    server = _server()
+    server._deadline_s = 0.0006  # the next tick 0.6 ms after a SYNC at 0: 0.35 ms off the lock
+    for k in range(40):
+        sync_s = k * PERIOD_S
+        while server._deadline_s < sync_s:  # the ticks the loop would run meanwhile
+            server._deadline_s += PERIOD_S
+        server._lock_phase_to_sync(sync_s)
+        if k == 0:  # a quarter of the error per SYNC, never a jump
+            assert 0.0006 - server._deadline_s == pytest.approx(0.25 * 0.35 * PERIOD_S)
+    assert server._deadline_s - 39 * PERIOD_S == pytest.approx(0.25 * PERIOD_S, abs=1e-6)
+    server.shutdown()
+
+
+def test_a_target_that_cannot_keep_real_time_says_so_and_its_run_is_invalid(caplog: pytest.LogCaptureFixture) -> None:
+    server = _server(plant={"substeps": 2000, "initial_position_rad": Q0})  # ~10 ms a period here
+    runner = threading.Thread(target=server.run)
+    with caplog.at_level(logging.WARNING):
+        runner.start()
+        deadline = time.monotonic() + 30.0
+        while server.stats.steps < 5 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        server.stop()
+        runner.join(timeout=30)
+    warnings = [r.getMessage() for r in caplog.records if "cannot keep real time" in r.getMessage()]
+    assert len(warnings) == 1 and "2000 substeps" in warnings[0] and "% of the 1 ms period" in warnings[0]
+    lateness = server.lateness.as_dict(PERIOD_S)
+    assert lateness["skipped_periods"] > 0 and server.stats.late_ticks > 0
+    assert invalid_reason(lateness, PERIOD_S) is not None
+    assert server.realtime_settings["plant_step_fraction"] > 0.5
+
+
+def test_cpus_are_split_apart_or_refused_with_one_line() -> None:
+    import os
+
+    available = sorted(os.sched_getaffinity(0))
+    runtime, target = split_cpus("auto")
+    if len(available) >= 2:
+        assert runtime is not None and target is not None and set(runtime).isdisjoint(target)
+    assert split_cpus("none") == (None, None)
+    with pytest.raises(ValueError, match="--cpus: expected auto, none or RUNTIME,TARGET"):
+        split_cpus("1")
+    with pytest.raises(ValueError, match="--cpus: CPU 999 is not one this process may use"):
+        split_cpus(f"999,{available[0]}")
