@@ -58,6 +58,29 @@ def apply_thread_settings(
     return applied, refused
 
 
+def share_thread_settings(native_id: int, fifo_priority: int, cpus: Sequence[int] | None) -> list[str]:
+    """Give another thread of this process (kernel id ``native_id``) the physics thread's CPU and
+    SCHED_FIFO one below it. A thread that can take the GIL (the control socket's) must not hold
+    it while descheduled on a busy CPU: the physics thread would wait for it (milliseconds on a
+    loaded machine, a whole period lost). On the physics thread's CPU, one priority below, it
+    runs only while the physics thread sleeps, and at once when the physics thread waits for the
+    GIL it holds. Returns what was refused (warned once each)."""
+    refused: list[str] = []
+    if cpus:
+        try:
+            os.sched_setaffinity(native_id, set(cpus))
+        except OSError as exc:
+            refused.append(f"control thread CPU {list(cpus)} ({exc.strerror})")
+    if fifo_priority > 1:
+        try:
+            os.sched_setscheduler(native_id, os.SCHED_FIFO, os.sched_param(fifo_priority - 1))
+        except OSError as exc:
+            refused.append(f"control thread SCHED_FIFO {fifo_priority - 1} ({exc.strerror})")
+    for what in refused:
+        log.warning("target real time: %s refused; carrying on without it", what)
+    return refused
+
+
 def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, ...] | None]:
     """(runtime CPUs, target CPUs) for a free-running HIL run on this machine.
 
@@ -82,4 +105,4 @@ def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, .
     return (runtime_cpu,), (target_cpu,)
 
 
-__all__ = ["apply_thread_settings", "split_cpus"]
+__all__ = ["apply_thread_settings", "share_thread_settings", "split_cpus"]

@@ -33,6 +33,7 @@ Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": fals
 
 from __future__ import annotations
 
+import gc
 import logging
 import queue
 import threading
@@ -66,7 +67,7 @@ from sim_target.control import ControlServer, send_control  # noqa: F401 - send_
 from sim_target.lateness import Lateness
 from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
 from sim_target.plant_protocol import JointState
-from sim_target.rt_settings import apply_thread_settings
+from sim_target.rt_settings import apply_thread_settings, share_thread_settings
 
 log = logging.getLogger(__name__)
 
@@ -303,8 +304,15 @@ class TargetServer:
             )
         rt = self.config.realtime
         applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
+        control_id = None if self._control is None else self._control.native_thread_id
+        if control_id is not None:
+            refused += share_thread_settings(control_id, rt.fifo_priority, rt.cpus)
         self.realtime_settings["applied"] = applied
         self.realtime_settings["refused"] = refused
+        # Everything alive now is start-up's: never scanned again, so no collection of it can
+        # stall a period (a full collection of this process took milliseconds).
+        gc.collect()
+        gc.freeze()
         self._publish_snapshot()
 
     def stop(self) -> None:
