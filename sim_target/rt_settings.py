@@ -12,9 +12,11 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import errno
+import gc
 import logging
 import os
 from collections.abc import Sequence
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +83,45 @@ def share_thread_settings(native_id: int, fifo_priority: int, cpus: Sequence[int
     return refused
 
 
+_COST_PROBE_STEPS = 200  # physics steps timed at start-up
+# A step costing more than this share of the period leaves too little for the bus and wake-up
+# jitter: the target says at start-up that it cannot keep real time.
+_COST_WARN_FRACTION = 0.5
+
+
+def start_realtime(plant: Any, config: Any, control_thread_id: int | None) -> dict[str, Any]:
+    """What ``clock: realtime`` does on the physics thread before its first tick: time the physics
+    step (``plant.probe_step_cost_s``, the plant restored after) and warn on one line when it cannot
+    keep the period; SCHED_FIFO / CPU / mlockall (``config.realtime``) for this thread and the
+    control thread; freeze start-up's objects out of the garbage collector (a full collection of
+    this process took milliseconds: never again). Returns the status's ``realtime`` entry."""
+    period_s = config.period_s
+    cost_s = plant.probe_step_cost_s(_COST_PROBE_STEPS)
+    fraction = cost_s / period_s
+    if fraction > _COST_WARN_FRACTION:
+        log.warning(
+            "target: cannot keep real time: one physics step (%d substeps) costs %.0f us, %.0f %% of "
+            "the %g ms period; runs that fall behind are marked invalid (fewer plant.substeps helps)",
+            plant.substeps,
+            cost_s * 1e6,
+            100 * fraction,
+            period_s * 1e3,
+        )
+    rt = config.realtime
+    applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
+    if control_thread_id is not None:
+        refused += share_thread_settings(control_thread_id, rt.fifo_priority, rt.cpus)
+    gc.collect()
+    gc.freeze()
+    return {
+        "plant_step_us": round(cost_s * 1e6, 1),
+        "plant_step_fraction": round(fraction, 3),
+        "substeps": plant.substeps,
+        "applied": applied,
+        "refused": refused,
+    }
+
+
 def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, ...] | None]:
     """(runtime CPUs, target CPUs) for a free-running HIL run on this machine.
 
@@ -105,4 +146,4 @@ def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, .
     return (runtime_cpu,), (target_cpu,)
 
 
-__all__ = ["apply_thread_settings", "share_thread_settings", "split_cpus"]
+__all__ = ["apply_thread_settings", "share_thread_settings", "split_cpus", "start_realtime"]
