@@ -1,10 +1,13 @@
-"""Real-time settings of the target's physics thread: SCHED_FIFO, its own CPU, mlockall.
+"""Real-time settings of the target's physics thread: SCHED_FIFO, its own CPU, mlockall; the
+start-up cost probe and its warning (:func:`start_realtime`); the CPUs of a free-running HIL run
+(:func:`split_cpus`).
 
 The same calls as the runtime's (hil_runtime/realtime.py), kept here because sim_target never
-imports hil_runtime (docs/architecture.md). Each acts on the *calling thread* (Linux:
-``sched_setscheduler(0, ...)`` and ``sched_setaffinity(0, ...)`` name the calling thread), so the
-server applies them at the top of its loop, after the control-socket thread exists (that one keeps
-the default policy). A refused setting is one warning; the target runs on without it.
+imports hil_runtime (docs/architecture.md). :func:`apply_thread_settings` acts on the *calling
+thread* (Linux: ``sched_setscheduler(0, ...)`` and ``sched_setaffinity(0, ...)`` name the calling
+thread), so the server applies it at the top of its loop; the control socket's thread, started
+before, gets the same CPU one priority below (:func:`share_thread_settings`). A refused setting is
+one warning; the target runs on without it.
 """
 
 from __future__ import annotations
