@@ -133,6 +133,11 @@ class JsonLineServer:
     def client_count(self) -> int:
         return len(self._clients)
 
+    @property
+    def native_thread_id(self) -> int | None:
+        """The serving thread's kernel id (for per-thread scheduling settings), None before it runs."""
+        return self._thread.native_id
+
     def _serve(self) -> None:
         if self._avoid_cpus and hasattr(os, "sched_setaffinity"):
             allowed = os.sched_getaffinity(0) - self._avoid_cpus
