@@ -245,7 +245,7 @@ def structured_policy_from_bundle(bundle_dir: Path) -> tuple[Any, dict[str, Any]
     from onnx import numpy_helper
 
     from models.feedback import make_law
-    from models.lmpc.structured import StructuredEmulator, _structured_policy_class
+    from models.lmpc.structured import StructuredEmulator, structured_policy_class
     from models.robots import load_robot
 
     manifest = json.loads((bundle_dir / "manifest.json").read_text())
@@ -266,7 +266,7 @@ def structured_policy_from_bundle(bundle_dir: Path) -> tuple[Any, dict[str, Any]
     model.use_residual = bool(residual["used"])
     law = make_law(manifest["law"]["name"], robot, manifest["period_s"], training["gain_set"])
     trust_spec = {k: trust[k] for k in ("feature_low", "feature_high", "box_margin", "residual_bound_nm")}
-    return _structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
+    return structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
 
 
 def time_against(laws: list[str], base: Path | None, other: Path, cycles: int, rounds: int) -> dict:
