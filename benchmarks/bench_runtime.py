@@ -85,7 +85,9 @@ def config_dict(
             "fifo_priority": fifo,
             "cpu_affinity": None if cpu is None else [cpu],
         },
-        "safety": {"max_stale_cycles": 1000},
+        # It measures overruns rather than stopping at the budget (a lock-stepped target with
+        # clock pacing overruns whenever its step is slower than the period).
+        "safety": {"max_stale_cycles": 1000, "overrun_budget": 100_000},
     }
 
 

@@ -25,12 +25,14 @@ from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.eds_check import CST_BIT, FAULT_REACTION, INTERPOLATION_PERIOD, PROFILE_402, Finding, Level, obj_name
 from drivers.errors import DriveError
+from drivers.supervision import ABORT_CONNECTION_QUICK_STOP
 
 if TYPE_CHECKING:
     from drivers.drive_bus import DriveBus
 
 IDENTITY = 0x1018
 DEVICE_NAME = 0x1008
+POLARITY = 0x607E  # CiA 402 polarity: bit 7 position, bit 6 velocity
 NMT_NAMES = {0x00: "boot-up", 0x04: "stopped", 0x05: "operational", 0x7F: "pre-operational"}
 
 
@@ -174,11 +176,26 @@ def read_back(bus: DriveBus) -> list[Finding]:
         )
         max_permille = node.joint.max_torque_nm * abs(node.permille_per_nm)
         r.add("ok", odx.TARGET_TORQUE, 0, f"torque limit {node.joint.max_torque_nm} N·m = {max_permille:.0f} per mille")
+        polarity_flags = r.read(POLARITY)
+        if polarity_flags is not None:
+            # 0x607E bit 7 flips positions, bit 6 velocities: one without the other breaks any loop.
+            position_flip, velocity_flip = bool(polarity_flags & 0x80), bool(polarity_flags & 0x40)
+            level: Level = "ok" if position_flip == velocity_flip else "error"
+            r.add(
+                level,
+                POLARITY,
+                0,
+                f"0x{polarity_flags:02X}: the drive's own polarity (position "
+                f"{'reversed' if position_flip else 'normal'}, velocity {'reversed' if velocity_flip else 'normal'})",
+            )
         reactions = spec.reactions if spec is not None else None
         quick_stop = reactions.quick_stop if reactions is not None else None
         r.expect(odx.QUICK_STOP_OPTION, 0, quick_stop if quick_stop is not None else bus.config.quick_stop_option)
         r.expect(FAULT_REACTION, 0, reactions.fault if reactions is not None else None)
-        r.expect(odx.ABORT_CONNECTION_OPTION, 0, reactions.abort_connection if reactions is not None else None)
+        abort = reactions.abort_connection if reactions is not None else None
+        if abort is None and bus.config.comm_loss_timeout_s is not None:
+            abort = ABORT_CONNECTION_QUICK_STOP  # what the master-loss set-up writes (drivers/supervision.py)
+        r.expect(odx.ABORT_CONNECTION_OPTION, 0, abort)
         if spec is not None and spec.interpolation_period:
             value, exponent = r.read(INTERPOLATION_PERIOD, 1), r.read(INTERPOLATION_PERIOD, 2)
             if value is not None and exponent is not None:

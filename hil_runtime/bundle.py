@@ -48,14 +48,17 @@ Only numpy, onnxruntime and the standard library here (the runtime never imports
 from __future__ import annotations
 
 import hashlib
-import json
 import math
+import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
+
+from drivers.strict_input import loads_json_unique
 
 # The probe and trust-region helpers live in their own modules; callers may import them from here.
 from hil_runtime.bundle_probes import (  # noqa: F401 - re-exported for callers
@@ -82,6 +85,17 @@ from hil_runtime.bundle_schema import (  # noqa: F401 - the contract's names, re
     TRUST_SIZE,
     Manifest,
     format_manifest_error,
+)
+from hil_runtime.bundle_security import (
+    MAX_GRAPH_BYTES,
+    MAX_MANIFEST_BYTES,
+    PROBE_RUN_TIMEOUT_S,
+    BundleSecurityError,
+    check_bundle_id,
+    check_graph_bytes,
+    check_signature,
+    member_file,
+    read_bounded,
 )
 from hil_runtime.trust_region import emulator_features, trust_filter  # noqa: F401 - re-exported
 
@@ -184,12 +198,40 @@ class PolicyBundle:
         expected_urdf_sha256: str | None = None,
         intra_op_threads: int = 1,
         check_behaviour: bool = True,
+        trusted_keys: Sequence[Any] = (),
     ) -> PolicyBundle:
         """Verify and open the bundle at ``path``; raise BundleError (one line) on any mismatch.
 
-        ``check_behaviour=False`` skips the probe checks: only for the writer while it records them.
+        ``check_behaviour=False`` skips the probe checks and the manifest's ``bundle_id``: only for
+        the writer while it records them. ``trusted_keys`` (Ed25519 public keys): when given, the
+        manifest must carry a signature by one of them (:mod:`hil_runtime.bundle_security`).
         """
-        path = Path(path)
+        try:
+            return cls._load(
+                Path(path),
+                expected_joints,
+                expected_period_s,
+                expected_joint_names,
+                expected_urdf_sha256,
+                intra_op_threads,
+                check_behaviour,
+                trusted_keys,
+            )
+        except BundleSecurityError as exc:
+            raise BundleError(f"bundle {exc}") from None
+
+    @classmethod
+    def _load(
+        cls,
+        path: Path,
+        expected_joints: int | None,
+        expected_period_s: float | None,
+        expected_joint_names: tuple[str, ...] | list[str] | None,
+        expected_urdf_sha256: str | None,
+        intra_op_threads: int,
+        check_behaviour: bool,
+        trusted_keys: Sequence[Any],
+    ) -> PolicyBundle:
         manifest_path = path / MANIFEST
         if not path.exists():
             raise BundleError(f"bundle {path}: no such directory")
@@ -197,9 +239,10 @@ class PolicyBundle:
             raise BundleError(f"bundle {path}: not a directory")
         if not manifest_path.is_file():
             raise BundleError(f"bundle {path}: no {MANIFEST} in this directory (missing file {manifest_path})")
+        member_file(path, MANIFEST, str(manifest_path))  # not a symlink out of the bundle
         try:
-            raw = json.loads(manifest_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raw = loads_json_unique(read_bounded(manifest_path, MAX_MANIFEST_BYTES, "manifest").decode("utf-8"))
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
             raise BundleError(f"bundle {manifest_path}: unreadable JSON ({str(exc).splitlines()[0]})") from None
         if not isinstance(raw, dict):
             raise BundleError(f"bundle {manifest_path}: not a JSON object")
@@ -220,11 +263,14 @@ class PolicyBundle:
         manifest = raw
         n_joints, joint_names = parsed.robot.n_joints, list(parsed.robot.joint_names)
         period_s, graph_file = parsed.period_s, parsed.graph.file
+        graph_bytes = b""
         for name, digest in sorted(parsed.files.items()):
-            file = path / name
-            if not file.is_file():
-                raise BundleError(f"bundle {file}: missing file")
-            actual = sha256_file(file)
+            file = member_file(path, name, f"{manifest_path}: files")
+            if name == graph_file:  # hashed from the bytes onnxruntime is given: nothing swapped between
+                graph_bytes = read_bounded(file, MAX_GRAPH_BYTES, "graph")
+                actual = hashlib.sha256(graph_bytes).hexdigest()
+            else:
+                actual = sha256_file(file)
             if actual != digest:
                 raise BundleError(f"bundle {file}: sha256 mismatch (manifest {str(digest)[:12]}…, file {actual[:12]}…)")
         if expected_joints is not None and n_joints != expected_joints:
@@ -245,7 +291,8 @@ class PolicyBundle:
             )
         inputs = _layout(raw["graph"]["input"]["layout"])
         outputs = _layout(raw["graph"]["output"]["layout"])
-        session = _open_session(path / graph_file, intra_op_threads)
+        check_graph_bytes(graph_bytes, path / graph_file)  # operators, external data: before onnxruntime
+        session = _open_session(graph_bytes, path / graph_file, intra_op_threads)
         width_in, width_out = sum(s.size for s in inputs), sum(s.size for s in outputs)
         got_in, got_out = session.get_inputs(), session.get_outputs()
         if (
@@ -263,19 +310,35 @@ class PolicyBundle:
         bundle = cls(path, manifest, session, inputs, outputs)
         if check_behaviour:
             check_graph(bundle, manifest_path)
+            bundle_id = check_bundle_id(raw, str(manifest_path))
+            if trusted_keys:
+                check_signature(raw, bundle_id, trusted_keys, str(manifest_path))
         return bundle
 
     # --- behavioural checks -------------------------------------------------------------------
     def _run_rows(self, x: np.ndarray) -> np.ndarray:
+        import onnxruntime as ort
+
+        # A load-time bound: onnxruntime stops a run whose RunOptions.terminate is set (from a timer)
+        options = ort.RunOptions()
+        timer = threading.Timer(PROBE_RUN_TIMEOUT_S, lambda: setattr(options, "terminate", True))
+        timer.daemon = True
+        timer.start()
         try:
             rows: np.ndarray = self.session.run(
-                [self._output_name], {self._input_name: np.ascontiguousarray(x, np.float64)}
+                [self._output_name], {self._input_name: np.ascontiguousarray(x, np.float64)}, options
             )[0]
             return rows
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own untyped errors
+            if options.terminate:
+                raise BundleError(
+                    f"bundle {self.path}: the graph ran longer than {PROBE_RUN_TIMEOUT_S:g} s on probe inputs"
+                ) from None
             raise BundleError(
                 f"bundle {self.path}: the graph fails on probe inputs ({str(exc).splitlines()[0][:160]})"
             ) from None
+        finally:
+            timer.cancel()
 
     # --- running ------------------------------------------------------------------------------
     def _bind(self, x: np.ndarray, y: np.ndarray) -> Any:
@@ -381,7 +444,7 @@ def _native_run(session: Any, binding: Any) -> tuple[Any, Any]:
     return native_session.run_with_iobinding, native_binding
 
 
-def _open_session(file: Path, intra_op_threads: int) -> Any:
+def _open_session(graph: bytes, file: Path, intra_op_threads: int) -> Any:
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -391,7 +454,9 @@ def _open_session(file: Path, intra_op_threads: int) -> Any:
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.log_severity_level = 3
     try:
-        return ort.InferenceSession(str(file), sess_options=options, providers=["CPUExecutionProvider"])
+        # From the checked bytes, not the path: onnxruntime reads no other file (external data has no
+        # directory to resolve against) and the file cannot be swapped after it was hashed.
+        return ort.InferenceSession(graph, sess_options=options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own untyped errors on bad graphs
         reason = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
         raise BundleError(f"bundle {file}: onnxruntime cannot load the graph ({reason})") from None

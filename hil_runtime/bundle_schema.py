@@ -11,6 +11,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from hil_runtime.bundle_security import MAX_PROBE_ROWS
+
 SCHEMA = "hil-policy-bundle/3"  # 3: the control period is period_s (2 called it control_period_s)
 SUPPORTED_SCHEMAS = (SCHEMA,)
 MANIFEST = "manifest.json"
@@ -102,10 +104,15 @@ class Probes(_Strict):
     """Graph inputs and the outputs the exporter's onnxruntime gave for them: the loader runs the
     graph on the inputs and compares (a graph swapped under a fixed-up sha256 fails here)."""
 
-    inputs: list[list[float]] = Field(min_length=1)
-    outputs: list[list[float]] = Field(min_length=1)
+    inputs: list[list[float]] = Field(min_length=1, max_length=MAX_PROBE_ROWS)
+    outputs: list[list[float]] = Field(min_length=1, max_length=MAX_PROBE_ROWS)
     atol: float = Field(1e-6, gt=0, le=PROBE_ATOL_MAX)  # N m, plus rtol 1e-6: another CPU's BLAS
     note: str = ""
+
+
+class Signature(_Strict):
+    key: str = Field(pattern=r"^[0-9a-f]{16}$")  # sha256 of the raw Ed25519 public key, first 16 hex
+    ed25519: str = Field(max_length=200)  # base64 signature over the ASCII bundle_id
 
 
 class Manifest(_Strict):
@@ -122,6 +129,9 @@ class Manifest(_Strict):
     created: str
     files: dict[str, str]
     probes: Probes | None = None  # required by the loader; absent only while the writer records them
+    # sha256 of the canonical manifest without these two fields (hil_runtime.bundle_security)
+    bundle_id: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+    signatures: list[Signature] = []
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, populate_by_name=True)
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import typer
 
+from hil_runtime.bundle_cli import register as _register_bundle_commands
 from hil_runtime.bus_cli import register as _register_bus_commands
 from hil_runtime.commands import register as _register_runtime_commands
 from hil_runtime.drives_cli import register as _register_drives_commands
@@ -38,6 +39,8 @@ app = typer.Typer(
 _register_runtime_commands(app)
 # hil telemetry watch | record | plot | query | control (hil_runtime/telemetry/cli.py).
 _register_telemetry_commands(app)
+# hil bundle keygen | sign | check: Ed25519 signatures of policy bundles (hil_runtime/bundle_cli.py).
+_register_bundle_commands(app)
 # hil bus decode (hil_runtime/bus_cli.py).
 _register_bus_commands(app)
 # hil drives scan | check | jog (hil_runtime/drives_cli.py).

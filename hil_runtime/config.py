@@ -7,6 +7,7 @@
       path: ../models/bundles/ur5_paper/pd   # relative paths are relative to this file
       mode: lmpc                         # lmpc: the fused law + emulator; fb: the law alone
       urdf_sha256: null                  # the arm's URDF hash: the bundle's must match; null: unchecked
+      trusted_keys: []                   # Ed25519 public keys (PEM): the bundle must be signed by one
     bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
       transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
                   fd: true, data_bitrate: 5000000}
@@ -76,6 +77,9 @@ class BundleSection(_Frozen):
     # be the same (a bundle exported for another description of the arm is refused). None: the
     # robot's name is checked only (the runtime reads no URDF; real drives report none).
     urdf_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+    # Ed25519 public keys (PEM files, `hil bundle keygen`): when any is listed, the bundle must be
+    # signed by one of them (`hil bundle sign`); an unsigned or re-signed bundle is refused.
+    trusted_keys: tuple[Path, ...] = ()
 
 
 class ReferenceSection(_Frozen):
@@ -196,7 +200,8 @@ def parse_runtime_config(data: Any, source: str = "config", base_dir: Path | Non
     except DriveConfigError as exc:
         raise RuntimeConfigError(str(exc)) from None
     base = base_dir or Path.cwd()
-    bundle = config.bundle.model_copy(update={"path": _resolve(config.bundle.path, base)})
+    keys = tuple(_resolve(key, base) or key for key in config.bundle.trusted_keys)
+    bundle = config.bundle.model_copy(update={"path": _resolve(config.bundle.path, base), "trusted_keys": keys})
     reference = config.reference.model_copy(
         update={"conditions_file": _resolve(config.reference.conditions_file, base)}
     )

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil_runtime.bundle import PolicyBundle
+from hil_runtime.bundle_security import BundleSecurityError, load_public_key
 from hil_runtime.conditions import Condition, load_conditions
 from hil_runtime.config import RuntimeConfig, RuntimeConfigError
 from hil_runtime.supervisor import SafetyLimits
@@ -19,11 +20,18 @@ from hil_runtime.supervisor import SafetyLimits
 def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
     """The config's bundle, refused unless it matches the drives (joint count/order, period), the
     robot's name and, when the config pins it (``bundle.urdf_sha256``), the robot's URDF."""
+    keys = []
+    for i, key_path in enumerate(config.bundle.trusted_keys):
+        try:
+            keys.append(load_public_key(key_path))
+        except BundleSecurityError as exc:
+            raise RuntimeConfigError(f"{config.source}: bundle.trusted_keys[{i}]: {exc}") from None
     bundle = PolicyBundle.load(
         config.bundle.path,
         expected_joints=len(config.bus.joints),
         expected_period_s=config.period_s,
         expected_joint_names=config.joint_names,
+        trusted_keys=keys,
     )
     robot = bundle.manifest["robot"]
     if robot.get("name") != config.robot:

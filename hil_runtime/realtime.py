@@ -80,12 +80,13 @@ def set_thread_affinity(cpus: tuple[int, ...], report: RealtimeReport | None = N
 
 
 def keep_other_threads_off(cpus: tuple[int, ...], report: RealtimeReport | None = None) -> bool:
-    """Move every thread of this process but the calling one off ``cpus`` (the loop's), when the
-    calling thread may run elsewhere too (call it before pinning the calling thread); threads
-    created later inherit their creator's affinity."""
+    """Move every thread of this process but the calling one off ``cpus`` (the loop's) onto the
+    machine's other CPUs, when it has any; threads created later inherit their creator's affinity."""
     report = report or RealtimeReport()
     try:
-        others = set(os.sched_getaffinity(0)) - set(cpus)
+        # The machine's CPUs, not the caller's affinity: a second runtime on a thread already
+        # pinned (the daemon's main thread, a benchmark's) still finds the others.
+        others = set(range(os.cpu_count() or 1)) - set(cpus)
         if not others:
             return report.note("helper threads off the loop's CPU", False, "no other CPU")
         me = threading.get_native_id()

@@ -108,6 +108,13 @@ def run_experiment(
     trajectories: dict[tuple[str, str, str], dict[str, np.ndarray]] = {}
     timing: dict[str, dict[str, dict[str, float]]] = defaultdict(dict)
     steps = {c.name: int(round(c.duration_s / config.sim.period_s)) for c in conditions}
+    # Every input before any work: the LMPC bundles (present, intact, of these laws) load now, not
+    # after the FB and HMPC runs (minutes) have been computed and thrown away with the error.
+    if "lmpc" in config.modes:
+        for law in config.laws:
+            make_controller(
+                "lmpc", make_law(law, robot, config.sim.period_s, config.gain_set), robot, **options.get("lmpc", {})
+            )
 
     for mode in config.modes:
         for group in _groups(conditions):

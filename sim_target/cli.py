@@ -58,7 +58,14 @@ def serve(
         close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    print(f"target stopped after {server.stats.steps} steps", file=sys.stderr)
+    stats = server.stats
+    lateness = ""
+    if target_config.clock == "realtime":  # what kept (or did not keep) real time, for the log
+        lateness = (
+            f"; late ticks {stats.late_ticks}, skipped periods {stats.skipped_periods}, "
+            f"worst lag {stats.worst_lag_s * 1e6:.0f} µs"
+        )
+    print(f"target stopped after {stats.steps} steps{lateness}", file=sys.stderr)
 
 
 @target_app.command()

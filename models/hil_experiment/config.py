@@ -27,7 +27,7 @@ HIL_MODES = ("fb", "lmpc")
 # The drives' own master-loss watch (comm_loss_timeout_s) stays on: a dead experiment process
 # still leaves the arm quick-stopped, after 10 s.
 DRIVER_TIMEOUTS = {
-    "feedback_timeout_s": 2.0,
+    "feedback_timeout_s": 1.0,  # the driver config's upper bound (drivers/config.py, issue 20)
     "heartbeat_timeout_s": 10.0,
     "sdo_timeout_s": 5.0,
     "state_change_timeout_s": 10.0,

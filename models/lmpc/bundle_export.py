@@ -18,7 +18,6 @@ behavioural check) carries everything the runtime checks, and the provenance of 
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import time
@@ -41,6 +40,7 @@ from hil_runtime.bundle_schema import (
     TRUST_SIZE,
     Manifest,
 )
+from hil_runtime.bundle_security import write_manifest
 from hil_runtime.trust_region import named_features
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
@@ -263,12 +263,12 @@ def export_bundle(
         }
         manifest["files"] = {GRAPH_FILE: sha256_file(tmp / GRAPH_FILE)}
         Manifest.model_validate(manifest)  # the one schema the loader reads with (hil_runtime.bundle_schema)
-        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        manifest = write_manifest(tmp / MANIFEST, manifest)  # sealed: bundle_id over its canonical form
         manifest["probes"] = record_probes(tmp)  # the loader's behavioural check reruns these
-        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        manifest = write_manifest(tmp / MANIFEST, manifest)
         manifest["validation"]["onnx_vs_torch_max_abs_nm"] = verify_bundle(tmp, model, parity_inputs)
         Manifest.model_validate(manifest)
-        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        manifest = write_manifest(tmp / MANIFEST, manifest)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         out_dir.parent.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from hil_runtime.bundle import PolicyBundle, record_probes
 from hil_runtime.bundle_schema import MANIFEST, Manifest
+from hil_runtime.bundle_security import seal_manifest
 from hil_runtime.outputs import write_text_atomic
 
 
@@ -26,7 +27,7 @@ def add_probes(bundle_dir: Path) -> None:
     manifest = json.loads(manifest_path.read_text())
     manifest["probes"] = record_probes(bundle_dir)
     Manifest.model_validate(manifest)
-    write_text_atomic(manifest_path, json.dumps(manifest, indent=1))
+    write_text_atomic(manifest_path, json.dumps(seal_manifest(manifest), indent=1))  # bundle_id recomputed
     PolicyBundle.load(bundle_dir)  # every check, the probes included
 
 

@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Any
 from hil_runtime.machine import machine
 from sim_target.faults import cases as c
 from sim_target.faults import injections as inj
+from sim_target.faults import realism_cases, zenoh_cases
 from sim_target.faults import security as sec
-from sim_target.faults import zenoh_cases
 from sim_target.faults.cases import Expect
 from sim_target.faults.report import summarize, write_outputs
 
@@ -359,6 +359,7 @@ FAULTS: tuple[FaultSpec, ...] = (
             observe_cycles=1500,
         ),
     ),
+    *realism_cases.faults(FaultSpec),
     *SECURITY_FAULTS,
     FaultSpec(
         "reference_out_of_limits",

@@ -117,13 +117,14 @@ def run_in_process(
     watch_telemetry: bool = True,
     post_check: Callable[[InProcessRig, CaseResult], None] | None = None,
     prepare: Callable[[InProcessRig, np.random.Generator], Any] | None = None,
+    target_extra: dict[str, Any] | None = None,
 ) -> CaseResult:
     """Run the loop, inject at a cycle boundary, watch the runtime react; the row's figures."""
     from hil_runtime.lifecycle import LifecycleState
 
     rng = np.random.default_rng(seed)
     result = CaseResult(name, repeat, seed)
-    kwargs: dict[str, Any] = {"q0_rad": q0_rad, "config_extra": config_extra}
+    kwargs: dict[str, Any] = {"q0_rad": q0_rad, "config_extra": config_extra, "target_extra": target_extra}
     if bundle_path is not None:
         kwargs["bundle_path"] = bundle_path
     with in_process_rig(transport, **kwargs) as rig:

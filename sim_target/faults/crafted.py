@@ -80,39 +80,53 @@ def craft_bundle(source: Path, destination: Path, kind: CraftKind) -> float:
     for node in graph.node:  # the graph's last producer of y now writes y__raw
         node.output[:] = [raw if name == output_name else name for name in node.output]
 
-    scale = np.ones(width_out)
-    offset = np.zeros(width_out)
-    if kind == "nan":
-        scale[:n] = np.nan
-    elif kind == "inf":
-        offset[:n] = np.inf
-    elif kind == "nan_both":
-        scale[: 2 * n] = np.nan
-    else:  # saturate
-        scale[:n] = 0.0
-        offset[:n] = SATURATING_TORQUE_NM
+    # Only operators the exporter emits (hil_runtime.bundle_security.ALLOWED_OPERATORS: no Where),
+    # or the loader would refuse the crafted graph before the runtime ever ran it. in_band is 1.0
+    # inside the trigger band, 0.0 outside; z = 1 - in_band, so z / z is NaN (0 / 0) in the band
+    # and 1 outside, and 1 / z - 1 is +inf in the band and 0 outside.
+    k = 2 * n if kind == "nan_both" else n  # the leading columns made bad (tau, or tau and tau_fb)
 
     def const(name: str, value: np.ndarray) -> None:
         graph.initializer.append(numpy_helper.from_array(np.asarray(value, np.float64), name))
 
-    const("craft_scale", scale)
-    const("craft_offset", offset)
+    def index(name: str, value: int) -> None:
+        graph.initializer.append(numpy_helper.from_array(np.array([value], np.int64), name))
+
+    const("craft_one", np.array([1.0]))
+    const("craft_saturating", np.array([SATURATING_TORQUE_NM]))
     const("craft_trigger", np.array([trigger]))
     const("craft_width", np.array([TRIGGER_HALF_WIDTH_RAD]))
-    graph.initializer.append(numpy_helper.from_array(np.array([0], np.int64), "craft_start"))
-    graph.initializer.append(numpy_helper.from_array(np.array([1], np.int64), "craft_end"))
-    graph.initializer.append(numpy_helper.from_array(np.array([-1], np.int64), "craft_axis"))
-    graph.node.extend(
-        [
-            helper.make_node("Slice", [input_name, "craft_start", "craft_end", "craft_axis"], ["craft_q0"]),
-            helper.make_node("Sub", ["craft_q0", "craft_trigger"], ["craft_dq0"]),
-            helper.make_node("Abs", ["craft_dq0"], ["craft_abs"]),
-            helper.make_node("Less", ["craft_abs", "craft_width"], ["craft_in_band"]),
-            helper.make_node("Mul", [raw, "craft_scale"], ["craft_scaled"]),
-            helper.make_node("Add", ["craft_scaled", "craft_offset"], ["craft_bad"]),
-            helper.make_node("Where", ["craft_in_band", "craft_bad", raw], [output_name]),
+    for name, value in (("zero", 0), ("one_i", 1), ("k", k), ("width_out", width_out), ("axis", -1)):
+        index(f"craft_{name}", value)
+    nodes = [
+        helper.make_node("Slice", [input_name, "craft_zero", "craft_one_i", "craft_axis"], ["craft_q0"]),
+        helper.make_node("Sub", ["craft_q0", "craft_trigger"], ["craft_dq0"]),
+        helper.make_node("Abs", ["craft_dq0"], ["craft_abs"]),
+        helper.make_node("Greater", ["craft_width", "craft_abs"], ["craft_in_band_bool"]),
+        helper.make_node("Cast", ["craft_in_band_bool"], ["craft_in_band"], to=onnx.TensorProto.DOUBLE),
+        helper.make_node("Sub", ["craft_one", "craft_in_band"], ["craft_z"]),
+        helper.make_node("Slice", [raw, "craft_zero", "craft_k", "craft_axis"], ["craft_head"]),
+        helper.make_node("Slice", [raw, "craft_k", "craft_width_out", "craft_axis"], ["craft_tail"]),
+    ]
+    if kind in ("nan", "nan_both"):
+        nodes += [
+            helper.make_node("Div", ["craft_z", "craft_z"], ["craft_nan_or_one"]),
+            helper.make_node("Mul", ["craft_head", "craft_nan_or_one"], ["craft_bad"]),
         ]
-    )
+    elif kind == "inf":
+        nodes += [
+            helper.make_node("Div", ["craft_one", "craft_z"], ["craft_inv"]),
+            helper.make_node("Sub", ["craft_inv", "craft_one"], ["craft_inf_or_zero"]),
+            helper.make_node("Add", ["craft_head", "craft_inf_or_zero"], ["craft_bad"]),
+        ]
+    else:  # saturate
+        nodes += [
+            helper.make_node("Mul", ["craft_head", "craft_z"], ["craft_kept"]),
+            helper.make_node("Mul", ["craft_in_band", "craft_saturating"], ["craft_forced"]),
+            helper.make_node("Add", ["craft_kept", "craft_forced"], ["craft_bad"]),
+        ]
+    nodes.append(helper.make_node("Concat", ["craft_bad", "craft_tail"], [output_name], axis=-1))
+    graph.node.extend(nodes)
     del TensorProto  # only the helpers are needed; the dtype comes from the arrays
     onnx.checker.check_model(model)
     onnx.save(model, str(graph_file))
@@ -120,7 +134,9 @@ def craft_bundle(source: Path, destination: Path, kind: CraftKind) -> float:
     manifest["files"][graph_file.name] = _sha256(graph_file)
     band = f"|q0 - {trigger}| < {TRIGGER_HALF_WIDTH_RAD}"
     manifest["graph"]["fused"] = f"{manifest['graph'].get('fused', '')} [fault campaign: '{kind}' when {band}]"
-    manifest_path.write_text(json.dumps(manifest, indent=1))
+    from hil_runtime.bundle_security import write_manifest
+
+    write_manifest(manifest_path, manifest)  # resealed: the campaign tests the runtime, not the bundle id
     return trigger
 
 

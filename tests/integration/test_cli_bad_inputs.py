@@ -108,6 +108,16 @@ RUNTIME_YAML = (
 )
 
 
+def _public_pem() -> bytes:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+    return Ed25519PrivateKey.generate().public_key().public_bytes(Encoding.PEM, PublicFormat.SubjectPublicKeyInfo)
+
+
+LAB_PUBLIC_PEM = _public_pem()
+
+
 def _runtime_case(
     name: str,
     pattern: str,
@@ -270,6 +280,33 @@ CASES: list[Case] = [
     ),
     _bundle_case("bundle-torque-edited", lambda m: m["limits"].__setitem__("torque_nm", [1.0] * 6), "limits.torque_nm"),
     _bundle_case("bundle-wrong-urdf-sha", lambda m: m["robot"].__setitem__("urdf_sha256", "0" * 64), "urdf_sha256"),
+    # bundles from elsewhere (issue 20): names outside the bundle, an edited manifest, no trusted signature
+    _bundle_case(
+        "bundle-member-outside",
+        lambda m: m["files"].__setitem__("../pd/policy.onnx", "0" * 64),
+        "'../pd/policy.onnx' is not a plain file name inside the bundle",
+    ),
+    _bundle_case(
+        "bundle-limits-widened",
+        lambda m: m["limits"].__setitem__("position_rad", [100.0] * 6),
+        "bundle_id: ",
+    ),
+    _runtime_case(
+        "bundle-unsigned",
+        r"  mode: lmpc",
+        "  mode: lmpc\n  trusted_keys: [lab.pub]",
+        "signatures: none by a trusted key",
+        files={"lab.pub": LAB_PUBLIC_PEM},
+        where=f"bundle {PD_BUNDLE}/manifest.json",
+    ),
+    _runtime_case(
+        "bundle-trusted-key-not-a-key",
+        r"  mode: lmpc",
+        "  mode: lmpc\n  trusted_keys: [lab.pub]",
+        "bundle.trusted_keys[0]",
+        "not a PEM public key",
+        files={"lab.pub": "not a key"},
+    ),
     # telemetry (issue 20)
     _plot_case("plot-truncated", npz_files.truncated(), "not a telemetry record"),
     _plot_case("plot-mismatched", npz_files.mismatched(), "column 'q_ref' has shape (60, 3), 'q' (50, 3)"),
@@ -306,6 +343,14 @@ CASES: list[Case] = [
     ),
     # runtime configs (issue 20): non-finite or huge values, strict types, duplicate keys, wide limits
     _runtime_case("hb-timeout-inf", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: .inf", "heartbeat_timeout_s"),
+    _runtime_case(
+        "run-ipc-channel-is-a-file",
+        r"channel: hil,",
+        "channel: ./afile,",
+        "bus.transport.channel",
+        "is not a directory",
+        files={"afile": "x"},
+    ),
     _runtime_case(
         "hb-timeout-1e300", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: 1e300", "bus.heartbeat_timeout_s"
     ),

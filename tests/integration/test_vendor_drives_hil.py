@@ -41,7 +41,7 @@ def _track(vendor: str | None) -> dict[str, Any]:
             runtime.configure()
             assert runtime.activate()
             ramp = runtime.reference.ramp_cycles
-            result = runtime.run(max_cycles=ramp + TRACK_CYCLES)
+            result = runtime.run(max_cycles=ramp + TRACK_CYCLES, stop_on_fault=True)
             assert result.reason == "cycles" and result.fault is None, result.fault
             bus = runtime.bus
             assert isinstance(bus, DriveBus)

@@ -17,6 +17,12 @@ from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_jo
 ROOT = Path(__file__).resolve().parents[3]
 
 
+# Clock-paced tests of other things (stop requests, telemetry, the time base) on the wall clock of a
+# shared machine: a stall of a few tens of ms would end them in FAULT overrun_budget (the budget's
+# own tests: test_overruns.py), so they set it past any stall.
+NO_OVERRUN_BUDGET = {"overrun_budget": 100_000}
+
+
 def config_dict(**overrides: Any) -> dict[str, Any]:
     """A valid runtime config (virtual transport, the PD bundle, hold); sections merged shallowly."""
     data: dict[str, Any] = {

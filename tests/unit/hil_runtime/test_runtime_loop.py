@@ -22,7 +22,7 @@ from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.codec import STATS_FIELDS
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import StubBundle, config_dict
+from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, StubBundle, config_dict
 
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 
@@ -252,7 +252,7 @@ def test_fb_mode_commands_the_law_torque_and_the_state_records_it() -> None:
 
 def test_request_stop_from_another_thread_ends_the_loop_promptly() -> None:
     bus = _bus()
-    rt = _runtime(bus, loop={"pacing": "clock"})
+    rt = _runtime(bus, loop={"pacing": "clock"}, safety=NO_OVERRUN_BUDGET)
     rt.configure()
     rt.activate()
     timer = threading.Timer(0.2, rt.request_stop)
@@ -308,7 +308,9 @@ def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: s
             return super().exchange(torque_nm)
 
     bus = SlowBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
-    config = parse_runtime_config(config_dict(loop={"pacing": "clock", "time_base": time_base}), "rt.yaml")
+    config = parse_runtime_config(
+        config_dict(loop={"pacing": "clock", "time_base": time_base}, safety=NO_OVERRUN_BUDGET), "rt.yaml"
+    )
     rt = Runtime(config, bus, record_cycles=200, clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
     rt.configure()
     rt.activate()

@@ -22,7 +22,7 @@ from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.auth import write_users_file
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import config_dict
+from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, config_dict
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -48,9 +48,9 @@ def _session(endpoint: str, user: str | None = None, password: str | None = None
 def _controlled(tmp_path: Path, endpoint: str, **telemetry: Any) -> Any:
     users = write_users_file(tmp_path / "users", {"operator": "s3cret"})
     section = {"enabled": True, "listen": [endpoint], "controls_enabled": True, "auth": {"users_file": str(users)}}
-    # A loaded machine's late periods are not what these tests are about: a generous overrun budget.
-    data = config_dict(loop={"pacing": "clock"}, safety={"overrun_budget": 100_000}, telemetry={**section, **telemetry})
-    return parse_runtime_config(data, "rt.yaml")
+    return parse_runtime_config(
+        config_dict(loop={"pacing": "clock"}, safety=NO_OVERRUN_BUDGET, telemetry={**section, **telemetry}), "rt.yaml"
+    )
 
 
 def test_state_status_and_the_stop_queryable(caplog: pytest.LogCaptureFixture, tmp_path: Path) -> None:
