@@ -25,6 +25,7 @@ from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.eds_check import CST_BIT, FAULT_REACTION, INTERPOLATION_PERIOD, PROFILE_402, Finding, Level, obj_name
 from drivers.errors import DriveError
+from drivers.supervision import ABORT_CONNECTION_QUICK_STOP
 
 if TYPE_CHECKING:
     from drivers.drive_bus import DriveBus
@@ -191,7 +192,10 @@ def read_back(bus: DriveBus) -> list[Finding]:
         quick_stop = reactions.quick_stop if reactions is not None else None
         r.expect(odx.QUICK_STOP_OPTION, 0, quick_stop if quick_stop is not None else bus.config.quick_stop_option)
         r.expect(FAULT_REACTION, 0, reactions.fault if reactions is not None else None)
-        r.expect(odx.ABORT_CONNECTION_OPTION, 0, reactions.abort_connection if reactions is not None else None)
+        abort = reactions.abort_connection if reactions is not None else None
+        if abort is None and bus.config.comm_loss_timeout_s is not None:
+            abort = ABORT_CONNECTION_QUICK_STOP  # what the master-loss set-up writes (drivers/supervision.py)
+        r.expect(odx.ABORT_CONNECTION_OPTION, 0, abort)
         if spec is not None and spec.interpolation_period:
             value, exponent = r.read(INTERPOLATION_PERIOD, 1), r.read(INTERPOLATION_PERIOD, 2)
             if value is not None and exponent is not None:

@@ -18,7 +18,7 @@ bus_app = typer.Typer(name="bus", help="CAN captures (.blf .asc .log .csv) read 
 @bus_app.command()
 def decode(
     path: Annotated[Path, typer.Argument(help="a capture: .blf, .asc, .log (candump -L) or .csv")],
-    eds: Annotated[Path | None, typer.Option("--eds", help="the drive's EDS [default: the shipped one]")] = None,
+    eds: Annotated[Path | None, typer.Option("--eds", help="the drive's EDS (default: the shipped one)")] = None,
     limit: Annotated[int | None, typer.Option("--limit", min=1, help="print at most this many frames")] = None,
 ) -> None:
     """Print each frame as CANopen, then a count per kind."""

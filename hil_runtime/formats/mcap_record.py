@@ -355,9 +355,10 @@ def save_mcap_record(
     events: Sequence[Mapping[str, Any]] = (),
     documents: Mapping[str, Any] | None = None,
     urdf: Path | None = None,
+    stats: Sequence[Mapping[str, Any]] = (),
 ) -> int:
     """``hil telemetry record --out x.mcap``: received state rows (``seq``, ``t_ns``, q, qd, q_ref,
-    qd_ref, tau, tau_fb, fallback, compute_s), status and events (each with its ``t_ns``) and JSON
+    qd_ref, tau, tau_fb, fallback, compute_s), status, events and stats (each with its ``t_ns``) and JSON
     documents (config, bundle: attachments) into one MCAP file; returns the rows written."""
     attachments = {
         f"{name}.json": _json(doc) for name, doc in (documents or {}).items() if isinstance(doc, (dict, list))
@@ -388,6 +389,8 @@ def save_mcap_record(
             recorder.write_status(int(item["t_ns"]), body)
         for item in events:
             recorder.write_event(int(item["t_ns"]), {k: v for k, v in item.items() if k not in ("seq", "t_ns")})
+        for item in stats:
+            recorder.write_stats(int(item["t_ns"]), {k: v for k, v in item.items() if k != "t_ns"})
         recorder.close()
     except BaseException:
         recorder.abandon()

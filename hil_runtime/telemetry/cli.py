@@ -147,6 +147,9 @@ def record(
     with _client(robot, connect, timeout, zenoh_config) as client:
         started_s = time.monotonic()
         recording = start_recording(client)  # before the queries: nothing is missed meanwhile
+        stats_payloads: list[bytes] = []
+        if kind == "mcap":  # the MCAP record has a stats channel (docs/formats.md)
+            client.subscribe("stats", stats_payloads.append)
         schema = client.schema()
         recording.schema = schema
         repliers = client.schema_repliers()
@@ -181,8 +184,16 @@ def record(
         from hil_runtime.formats.mcap_record import save_mcap_record, urdf_of_bundle_document
 
         urdf_path = urdf_of_bundle_document(extra.get("bundle"), schema.robot, urdf)
+        stats = []
+        for payload in stats_payloads:
+            try:
+                header, values = schema.decode_stats(payload)
+            except ValueError:  # TelemetryDecodeError: counted nowhere, as refused status payloads
+                continue
+            if not header.warmup:
+                stats.append({"t_ns": header.t_ns, **values})
         count = save_mcap_record(
-            out, arrays, schema.joints, schema.robot, recording.status, recording.events, extra, urdf_path
+            out, arrays, schema.joints, schema.robot, recording.status, recording.events, extra, urdf_path, stats
         )
     else:
         count = save_record(recording, out, extra)
@@ -204,9 +215,13 @@ def foxglove(
     ] = 50.0,
     seconds: Annotated[
         float | None,
-        typer.Option("--seconds", help="stop after [default: Ctrl-C]", callback=_seconds(0.0, 7 * 86400.0)),
+        typer.Option(
+            "--seconds", help="stop after this long (default: at Ctrl-C)", callback=_seconds(0.0, 7 * 86400.0)
+        ),
     ] = None,
-    urdf: Annotated[Path | None, typer.Option("--urdf", help="the arm's URDF [default: the bundle's]")] = None,
+    urdf: Annotated[
+        Path | None, typer.Option("--urdf", help="the arm's URDF (default: the bundle's robot, found by its sha256)")
+    ] = None,
     allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen beyond loopback")] = False,
     robot: RobotOption = None,
     connect: ConnectOption = None,

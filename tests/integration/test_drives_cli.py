@@ -237,3 +237,47 @@ def test_check_reads_back_the_sdo_init_list_and_refuses_a_half_reversed_drive(
     assert "SDO init: 128" in out  # written, read back equal
     assert err.count("\n") == 1
     assert "nanotec_c5_e_2_09.eds: node 4: 0x607E:00: 0x80: the drive's own polarity (position reversed" in err
+
+
+def test_jog_quick_stops_on_ctrl_c(tmp_path: Path) -> None:
+    """``hil drives jog`` as a user runs it, next to ``hil target serve``: Ctrl-C while the joint
+    turns quick-stops the drive before the process leaves (exit 130)."""
+    import signal
+    import subprocess
+    import time
+
+    from sim_target.launch import hil_command
+    from sim_target.server import send_control
+    from sim_target.testing.hil_target import target_process
+
+    drives = {"node_ids": list(NODE_IDS), "profiles": target_profiles("maxon_epos4")}
+    with target_process(tmp_path, 0.001, transport="ipc", drives=drives) as target:
+        config = runtime_yaml(tmp_path / "runtime.yaml", "unused", vendor_bus_joints("maxon_epos4"))
+        data = yaml.safe_load(config.read_text())
+        data["bus"]["transport"].update({"interface": "ipc", "channel": str(target.ipc_dir)})
+        config.write_text(yaml.safe_dump(data))
+        argv = ["drives", "jog", "--config", str(config), "--joint", "shoulder_pan_joint", "--torque-nm", "0.01"]
+        process = subprocess.Popen(
+            hil_command(*argv, "--seconds", "30"),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a shell's child may ignore it
+        )
+        try:
+            deadline = time.monotonic() + 120
+            while not send_control(target.control_socket, {"kind": "status"})["operation_enabled"][0]:
+                assert process.poll() is None, process.communicate()[1]
+                assert time.monotonic() < deadline, "the jog never enabled its drive"
+                time.sleep(0.05)
+            time.sleep(0.3)  # turning now
+            process.send_signal(signal.SIGINT)
+            _, err = process.communicate(timeout=60)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        status = send_control(target.control_socket, {"kind": "status"})
+    assert process.returncode == 130, err
+    assert "Traceback" not in err
+    assert status["operation_enabled"] == [False] * 6  # quick-stopped before the process left

@@ -31,6 +31,7 @@ def test_telemetry_record_writes_an_mcap_that_standard_readers_open(tmp_path: Pa
         seqs = [json.loads(m.data)["seq"] for _, _, m in reader.iter_messages(topics=["/hil/cycle"])]
         raw = {topic: list(reader.iter_messages(topics=[topic])) for topic in ("/joint_states", "/joint_reference")}
         attachments = {a.name for a in reader.iter_attachments()}
+        stats = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=["/hil/stats"])]
     schema = raw["/joint_states"][0][0]
     assert schema is not None and schema.name == "sensor_msgs/msg/JointState" and schema.encoding == "ros2msg"
     decode = mcap_ros2_decoder.DecoderFactory().decoder_for("cdr", schema)
@@ -52,6 +53,7 @@ def test_telemetry_record_writes_an_mcap_that_standard_readers_open(tmp_path: Pa
         np.testing.assert_array_equal(references[row].position, expected["q_ref"])
         np.testing.assert_array_equal(references[row].effort, expected["tau_fb"])
     assert {"config.json", "bundle.json"} <= attachments
+    assert stats and all("rate_hz" in item and "telemetry_sent" in item for item in stats)
 
     pytest.importorskip("matplotlib")
     plotted = _hil("telemetry", "plot", str(out))
