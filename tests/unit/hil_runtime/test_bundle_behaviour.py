@@ -146,7 +146,8 @@ def test_step_never_returns_a_non_finite_torque() -> None:
 def test_writer_and_loader_share_one_schema() -> None:
     code = (
         "import hil_runtime.bundle as b, hil_runtime.bundle_schema as s; import models.lmpc.bundle_export as w;"
-        "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == s.SCHEMA and b.SUPPORTED_SCHEMAS == s.SUPPORTED_SCHEMAS"
+        "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == s.SCHEMA;"
+        "assert b.SUPPORTED_SCHEMAS == s.SUPPORTED_SCHEMAS"
     )
     pytest.importorskip("torch")
     done = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)
