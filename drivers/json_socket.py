@@ -144,11 +144,14 @@ class JsonLineServer:
             if allowed:
                 os.sched_setaffinity(0, allowed)  # this thread only (Linux: pid 0 is the caller)
         while not self._stop.is_set():
-            for key, _events in self._selector.select(_POLL_S):
-                if key.fileobj is self._listen:
-                    self._accept()
-                else:
-                    self._read(cast(socket.socket, key.fileobj))
+            try:
+                for key, _events in self._selector.select(_POLL_S):
+                    if key.fileobj is self._listen:
+                        self._accept()
+                    else:
+                        self._read(cast(socket.socket, key.fileobj))
+            except Exception as exc:  # noqa: BLE001 - the server thread must outlive any one client
+                log.warning("control socket %s: %s: %s", self.path, type(exc).__name__, exc)
             now = time.monotonic()
             for sock, client in list(self._clients.items()):
                 if now - client.last_active_s > self._idle_timeout_s:

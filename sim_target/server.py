@@ -23,9 +23,9 @@ drive faults go to the drive layer's hooks. They come from the config file (sche
 simulated seconds) or, at run time, from a Unix control socket (``control_socket`` in the config):
 one JSON object per line, the same schema as a config fault, e.g.::
 
-    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/tmp/hil-target.sock
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "impulse", "duration_s": 0.001}'
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "status"}'
+    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/run/hil/target.sock
+    hil target inject --socket /run/hil/target.sock '{"kind": "impulse", "duration_s": 0.001}'
+    hil target inject --socket /run/hil/target.sock '{"kind": "status"}'
     {"kind": "start", "position_rad": [...], "velocity_rad_s": [...], "faults": [...]}   # RunStart
 
 Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
