@@ -39,7 +39,7 @@ def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
     from hil_runtime.telemetry.factory import make_sink
 
     bundle = runtime.bundle
-    digest = next(iter(bundle.manifest.get("files", {}).values()), "")
+    digest = next(iter(bundle.manifest.files.values()), "")
     info = {
         "joints": list(config.joint_names),
         "config": config.model_dump(mode="json"),

@@ -23,9 +23,9 @@ drive faults go to the drive layer's hooks. They come from the config file (sche
 simulated seconds) or, at run time, from a Unix control socket (``control_socket`` in the config):
 one JSON object per line, the same schema as a config fault, e.g.::
 
-    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/tmp/hil-target.sock
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "impulse", "duration_s": 0.001}'
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "status"}'
+    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/run/hil/target.sock
+    hil target inject --socket /run/hil/target.sock '{"kind": "impulse", "duration_s": 0.001}'
+    hil target inject --socket /run/hil/target.sock '{"kind": "status"}'
     {"kind": "start", "position_rad": [...], "velocity_rad_s": [...], "faults": [...]}   # RunStart
 
 Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
@@ -154,7 +154,7 @@ class TargetServer:
         self._start: RunStart | None = None  # armed by start_run, placed at the first enabled step
         self._control: ControlServer | None = None
         self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
-        self._snapshot: dict[str, Any] = {}
+        self._snapshot: tuple[Any, ...] = ()
         self._deadline_s = 0.0  # real time: the next physics tick (time.monotonic())
         self._publish_snapshot()
         drives.set_sync_handler(self._on_sync)
@@ -336,26 +336,35 @@ class TargetServer:
         log.info("fault applied at t=%.4f s: %s", at_s, fault)
 
     def _publish_snapshot(self) -> None:
-        """What :meth:`status` answers, built on the loop thread (the only one touching pybullet
-        and the drives) and swapped in whole: a reader never sees half an update, never blocks it."""
-        state = self.plant.state()
-        period_s = self.config.period_s
-        self._snapshot = {
-            "time_s": state.time_s,
-            "position_rad": state.position_rad.round(6).tolist(),
-            "operation_enabled": np.asarray(self.drives.operation_enabled()).tolist(),
-            "payload_kg": self.plant.payload_kg,
-            **self.stats.__dict__,
-            "clock": self.config.clock,
-            "period_s": period_s,
-            "substeps": self.plant.substeps,
-            "lateness": self.lateness.as_dict(period_s) if self.config.clock == "realtime" else None,
-            "realtime": dict(self.realtime_settings),
-        }
+        """What :meth:`status` answers, taken on the loop thread (the only one touching pybullet
+        and the drives) and swapped in whole: a reader never sees half an update, never blocks it.
+        Only references and small copies here (it runs before a lock-step SYNC's TPDOs); the
+        control thread formats them."""
+        lateness = self.lateness.as_dict(self.config.period_s) if self.config.clock == "realtime" else None
+        self._snapshot = (
+            self.plant.state(),  # immutable: a new JointState each period
+            np.asarray(self.drives.operation_enabled()).copy(),
+            self.plant.payload_kg,
+            dict(self.stats.__dict__),
+            lateness,
+            dict(self.realtime_settings),
+        )
 
     def status(self) -> dict[str, Any]:
         """The latest snapshot (at most 16 periods old in real time, 50 ms in lock-step)."""
-        return dict(self._snapshot)
+        state, enabled, payload_kg, stats, lateness, realtime = self._snapshot
+        return {
+            "time_s": state.time_s,
+            "position_rad": state.position_rad.round(6).tolist(),
+            "operation_enabled": enabled.tolist(),
+            "payload_kg": payload_kg,
+            **stats,
+            "clock": self.config.clock,
+            "period_s": self.config.period_s,
+            "substeps": self.plant.substeps,
+            "lateness": lateness,
+            "realtime": realtime,
+        }
 
     # --- control socket -------------------------------------------------------------------------
 

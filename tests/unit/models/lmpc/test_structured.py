@@ -117,8 +117,8 @@ def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(
         summary["rounds"][0]["smc"]["onnx_vs_torch_max_abs_nm"] <= 1e-5
     )  # the law's RNE batched with the feed-forward's
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
-    assert bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
-    assert bundle.manifest["training"]["design"].startswith("structured")
+    assert bundle.manifest.emulator.feature_set == "eq22+qdd_d"
+    assert bundle.manifest.training["design"].startswith("structured")
     physics = fit["fit"]["physics"]
     assert all(0.0 <= g <= 1.2 for g in physics["g"]) and all(-1.05 <= c <= 0.0 for c in physics["c"])
     assert (tmp_path / "work" / "structured.json").exists()
