@@ -20,7 +20,8 @@ import numpy as np
 
 from models.feedback.base import FeedbackLaw
 from models.hmpc.config import HMPCConfig
-from models.hmpc.solver import STATUS_NAMES, HMPCResult, HMPCSolver
+from models.hmpc.result import STATUS_NAMES, HMPCResult
+from models.hmpc.solver import HMPCSolver
 from models.robots import RobotModel
 
 
