@@ -141,9 +141,9 @@ def main() -> None:
                 "max": float(closed.max()),
             },
             "bundle_step_us": {"median": float(np.median(bare_us)), "p99": float(np.percentile(bare_us, 99))},
-            "graph_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"]),
-            "compute_nodes": _nodes(bundle.path / bundle.manifest["graph"]["file"], compute_only=True),
-            "design": bundle.manifest.get("training", {}).get("design", "mlp"),
+            "graph_nodes": _nodes(bundle.path / bundle.manifest.graph.file),
+            "compute_nodes": _nodes(bundle.path / bundle.manifest.graph.file, compute_only=True),
+            "design": bundle.manifest.training.get("design", "mlp"),
         }
         if args.session_sweep:
             out["laws"][law_name]["session_sweep_us"] = session_sweep(bundle, args.cycles)
@@ -210,7 +210,7 @@ def session_sweep(bundle: PolicyBundle, cycles: int) -> dict[str, list[float]]:
         "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
         "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
     }
-    path = str(bundle.path / bundle.manifest["graph"]["file"])
+    path = str(bundle.path / bundle.manifest.graph.file)
     x = np.zeros((1, bundle.input_width))
     x[0, : 5 * bundle.n_joints] = 0.1
     out = {}
@@ -245,7 +245,7 @@ def structured_policy_from_bundle(bundle_dir: Path) -> tuple[Any, dict[str, Any]
     from onnx import numpy_helper
 
     from models.feedback import make_law
-    from models.lmpc.structured import StructuredEmulator, _structured_policy_class
+    from models.lmpc.structured import StructuredEmulator, structured_policy_class
     from models.robots import load_robot
 
     manifest = json.loads((bundle_dir / "manifest.json").read_text())
@@ -266,7 +266,7 @@ def structured_policy_from_bundle(bundle_dir: Path) -> tuple[Any, dict[str, Any]
     model.use_residual = bool(residual["used"])
     law = make_law(manifest["law"]["name"], robot, manifest["period_s"], training["gain_set"])
     trust_spec = {k: trust[k] for k in ("feature_low", "feature_high", "box_margin", "residual_bound_nm")}
-    return _structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
+    return structured_policy_class()(law, model.double().eval(), True, trust_spec, "eq22+qdd_d").eval(), manifest
 
 
 def time_against(laws: list[str], base: Path | None, other: Path, cycles: int, rounds: int) -> dict:
@@ -303,7 +303,7 @@ def time_against(laws: list[str], base: Path | None, other: Path, cycles: int, r
                 simulate(robot, controller, [short], sim)
                 calls[key].extend(controller.cycle_times_s[100:])
                 bundle = PolicyBundle.load(bundle_path(robot.name, law_name, directory))
-                nodes[key] = _nodes(bundle.path / bundle.manifest["graph"]["file"], compute_only=True)
+                nodes[key] = _nodes(bundle.path / bundle.manifest.graph.file, compute_only=True)
                 state, q = bundle.initial_state(np.zeros(6)), np.full(6, 0.1)
                 for i in range(cycles):
                     start = time.perf_counter()
@@ -370,7 +370,7 @@ def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dic
         "law": law_name,
         "bundle": str(out),
         "shipped_probe_max_rel_diff": float((np.abs(got - recorded) / np.maximum(np.abs(recorded), 1.0)).max()),
-        "compute_nodes": _nodes(out / bundle.manifest["graph"]["file"], compute_only=True),
+        "compute_nodes": _nodes(out / bundle.manifest.graph.file, compute_only=True),
         "rebuilt_from": str(trained) if trained.is_file() else "the shipped graph's initializers",
     }
 

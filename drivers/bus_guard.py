@@ -39,6 +39,7 @@ from drivers.network import DriveNetwork
 SDO_REQUEST_BASE = 0x600
 HEARTBEAT_WINDOW_PERIODS = 20  # the heartbeat rate is judged over this many producer periods
 HEARTBEAT_SLACK = HEARTBEAT_WINDOW_PERIODS // 2  # extra beats tolerated (a producer catching up after a stall)
+_BOOT_UP = fr.encode_heartbeat(fr.NmtState.BOOT_UP)
 MAX_TPDO_CREDIT = 16  # SYNCs left unanswered (lost TPDOs) that later frames may still make up
 
 
@@ -87,6 +88,10 @@ class BusGuard:
         self.tripped: str | None = None  # what was seen, once
         self.foreign_master: str | None = None
 
+    def forget_senders(self) -> None:
+        """Before a (re)connect: the drives' boot-up messages name their senders again."""
+        self._senders.clear()
+
     def arm(self) -> None:
         """Start counting TPDOs against SYNCs (before the first SYNC of a run)."""
         for cob_id in self._tpdo_frames:
@@ -119,6 +124,10 @@ class BusGuard:
         sender = getattr(msg, "sender", None)
         if sender is not None:
             node_id = cob_id & 0x7F  # every frame of one drive comes from one sender
+            if cob_id in self._heartbeats and bytes(msg.data) == _BOOT_UP:
+                # A drive (re)booting is its sender from now on; once running, the heartbeat
+                # consumer reports the reboot itself (DriveStateError), so a forged boot-up faults too.
+                self._senders[node_id] = sender
             first = self._senders.setdefault(node_id, sender)
             if sender != first:
                 self._trip(

@@ -169,6 +169,7 @@ class DriveBus(JointBusBase):
             if self._services is None:
                 self._services = _Services(self.config, network, self.nodes, self._sync)
             network.start()
+            self._services.guard.forget_senders()
             self._services.guard.check_no_master(master_listen_s(self.config))  # before our first frame
             self._services.master_heartbeat.start()
             self._start_up(self._services)

@@ -133,17 +133,25 @@ class JsonLineServer:
     def client_count(self) -> int:
         return len(self._clients)
 
+    @property
+    def native_thread_id(self) -> int | None:
+        """The serving thread's kernel id (for per-thread scheduling settings), None before it runs."""
+        return self._thread.native_id
+
     def _serve(self) -> None:
         if self._avoid_cpus and hasattr(os, "sched_setaffinity"):
             allowed = os.sched_getaffinity(0) - self._avoid_cpus
             if allowed:
                 os.sched_setaffinity(0, allowed)  # this thread only (Linux: pid 0 is the caller)
         while not self._stop.is_set():
-            for key, _events in self._selector.select(_POLL_S):
-                if key.fileobj is self._listen:
-                    self._accept()
-                else:
-                    self._read(cast(socket.socket, key.fileobj))
+            try:
+                for key, _events in self._selector.select(_POLL_S):
+                    if key.fileobj is self._listen:
+                        self._accept()
+                    else:
+                        self._read(cast(socket.socket, key.fileobj))
+            except Exception as exc:  # noqa: BLE001 - the server thread must outlive any one client
+                log.warning("control socket %s: %s: %s", self.path, type(exc).__name__, exc)
             now = time.monotonic()
             for sock, client in list(self._clients.items()):
                 if now - client.last_active_s > self._idle_timeout_s:

@@ -51,7 +51,6 @@ import hashlib
 import math
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,33 +58,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from drivers.strict_input import loads_json_unique
-
-# The probe and trust-region helpers live in their own modules; callers may import them from here.
-from hil_runtime.bundle_probes import (  # noqa: F401 - re-exported for callers
-    CLAMP_PROBE_ALPHAS,
-    CLAMP_PROBE_INSIDE,
-    PROBE_RTOL,
-    PROBE_SEED,
-    SATURATION_TOLERANCE_NM,
-    check_graph,
-    clamp_probe_inputs,
-    make_probe_inputs,
-    record_probes,
-    saturation_probe_inputs,
-)
-from hil_runtime.bundle_schema import (  # noqa: F401 - the contract's names, re-exported for callers
-    FEATURE_SETS,
-    GUARD_FEATURES,
-    INPUT_LAYOUT,
-    MANIFEST,
-    OUTPUT_LAYOUT,
-    SCHEMA,
-    SUPPORTED_SCHEMAS,
-    TRUST_MIN_SPAN,
-    TRUST_SIZE,
-    Manifest,
-    format_manifest_error,
-)
+from hil_runtime.bundle_probes import GraphCheckError, check_graph, probe_section
+from hil_runtime.bundle_schema import MANIFEST, SUPPORTED_SCHEMAS, Manifest, format_manifest_error
 from hil_runtime.bundle_security import (
     MAX_GRAPH_BYTES,
     MAX_MANIFEST_BYTES,
@@ -97,7 +71,8 @@ from hil_runtime.bundle_security import (
     member_file,
     read_bounded,
 )
-from hil_runtime.trust_region import emulator_features, trust_filter  # noqa: F401 - re-exported
+
+__all__ = ["BundleError", "NonFiniteOutputError", "PolicyBundle", "record_probes", "sha256_file"]
 
 
 class BundleError(ValueError):
@@ -112,17 +87,6 @@ class NonFiniteOutputError(ArithmeticError):
     exit_code = 3
 
 
-@dataclass(frozen=True)
-class Slot:
-    name: str
-    start: int
-    size: int
-
-    @property
-    def slice(self) -> slice:
-        return slice(self.start, self.start + self.size)
-
-
 def sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
@@ -131,58 +95,43 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _layout(raw: list[dict[str, Any]]) -> tuple[Slot, ...]:
-    """Slots with offsets from a layout the schema already checked (names, order, sizes)."""
-    slots, start = [], 0
-    for item in raw:
-        slots.append(Slot(item["name"], start, int(item["size"])))
-        start += int(item["size"])
-    return tuple(slots)
-
-
 class PolicyBundle:
     """A verified bundle with one onnxruntime session (1 intra-op thread) and preallocated buffers."""
 
-    def __init__(
-        self, path: Path, manifest: dict[str, Any], session: Any, inputs: tuple[Slot, ...], outputs: tuple[Slot, ...]
-    ) -> None:
+    def __init__(self, path: Path, manifest: Manifest, session: Any) -> None:
         self.path, self.manifest, self.session = path, manifest, session
-        self.inputs = {s.name: s for s in inputs}
-        self.outputs = {s.name: s for s in outputs}
-        self.n_joints = int(manifest["robot"]["n_joints"])
-        self.joint_names = tuple(manifest["robot"]["joint_names"])
-        self.period_s = float(manifest["period_s"])
-        self.law_name = str(manifest["law"]["name"])
-        self.state_size = int(manifest["law"]["state_size"])
-        self.torque_limit_nm = np.asarray(manifest["limits"]["torque_nm"], float)
-        trust = manifest.get("trust_region")
-        bound = None if trust is None else trust.get("residual_bound_nm")
+        self.layout = manifest.layout
+        self.n_joints = manifest.robot.n_joints
+        self.joint_names = tuple(manifest.robot.joint_names)
+        self.period_s = manifest.period_s
+        self.law_name = manifest.law.name
+        self.state_size = manifest.law.state_size
+        self.torque_limit_nm = np.asarray(manifest.limits.torque_nm, float)
+        trust = manifest.trust_region
+        bound = None if trust is None else trust.residual_bound_nm
         self.residual_bound_nm = None if bound is None else np.asarray(bound, float)
         self.saturation_checked = np.zeros(self.n_joints, bool)  # joints whose graph saturation was observed
         self.nonfinite_fallbacks = 0  # cycles whose graph torque was non-finite: the law's torque instead
         self.nonfinite_refusals = 0  # cycles with nothing finite to apply: NonFiniteOutputError
-        init = manifest["law"]["initial_state"]
-        self._init_constant = np.asarray(init["constant"], float).reshape(self.state_size)
-        self._init_gain = np.asarray(init["position_gain"], float).reshape(self.state_size, self.n_joints)
-        self.input_width = sum(s.size for s in inputs)
-        self.output_width = sum(s.size for s in outputs)
-        self._input_name = manifest["graph"]["input"]["name"]
-        self._output_name = manifest["graph"]["output"]["name"]
+        init = manifest.law.initial_state
+        self._init_constant = np.asarray(init.constant, float).reshape(self.state_size)
+        self._init_gain = np.asarray(init.position_gain, float).reshape(self.state_size, self.n_joints)
+        self.input_width = self.layout.input_width
+        self.output_width = self.layout.output_width
+        self._input_name = manifest.graph.input.name
+        self._output_name = manifest.graph.output.name
         # Single-arm fast path: the input row and the output row live in fixed buffers bound once.
         self._x = np.zeros((1, self.input_width))
         self._y = np.zeros((1, self.output_width))
         self._binding = self._bind(self._x, self._y)
         # step's Python is ~10 % of a call: the row views, the output views it returns and the bound
         # run are made once here, not per cycle (step returns these same view objects every call)
-        n, s = self.n_joints, self.state_size
+        n = self.n_joints
         self._x_row: np.ndarray = self._x[0]
         self._y_row: np.ndarray = self._y[0]
-        self._step_out: tuple[np.ndarray, np.ndarray, np.ndarray] = (
-            self._y_row[:n],
-            self._y_row[n : 2 * n],
-            self._y_row[2 * n : 2 * n + s],
-        )
-        self._trust_view: np.ndarray = self._y_row[2 * n + s :]
+        tau, tau_fb, next_state, trust_view = self.layout.split(self._y_row)
+        self._step_out: tuple[np.ndarray, np.ndarray, np.ndarray] = (tau, tau_fb, next_state)
+        self._trust_view: np.ndarray = trust_view
         # (tau, tau_fb) of the last step as one (2, 1, N) view: one copy gives both as (1, N) rows
         self.last_torques: np.ndarray = self._y_row[: 2 * n].reshape(2, 1, n)
         self._run_bound, self._binding_native = _native_run(session, self._binding)
@@ -260,7 +209,6 @@ class PolicyBundle:
                 f"bundle {manifest_path}: probes: missing (a bundle records probe inputs and outputs; "
                 "re-export it with `hil pipeline`)"
             )
-        manifest = raw
         n_joints, joint_names = parsed.robot.n_joints, list(parsed.robot.joint_names)
         period_s, graph_file = parsed.period_s, parsed.graph.file
         graph_bytes = b""
@@ -289,11 +237,9 @@ class PolicyBundle:
                 f"bundle {manifest_path}: robot.urdf_sha256 {parsed.robot.urdf_sha256[:12]}… differs from "
                 f"the robot's URDF ({expected_urdf_sha256[:12]}…): exported for another robot description"
             )
-        inputs = _layout(raw["graph"]["input"]["layout"])
-        outputs = _layout(raw["graph"]["output"]["layout"])
         check_graph_bytes(graph_bytes, path / graph_file)  # operators, external data: before onnxruntime
         session = _open_session(graph_bytes, path / graph_file, intra_op_threads)
-        width_in, width_out = sum(s.size for s in inputs), sum(s.size for s in outputs)
+        width_in, width_out = parsed.layout.input_width, parsed.layout.output_width
         got_in, got_out = session.get_inputs(), session.get_outputs()
         if (
             len(got_in) != 1
@@ -307,16 +253,21 @@ class PolicyBundle:
                 f"bundle {path / graph_file}: graph inputs/outputs do not match the manifest layout "
                 f"({width_in} -> {width_out})"
             )
-        bundle = cls(path, manifest, session, inputs, outputs)
+        bundle = cls(path, parsed, session)
         if check_behaviour:
-            check_graph(bundle, manifest_path)
+            try:
+                bundle.saturation_checked = check_graph(parsed, bundle.run_rows, manifest_path)
+            except GraphCheckError as exc:
+                raise BundleError(str(exc)) from None
             bundle_id = check_bundle_id(raw, str(manifest_path))
             if trusted_keys:
                 check_signature(raw, bundle_id, trusted_keys, str(manifest_path))
         return bundle
 
     # --- behavioural checks -------------------------------------------------------------------
-    def _run_rows(self, x: np.ndarray) -> np.ndarray:
+    def run_rows(self, x: np.ndarray) -> np.ndarray:
+        """Output rows for input rows (B, 5N + S), as the graph gives them (no fallback); a run
+        longer than PROBE_RUN_TIMEOUT_S is stopped (BundleError). For checks, not the loop."""
         import onnxruntime as ort
 
         # A load-time bound: onnxruntime stops a run whose RunOptions.terminate is set (from a timer)
@@ -379,11 +330,10 @@ class PolicyBundle:
 
     def _nonfinite(self, y: np.ndarray, x: np.ndarray, refuse: bool = True) -> None:
         """Replace a non-finite torque by the law's (saturated) one in place, or refuse the cycle."""
-        n, s = self.n_joints, self.state_size
-        tau, tau_fb, state = y[:n], y[n : 2 * n], y[2 * n : 2 * n + s]
+        tau, tau_fb, state, trust = self.layout.split(y)
         if np.isfinite(tau_fb).all() and np.isfinite(state).all():
             np.clip(tau_fb, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
-            y[2 * n + s :] = (1.0, 0.0)  # a full fallback to the law, as the trust region reports it
+            trust[:] = (1.0, 0.0)  # a full fallback to the law, as the trust region reports it
             self.nonfinite_fallbacks += 1
             return
         self.nonfinite_refusals += 1
@@ -411,25 +361,26 @@ class PolicyBundle:
             [np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1
         )
         y = self.session.run([self._output_name], {self._input_name: x})[0]
-        n, s = self.n_joints, self.state_size
         if not np.isfinite(y).all():  # step's fallback per arm; an arm with nothing finite stays
             for row in np.flatnonzero(~np.isfinite(y).all(axis=1)):  # non-finite: offline runs record a divergence
                 self._nonfinite(y[row], x[row], refuse=False)
-        self.last_trust_batch = y[:, 2 * n + s :]
-        return y[:, :n], y[:, n : 2 * n], y[:, 2 * n : 2 * n + s]
+        tau, tau_fb, next_state, self.last_trust_batch = self.layout.split(y)
+        return tau, tau_fb, next_state
 
     def describe(self) -> dict[str, Any]:
         """What telemetry's bundle-info queryable publishes."""
+        trust = self.manifest.trust_region
         return {
             "path": str(self.path),
-            "schema": self.manifest["schema"],
+            "schema": self.manifest.schema_id,
             "law": self.law_name,
-            "robot": self.manifest["robot"]["name"],
+            "robot": self.manifest.robot.name,
             "n_joints": self.n_joints,
             "period_s": self.period_s,
-            "files": self.manifest["files"],
-            "validation": self.manifest.get("validation", {}),
-            "trust_region": self.manifest.get("trust_region"),
+            "files": dict(self.manifest.files),
+            "validation": self.manifest.validation,
+            "trust_region": None if trust is None else trust.model_dump(),
+            "bundle_id": self.manifest.bundle_id,
         }
 
 
@@ -460,3 +411,12 @@ def _open_session(graph: bytes, file: Path, intra_op_threads: int) -> Any:
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own untyped errors on bad graphs
         reason = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
         raise BundleError(f"bundle {file}: onnxruntime cannot load the graph ({reason})") from None
+
+
+def record_probes(path: str | Path, count: int = 12) -> dict[str, Any]:
+    """The ``probes`` section for the bundle at ``path`` (the writer's step; graph and files final)."""
+    bundle = PolicyBundle.load(path, check_behaviour=False)
+    try:
+        return probe_section(bundle.manifest, bundle.run_rows, str(path), count)
+    except GraphCheckError as exc:
+        raise BundleError(str(exc)) from None

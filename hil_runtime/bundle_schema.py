@@ -7,11 +7,15 @@ are documented in hil_runtime/bundle.py.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from hil_runtime.bundle_security import MAX_PROBE_ROWS
+
+if TYPE_CHECKING:  # the layout's split works on numpy rows; the schema itself needs no numpy
+    import numpy as np
 
 SCHEMA = "hil-policy-bundle/3"  # 3: the control period is period_s (2 called it control_period_s)
 SUPPORTED_SCHEMAS = (SCHEMA,)
@@ -29,6 +33,41 @@ TRUST_MIN_SPAN = 1e-9
 PROBE_ATOL_MAX = 1e-3  # a manifest cannot loosen the behavioural check beyond this (N m)
 
 FeatureSet = Literal["eq22", "eq22+qdd_d", "ref"]
+
+
+@dataclass(frozen=True)
+class GraphLayout:
+    """The fused graph's row layout (INPUT_LAYOUT, OUTPUT_LAYOUT) for N joints and a law state of S:
+    x = [q, qd, q_d, qd_d, qdd_d, law_state] (5N + S), y = [tau, tau_fb, next_law_state, trust]
+    (2N + S + TRUST_SIZE). The one place the offsets are written."""
+
+    n_joints: int
+    state_size: int
+
+    @property
+    def input_width(self) -> int:
+        return 5 * self.n_joints + self.state_size
+
+    @property
+    def output_width(self) -> int:
+        return 2 * self.n_joints + self.state_size + TRUST_SIZE
+
+    def split(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(tau, tau_fb, next_law_state, trust): views along the last axis of an output row or rows."""
+        n, s = self.n_joints, self.state_size
+        return y[..., :n], y[..., n : 2 * n], y[..., 2 * n : 2 * n + s], y[..., 2 * n + s :]
+
+    def output_slot(self, column: int) -> tuple[str, int]:
+        """(slot name, index inside it) of an output column, for messages."""
+        start = 0
+        for name, size in zip(OUTPUT_LAYOUT, self._output_sizes(), strict=True):
+            if column < start + size:
+                return name, column - start
+            start += size
+        raise IndexError(column)
+
+    def _output_sizes(self) -> tuple[int, int, int, int]:
+        return self.n_joints, self.n_joints, self.state_size, TRUST_SIZE
 
 
 class _Strict(BaseModel):
@@ -135,6 +174,10 @@ class Manifest(_Strict):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, populate_by_name=True)
 
+    @property
+    def layout(self) -> GraphLayout:
+        return GraphLayout(self.robot.n_joints, self.law.state_size)
+
     @model_validator(mode="after")
     def _consistent(self) -> Manifest:
         n, s = self.robot.n_joints, self.law.state_size
@@ -166,7 +209,7 @@ class Manifest(_Strict):
             ):
                 raise ValueError(f"trust_region.residual_bound_nm needs {n} values >= 0 (or null)")
         if self.probes is not None:
-            width_in, width_out = 5 * n + s, 2 * n + s + TRUST_SIZE
+            width_in, width_out = self.layout.input_width, self.layout.output_width
             if len(self.probes.inputs) != len(self.probes.outputs):
                 raise ValueError("probes: inputs and outputs differ in count")
             if any(len(r) != width_in for r in self.probes.inputs) or any(

@@ -29,7 +29,7 @@ class Controller:
         self.bundle = bundle
         self.mode = mode
         self.n_joints = bundle.n_joints
-        applied = bundle.manifest["law"].get("applied_torque_slice")
+        applied = bundle.manifest.law.applied_torque_slice
         self._applied = slice(int(applied[0]), int(applied[1])) if applied else None
         self.state = np.zeros(bundle.state_size)
         self._next = np.zeros(bundle.state_size)

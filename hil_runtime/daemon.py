@@ -22,7 +22,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from hil_runtime.config import RuntimeConfig, load_runtime_config
+from hil_runtime.config import RuntimeConfig, RuntimeConfigError, load_runtime_config
 from hil_runtime.control import ControlServer
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.realtime import lock_memory
@@ -39,7 +39,7 @@ def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
     from hil_runtime.telemetry.factory import make_sink
 
     bundle = runtime.bundle
-    digest = next(iter(bundle.manifest.get("files", {}).values()), "")
+    digest = next(iter(bundle.manifest.files.values()), "")
     info = {
         "joints": list(config.joint_names),
         "config": config.model_dump(mode="json"),
@@ -57,6 +57,12 @@ def check(config_path: Path | str) -> str:
     bundle, limits = runtime.bundle, runtime.limits
     reference = config.reference.condition if config.reference.kind == "condition" else "hold"
     transport = config.bus.transport
+    if transport.interface == "ipc":  # a squatted or unusable bus directory, before `hil run` finds it
+        from drivers.ipc.directory import channel_problem
+
+        problem = channel_problem(transport.channel, transport.group)
+        if problem is not None:
+            raise RuntimeConfigError(f"{config.source}: bus.transport.channel: {problem}")
     position = ", ".join(
         f"{a:.3g}..{b:.3g}" for a, b in zip(limits.position_lower_rad, limits.position_upper_rad, strict=True)
     )

@@ -24,7 +24,9 @@ drives_app = typer.Typer(
     help="Commission CiA 402 drives: scan the bus, check a config, jog a joint.", no_args_is_help=True
 )
 
-ConfigOption = Annotated[Path, typer.Option("--config", help="runtime config (bus: section) or a drive-bus config")]
+ConfigOption = Annotated[
+    Path, typer.Option("--config", "--bus", help="runtime config (bus: section) or a drive-bus config")
+]
 JOG_MAX_FRACTION = 0.25  # a jog's torque is at most this fraction of the joint's max torque
 JOG_MAX_S = 30.0
 
@@ -62,7 +64,9 @@ def _hex(value: int | None, width: int = 8) -> str:
 
 @drives_app.command("scan")
 def scan(
-    config: Annotated[Path | None, typer.Option("--config", help="take the bus (transport) from this config")] = None,
+    config: Annotated[
+        Path | None, typer.Option("--config", "--bus", help="take the bus (transport) from this config")
+    ] = None,
     interface: Annotated[str | None, typer.Option(help="python-can interface (virtual, ipc, socketcan, ...)")] = None,
     channel: Annotated[str | None, typer.Option(help="its channel (ipc: the bus directory)")] = None,
     first: Annotated[int, typer.Option(help="first node id to ask", min=1, max=127)] = 1,

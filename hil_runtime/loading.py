@@ -5,7 +5,6 @@ refusal is one line naming the config file and the field (:class:`RuntimeConfigE
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,26 +32,25 @@ def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
         expected_joint_names=config.joint_names,
         trusted_keys=keys,
     )
-    robot = bundle.manifest["robot"]
-    if robot.get("name") != config.robot:
+    robot = bundle.manifest.robot
+    if robot.name != config.robot:
         raise RuntimeConfigError(
-            f"{config.source}: robot: '{config.robot}' but bundle {config.bundle.path} is for '{robot.get('name')}'"
+            f"{config.source}: robot: '{config.robot}' but bundle {config.bundle.path} is for '{robot.name}'"
         )
     expected = config.bundle.urdf_sha256
-    if expected is not None and robot.get("urdf_sha256") != expected:
+    if expected is not None and robot.urdf_sha256 != expected:
         raise RuntimeConfigError(
             f"{config.source}: bundle.urdf_sha256: {expected[:12]}… but bundle {config.bundle.path} was exported "
-            f"for URDF {str(robot.get('urdf_sha256'))[:12]}… ({robot.get('urdf_file')}): another description of the arm"
+            f"for URDF {robot.urdf_sha256[:12]}… ({robot.urdf_file}): another description of the arm"
         )
     return bundle
 
 
 def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimits:
     """Soft limits: the config's, else the bundle manifest's; torque: the tighter of bundle and drives."""
-    limits = bundle.manifest["limits"]
-    n = bundle.n_joints
-    position = np.asarray(limits.get("position_rad", [math.pi] * n), float)
-    velocity = np.asarray(limits.get("velocity_rad_s", [math.inf] * n), float)
+    limits = bundle.manifest.limits
+    position = np.asarray(limits.position_rad, float)
+    velocity = np.asarray(limits.velocity_rad_s, float)
     safety = config.safety
     lower = np.asarray(safety.position_lower_rad, float) if safety.position_lower_rad is not None else -position
     upper = np.asarray(safety.position_upper_rad, float) if safety.position_upper_rad is not None else position

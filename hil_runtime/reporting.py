@@ -6,7 +6,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from hil_runtime.runtime import Runtime
 
 # Counters of anomalies the loop rides through; a rise is reported as a ``warning`` telemetry event.
 WARNING_COUNTERS = (
@@ -56,3 +59,27 @@ def finite(value: Any) -> float | None:
     except (TypeError, ValueError):
         return None
     return number if math.isfinite(number) else None
+
+
+def status_snapshot(runtime: Runtime, stats: Mapping[str, Any]) -> dict[str, Any]:
+    """The runtime's JSON-able status for the control socket; ``stats``: its last published stats."""
+    reference = runtime.reference
+    return {
+        "state": runtime.lifecycle.state.value,
+        "fault": runtime.lifecycle.fault,
+        "fault_cycle": runtime.fault_cycle,
+        "robot": runtime.config.robot,
+        "bundle": str(runtime.config.bundle.path),
+        "mode": runtime.config.bundle.mode,
+        "reference": reference.name,
+        "ramp_cycles": reference.ramp_cycles,
+        "cycles": runtime.total_cycles,
+        "rate_hz": finite(stats.get("rate_hz")),
+        "overruns": runtime.pacer.overruns,
+        "compute_median_s": finite(stats.get("compute_median_s")),
+        "compute_p99_s": finite(stats.get("compute_p99_s")),
+        "supervisor": runtime.supervisor.counters(),
+        "nonfinite_fallbacks": runtime.bundle.nonfinite_fallbacks,
+        "bus": counters_dict(runtime.bus.counters),
+        "realtime": {"applied": runtime.realtime.applied, "refused": runtime.realtime.refused},
+    }

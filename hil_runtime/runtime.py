@@ -56,7 +56,7 @@ from hil_runtime.realtime import (
 )
 from hil_runtime.record import RunRecord, RunResult
 from hil_runtime.reference import ConditionTable, Reference
-from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, finite
+from hil_runtime.reporting import WARNING_COUNTERS, CounterRises, counters_dict, status_snapshot
 from hil_runtime.sdnotify import Notifier
 from hil_runtime.supervisor import Fault, FaultKind, Supervisor, classify_bus_error
 from hil_runtime.telemetry.sink import NullTelemetry, TelemetrySink
@@ -463,27 +463,8 @@ class Runtime:
         return str(state.value)
 
     def status(self) -> dict[str, Any]:
-        """A JSON-able snapshot for the control socket."""
-        stats = self._last_stats or {}
-        return {
-            "state": self.lifecycle.state.value,
-            "fault": self.lifecycle.fault,
-            "fault_cycle": self.fault_cycle,
-            "robot": self.config.robot,
-            "bundle": str(self.config.bundle.path),
-            "mode": self.config.bundle.mode,
-            "reference": self.reference.name,
-            "ramp_cycles": self.reference.ramp_cycles,
-            "cycles": self.total_cycles,
-            "rate_hz": finite(stats.get("rate_hz")),
-            "overruns": self.pacer.overruns,
-            "compute_median_s": finite(stats.get("compute_median_s")),
-            "compute_p99_s": finite(stats.get("compute_p99_s")),
-            "supervisor": self.supervisor.counters(),
-            "nonfinite_fallbacks": self.bundle.nonfinite_fallbacks,
-            "bus": counters_dict(self.bus.counters),
-            "realtime": {"applied": self.realtime.applied, "refused": self.realtime.refused},
-        }
+        """A JSON-able snapshot for the control socket (:func:`hil_runtime.reporting.status_snapshot`)."""
+        return status_snapshot(self, self._last_stats or {})
 
 
 def build_runtime(config: RuntimeConfig, can_bus: Any = None, **kwargs: Any) -> Runtime:

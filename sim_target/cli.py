@@ -1,7 +1,7 @@
 """``hil target``: serve the emulated arm, inject faults into a running one.
 
 hil target serve --config deploy/target.virtual.yaml
-hil target inject --socket /tmp/hil-target.sock '{"kind": "payload", "mass_kg": 2.0}'
+hil target inject --socket /run/hil/target.sock '{"kind": "payload", "mass_kg": 2.0}'
 """
 
 from __future__ import annotations

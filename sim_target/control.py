@@ -54,6 +54,10 @@ class ControlServer:
         except SocketPathError as exc:
             raise TargetConfigError(f"control_socket {self.path}: {exc}") from None
 
+    @property
+    def native_thread_id(self) -> int | None:
+        return self._server.native_thread_id
+
     def close(self) -> None:
         self._server.close()
 

@@ -24,24 +24,19 @@ torque impulse (the paper's disturbance).
 
 from __future__ import annotations
 
-import contextlib
-import os
-import sys
 import time
-import xml.etree.ElementTree as ET
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pybullet
 
+from sim_target.arm_loading import MOVABLE_JOINT_TYPES, PlantError, default_urdf_path, load_arm
 from sim_target.plant_protocol import JointState
 from sim_target.realism import RealismModel, RealismSpec
-from sim_target.robots import RobotLookupError, builtin_urdf_path
 
 GRAVITY_M_S2 = 9.81
-_MOVABLE_JOINT_TYPES = (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)
 # 32 steps of 31 µs per 1 ms period: semi-implicit Euler's first-order error then stays under
 # 1e-3 rad over 2 s for joint moves of a few tenths of a radian (benchmarks/bench_plant_parity.py).
 DEFAULT_SUBSTEPS = 32
@@ -53,12 +48,6 @@ _BRAKE_POSITION_GAIN = 0.5  # fraction of the position error the brake motor rem
 # cost pybullet 2-3 times a free period (its position motors), most of an idle target's CPU. A
 # brake that slips (load over its holding torque) accelerates far past this and is integrated.
 _HELD_MOTION_RAD = 1e-8
-
-
-class PlantError(ValueError):
-    """Bad plant parameters or inputs (wrong shape, unknown joint). Printed as one line."""
-
-    exit_code = 2
 
 
 @dataclass(frozen=True)
@@ -84,73 +73,6 @@ class TorqueImpulse:
 # the paper; 20 µs, the same pulse as the models simulator (docs/conditions.md: a whole 1 ms of
 # 10 N·m would spin the 1.25e-4 kg·m² wrist 3 to ~80 rad/s, thirty times its velocity limit).
 PAPER_DISTURBANCE = TorqueImpulse(torque_nm=(1.0, 1.0, 5.0, 5.0, 10.0, 10.0), start_s=2.0, duration_s=2e-5)
-
-
-@contextlib.contextmanager
-def _quiet_native_output() -> Iterator[None]:
-    """Silence pybullet's C-level warnings (printed to fd 1/2, not through Python)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        os.dup2(devnull, 2)
-        yield
-    finally:
-        os.dup2(saved[0], 1)
-        os.dup2(saved[1], 2)
-        for fd in (*saved, devnull):
-            os.close(fd)
-
-
-def _links_without_inertial(urdf: Path) -> set[str]:
-    root = ET.parse(urdf).getroot()
-    return {link.get("name", "") for link in root.iter("link") if link.find("inertial") is None}
-
-
-def load_arm(client_id: int, urdf: Path | str) -> int:
-    """Load a fixed-base arm into ``client_id`` with its dynamics exactly as the URDF states.
-
-    Returns the pybullet body id. Velocity motors are disabled, damping zeroed, inertia taken from
-    the file, and links the URDF gives no inertial are made massless (pybullet would give them 1 kg).
-    Must run before any ``calculateInverseDynamics`` call: pybullet caches that model on first use.
-    """
-    urdf = Path(urdf)
-    if not urdf.is_file():
-        raise PlantError(f"{urdf}: URDF not found")
-    with _quiet_native_output():
-        body = pybullet.loadURDF(
-            str(urdf),
-            useFixedBase=True,
-            flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
-            physicsClientId=client_id,
-        )
-    massless = _links_without_inertial(urdf)
-    n_joints = pybullet.getNumJoints(body, physicsClientId=client_id)
-    for link in range(-1, n_joints):
-        pybullet.changeDynamics(
-            body, link, linearDamping=0.0, angularDamping=0.0, jointDamping=0.0, physicsClientId=client_id
-        )
-    for link in range(n_joints):
-        info = pybullet.getJointInfo(body, link, physicsClientId=client_id)
-        if info[12].decode() in massless:
-            pybullet.changeDynamics(
-                body, link, mass=0.0, localInertiaDiagonal=[0.0, 0.0, 0.0], physicsClientId=client_id
-            )
-        if info[2] in _MOVABLE_JOINT_TYPES:
-            pybullet.setJointMotorControl2(
-                body, link, pybullet.VELOCITY_CONTROL, targetVelocity=0.0, force=0.0, physicsClientId=client_id
-            )
-    return body
-
-
-def default_urdf_path(robot: str = "ur5_paper") -> Path:
-    """The URDF of a built-in robot (the shared table, sim_target/robots.py; no models import)."""
-    try:
-        return builtin_urdf_path(robot)
-    except RobotLookupError as exc:
-        raise PlantError(str(exc)) from None
 
 
 class PybulletPlant:
@@ -228,7 +150,7 @@ class PybulletPlant:
         lower, upper, effort = {}, {}, {}
         for index in range(pybullet.getNumJoints(self._body, physicsClientId=self._client)):
             info = pybullet.getJointInfo(self._body, index, physicsClientId=self._client)
-            if info[2] not in _MOVABLE_JOINT_TYPES:
+            if info[2] not in MOVABLE_JOINT_TYPES:
                 continue
             name = info[1].decode()
             movable[name] = index

@@ -1,10 +1,13 @@
-"""Real-time settings of the target's physics thread: SCHED_FIFO, its own CPU, mlockall.
+"""Real-time settings of the target's physics thread: SCHED_FIFO, its own CPU, mlockall; the
+start-up cost probe and its warning (:func:`start_realtime`); the CPUs of a free-running HIL run
+(:func:`split_cpus`).
 
 The same calls as the runtime's (hil_runtime/realtime.py), kept here because sim_target never
-imports hil_runtime (docs/architecture.md). Each acts on the *calling thread* (Linux:
-``sched_setscheduler(0, ...)`` and ``sched_setaffinity(0, ...)`` name the calling thread), so the
-server applies them at the top of its loop, after the control-socket thread exists (that one keeps
-the default policy). A refused setting is one warning; the target runs on without it.
+imports hil_runtime (docs/architecture.md). :func:`apply_thread_settings` acts on the *calling
+thread* (Linux: ``sched_setscheduler(0, ...)`` and ``sched_setaffinity(0, ...)`` name the calling
+thread), so the server applies it at the top of its loop; the control socket's thread, started
+before, gets the same CPU one priority below (:func:`share_thread_settings`). A refused setting is
+one warning; the target runs on without it.
 """
 
 from __future__ import annotations
@@ -12,9 +15,11 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import errno
+import gc
 import logging
 import os
 from collections.abc import Sequence
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +63,68 @@ def apply_thread_settings(
     return applied, refused
 
 
+def share_thread_settings(native_id: int, fifo_priority: int, cpus: Sequence[int] | None) -> list[str]:
+    """Give another thread of this process (kernel id ``native_id``) the physics thread's CPU and
+    SCHED_FIFO one below it. A thread that can take the GIL (the control socket's) must not hold
+    it while descheduled on a busy CPU: the physics thread would wait for it (milliseconds on a
+    loaded machine, a whole period lost). On the physics thread's CPU, one priority below, it
+    runs only while the physics thread sleeps, and at once when the physics thread waits for the
+    GIL it holds. Returns what was refused (warned once each)."""
+    refused: list[str] = []
+    if cpus:
+        try:
+            os.sched_setaffinity(native_id, set(cpus))
+        except OSError as exc:
+            refused.append(f"control thread CPU {list(cpus)} ({exc.strerror})")
+    if fifo_priority > 1:
+        try:
+            os.sched_setscheduler(native_id, os.SCHED_FIFO, os.sched_param(fifo_priority - 1))
+        except OSError as exc:
+            refused.append(f"control thread SCHED_FIFO {fifo_priority - 1} ({exc.strerror})")
+    for what in refused:
+        log.warning("target real time: %s refused; carrying on without it", what)
+    return refused
+
+
+_COST_PROBE_STEPS = 200  # physics steps timed at start-up
+# A step costing more than this share of the period leaves too little for the bus and wake-up
+# jitter: the target says at start-up that it cannot keep real time.
+_COST_WARN_FRACTION = 0.5
+
+
+def start_realtime(plant: Any, config: Any, control_thread_id: int | None) -> dict[str, Any]:
+    """What ``clock: realtime`` does on the physics thread before its first tick: time the physics
+    step (``plant.probe_step_cost_s``, the plant restored after) and warn on one line when it cannot
+    keep the period; SCHED_FIFO / CPU / mlockall (``config.realtime``) for this thread and the
+    control thread; freeze start-up's objects out of the garbage collector (a full collection of
+    this process took milliseconds: never again). Returns the status's ``realtime`` entry."""
+    period_s = config.period_s
+    cost_s = plant.probe_step_cost_s(_COST_PROBE_STEPS)
+    fraction = cost_s / period_s
+    if fraction > _COST_WARN_FRACTION:
+        log.warning(
+            "target: cannot keep real time: one physics step (%d substeps) costs %.0f us, %.0f %% of "
+            "the %g ms period; runs that fall behind are marked invalid (fewer plant.substeps helps)",
+            plant.substeps,
+            cost_s * 1e6,
+            100 * fraction,
+            period_s * 1e3,
+        )
+    rt = config.realtime
+    applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
+    if control_thread_id is not None:
+        refused += share_thread_settings(control_thread_id, rt.fifo_priority, rt.cpus)
+    gc.collect()
+    gc.freeze()
+    return {
+        "plant_step_us": round(cost_s * 1e6, 1),
+        "plant_step_fraction": round(fraction, 3),
+        "substeps": plant.substeps,
+        "applied": applied,
+        "refused": refused,
+    }
+
+
 def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, ...] | None]:
     """(runtime CPUs, target CPUs) for a free-running HIL run on this machine.
 
@@ -82,4 +149,4 @@ def split_cpus(spec: str = "auto") -> tuple[tuple[int, ...] | None, tuple[int, .
     return (runtime_cpu,), (target_cpu,)
 
 
-__all__ = ["apply_thread_settings", "split_cpus"]
+__all__ = ["apply_thread_settings", "share_thread_settings", "split_cpus", "start_realtime"]

@@ -23,9 +23,9 @@ drive faults go to the drive layer's hooks. They come from the config file (sche
 simulated seconds) or, at run time, from a Unix control socket (``control_socket`` in the config):
 one JSON object per line, the same schema as a config fault, e.g.::
 
-    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/tmp/hil-target.sock
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "impulse", "duration_s": 0.001}'
-    hil target inject --socket /tmp/hil-target.sock '{"kind": "status"}'
+    echo '{"kind": "payload", "mass_kg": 2.0}' | socat - UNIX-CONNECT:/run/hil/target.sock
+    hil target inject --socket /run/hil/target.sock '{"kind": "impulse", "duration_s": 0.001}'
+    hil target inject --socket /run/hil/target.sock '{"kind": "status"}'
     {"kind": "start", "position_rad": [...], "velocity_rad_s": [...], "faults": [...]}   # RunStart
 
 Each line is answered with one JSON line: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
@@ -66,7 +66,7 @@ from sim_target.control import ControlServer, send_control  # noqa: F401 - send_
 from sim_target.lateness import Lateness
 from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
 from sim_target.plant_protocol import JointState
-from sim_target.rt_settings import apply_thread_settings
+from sim_target.rt_settings import start_realtime
 
 log = logging.getLogger(__name__)
 
@@ -120,10 +120,6 @@ _LOCKSTEP_WAKE_S = 0.05  # lock-step: the loop thread looks at the fault queue a
 _TICK_AFTER_SYNC = 0.25
 _PHASE_GAIN = 0.25
 _MAX_PHASE_STEP = 0.125
-_COST_PROBE_STEPS = 200  # physics steps timed at start-up (clock: realtime)
-# A step costing more than this share of the period leaves too little for the bus and wake-up
-# jitter: the target says at start-up that it cannot keep real time.
-_COST_WARN_FRACTION = 0.5
 
 
 class TargetServer:
@@ -158,7 +154,7 @@ class TargetServer:
         self._start: RunStart | None = None  # armed by start_run, placed at the first enabled step
         self._control: ControlServer | None = None
         self.bridge_url: str | None = None  # ws://127.0.0.1:PORT/ when the bus is served (build_server)
-        self._snapshot: dict[str, Any] = {}
+        self._snapshot: tuple[Any, ...] = ()
         self._deadline_s = 0.0  # real time: the next physics tick (time.monotonic())
         self._publish_snapshot()
         drives.set_sync_handler(self._on_sync)
@@ -284,27 +280,9 @@ class TargetServer:
                 return
 
     def _apply_realtime_settings(self) -> None:
-        """Time the physics step (the plant restored after), warn when it cannot keep the period,
-        then SCHED_FIFO / CPU / mlockall for this thread."""
-        period_s = self.config.period_s
-        cost_s = self.plant.probe_step_cost_s(_COST_PROBE_STEPS)
-        fraction = cost_s / period_s
-        self.realtime_settings["plant_step_us"] = round(cost_s * 1e6, 1)
-        self.realtime_settings["plant_step_fraction"] = round(fraction, 3)
-        self.realtime_settings["substeps"] = self.plant.substeps
-        if fraction > _COST_WARN_FRACTION:
-            log.warning(
-                "target: cannot keep real time: one physics step (%d substeps) costs %.0f us, %.0f %% of "
-                "the %g ms period; runs that fall behind are marked invalid (fewer plant.substeps helps)",
-                self.plant.substeps,
-                cost_s * 1e6,
-                100 * fraction,
-                period_s * 1e3,
-            )
-        rt = self.config.realtime
-        applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
-        self.realtime_settings["applied"] = applied
-        self.realtime_settings["refused"] = refused
+        """The start-up cost probe and warning, then this thread's real-time settings."""
+        control_id = None if self._control is None else self._control.native_thread_id
+        self.realtime_settings = start_realtime(self.plant, self.config, control_id)
         self._publish_snapshot()
 
     def stop(self) -> None:
@@ -358,26 +336,35 @@ class TargetServer:
         log.info("fault applied at t=%.4f s: %s", at_s, fault)
 
     def _publish_snapshot(self) -> None:
-        """What :meth:`status` answers, built on the loop thread (the only one touching pybullet
-        and the drives) and swapped in whole: a reader never sees half an update, never blocks it."""
-        state = self.plant.state()
-        period_s = self.config.period_s
-        self._snapshot = {
-            "time_s": state.time_s,
-            "position_rad": state.position_rad.round(6).tolist(),
-            "operation_enabled": np.asarray(self.drives.operation_enabled()).tolist(),
-            "payload_kg": self.plant.payload_kg,
-            **self.stats.__dict__,
-            "clock": self.config.clock,
-            "period_s": period_s,
-            "substeps": self.plant.substeps,
-            "lateness": self.lateness.as_dict(period_s) if self.config.clock == "realtime" else None,
-            "realtime": dict(self.realtime_settings),
-        }
+        """What :meth:`status` answers, taken on the loop thread (the only one touching pybullet
+        and the drives) and swapped in whole: a reader never sees half an update, never blocks it.
+        Only references and small copies here (it runs before a lock-step SYNC's TPDOs); the
+        control thread formats them."""
+        lateness = self.lateness.as_dict(self.config.period_s) if self.config.clock == "realtime" else None
+        self._snapshot = (
+            self.plant.state(),  # immutable: a new JointState each period
+            np.asarray(self.drives.operation_enabled()).copy(),
+            self.plant.payload_kg,
+            dict(self.stats.__dict__),
+            lateness,
+            dict(self.realtime_settings),
+        )
 
     def status(self) -> dict[str, Any]:
         """The latest snapshot (at most 16 periods old in real time, 50 ms in lock-step)."""
-        return dict(self._snapshot)
+        state, enabled, payload_kg, stats, lateness, realtime = self._snapshot
+        return {
+            "time_s": state.time_s,
+            "position_rad": state.position_rad.round(6).tolist(),
+            "operation_enabled": enabled.tolist(),
+            "payload_kg": payload_kg,
+            **stats,
+            "clock": self.config.clock,
+            "period_s": self.config.period_s,
+            "substeps": self.plant.substeps,
+            "lateness": lateness,
+            "realtime": realtime,
+        }
 
     # --- control socket -------------------------------------------------------------------------
 

@@ -220,7 +220,12 @@ class IpcBus(can.BusABC):
 
     def _sender_of(self, sock: socket.socket, where: str) -> Sender | None:
         """The peer's identity, or None (and the socket closed) when it is another user's."""
-        creds = peer_credentials(sock)
+        try:
+            creds = peer_credentials(sock)
+        except OSError as exc:
+            sock.close()
+            log.warning("ipc bus %s: no credentials for a peer %s: %s", self.directory, where, exc)
+            return None
         if not peer_allowed(creds, self._group_gid):
             sock.close()
             self.stats.peers_refused += 1

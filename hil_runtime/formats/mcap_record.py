@@ -312,7 +312,7 @@ def mcap_sink_for_run(
     from hil_runtime.formats.urdf import find_urdf
 
     bundle_dir = Path(bundle.path)
-    robot_doc = bundle.manifest.get("robot", {})
+    robot_doc = bundle.manifest.robot.model_dump()
     found = find_urdf(robot_doc.get("urdf_file", f"{robot}.urdf"), robot_doc.get("urdf_sha256"), bundle_dir, urdf)
     manifest_path = bundle_dir / "manifest.json"
     recorder = McapRecorder(

@@ -3,15 +3,15 @@ and the nominal rigid-body model that SMC, H-infinity and MRAC use (models.dynam
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from models.dynamics import RneDynamics
+from models.feedback.base import SharedId
 
 if TYPE_CHECKING:  # torch is imported only when a law is traced
-    from models.dynamics.torch_rne import RateMap, SpatialRne
+    from models.dynamics.torch_rne import SpatialRne
 from models.errors import ModelInputError
 from models.robots import RobotModel
 
@@ -47,36 +47,20 @@ def sat(xp: Any, x: Any) -> Any:
     return xp.clip(x, -1.0, 1.0)
 
 
-@dataclass
-class SharedId:
-    """A caller's own ID request at the law's position, run in the same pass as the law's next torch call.
-
-    ``SpatialRne.inverse_dynamics_shared`` semantics: ID(position, rates @ qd_map, rates @ qdd_map + offset)
-    times ``scale``; when ``position`` is not the law's q, it runs as a second pass.
-    """
-
-    position: Any
-    rates: Any
-    rate_map: RateMap
-    scale: np.ndarray | None = None
-
-
 class NominalModel:
     """The nominal rigid-body model of the robot (models.dynamics): numpy through ``RneDynamics``, torch
     through the one traceable RNE (``SpatialRne``, a small ONNX graph).
 
     Laws that need model terms call it inside ``step`` so the same definition traces to ONNX. A caller
-    tracing a graph around the law (models.lmpc.structured) may set ``pending`` to a ``SharedId``: the
-    law's next torch call then runs both in one RNE pass and leaves the caller's torque in
-    ``pending_result``.
+    tracing a graph around the law (models.lmpc.structured) passes its own ID request (a ``SharedId``) to
+    ``FeedbackLaw.step_sharing_id``; the law hands it to ``inverse_dynamics_sharing`` or ``gravity_sharing``,
+    which run both in one RNE pass and return the caller's torque beside the law's.
     """
 
     def __init__(self, robot: RobotModel) -> None:
         self.robot = robot
         self.dynamics = RneDynamics(robot)
         self._torch_rne: SpatialRne | None = None
-        self.pending: SharedId | None = None
-        self.pending_result: Any = None
 
     @property
     def torch_rne(self) -> SpatialRne:
@@ -90,27 +74,35 @@ class NominalModel:
         """M(q) qdd + C(q, qd) qd + G(q), (B, N)."""
         if xp is np:
             return self.dynamics.inverse_dynamics(q, qd, qdd)
-        return self._torch(q, (qd, qdd))
+        return self._torch(q, (qd, qdd), None)[0]
 
     def gravity(self, xp: Any, q: Any) -> Any:
         """G(q), (B, N)."""
         if xp is np:
             return self.dynamics.gravity(q)
-        return self._torch(q, None)
+        return self._torch(q, None, None)[0]
 
-    def _torch(self, q: Any, rates: tuple[Any, Any] | None) -> Any:
+    def inverse_dynamics_sharing(self, q: Any, qd: Any, qdd: Any, shared: SharedId | None) -> tuple[Any, Any]:
+        """Torch only: (the law's ID (B, N), the caller's ``shared`` request's torque or None), one RNE pass."""
+        return self._torch(q, (qd, qdd), shared)
+
+    def gravity_sharing(self, q: Any, shared: SharedId | None) -> tuple[Any, Any]:
+        """Torch only: (G(q) (B, N), the caller's ``shared`` request's torque or None), one RNE pass."""
+        return self._torch(q, None, shared)
+
+    def _torch(self, q: Any, rates: tuple[Any, Any] | None, request: SharedId | None) -> tuple[Any, Any]:
         import torch
 
-        rne, request, self.pending = self.torch_rne, self.pending, None
+        rne = self.torch_rne
         n = self.robot.n_joints
         eye, zero = np.eye(n), np.zeros((n, n))
+        caller: Any = None
         if request is not None and request.position is not q:  # another position: its own pass
-            self.pending_result = rne.inverse_dynamics_shared(
-                request.position, request.rates, [request.rate_map], [request.scale]
-            )[0]
+            alone = rne.inverse_dynamics_shared(request.position, request.rates, [request.rate_map], [request.scale])
+            caller = alone[0]
             request = None
         if request is None:
-            return rne.gravity_torque(q) if rates is None else rne.inverse_dynamics(q, *rates)
+            return (rne.gravity_torque(q) if rates is None else rne.inverse_dynamics(q, *rates)), caller
         qd_map, qdd_map, offset = request.rate_map
         width = np.shape(qd_map)[0]
         if rates is None:  # G(q) and the caller's ID: the law's rate set is all zero
@@ -122,8 +114,7 @@ class NominalModel:
             pad = np.zeros((2 * n, n))
             theirs = (np.vstack([pad, qd_map]), np.vstack([pad, qdd_map]), offset)
         law, caller = rne.inverse_dynamics_shared(q, inputs, [own, theirs], [None, request.scale])
-        self.pending_result = caller
-        return law
+        return law, caller
 
     def mass_matrix_diagonal(self, q: np.ndarray) -> np.ndarray:
         """diag M(q) at one configuration (N,), numpy; used to size per-joint nominal plants."""

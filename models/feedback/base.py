@@ -11,9 +11,27 @@ Errors are e = q_d - q, e_dot = qd_d - qd (the paper's sign: positive stiffness 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # torch is imported only when a law is traced
+    from models.dynamics.torch_rne import RateMap
+
+
+@dataclass
+class SharedId:
+    """A caller's own ID request at the law's position, run in the same pass as the law's next torch call.
+
+    ``SpatialRne.inverse_dynamics_shared`` semantics: ID(position, rates @ qd_map, rates @ qdd_map + offset)
+    times ``scale``; when ``position`` is not the law's q, it runs as a second pass.
+    """
+
+    position: Any
+    rates: Any
+    rate_map: RateMap
+    scale: np.ndarray | None = None
 
 
 class FeedbackLaw(ABC):
@@ -48,6 +66,15 @@ class FeedbackLaw(ABC):
     @abstractmethod
     def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         """One control period: (tau_fb (B, N) saturated to the torque limits, next state (B, S))."""
+
+    def step_sharing_id(
+        self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any, shared: SharedId | None
+    ) -> tuple[Any, Any, Any]:
+        """``step`` traced with a caller's own ID request (``shared``, torch only): (tau_fb, next state, the
+        request's torque or None). A law with a nominal model (H-infinity, SMC) runs the request in its own
+        RNE pass; here the law has none, so the caller computes it (None)."""
+        tau_fb, next_state = self.step(xp, state, q, qd, q_d, qd_d, qdd_d)
+        return tau_fb, next_state, None
 
     def error_features(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any) -> Any:
         """The law's error vector E (Eq. 15) used by the MPC cost: here [e, e_dot] (B, 2N)."""

@@ -34,7 +34,7 @@ from scipy.signal import cont2discrete
 
 from models.errors import ModelInputError
 from models.feedback._common import NominalModel, const
-from models.feedback.base import FeedbackLaw
+from models.feedback.base import FeedbackLaw, SharedId
 from models.robots import RobotModel
 
 PAPER_ALPHA = 0.2
@@ -167,15 +167,23 @@ class HinfLaw(FeedbackLaw):
         }
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        tau, nxt, _ = self.step_sharing_id(xp, state, q, qd, q_d, qd_d, qdd_d, None)
+        return tau, nxt
+
+    def step_sharing_id(
+        self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any, shared: SharedId | None
+    ) -> tuple[Any, Any, Any]:
         if xp is not np:  # traced for the ONNX graph
             mapped = xp.concatenate([q, q_d, state], -1) @ const(xp, self.step_matrix)
             tau, nxt = xp.split(mapped, [self.n_joints, self.state_size], 1)
+            shared_tau = None
             if self.gravity_compensation:
-                tau = tau + self.nominal.gravity(xp, q)
-            return self.saturate(xp, tau), nxt
+                gravity, shared_tau = self.nominal.gravity_sharing(q, shared)
+                tau = tau + gravity
+            return self.saturate(xp, tau), nxt, shared_tau
         ad_t, bd_t, cd_t, dd_t = (const(xp, m.T.copy()) for m in (self.ad, self.bd, self.cd, self.dd))
         e = q_d - q
         tau = state @ cd_t + e @ dd_t
         if self.gravity_compensation:
             tau = tau + self.nominal.gravity(xp, q)
-        return self.saturate(xp, tau), state @ ad_t + e @ bd_t
+        return self.saturate(xp, tau), state @ ad_t + e @ bd_t, None

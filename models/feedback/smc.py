@@ -25,7 +25,7 @@ import numpy as np
 
 from models.errors import ModelInputError
 from models.feedback._common import NominalModel, const, sat
-from models.feedback.base import FeedbackLaw
+from models.feedback.base import FeedbackLaw, SharedId
 from models.robots import RobotModel
 
 PAPER_LAMBDA = np.array([5.0, 3.0, 3.0, 5.0, 2.0, 0.05])
@@ -67,12 +67,21 @@ class SMCLaw(FeedbackLaw):
         }
 
     def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+        tau, nxt, _ = self.step_sharing_id(xp, state, q, qd, q_d, qd_d, qdd_d, None)
+        return tau, nxt
+
+    def step_sharing_id(
+        self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any, shared: SharedId | None
+    ) -> tuple[Any, Any, Any]:
         lam, k = const(xp, self.lam), const(xp, self.k)
         e, e_dot = q_d - q, qd_d - qd
         switching = k * sat(xp, (e_dot + lam * e) / self.epsilon)
         qdd_ref = qdd_d + lam * e_dot
-        if self.switching_units == "acceleration":
-            tau = self.nominal.inverse_dynamics(xp, q, qd, qdd_ref + switching)
+        qdd = qdd_ref + switching if self.switching_units == "acceleration" else qdd_ref
+        if xp is np:
+            tau, shared_tau = self.nominal.inverse_dynamics(xp, q, qd, qdd), None
         else:
-            tau = self.nominal.inverse_dynamics(xp, q, qd, qdd_ref) + switching
-        return self.saturate(xp, tau), state
+            tau, shared_tau = self.nominal.inverse_dynamics_sharing(q, qd, qdd, shared)
+        if self.switching_units != "acceleration":
+            tau = tau + switching
+        return self.saturate(xp, tau), state, shared_tau

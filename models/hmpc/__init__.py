@@ -13,7 +13,8 @@ See docs/hmpc.md.
 from models.hmpc.batch import solve_batch
 from models.hmpc.config import HMPCConfig
 from models.hmpc.controller import HMPCController, make_hmpc_controller
-from models.hmpc.solver import STATUS_NAMES, HMPCResult, HMPCSolver
+from models.hmpc.result import STATUS_NAMES, HMPCResult
+from models.hmpc.solver import HMPCSolver
 
 __all__ = [
     "HMPCConfig",

@@ -20,7 +20,8 @@ import numpy as np
 
 from models.feedback.base import FeedbackLaw
 from models.hmpc.config import HMPCConfig
-from models.hmpc.solver import STATUS_NAMES, HMPCResult, HMPCSolver
+from models.hmpc.result import STATUS_NAMES, HMPCResult
+from models.hmpc.solver import HMPCSolver
 from models.robots import RobotModel
 
 
@@ -36,7 +37,7 @@ class HMPCController:
         self.iterations: list[int] = []  # Gauss-Newton iterations, summed over the batch, per call
         self.last_tau_fb: np.ndarray | None = None
         self.last_result: HMPCResult | None = None
-        self._law_state: np.ndarray | None = None
+        self.state: np.ndarray | None = None  # the law's state (B, S), as FeedbackController.state
         self._sequence: np.ndarray | None = None
         self._applied: np.ndarray | None = None
 
@@ -47,7 +48,7 @@ class HMPCController:
 
     def reset(self, q0: np.ndarray) -> None:
         q0 = np.atleast_2d(np.asarray(q0, float))
-        self._law_state = self.law.initial_state(q0)
+        self.state = self.law.initial_state(q0)
         self._sequence, self._applied = None, None
         self.cycle_times_s, self.iterations = [], []
         self.fallbacks = Counter()
@@ -56,10 +57,10 @@ class HMPCController:
         self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
     ) -> np.ndarray:
         start = time.perf_counter()
-        if self._law_state is None:
+        if self.state is None:
             self.reset(q)
-        result = self.solver.solve(q, qd, q_d, qd_d, qdd_d, self._law_state, self._sequence, self._applied)
-        self._law_state = result.law_state
+        result = self.solver.solve(q, qd, q_d, qd_d, qdd_d, self.state, self._sequence, self._applied)
+        self.state = result.law_state
         self._sequence = result.sequence_nm
         self._applied = result.tau_nm
         self.cycle_times_s.append(time.perf_counter() - start)

@@ -27,9 +27,6 @@ outside them (e.g. just after the impulse) still gives a feasible problem; torqu
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
-
 import numpy as np
 
 from models.errors import ModelInputError
@@ -37,93 +34,21 @@ from models.feedback.base import FeedbackLaw
 from models.hmpc.config import HMPCConfig, per_joint
 from models.hmpc.inner_loops import make_inner_loops
 from models.hmpc.prediction import make_predictor
+from models.hmpc.result import (
+    CONVERGED,
+    NONFINITE_INPUT,
+    NONFINITE_SOLUTION,
+    NOT_CONVERGED,
+    HMPCResult,
+    Rollout,
+    Rows,
+)
 from models.robots import RobotModel
 
-CONVERGED, NONFINITE_INPUT, NOT_CONVERGED, NONFINITE_SOLUTION = 0, 1, 2, 3
-STATUS_NAMES = {
-    CONVERGED: "converged",
-    NONFINITE_INPUT: "nonfinite_input",
-    NOT_CONVERGED: "not_converged",
-    NONFINITE_SOLUTION: "nonfinite_solution",
-}
 ARMIJO = 1e-4
 LEVENBERG_GROWTH = 1e4  # damping factor after a step the line search rejected
 PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
 FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
-
-
-@dataclass
-class HMPCResult:
-    """One batch solve. Arrays are per state (leading axis B)."""
-
-    tau_nm: np.ndarray  # (B, N) torque to apply: the optimum's first step, or the fallback
-    tau_fb_nm: np.ndarray  # (B, N) the law's torque
-    law_state: np.ndarray  # (B, S) the law's next state, with the applied torque recorded
-    sequence_nm: np.ndarray  # (B, T, N) optimized torque sequence (NaN rows where there was none)
-    status: np.ndarray  # (B,) int, see STATUS_NAMES
-    fell_back: np.ndarray  # (B,) bool: tau_nm is the fallback torque
-    cost: np.ndarray  # (B,) cost of the returned sequence (NaN when none)
-    candidate_cost: np.ndarray  # (B,) cost of the best of the paper's candidates w * tau_fb
-    iterations: np.ndarray  # (B,) Gauss-Newton iterations used
-    anchor_scale: np.ndarray | None = None  # (B,) w* of the anchored cost (NaN where not solved); None: absolute cost
-
-
-@dataclass
-class _Rows:
-    """The fixed data of K problems: start state, reference preview, the law's state at k+1."""
-
-    q0: np.ndarray  # (K, N)
-    qd0: np.ndarray
-    ref_q: np.ndarray  # (K, T, N)
-    ref_qd: np.ndarray
-    qdd_d: np.ndarray  # (K, N), held over the preview
-    law_state: np.ndarray  # (K, S)
-    anchor: np.ndarray | None = None  # (K, T, N) torque the W2 term is measured from (anchored cost), None: 0
-
-    def _map(self, fn: Callable[[np.ndarray], np.ndarray]) -> _Rows:
-        """The same rows with ``fn`` applied to every array (row selection, repetition)."""
-        return _Rows(
-            fn(self.q0),
-            fn(self.qd0),
-            fn(self.ref_q),
-            fn(self.ref_qd),
-            fn(self.qdd_d),
-            fn(self.law_state),
-            None if self.anchor is None else fn(self.anchor),
-        )
-
-    def take(self, index: np.ndarray) -> _Rows:
-        return self._map(lambda a: a[index])
-
-    def repeat(self, count: int) -> _Rows:
-        return self._map(lambda a: np.repeat(a, count, axis=0))
-
-    def deviation(self, u: np.ndarray) -> np.ndarray:
-        """What W2 weighs: u itself (absolute cost) or u - anchor (anchored cost)."""
-        return u if self.anchor is None else np.ascontiguousarray(u - self.anchor)
-
-
-@dataclass
-class _Rollout:
-    q: np.ndarray  # (K, T, N) predicted states at k+1..k+T
-    qd: np.ndarray
-    features: np.ndarray  # (K, T, nE) E(k+j)
-    law_states: np.ndarray | None  # (K, T, S) the law's state at k+j (law-specific features only)
-    cost: np.ndarray  # (K,)
-
-    def take(self, index: np.ndarray) -> _Rollout:
-        states = None if self.law_states is None else self.law_states[index]
-        return _Rollout(self.q[index], self.qd[index], self.features[index], states, self.cost[index])
-
-    def put(self, index: np.ndarray, other: _Rollout) -> None:
-        self.q[index], self.qd[index], self.features[index], self.cost[index] = (
-            other.q,
-            other.qd,
-            other.features,
-            other.cost,
-        )
-        if self.law_states is not None and other.law_states is not None:
-            self.law_states[index] = other.law_states
 
 
 class HMPCSolver:
@@ -255,7 +180,7 @@ class HMPCSolver:
             anchor_scale = np.full(batch, np.nan) if self.anchored else None
             valid = np.flatnonzero(finite)
             if valid.size:
-                rows = _Rows(q[valid], qd[valid], ref_q[valid], ref_qd[valid], qdd_d[valid], next_state[valid])
+                rows = Rows(q[valid], qd[valid], ref_q[valid], ref_qd[valid], qdd_d[valid], next_state[valid])
                 warm = None
                 if self.config.warm_start and warm_start_nm is not None:
                     warm = np.asarray(warm_start_nm, float)[valid]
@@ -294,7 +219,7 @@ class HMPCSolver:
 
     # ------------------------------------------------------------------------------------------
     def _optimize(
-        self, rows: _Rows, tau_fb: np.ndarray, warm: np.ndarray | None
+        self, rows: Rows, tau_fb: np.ndarray, warm: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Per row: the optimized sequence (K, T, N), its cost, the best paper candidate's cost,
         status, Gauss-Newton iterations, and w* (anchored cost; None for the absolute one)."""
@@ -375,7 +300,7 @@ class HMPCSolver:
             active = active[~finished & ~done]
         return u, state.cost, candidate_cost, status, iterations, w_star
 
-    def _rollout(self, rows: _Rows, u: np.ndarray, torque_weight: np.ndarray | None = None) -> _Rollout:
+    def _rollout(self, rows: Rows, u: np.ndarray, torque_weight: np.ndarray | None = None) -> Rollout:
         """Predicted states, error features and cost of torque sequences u (K, T, N).
 
         ``torque_weight``: W2 (N,) for this call (default: the optimized cost's), on rows.deviation(u)."""
@@ -401,10 +326,10 @@ class HMPCSolver:
             self.state_limit,
             self._rho,
         )
-        return _Rollout(q_path, qd_path, features, law_states, cost)
+        return Rollout(q_path, qd_path, features, law_states, cost)
 
     def _features(
-        self, rows: _Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
+        self, rows: Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """E (K, T, nE) along the predicted paths, and the law's state at every step (law-specific
         features; None for the base E = [e, e_dot], which does not depend on it)."""
@@ -413,7 +338,7 @@ class HMPCSolver:
         return self._law_features(rows, u, q_path, qd_path)
 
     def _law_features(
-        self, rows: _Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
+        self, rows: Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """The law's own E along the preview, its state stepped with the predicted measurements."""
         law, horizon = self.law, self.horizon
@@ -429,7 +354,7 @@ class HMPCSolver:
                 )
         return np.stack(features, 1), np.stack(states, 1)
 
-    def _feature_jacobian(self, rows: _Rows, state: _Rollout) -> np.ndarray:
+    def _feature_jacobian(self, rows: Rows, state: Rollout) -> np.ndarray:
         """dE/dx (K, T, nE, 2N) of a law's own features at fixed law state, by central differences."""
         k, horizon, n = state.q.shape
         x = np.concatenate([state.q, state.qd], -1).reshape(k * horizon, 2 * n)
@@ -457,7 +382,7 @@ class HMPCSolver:
         return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
 
     def _model_step(
-        self, rows: _Rows, u: np.ndarray, state: _Rollout, levenberg: np.ndarray
+        self, rows: Rows, u: np.ndarray, state: Rollout, levenberg: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The Gauss-Newton step (K, T, N) inside the torque box, the decrease of J it predicts, and
         whether the step is the model's exact minimizer (K,) bool.
@@ -486,7 +411,7 @@ class HMPCSolver:
         return step.reshape(k, horizon, n), predicted, exact
 
     def _gauss_newton_model(
-        self, rows: _Rows, u: np.ndarray, state: _Rollout, levenberg: np.ndarray
+        self, rows: Rows, u: np.ndarray, state: Rollout, levenberg: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Condensed model of J / 2 without the bound penalty: H (K, TN, TN), g (K, TN), and the
         state sensitivities S = dx/dU (K, T 2N, TN)."""

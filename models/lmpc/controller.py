@@ -147,11 +147,11 @@ def make_lmpc_controller(
     )
     if bundle.law_name != law.name:
         raise BundleError(f"bundle {path / 'manifest.json'}: law '{bundle.law_name}', asked for '{law.name}'")
-    difference = params_difference(bundle.manifest["law"]["params"], law.params)
+    difference = params_difference(bundle.manifest.law.params, law.params)
     if difference is not None:
         raise BundleError(
             f"bundle {path / 'manifest.json'}: law '{law.name}' parameters differ from the bundle's "
-            f"(gain set {bundle.manifest['law'].get('gain_set')!r}; bundle vs law {difference}); "
+            f"(gain set {bundle.manifest.law.gain_set!r}; bundle vs law {difference}); "
             "re-export with `hil pipeline`"
         )
     return LMPCController(bundle, law.name)

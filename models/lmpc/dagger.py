@@ -46,7 +46,6 @@ def lmpc_visited_states(
             stride,
             c.bundle.n_joints,
             c.bundle.state_size,
-            law_state=lambda c: c.state,
             log_applied=False,
         )
         for c in controllers

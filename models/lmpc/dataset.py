@@ -226,7 +226,7 @@ class RawLaw:
         (q, e, qd, e_dot, qdd_d, tau_fb), (M, 6N) (hil_runtime.bundle.FEATURE_SETS)."""
         if feature_set == "eq22":
             return features(self.q, self.qd, self.q_d, self.qd_d, self.tau_fb)
-        from hil_runtime.bundle import emulator_features
+        from hil_runtime.trust_region import emulator_features
 
         return emulator_features(feature_set, self.q, self.qd, self.q_d, self.qd_d, self.qdd_d, self.tau_fb)
 

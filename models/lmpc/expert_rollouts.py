@@ -10,7 +10,6 @@ emulator's errors compound (docs/lmpc.md). These runs add the expert's own state
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,7 +29,6 @@ def _expert_logger(inner: Any, batch: int, steps: int, stride: int) -> StateLogg
         stride,
         inner.law.n_joints,
         inner.law.state_size,
-        law_state=lambda c: c._law_state,
         log_applied=True,
     )
 
@@ -38,8 +36,8 @@ def _expert_logger(inner: Any, batch: int, steps: int, stride: int) -> StateLogg
 class StateLogger:
     """Wraps a controller; logs every ``stride``-th period with the law state before the call.
 
-    ``law_state`` reads the wrapped controller's law state; with ``log_applied`` the torque the
-    controller applied is logged too (as ``tau_star``: the expert's label).
+    Every controller (FB, HMPC, LMPC) keeps its law state in ``state`` (B, S); with ``log_applied`` the
+    torque the controller applied is logged too (as ``tau_star``: the expert's label).
     """
 
     def __init__(
@@ -50,10 +48,9 @@ class StateLogger:
         stride: int,
         n_joints: int,
         state_size: int,
-        law_state: Callable[[Any], np.ndarray],
         log_applied: bool,
     ) -> None:
-        self.inner, self.stride, self.law_state, self.log_applied = inner, stride, law_state, log_applied
+        self.inner, self.stride, self.log_applied = inner, stride, log_applied
         self.name = inner.name + "-log"
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None
@@ -68,7 +65,7 @@ class StateLogger:
         self.k = 0
 
     def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
-        before = self.law_state(self.inner).copy()
+        before = np.array(self.inner.state)  # the law state before the call (a copy)
         tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
         self.last_tau_fb = self.inner.last_tau_fb
         if self.k % self.stride == 0:

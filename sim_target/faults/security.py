@@ -43,11 +43,13 @@ def _intruder_bus(rig: InProcessRig) -> can.BusABC:
 class _Forger:
     """Answers each SYNC with drive 3's last TPDO, moved by +0.03 rad and echoing the SYNC's counter."""
 
-    def __init__(self, bus: can.BusABC, counts_per_rad: float) -> None:
+    def __init__(self, bus: can.BusABC, counts_per_rad: float, last: tuple[int, int, int, int | None]) -> None:
+        """``last``: drive 3's last feedback (statusword, torque ‰, position and velocity counts), so
+        the very first SYNC after the injection is answered."""
         self.bus = bus
         self.offset_counts = round(FORGED_OFFSET_RAD * counts_per_rad)
         self.sent = 0
-        self._last: tuple[int, int, int, int | None] | None = None
+        self._last: tuple[int, int, int, int | None] | None = last
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="forger", daemon=True)
         self._thread.start()
@@ -76,7 +78,9 @@ class _Forger:
 
 def forge_tpdo(rig: InProcessRig, rng: np.random.Generator) -> dict[str, Any]:
     """A second process on the bus answering each SYNC first with drive 3's TPDO (+0.03 rad)."""
-    forger = _Forger(_intruder_bus(rig), float(rig.drive_bus.counts_per_rad[FORGED_NODE - 1]))
+    node = rig.drive_bus.nodes[FORGED_NODE - 1]
+    last = (node.statusword, node.torque_permille, node.position_counts, node.velocity_counts_s)
+    forger = _Forger(_intruder_bus(rig), float(rig.drive_bus.counts_per_rad[FORGED_NODE - 1]), last)
     rig.cleanups.append(forger.close)
     return {"node": FORGED_NODE, "offset_rad": FORGED_OFFSET_RAD, "transport": rig.config.bus.transport.interface}
 

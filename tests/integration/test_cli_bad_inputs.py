@@ -344,6 +344,14 @@ CASES: list[Case] = [
     # runtime configs (issue 20): non-finite or huge values, strict types, duplicate keys, wide limits
     _runtime_case("hb-timeout-inf", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: .inf", "heartbeat_timeout_s"),
     _runtime_case(
+        "run-ipc-channel-is-a-file",
+        r"channel: hil,",
+        "channel: ./afile,",
+        "bus.transport.channel",
+        "is not a directory",
+        files={"afile": "x"},
+    ),
+    _runtime_case(
         "hb-timeout-1e300", r"heartbeat_timeout_s: 1.0", "heartbeat_timeout_s: 1e300", "bus.heartbeat_timeout_s"
     ),
     _runtime_case(

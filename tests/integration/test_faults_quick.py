@@ -8,9 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from sim_target.faults.campaign import QUICK
 
 
+@pytest.mark.timeout(660)  # the campaign's own subprocess bound (600 s) governs, not the suite's 300 s
 def test_hil_faults_quick_passes_every_row(tmp_path: Path) -> None:
     out = tmp_path / "faults"
     done = subprocess.run(

@@ -92,7 +92,7 @@ def _track_c1(runtime: Runtime) -> RunResult:
     ramp = runtime.reference.ramp_cycles
     result = runtime.run(max_cycles=ramp + int(TRACK_S / 0.001))
     assert result.reason == "cycles" and result.fault is None
-    check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest["limits"])
+    check_run(runtime.record.arrays(), ramp, runtime.bundle.manifest.limits.model_dump())
     return result
 
 

@@ -47,7 +47,7 @@ def _track(vendor: str | None) -> dict[str, Any]:
             assert isinstance(bus, DriveBus)
             assert target.stats.steps == bus.counters.cycles  # lock-step: one plant step per SYNC
             rec = runtime.record.arrays()
-            limits = runtime.bundle.manifest["limits"]
+            limits = runtime.bundle.manifest.limits.model_dump()
             scales = [(node.permille_per_nm, node.counts_per_rad) for node in bus.nodes]
         finally:
             runtime.shutdown()

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_runtime.bundle import GUARD_FEATURES
+from hil_runtime.bundle_schema import GUARD_FEATURES
 from models.executors import Executor
 from models.feedback import make_law
 from models.lmpc.dataset import RawLaw, load_raw_dataset
@@ -51,7 +51,7 @@ def theorem2_repeats(t_s: np.ndarray, weights: np.ndarray, base: int) -> np.ndar
 
 
 def _residual_set(feature_set: str, rows: Any, tau_star: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from hil_runtime.bundle import emulator_features
+    from hil_runtime.trust_region import emulator_features
 
     x = emulator_features(feature_set, rows["q"], rows["qd"], rows["q_d"], rows["qd_d"], rows["qdd_d"], rows["tau_fb"])
     return x, np.asarray(tau_star, float) - np.asarray(rows["tau_fb"], float)

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_runtime.bundle import FEATURE_SETS, GUARD_FEATURES
+from hil_runtime.bundle_schema import FEATURE_SETS, GUARD_FEATURES
 from models.feedback import make_law
 from models.lmpc.dataset import git_commit, load_raw_dataset
 from models.lmpc.pipeline.config import PipelineConfig

@@ -37,7 +37,7 @@ from models.lmpc.structured.config import (
 )
 from models.lmpc.structured.data import collect, features, perturbed, relabel
 from models.lmpc.structured.export import export_structured, export_trained, reexport, save_trained, trust_box
-from models.lmpc.structured.graph import _structured_policy_class
+from models.lmpc.structured.graph import structured_policy_class
 from models.lmpc.structured.model import StructuredEmulator
 from models.lmpc.structured.run import run_structured
 from models.lmpc.structured.training import train_structured
@@ -50,7 +50,7 @@ __all__ = [
     "TRAINED_FORMAT",
     "StructuredConfig",
     "StructuredEmulator",
-    "_structured_policy_class",
+    "structured_policy_class",
     "collect",
     "config_from_json",
     "export_structured",

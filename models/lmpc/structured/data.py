@@ -37,8 +37,7 @@ def _logged_rollouts(
         # the law's sizes: FB and HMPC controllers hold the law, the LMPC (DAgger rounds) its bundle
         sizes = c.bundle if hasattr(c, "bundle") else c.law
         n, size = sizes.n_joints, sizes.state_size
-        state_of = (lambda ctl: ctl._law_state) if hasattr(c, "_law_state") else (lambda ctl: ctl.state)
-        loggers.append(StateLogger(c, len(conditions), steps, stride, n, size, law_state=state_of, log_applied=True))
+        loggers.append(StateLogger(c, len(conditions), steps, stride, n, size, log_applied=True))
     runners: list[Any] = loggers
     if excite is not None:
         runners = [_Excited(lg, excite[0], hold, excite[1], seed + 1000 * k) for k, lg in enumerate(loggers)]

@@ -14,7 +14,7 @@ import torch
 from models.errors import ModelInputError
 from models.feedback import make_law
 from models.lmpc.structured.config import TRAINED_FORMAT, StructuredConfig, config_from_json, jsonable_config
-from models.lmpc.structured.graph import _structured_policy_class
+from models.lmpc.structured.graph import structured_policy_class
 from models.lmpc.structured.model import StructuredEmulator
 from models.robots import RobotModel, load_robot
 
@@ -82,7 +82,7 @@ def export_trained(
         residual_bound_nm=bound,
         box_margin=config.box_margin,
         feature_set="eq22+qdd_d",
-        policy_class=_structured_policy_class(),
+        policy_class=structured_policy_class(),
     )
 
 

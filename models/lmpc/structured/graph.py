@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 
-def _structured_policy_class() -> type:
+def structured_policy_class() -> type:
     """A FusedPolicy with the same layout, the same numbers (to round-off) and the trust-region rule, written
     as few ONNX nodes as the algebra allows (onnxruntime spends ~0.3-0.5 us per node on rows this small):
 
@@ -25,7 +25,7 @@ def _structured_policy_class() -> type:
 
     The reference semantics is FusedPolicy.forward with the emulator's own forward (tests compare both).
     """
-    from models.feedback._common import SharedId
+    from models.feedback.base import SharedId
     from models.lmpc.bundle_export import FusedPolicy
 
     class _StructuredPolicy(FusedPolicy):  # type: ignore[misc, valid-type]
@@ -93,14 +93,8 @@ def _structured_policy_class() -> type:
             position = q if self.emulator.ff_point == "measured" else q_d
             request = SharedId(position, x, k["rate_map"], k["scale"])
             # a law with a nominal model (H-infinity, SMC) runs its RNE and the feed-forward's as one pass
-            nominal = getattr(self.law, "nominal", None)
-            if nominal is not None:
-                nominal.pending, nominal.pending_result = request, None
-            tau_fb, next_state = self.law.step(torch, state, q, qd, q_d, qd_d, qdd_d)
-            tau_id = None
-            if nominal is not None:
-                tau_id, nominal.pending, nominal.pending_result = nominal.pending_result, None, None
-            if tau_id is None:
+            tau_fb, next_state, tau_id = self.law.step_sharing_id(torch, state, q, qd, q_d, qd_d, qdd_d, request)
+            if tau_id is None:  # the law has no RNE pass to share: the feed-forward's own
                 rne = self.emulator.rne
                 tau_id = rne.inverse_dynamics_shared(position, x, [k["rate_map"]], [k["scale"]])[0]
             xt = torch.cat([x, tau_fb], 1)

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from hil_runtime.bundle import PolicyBundle
+from hil_runtime.bundle_schema import Emulator, Graph, GraphLayout, InitialState, Law, Limits, Manifest, Port, Robot
 from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_joints
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -59,13 +60,37 @@ class StubBundle(PolicyBundle):
         self.nonfinite_fallbacks = 0  # PolicyBundle's counter: this stub never falls back
         self.joint_names = JOINT_NAMES[:n]
         self.torque_limit_nm = np.array(MAX_TORQUE_NM[:n])
-        self.manifest = {
-            "robot": {"name": "ur5_paper", "n_joints": n, "joint_names": list(self.joint_names)},
-            "limits": {"position_rad": [3.0] * n, "velocity_rad_s": [2.5] * n, "torque_nm": list(self.torque_limit_nm)},
-            "law": {"name": "stub", "state_size": state_size, "applied_torque_slice": applied},
-            "files": {},
-        }
-        self._out = np.zeros(2 * n + state_size + 2)
+        # The typed manifest the runtime reads, built without the fields a stub has no use for.
+        self.manifest = Manifest.model_construct(
+            robot=Robot.model_construct(
+                name="ur5_paper", n_joints=n, joint_names=list(self.joint_names), urdf_sha256="0" * 64, urdf_file=""
+            ),
+            limits=Limits(position_rad=[3.0] * n, velocity_rad_s=[2.5] * n, torque_nm=list(self.torque_limit_nm)),
+            law=Law.model_construct(
+                name="stub",
+                params={},
+                state_size=state_size,
+                applied_torque_slice=None if applied is None else (applied[0], applied[1]),
+                initial_state=InitialState(constant=[0.0] * state_size, position_gain=[[0.0] * n] * state_size),
+            ),
+            schema_id="hil-policy-bundle/3",
+            period_s=period_s,
+            graph=Graph(
+                file="none",
+                opset=17,
+                dtype="float64",
+                input=Port(name="x", layout=[]),
+                output=Port(name="y", layout=[]),
+            ),
+            emulator=Emulator(feature_set="eq22", residual=True),
+            trust_region=None,
+            files={},
+            training={},
+            validation={},
+            created="",
+        )
+        self.layout = GraphLayout(n, state_size)
+        self._out = np.zeros(self.layout.output_width)
         self.tau_value: np.ndarray | None = None
         self.tau_fb_value: np.ndarray | None = None
         self.trust_value = 0.0
@@ -75,7 +100,7 @@ class StubBundle(PolicyBundle):
 
     @property
     def last_trust(self) -> np.ndarray:
-        return self._out[2 * self.n_joints + self.state_size :]
+        return self.layout.split(self._out)[3]
 
     def initial_state(self, q0: np.ndarray) -> np.ndarray:
         return np.zeros(self.state_size)
@@ -87,19 +112,16 @@ class StubBundle(PolicyBundle):
             self.before_step()
         state = law_state
         self.calls += 1
-        n, s = self.n_joints, self.state_size
         self.states_seen.append(np.array(state))
         law = 50.0 * (q_d - q) + 5.0 * (qd_d - qd)
-        y = self._out
-        y[n : 2 * n] = law if self.tau_fb_value is None else self.tau_fb_value
-        y[:n] = (
-            np.clip(y[n : 2 * n], -self.torque_limit_nm, self.torque_limit_nm)
-            if self.tau_value is None
-            else self.tau_value
+        tau, tau_fb, next_state, trust = self.layout.split(self._out)
+        tau_fb[:] = law if self.tau_fb_value is None else self.tau_fb_value
+        tau[:] = (
+            np.clip(tau_fb, -self.torque_limit_nm, self.torque_limit_nm) if self.tau_value is None else self.tau_value
         )
-        y[2 * n : 2 * n + s] = state + 1.0
-        y[2 * n + s] = self.trust_value
-        return y[:n], y[n : 2 * n], y[2 * n : 2 * n + s]
+        next_state[:] = state + 1.0
+        trust[0] = self.trust_value
+        return tau, tau_fb, next_state
 
     def describe(self) -> dict[str, Any]:
         return {"law": "stub"}

@@ -109,7 +109,7 @@ def test_refuses_a_malformed_trust_region(bundle_copy):
 def test_trust_region_in_the_graph_matches_the_numpy_rule_and_falls_back(tmp_path):
     """Residual emulator + training box + residual bound: graph == hil_runtime.bundle.trust_filter;
     outside the box tau = sat(tau_fb) and the fallback flag is set; large residuals are clamped."""
-    from hil_runtime.bundle import emulator_features, trust_filter
+    from hil_runtime.trust_region import emulator_features, trust_filter
     from models.feedback import make_law
     from models.lmpc.bundle_export import export_bundle
     from models.lmpc.emulator import Emulator
@@ -135,7 +135,7 @@ def test_trust_region_in_the_graph_matches_the_numpy_rule_and_falls_back(tmp_pat
         box_margin=0.0,
     )
     bundle = PolicyBundle.load(tmp_path / "pid", expected_joints=6)
-    assert bundle.manifest["emulator"]["residual"] and bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
+    assert bundle.manifest.emulator.residual and bundle.manifest.emulator.feature_set == "eq22+qdd_d"
     rng = np.random.default_rng(3)
     q, qd, q_d, qd_d, qdd_d = (rng.uniform(-0.02, 0.02, size=(16, 6)) for _ in range(5))
     q[8:, 0] = 1.5  # outside the box: fallback
@@ -206,7 +206,7 @@ def test_shipped_bundles_load_with_the_robot_config():
             root / law, expected_joints=6, expected_period_s=1e-3, expected_joint_names=robot.joint_names
         )
         assert bundle.law_name == law
-        assert bundle.manifest["validation"]["onnx_vs_torch_max_abs_nm"] <= 1e-5
+        assert bundle.manifest.validation["onnx_vs_torch_max_abs_nm"] <= 1e-5
 
 
 @pytest.mark.parametrize("law_name", ["hinf", "smc"])

@@ -45,7 +45,8 @@ def test_every_shipped_bundle_passes_its_behavioural_check(law: str) -> None:
     # and every joint's residual clamp: some recorded probe puts that joint at its bound (the loader's
     # check of residual_bound_nm), whatever the bound's size (issue 13: 10x the labels' largest residual)
     n, s = bundle.n_joints, bundle.state_size
-    y = np.asarray(bundle.manifest["probes"]["outputs"])
+    assert bundle.manifest.probes is not None
+    y = np.asarray(bundle.manifest.probes.outputs)
     tau, tau_fb, alpha, clamped = y[:, :n], y[:, n : 2 * n], 1.0 - y[:, 2 * n + s], y[:, 2 * n + s + 1]
     acting = (alpha > 0) & (clamped >= 1) & (np.abs(tau) < bundle.torque_limit_nm).all(axis=1)
     residual = np.abs(tau - tau_fb)[acting] / alpha[acting, None]
@@ -145,7 +146,8 @@ def test_step_never_returns_a_non_finite_torque() -> None:
 def test_writer_and_loader_share_one_schema() -> None:
     code = (
         "import hil_runtime.bundle as b, hil_runtime.bundle_schema as s; import models.lmpc.bundle_export as w;"
-        "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == b.SCHEMA == s.SCHEMA"
+        "assert b.Manifest is s.Manifest and w.Manifest is s.Manifest and w.SCHEMA == s.SCHEMA;"
+        "assert b.SUPPORTED_SCHEMAS == s.SUPPORTED_SCHEMAS"
     )
     pytest.importorskip("torch")
     done = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)

@@ -15,7 +15,7 @@ from models.executors import LocalProcessExecutor
 from models.feedback.pd import PDLaw
 from models.hmpc import HMPCConfig, HMPCSolver, make_hmpc_controller, solve_batch
 from models.hmpc.boxqp import solve_box_qp
-from models.hmpc.solver import CONVERGED, NONFINITE_INPUT, NOT_CONVERGED
+from models.hmpc.result import CONVERGED, NONFINITE_INPUT, NOT_CONVERGED
 from models.robots import RobotModel
 
 if TYPE_CHECKING:
@@ -40,10 +40,10 @@ def test_solution_is_a_local_minimum(make_states: MakeStates, law: PDLaw, robot:
     solver = HMPCSolver(law, robot)
     args = make_states(1, seed=3)
     result = solver.solve(*args)
-    from models.hmpc.solver import _Rows
+    from models.hmpc.result import Rows
 
     ref_q, ref_qd = solver.reference_preview(*args[2:])
-    rows = _Rows(args[0], args[1], ref_q, ref_qd, args[4], np.zeros((1, 0)))
+    rows = Rows(args[0], args[1], ref_q, ref_qd, args[4], np.zeros((1, 0)))
     best = result.sequence_nm
     base = solver._rollout(rows, best).cost[0]
     rng = np.random.default_rng(1)
@@ -70,14 +70,14 @@ def test_velocity_bound_holds_on_prediction(make_states: MakeStates, law: PDLaw,
     q, qd, q_d, qd_d, qdd_d = make_states(4, seed=4, error_rad=0.1)
     qd, qd_d, qdd_d = np.zeros_like(qd), np.zeros_like(qd_d), np.zeros_like(qdd_d)
     result = solver.solve(q, qd, q_d, qd_d, qdd_d)
-    from models.hmpc.solver import _Rows
+    from models.hmpc.result import Rows
 
     ref_q, ref_qd = solver.reference_preview(q_d, qd_d, qdd_d)
-    rollout = solver._rollout(_Rows(q, qd, ref_q, ref_qd, qdd_d, np.zeros((4, 0))), result.sequence_nm)
+    rollout = solver._rollout(Rows(q, qd, ref_q, ref_qd, qdd_d, np.zeros((4, 0))), result.sequence_nm)
     unconstrained = HMPCSolver(law, robot, HMPCConfig(use_state_bounds=False, max_iterations=10)).solve(
         q, qd, q_d, qd_d, qdd_d
     )
-    rollout_free = solver._rollout(_Rows(q, qd, ref_q, ref_qd, qdd_d, np.zeros((4, 0))), unconstrained.sequence_nm)
+    rollout_free = solver._rollout(Rows(q, qd, ref_q, ref_qd, qdd_d, np.zeros((4, 0))), unconstrained.sequence_nm)
     assert np.abs(rollout_free.qd).max() > 1.5 * limit  # without the bound the optimizer would exceed it
     assert np.abs(rollout.qd).max() <= limit * 1.01  # soft bound: stiff penalty, 1 % slack
 

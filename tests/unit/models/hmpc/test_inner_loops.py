@@ -18,7 +18,7 @@ from models.feedback.pd import PDLaw
 from models.feedback.pid import PIDLaw
 from models.hmpc import HMPCConfig, HMPCSolver, make_hmpc_controller
 from models.hmpc.inner_loops import INNER_LOOPS, NumbaInnerLoops, NumpyInnerLoops, make_inner_loops
-from models.hmpc.solver import CONVERGED
+from models.hmpc.result import CONVERGED
 from models.robots import RobotModel
 from models.sim import SimConfig, simulate
 

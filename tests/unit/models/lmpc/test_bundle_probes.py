@@ -15,6 +15,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from hil_runtime.bundle import BundleError, PolicyBundle  # noqa: E402
+from hil_runtime.bundle_schema import Probes, TrustRegion  # noqa: E402
 from models.errors import ModelInputError  # noqa: E402
 from models.lmpc.structured import (  # noqa: E402
     StructuredConfig,
@@ -30,6 +31,16 @@ ROBOT = load_robot("ur5_paper")
 #: max |tau* - tau_fb| per joint of the shipped PD bundle's labels (N m)
 LABEL_MAX_NM = np.array([14.52, 24.14, 13.35, 4.352, 0.8674, 0.01152])
 FIT = {"physics": {"relative_loss": 0.0}, "residual": {"val_relative_loss": 0.0}}  # what the manifest quotes
+
+
+def _probes(bundle: PolicyBundle) -> Probes:
+    assert bundle.manifest.probes is not None
+    return bundle.manifest.probes
+
+
+def _trust(bundle: PolicyBundle) -> TrustRegion:
+    assert bundle.manifest.trust_region is not None
+    return bundle.manifest.trust_region
 
 
 def _emulator() -> StructuredEmulator:
@@ -68,11 +79,11 @@ def test_a_changed_residual_bound_is_refused_whatever_the_bound(tmp_path: Path, 
     _export(tmp_path / "pd", scale)
     bundle = PolicyBundle.load(tmp_path / "pd")  # the honest bundle passes every check
     n = bundle.n_joints
-    outputs = np.asarray(bundle.manifest["probes"]["outputs"])
+    outputs = np.asarray(_probes(bundle).outputs)
     alpha, clamped = 1.0 - outputs[:, -2], outputs[:, -1]
     assert (clamped[alpha > 0] >= 1).any() and ((alpha == 1.0) & (clamped == 0)).any()  # clamp and inside
     if scale >= 10:  # the bound exceeds the first joints' torque limits: their clamp shows only at alpha < 1
-        assert np.any(np.asarray(bundle.manifest["trust_region"]["residual_bound_nm"]) > bundle.torque_limit_nm)
+        assert np.any(np.asarray(_trust(bundle).residual_bound_nm) > bundle.torque_limit_nm)
     for k, factor in enumerate((10.0, 1.1, 0.1, 0.9)):
         with pytest.raises(BundleError, match="residual_bound_nm") as info:
             PolicyBundle.load(_tampered(tmp_path / "pd", tmp_path / f"all{k}", np.full(n, factor)))
@@ -91,13 +102,13 @@ def test_reexport_from_the_trained_file_gives_the_same_graph(tmp_path: Path) -> 
     reexport(tmp_path / "work", tmp_path / "again", log=lambda _: None)
     first = PolicyBundle.load(tmp_path / "first" / "ur5_paper" / "pd")
     again = PolicyBundle.load(tmp_path / "again" / "ur5_paper" / "pd")
-    x = np.asarray(first.manifest["probes"]["inputs"])
-    np.testing.assert_array_equal(again._run_rows(x), first._run_rows(x))
-    assert again.manifest["trust_region"] == first.manifest["trust_region"]
+    x = np.asarray(_probes(first).inputs)
+    np.testing.assert_array_equal(again.run_rows(x), first.run_rows(x))
+    assert again.manifest.trust_region == first.manifest.trust_region
     reexport(tmp_path / "work", tmp_path / "wider", bound_scale=20.0, log=lambda _: None)
     wider = PolicyBundle.load(tmp_path / "wider" / "ur5_paper" / "pd")
     np.testing.assert_allclose(
-        np.asarray(wider.manifest["trust_region"]["residual_bound_nm"]) - 1e-3, 20.0 * LABEL_MAX_NM, rtol=1e-12
+        np.asarray(_trust(wider).residual_bound_nm, float) - 1e-3, 20.0 * LABEL_MAX_NM, rtol=1e-12
     )
 
 

@@ -97,8 +97,8 @@ def test_tiny_pipeline_end_to_end_with_the_hmpc_labeler(tmp_path):
     assert set(summary["wall_s"]) >= {"dataset", "label", "train", "export", "total"}
     np.testing.assert_allclose(sum(summary["theorem2"]["pd"]["weights"]), 1.0)
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
-    assert bundle.manifest["training"]["sampling"]["samples"] == 90
-    assert bundle.manifest["training"]["labels"]["labeler"] == "hmpc_labeler"
+    assert bundle.manifest.training["sampling"]["samples"] == 90
+    assert bundle.manifest.training["labels"]["labeler"] == "hmpc_labeler"
     assert (tmp_path / "work" / "sampling_curves.png").stat().st_size > 1000
 
 
@@ -126,9 +126,10 @@ def test_augment_stage_hmpc_rollouts_and_a_dagger_round(tmp_path):
     assert summary["augment"]["rollout_states_per_law"]["pd"] == 100
     assert summary["augment"]["dagger"][0]["pd"]["labeled"] > 0
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd")
-    assert bundle.manifest["training"]["augmentation"]["hmpc_rollout_conditions"] == 1
-    assert bundle.manifest["emulator"]["residual"] and bundle.manifest["emulator"]["feature_set"] == "ref"
-    trust = bundle.manifest["trust_region"]
-    assert len(trust["feature_low"]) == 36 and len(trust["residual_bound_nm"]) == 6
+    assert bundle.manifest.training["augmentation"]["hmpc_rollout_conditions"] == 1
+    assert bundle.manifest.emulator.residual and bundle.manifest.emulator.feature_set == "ref"
+    trust = bundle.manifest.trust_region
+    assert trust is not None and trust.residual_bound_nm is not None
+    assert len(trust.feature_low) == 36 and len(trust.residual_bound_nm) == 6
     chosen = summary["augment"]["margin_selection"]["pd"]["chosen"]
-    assert [bundle.manifest["training"]["trust"]["box"], trust["box_margin"]] == list(chosen)
+    assert [bundle.manifest.training["trust"]["box"], trust.box_margin] == list(chosen)

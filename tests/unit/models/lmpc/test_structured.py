@@ -117,8 +117,8 @@ def test_structured_pipeline_exports_a_loadable_bundle_equal_to_its_torch_model(
         summary["rounds"][0]["smc"]["onnx_vs_torch_max_abs_nm"] <= 1e-5
     )  # the law's RNE batched with the feed-forward's
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6, expected_period_s=1e-3)
-    assert bundle.manifest["emulator"]["feature_set"] == "eq22+qdd_d"
-    assert bundle.manifest["training"]["design"].startswith("structured")
+    assert bundle.manifest.emulator.feature_set == "eq22+qdd_d"
+    assert bundle.manifest.training["design"].startswith("structured")
     physics = fit["fit"]["physics"]
     assert all(0.0 <= g <= 1.2 for g in physics["g"]) and all(-1.05 <= c <= 0.0 for c in physics["c"])
     assert (tmp_path / "work" / "structured.json").exists()
@@ -170,7 +170,8 @@ def test_structured_config_refuses_unknown_options() -> None:
 
 
 def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
-    from models.feedback._common import NominalModel, SharedId
+    from models.feedback._common import NominalModel
+    from models.feedback.base import SharedId
 
     robot = load_robot("ur5_paper")
     nominal = NominalModel(robot)
@@ -184,16 +185,17 @@ def test_batched_nominal_gives_the_law_and_the_caller_their_own_rows() -> None:
     )
     for position, expected in ((pq, alone_caller), (q, nominal.torch_rne.inverse_dynamics(q, pqd, pa))):
         # another position: a second pass; the law's own q: one shared pass
-        nominal.pending = SharedId(position, torch.cat([pqd, pa], 1), rate_map)
-        both = nominal.inverse_dynamics(torch, q, qd, qdd)
-        assert nominal.pending is None
+        request = SharedId(position, torch.cat([pqd, pa], 1), rate_map)
+        both, caller = nominal.inverse_dynamics_sharing(q, qd, qdd, request)
         torch.testing.assert_close(both, alone_law, rtol=0, atol=1e-12)
-        torch.testing.assert_close(nominal.pending_result, expected, rtol=0, atol=1e-12)
-        nominal.pending = SharedId(position, torch.cat([pqd, pa], 1), rate_map, np.full(6, 2.0))
+        torch.testing.assert_close(caller, expected, rtol=0, atol=1e-12)
+        request = SharedId(position, torch.cat([pqd, pa], 1), rate_map, np.full(6, 2.0))
+        gravity, caller = nominal.gravity_sharing(q, request)
         torch.testing.assert_close(
-            nominal.gravity(torch, q), torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11
+            gravity, torch.as_tensor(NominalModel(robot).gravity(np, q.numpy())), rtol=0, atol=1e-11
         )
-        torch.testing.assert_close(nominal.pending_result, 2.0 * expected, rtol=0, atol=1e-12)
+        torch.testing.assert_close(caller, 2.0 * expected, rtol=0, atol=1e-12)
+    assert nominal.gravity_sharing(q, None)[1] is None  # no request, no caller's torque
 
 
 def test_experiment_cli_refuses_a_bad_formulation_and_a_bad_random_spec(tmp_path: Path) -> None:
@@ -213,7 +215,7 @@ def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp
     ort = pytest.importorskip("onnxruntime")
     from models.feedback import make_law
     from models.lmpc.bundle_export import FusedPolicy
-    from models.lmpc.structured import StructuredEmulator, _structured_policy_class
+    from models.lmpc.structured import StructuredEmulator, structured_policy_class
 
     robot = load_robot("ur5_paper")
     n = robot.n_joints
@@ -240,7 +242,7 @@ def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp
         low[n], high[n] = -0.3, 0.3 + 1e-12  # a span near the minimum is handled as the reference does
         trust = {"feature_low": low, "feature_high": high, "box_margin": 0.5, "residual_bound_nm": 0.05 * limit}
         reference = FusedPolicy(law, model, True, trust, "eq22+qdd_d").eval()
-        compact = _structured_policy_class()(law, model, True, trust, "eq22+qdd_d").eval()
+        compact = structured_policy_class()(law, model, True, trust, "eq22+qdd_d").eval()
         width = 5 * n + law.state_size
         x = rng.normal(size=(96, width)) * np.repeat([0.02, 0.2, 0.6], 32)[:, None]  # inside, fade-out, outside
         x[:, 5 * n :] = rng.normal(size=(96, law.state_size)) * 0.01
