@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
@@ -135,7 +136,7 @@ def pipeline(
     )
     with Progress(*columns, console=console) as bar:
 
-        def progress(label: str, total: int):  # type: ignore[no-untyped-def]
+        def progress(label: str, total: int) -> Callable[[int], None]:
             task = bar.add_task(label, total=total)
             return lambda n: bar.advance(task, n)
 

@@ -60,7 +60,6 @@ def test_a_held_arm_is_not_integrated_until_something_changes() -> None:
         np.testing.assert_allclose(plant.step(np.zeros(6), braked).position_rad, q_held, rtol=0, atol=1e-8)
         # A payload, or a drive enabled, is integrated again at once.
         plant.set_payload(40.0)
-        calls = []
         with mock.patch.object(pybullet, "stepSimulation", wraps=pybullet.stepSimulation) as step:
             plant.step(np.zeros(6), braked)
             plant.step(np.zeros(6), free)
@@ -73,7 +72,7 @@ class _Drives:
     """A drive layer with no bus: serve_until waits out the time; a SYNC is a direct call."""
 
     def __init__(self) -> None:
-        self.handler = None
+        self.handler: object = None
         self.published = 0
 
     def set_sync_handler(self, handler: object) -> None:
@@ -109,7 +108,7 @@ def _server(**overrides: object) -> TargetServer:
         **overrides,
     }
     config = parse_target_config(data)
-    return TargetServer(config, make_plant(config), _Drives())  # type: ignore[arg-type]  # a stand-in
+    return TargetServer(config, make_plant(config), _Drives())  # a stand-in: satisfies the DriveBank protocol
 
 
 def test_the_physics_tick_locks_to_a_quarter_period_after_sync() -> None:
