@@ -37,12 +37,12 @@ from hil_runtime.telemetry.publisher import ZenohTelemetry
 
 
 def one_node_runner(tmp: Path) -> Callable[[], object]:
-    """The bare onnxruntime call: a one-node graph, bound rows (bench_lmpc.py's floor)."""
-    from bench_lmpc import _bound_runner, _session, one_node_graph
+    """The bare onnxruntime call: a one-node graph, bound rows (lmpc_graphs.py's floor, as bench_lmpc.py)."""
+    from lmpc_graphs import bound_runner, make_session, one_node_graph
 
     path = tmp / "add_1.onnx"
     one_node_graph(path, width=6, nodes=1)
-    return _bound_runner(_session(str(path)), 6)
+    return bound_runner(make_session(str(path)), 6)
 
 
 @contextmanager

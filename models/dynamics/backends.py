@@ -11,7 +11,8 @@ pinocchio's rnea/crba/aba on the same robot description. Every method accepts a 
 
 from __future__ import annotations
 
-from typing import Protocol
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -42,10 +43,18 @@ class Dynamics(Protocol):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
 
 
-def _batched(*arrays: np.ndarray | None) -> tuple[bool, list[np.ndarray | None]]:
+def _batched(*arrays: np.ndarray) -> tuple[bool, list[np.ndarray]]:
     single = np.ndim(arrays[0]) == 1
-    out = [None if a is None else np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in arrays]
-    return single, out
+    return single, [_rows(a) for a in arrays]
+
+
+def _rows(array: np.ndarray) -> np.ndarray:
+    return np.atleast_2d(np.asarray(array, dtype=np.float64))
+
+
+def _optional_rows(array: np.ndarray | None) -> np.ndarray | None:
+    """An optional input (the end-effector wrench) batched like the others."""
+    return None if array is None else _rows(array)
 
 
 def _unbatch(single: bool, value: np.ndarray) -> np.ndarray:
@@ -60,28 +69,35 @@ class RneDynamics:
         self.n_joints = robot.n_joints
         self.chain = ChainArrays.from_robot(robot)
 
-    def inverse_dynamics(self, q, qd, qdd, ee_wrench=None):  # type: ignore[no-untyped-def]
-        single, (q, qd, qdd, w) = _batched(q, qd, qdd, ee_wrench)
+    def inverse_dynamics(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, ee_wrench: np.ndarray | None = None
+    ) -> np.ndarray:
+        single, (q, qd, qdd) = _batched(q, qd, qdd)
+        w = _optional_rows(ee_wrench)
         return _unbatch(single, rneida(np, self.chain, q, qd, qdd, self.chain.gravity, w))
 
-    def mass_matrix(self, q):  # type: ignore[no-untyped-def]
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         single, (q,) = _batched(q)
         mass_matrix, _ = mass_matrix_and_bias(np, self.chain, q, np.zeros_like(q))
         return _unbatch(single, mass_matrix)
 
-    def nonlinear_effects(self, q, qd, ee_wrench=None):  # type: ignore[no-untyped-def]
-        single, (q, qd, w) = _batched(q, qd, ee_wrench)
+    def nonlinear_effects(self, q: np.ndarray, qd: np.ndarray, ee_wrench: np.ndarray | None = None) -> np.ndarray:
+        single, (q, qd) = _batched(q, qd)
+        w = _optional_rows(ee_wrench)
         zero = np.zeros_like(q)
         return _unbatch(single, rneida(np, self.chain, q, qd, zero, self.chain.gravity, w))
 
-    def gravity(self, q):  # type: ignore[no-untyped-def]
+    def gravity(self, q: np.ndarray) -> np.ndarray:
         single, (q,) = _batched(q)
         zero = np.zeros_like(q)
         return _unbatch(single, rneida(np, self.chain, q, zero, zero, self.chain.gravity))
 
-    def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
+    def forward_dynamics(
+        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, ee_wrench: np.ndarray | None = None
+    ) -> np.ndarray:
         """RNEFDA (Alg. 1): h and M from N + 1 RNEIDA calls (one batched pass), then a solve."""
-        single, (q, qd, tau, w) = _batched(q, qd, tau, ee_wrench)
+        single, (q, qd, tau) = _batched(q, qd, tau)
+        w = _optional_rows(ee_wrench)
         return _unbatch(single, rnefda(np, self.chain, q, qd, tau, w))
 
     def forward_dynamics_derivatives(
@@ -116,7 +132,7 @@ class RneDynamics:
         return _unbatch(single, mass_matrix), _unbatch(single, bias)
 
 
-def build_pinocchio_model(robot: RobotModel):  # type: ignore[no-untyped-def]
+def build_pinocchio_model(robot: RobotModel) -> Any:  # a pinocchio.Model (pinocchio ships no type stubs)
     """A pinocchio model of exactly this description (so payload/scaling variants carry over)."""
     import pinocchio as pin
 
@@ -157,7 +173,7 @@ class PinocchioDynamics:
         state["_pool"] = None
         return state
 
-    def _fext(self, wrench: np.ndarray | None):  # type: ignore[no-untyped-def]
+    def _fext(self, wrench: np.ndarray | None) -> Any:  # a pinocchio.StdVec_Force or None (no type stubs)
         if wrench is None:
             return None
         pin = self._pin
@@ -168,48 +184,58 @@ class PinocchioDynamics:
         forces[self._ee_joint] = self._ee_placement.act(pin.Force(wrench[:3], wrench[3:]))
         return forces
 
-    def _each(self, fn, *arrays):  # type: ignore[no-untyped-def]
-        single, batch = _batched(*arrays)
-        rows = [fn(*(None if a is None else a[b] for a in batch)) for b in range(batch[0].shape[0])]
+    def _each(self, fn: Callable[..., np.ndarray], first: np.ndarray, *arrays: np.ndarray | None) -> np.ndarray:
+        """``fn`` on each row of the batch (a None input, the absent wrench, passed as None to every row)."""
+        single, (rows_first,) = _batched(first)
+        batch = [rows_first] + [_optional_rows(a) for a in arrays]
+        rows = [fn(*(None if a is None else a[b] for a in batch)) for b in range(rows_first.shape[0])]
         return _unbatch(single, np.array(rows))
 
-    def inverse_dynamics(self, q, qd, qdd, ee_wrench=None):  # type: ignore[no-untyped-def]
-        def one(q, qd, qdd, w):  # type: ignore[no-untyped-def]
-            if w is None:
-                return self._pin.rnea(self.model, self.data, q, qd, qdd).copy()
-            return self._pin.rnea(self.model, self.data, q, qd, qdd, self._fext(w)).copy()
+    def inverse_dynamics(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, ee_wrench: np.ndarray | None = None
+    ) -> np.ndarray:
+        def one(q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+            args = (q, qd, qdd) if w is None else (q, qd, qdd, self._fext(w))
+            tau: np.ndarray = self._pin.rnea(self.model, self.data, *args).copy()  # typed: pinocchio has no stubs
+            return tau
 
         return self._each(one, q, qd, qdd, ee_wrench)
 
-    def mass_matrix(self, q):  # type: ignore[no-untyped-def]
-        def one(q):  # type: ignore[no-untyped-def]
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
+        def one(q: np.ndarray) -> np.ndarray:
             m = self._pin.crba(self.model, self.data, q)
-            return np.triu(m) + np.triu(m, 1).T
+            upper: np.ndarray = np.triu(m) + np.triu(m, 1).T
+            return upper
 
         return self._each(one, q)
 
-    def nonlinear_effects(self, q, qd, ee_wrench=None):  # type: ignore[no-untyped-def]
+    def nonlinear_effects(self, q: np.ndarray, qd: np.ndarray, ee_wrench: np.ndarray | None = None) -> np.ndarray:
         return self.inverse_dynamics(q, qd, np.zeros_like(np.asarray(q, float)), ee_wrench)
 
-    def gravity(self, q):  # type: ignore[no-untyped-def]
+    def gravity(self, q: np.ndarray) -> np.ndarray:
         return self._each(lambda q: self._pin.computeGeneralizedGravity(self.model, self.data, q).copy(), q)
 
-    def forward_dynamics(self, q, qd, tau, ee_wrench=None):  # type: ignore[no-untyped-def]
+    def forward_dynamics(
+        self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, ee_wrench: np.ndarray | None = None
+    ) -> np.ndarray:
         if ee_wrench is None and isinstance(q, np.ndarray) and q.ndim == 2:  # a batch: ABA in one C++ call
+            qdd: np.ndarray  # typed here: pinocchio has no stubs
             if q.shape[0] == 1:  # one state (the 1 kHz loop): the plain call has less set-up
-                return self._pin.aba(self.model, self.data, q[0], qd[0], tau[0])[None].copy()
+                qdd = self._pin.aba(self.model, self.data, q[0], qd[0], tau[0])[None].copy()
+                return qdd
             # (K, N) C-contiguous transposes to the (N, K) column-major layout pinocchio wants: no copy.
             q, qd, tau = (np.ascontiguousarray(a, dtype=np.float64) for a in (q, qd, tau))
             if self._pool is None:
                 # One model/data, one thread: a 1 kHz loop must not wait on thread start-up, and batch
                 # labeling gets its parallelism from processes (models.hmpc.batch).
                 self._pool = self._pin.ModelPool(self.model, 1)
-            return self._pin.abaInParallel(1, self._pool, q.T, qd.T, tau.T).T
+            qdd = self._pin.abaInParallel(1, self._pool, q.T, qd.T, tau.T).T
+            return qdd
 
-        def one(q, qd, tau, w):  # type: ignore[no-untyped-def]
-            if w is None:
-                return self._pin.aba(self.model, self.data, q, qd, tau).copy()
-            return self._pin.aba(self.model, self.data, q, qd, tau, self._fext(w)).copy()
+        def one(q: np.ndarray, qd: np.ndarray, tau: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+            args = (q, qd, tau) if w is None else (q, qd, tau, self._fext(w))
+            qdd: np.ndarray = self._pin.aba(self.model, self.data, *args).copy()  # typed: pinocchio has no stubs
+            return qdd
 
         return self._each(one, q, qd, tau, ee_wrench)
 
@@ -228,7 +254,7 @@ class PinocchioDynamics:
         return qdd, d_q, d_qd, d_tau
 
 
-BACKENDS = {"rne": RneDynamics, "pinocchio": PinocchioDynamics}
+BACKENDS: dict[str, Callable[[RobotModel], Dynamics]] = {"rne": RneDynamics, "pinocchio": PinocchioDynamics}
 
 
 def make_dynamics(robot: RobotModel, backend: str = "rne") -> Dynamics:

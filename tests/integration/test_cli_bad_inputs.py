@@ -16,6 +16,8 @@ from pathlib import Path
 from subprocess import run
 from typing import Any
 
+import pytest
+
 from tests.unit.hil_runtime.telemetry import npz_files
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -442,6 +444,8 @@ def _run_case(
     return name, done.returncode, done.stderr, [e.replace("{tmp}", str(tmp)) for e in expected]
 
 
+# ~80 installed-`hil` processes, three at a time: about a minute on a quiet 2-core machine, several under load.
+@pytest.mark.timeout(900)
 def test_every_bad_input_is_one_line_naming_file_and_field_exit_2(tmp_path: Path, hil_command: list[str]) -> None:
     with ThreadPoolExecutor(max_workers=3) as pool:
         results = list(pool.map(lambda case: _run_case(hil_command, case, tmp_path), CASES))
