@@ -141,8 +141,10 @@ def table(result: dict[str, Any]) -> str:
                 if p["eta"] is None:
                     cells.append(f"{chatter} {verdict}")
                 else:
-                    eta = "—" if not p["within_limits"] else f"{100 * p['eta']:.0f}"
-                    eff = "—" if not p["within_limits"] else f"{100 * p['eta_effort']:.0f}"
+                    fb = by.get((law, "fb", n))
+                    defined = p["within_limits"] and (fb is None or fb["within_limits"])  # η against a failed FB: —
+                    eta = f"{100 * p['eta']:.0f}" if defined else "—"
+                    eff = f"{100 * p['eta_effort']:.0f}" if defined else "—"
                     cells.append(f"{eta} / {eff} / {chatter} {verdict}")
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -171,8 +173,10 @@ def plot(result: dict[str, Any], path: Path) -> None:
             label = f"{LAW_TITLES.get(law, law)} {mode.upper()}"
             axes[0].plot(x, [p["chatter_shoulder_nm"] for p in mine], label=label, marker=".", **kw)
             if mode != "fb":
-                eta = [100 * p["eta"] if p["within_limits"] and p["eta"] is not None else np.nan for p in mine]
-                eff = [100 * p["eta_effort"] if p["within_limits"] and p["eta"] is not None else np.nan for p in mine]
+                fb_ok = {p["noise_rad"]: p["within_limits"] for p in points if p["law"] == law and p["mode"] == "fb"}
+                ok = [p["within_limits"] and p["eta"] is not None and fb_ok.get(p["noise_rad"], True) for p in mine]
+                eta = [100 * p["eta"] if good else np.nan for p, good in zip(mine, ok, strict=True)]
+                eff = [100 * p["eta_effort"] if good else np.nan for p, good in zip(mine, ok, strict=True)]
                 axes[1].plot(x, eta, marker=".", **kw)
                 axes[2].plot(x, eff, marker=".", **kw)
     axes[0].set_yscale("log")
