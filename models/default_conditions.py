@@ -67,7 +67,7 @@ def default_conditions(robot: RobotModel) -> list[Condition]:
     home = home_pose_rad(robot)
     lower, upper = np.asarray(robot.position_lower_rad, float), np.asarray(robot.position_upper_rad, float)
     velocity = np.asarray(robot.velocity_limit_rad_s, float)
-    torque = disturbance_torque_nm(robot, home)
+    torque = tuple(float(t) for t in disturbance_torque_nm(robot, home))
     out = []
     for c in paper:
         pattern = np.array([c.amplitude_rad[j % len(c.amplitude_rad)] for j in range(n)])
@@ -76,7 +76,7 @@ def default_conditions(robot: RobotModel) -> list[Condition]:
         peak_speed_per_rad = 0.5 * 2.0 * math.pi * frequency  # raised sine: |qd| <= A/2 * omega
         cap = np.minimum(ROOM_FRACTION * room, VELOCITY_FRACTION * velocity / peak_speed_per_rad)
         amplitude = np.sign(pattern) * np.minimum(np.abs(pattern), cap)
-        disturbance = None if c.disturbance is None else Disturbance(c.disturbance.time_s, tuple(float(t) for t in torque), PULSE_S)
+        disturbance = None if c.disturbance is None else Disturbance(c.disturbance.time_s, torque, PULSE_S)
         condition = replace(
             c,
             amplitude_rad=tuple(float(a) for a in amplitude),
