@@ -27,7 +27,10 @@ def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_
     }
     if options.realtime:  # SCHED_FIFO and mlockall by default; its own CPU, apart from the runtime's
         data["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
-    return data
+    from models.robot_target import target_robot_config
+    from models.robots import load_robot
+
+    return target_robot_config(load_robot(options.robot), data)  # a URDF robot: its file and joints
 
 
 def runtime_config(

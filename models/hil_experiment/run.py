@@ -21,6 +21,7 @@ from models.hil_experiment.config import HilOptions, check_hil_inputs, condition
 from models.hil_experiment.parity import parity
 from models.hil_experiment.tables import PAPER_TABLE_II, format_hil_table, plot_parity
 from models.hil_experiment.target_runs import run_on_target, run_record
+from models.robot_target import robot_spec, target_robot_config
 from models.robots import RobotModel
 
 _DEFAULT_OPTIONS = HilOptions()
@@ -85,7 +86,7 @@ def run_hil_experiment(
         sim_config = replace(config, timing_cycles=min(config.timing_cycles, 200), save_trajectories=True)
         sim_process = get_context("spawn").Process(
             target=_simulate,
-            args=(robot.name, conditions, sim_config, sim_dir, options.bundle_dir),
+            args=(robot_spec(robot), conditions, sim_config, sim_dir, options.bundle_dir),
             name="hil-experiment-sim",
             daemon=True,
         )
@@ -105,7 +106,9 @@ def run_hil_experiment(
         realism = config.realism
         if realism not in ("ideal", "realistic", "harsh"):
             realism = str(Path(realism).resolve())  # the target may run in another directory
-        target_config = target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
+        target_config = target_robot_config(
+            robot, target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
+        )
         if options.clock == "realtime":  # its physics on its own CPU, apart from the runtime's loop
             from sim_target.rt_settings import split_cpus
 
