@@ -17,9 +17,8 @@ import pytest
 
 from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
-from hil_runtime.daemon import make_telemetry
+from hil_runtime.factory import build_runtime
 from hil_runtime.lifecycle import LifecycleState
-from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.auth import write_users_file
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
 from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, config_dict
@@ -58,8 +57,7 @@ def test_state_status_and_the_stop_queryable(caplog: pytest.LogCaptureFixture, t
     endpoint = f"tcp/127.0.0.1:{port}"
     config = _controlled(tmp_path, endpoint)
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
-    runtime = Runtime(config, bus)
-    runtime.telemetry = make_telemetry(config, runtime)
+    runtime = build_runtime(config, bus)
 
     samples = {"state": 0, "status": 0}
     caplog.set_level(logging.WARNING, logger="hil_runtime.telemetry")
@@ -106,8 +104,7 @@ def test_a_zenoh_reset_clears_the_fault_to_inactive(tmp_path: Path, remote_reset
     config = _controlled(tmp_path, endpoint, remote_reset_activates=remote_reset_activates)
     assert config.loop.activate_on_reset
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
-    runtime = Runtime(config, bus)
-    runtime.telemetry = make_telemetry(config, runtime)
+    runtime = build_runtime(config, bus)
     runtime.configure()
     session = _session(endpoint, "operator", "s3cret")
     thread = threading.Thread(target=runtime.run)
