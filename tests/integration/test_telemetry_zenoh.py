@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -32,16 +31,11 @@ from hil_runtime.telemetry.auth import TelemetryAuth, write_client_config, write
 from hil_runtime.telemetry.codec import Schema
 from hil_runtime.telemetry.sink import TelemetrySink
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
+from models.lab.ports import free_loopback_port
 from tests.integration.telemetry_fake_loop import JOINTS, expected_state
 
 FAKE_LOOP = Path(__file__).with_name("telemetry_fake_loop.py")
 REPO = Path(__file__).resolve().parents[2]
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -106,7 +100,7 @@ def _check_record(path: Path, min_samples: int) -> tuple[int, int]:
 
 
 def _record_and_check(tmp_path: Path, seconds: float) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     loop = FakeLoop(port, seconds=seconds + 30.0)
     out = tmp_path / "run.npz"
     try:
@@ -150,7 +144,7 @@ def test_subscriber_process_receives_state_10s(tmp_path: Path) -> None:
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
 def test_liveliness_reports_a_lost_publisher_within_2s(how: str) -> None:
     """SIGKILL: the kernel closes the socket. SIGSTOP: a hung runtime, socket open: its 1 s lease runs out."""
-    port = _free_port()
+    port = free_loopback_port()
     loop = FakeLoop(port)
     changes: list[tuple[float, bool]] = []
     seen = threading.Event()
@@ -180,7 +174,7 @@ def test_a_dead_or_stalled_subscriber_leaves_the_loop_timing_unchanged(tmp_path:
     """SIGKILL: the peer's socket closes. SIGSTOP: it stays open and stops reading, so the TCP
     window fills and every put meets a congested link (Zenoh's default 1 ms wait-before-drop,
     spent holding the GIL, raised the loop's p99 lateness from ~150 to ~900 µs here)."""
-    port = _free_port()
+    port = free_loopback_port()
     timing = tmp_path / "timing.npz"
     loop = FakeLoop(port, seconds=60.0, timing=timing)
     code = (
@@ -267,7 +261,7 @@ def _sink(port: int, controls: _Controls | None, users: Path | None = None) -> T
 
 
 def test_queryables_status_stats_events_and_controls(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     controls = _Controls()
     users, operator = credentials(tmp_path)
     sink = _sink(port, controls, users)
@@ -304,7 +298,7 @@ def test_queryables_status_stats_events_and_controls(tmp_path: Path) -> None:
 
 
 def test_no_control_queryables_unless_enabled() -> None:
-    port = _free_port()
+    port = free_loopback_port()
     sink = _sink(port, None)
     sink.start()
     try:
@@ -320,7 +314,7 @@ def test_no_control_queryables_unless_enabled() -> None:
 
 
 def test_cli_errors_are_one_line(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     result = _hil("telemetry", "query", "schema", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "0.5")
     assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
     assert "no runtime alive at" in result.stderr
@@ -333,7 +327,7 @@ def test_cli_errors_are_one_line(tmp_path: Path) -> None:
 
 
 def test_watch_shows_the_arm_live() -> None:
-    port = _free_port()
+    port = free_loopback_port()
     loop = FakeLoop(port)
     try:
         result = subprocess.run(
@@ -412,7 +406,7 @@ def test_the_documented_access_control_restricts_the_controls(
     users, operator = credentials(tmp_path)
     acl = tmp_path / "acl.json5"
     acl.write_text(_acl_example(users, interfaces))
-    port = _free_port()
+    port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     controls = _Controls()
     config = TelemetryConfig(enabled=True, listen=(endpoint,), controls_enabled=True, zenoh_config=acl)
@@ -443,7 +437,7 @@ def test_the_documented_access_control_restricts_the_controls(
 
 
 def test_close_is_bounded_with_a_stalled_subscriber() -> None:
-    port = _free_port()
+    port = free_loopback_port()
     sink = make_sink(
         TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), close_timeout_s=0.5),
         "arm_q",
@@ -497,7 +491,7 @@ def test_close_is_bounded_with_a_stalled_subscriber() -> None:
 def test_a_port_in_use_is_one_line() -> None:
     from hil_runtime.telemetry.publisher import TelemetryStartError
 
-    port = _free_port()
+    port = free_loopback_port()
     config = TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",))
     first = make_sink(config, "arm_q", {"joints": list(JOINTS)})
     first.start()

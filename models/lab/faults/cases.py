@@ -1,6 +1,6 @@
 """The faults of the campaign (issue 15), each a function of (scratch directory, seed) -> CaseResult.
 
-Every case runs on a fresh rig (sim_target/faults/rig.py) so no case inherits another's state. A
+Every case runs on a fresh rig (models/lab/rigs.py) so no case inherits another's state. A
 case that FAULTs before its fault is injected (the rig, not the runtime: a loaded machine) raises
 :class:`RigFault` and is run again (counted in results.json as ``rig_retries``).
 """
@@ -23,8 +23,8 @@ if TYPE_CHECKING:
     from sim_target.launch import Transport
 
 from hil_runtime.outputs import json_safe
-from sim_target.faults import rig as rigs
-from sim_target.faults.rig import InProcessRig, in_process_rig
+from models.lab import rigs
+from models.lab.rigs import InProcessRig, in_process_rig
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
 
 QUICK_STOPPED = ("quick stop active", "switch on disabled", "fault", "fault reaction active", "not enabled")
@@ -342,7 +342,7 @@ def prepare_sdo_abort(work: Path, data: dict[str, Any], target: Any) -> dict[str
 
 
 def prepare_tampered(work: Path, data: dict[str, Any], target: Any) -> dict[str, Any]:
-    from sim_target.faults.crafted import tamper_bundle
+    from models.lab.faults.crafted import tamper_bundle
 
     tamper_bundle(rigs.PD_BUNDLE, work / "tampered")
     data["bundle"]["path"] = str(work / "tampered")
