@@ -16,8 +16,8 @@ pytest.importorskip("zenoh")
 mcap_reader = pytest.importorskip("mcap.reader")
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
-from tests.integration.telemetry_fake_loop import JOINTS, expected_state  # noqa: E402
-from tests.integration.test_telemetry_zenoh import FakeLoop, _hil  # noqa: E402
+from tests.integration.telemetry_fake_loop import JOINTS, FakeLoop, expected_state  # noqa: E402
+from tests.integration.test_telemetry_zenoh import _hil  # noqa: E402
 
 
 def test_telemetry_record_writes_an_mcap_that_standard_readers_open(tmp_path: Path) -> None:

@@ -32,9 +32,8 @@ from hil_runtime.telemetry.codec import Schema
 from hil_runtime.telemetry.sink import TelemetrySink
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
 from models.lab.ports import free_loopback_port
-from tests.integration.telemetry_fake_loop import JOINTS, expected_state
+from tests.integration.telemetry_fake_loop import JOINTS, FakeLoop, expected_state
 
-FAKE_LOOP = Path(__file__).with_name("telemetry_fake_loop.py")
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -47,39 +46,6 @@ def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str
         cwd=REPO,
         check=False,
     )
-
-
-class FakeLoop:
-    """The fake loop as a child process, started and ready (publishers warm, token declared)."""
-
-    def __init__(
-        self, port: int, seconds: float = 60.0, timing: Path | None = None, controls: Path | None = None
-    ) -> None:
-        command = [sys.executable, str(FAKE_LOOP), "--port", str(port), "--seconds", str(seconds)]
-        if timing is not None:
-            command += ["--timing", str(timing)]
-        if controls is not None:
-            command += ["--controls", str(controls)]
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        assert self.process.stdout is not None and self.process.stderr is not None
-        line = self.process.stdout.readline().strip()
-        if line != "ready":
-            self.process.kill()
-            raise AssertionError(f"fake loop did not start: {line!r} {self.process.stderr.read()}")
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-
-    def finish(self, timeout_s: float = 20.0) -> dict:
-        """SIGTERM, wait, and the counters it printed."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-        out, err = self.process.communicate(timeout=timeout_s)
-        assert self.process.returncode == 0, err
-        return json.loads(out.strip().splitlines()[-1])
-
-    def kill(self) -> None:
-        if self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
 
 
 def _check_record(path: Path, min_samples: int) -> tuple[int, int]:

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 from hil_runtime.machine import machine
 from models.lab.faults import cases as c
+from models.lab.faults import daemon_cases, realism_cases, zenoh_cases
 from models.lab.faults import injections as inj
-from models.lab.faults import realism_cases, zenoh_cases
 from models.lab.faults import security as sec
 from models.lab.faults.cases import Expect
 from models.lab.faults.report import summarize, write_outputs
@@ -332,10 +332,14 @@ FAULTS: tuple[FaultSpec, ...] = (
         "the loop stalled (daemon SIGSTOPped past the watchdog)",
         "WatchdogSec (0.2 s here)",
         True,
-        c.loop_stall,
+        daemon_cases.loop_stall,
     ),
     FaultSpec(
-        "sigterm_during_enable", "SIGTERM during enable (daemon)", "a request: exit 0", True, c.sigterm_during_enable
+        "sigterm_during_enable",
+        "SIGTERM during enable (daemon)",
+        "a request: exit 0",
+        True,
+        daemon_cases.sigterm_during_enable,
     ),
     FaultSpec(
         "payload_jump",
