@@ -4,6 +4,7 @@
     pipeline.py     hil pipeline     the LMPC bundles from scratch (models/lmpc/pipeline/, structured)
     demo.py         hil demo         the runtime on the emulated arm, watched live (models/demo/)
     stability.py    hil stability    Theorem 1's conditions along a reference
+    (lab)           hil faults       the fault campaign (models/lab/faults/cli.py, docs/faults.md)
     config.py       hil config       a runtime config from a bundle and a drive table; a robot's conditions
     options.py      the value checks they share (one line naming the option, exit code 2)
 
@@ -26,11 +27,13 @@ def register(app: typer.Typer) -> None:
     from models.cli.demo import demo
     from models.cli.pipeline import pipeline
     from models.cli.stability import stability
+    from models.lab.faults.cli import faults
 
     app.command("experiment")(experiment)
     app.command("pipeline")(pipeline)
     app.command("demo")(demo)
     app.command("stability")(stability)
+    app.command("faults")(faults)
     app.add_typer(config_app, name="config")
 
 

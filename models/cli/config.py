@@ -40,8 +40,8 @@ def runtime(
     force: Annotated[bool, typer.Option("--force", help="Overwrite --out.")] = False,
 ) -> None:
     """A runtime config from a bundle and a drive table, checked as ``hil run`` checks it."""
-    from models.deploy_config import runtime_config_from_bundle
     from models.errors import ModelInputError
+    from models.lab.deploy import runtime_config_from_bundle
 
     one_of(mode, ("lmpc", "fb"), "--mode")
     if out.exists() and not force:

@@ -152,8 +152,11 @@ def test_config_runtime_writes_what_hil_run_loads(tmp_path: Path) -> None:
     from hil_runtime.config import load_runtime_config
     from hil_runtime.loading import condition_for, load_bundle_for, safety_limits_for
 
-    table = "transport: {interface: virtual, channel: t, fd: true, data_bitrate: 5000000}\ndrives: {wrist_3_joint: {node_id: 16, max_torque_nm: 20}}\n"
-    table = table.replace("}}", "}, " + ", ".join(f"{j}: {i + 10}" for i, j in enumerate(_joints()[:5])) + "}")
+    others = ", ".join(f"{j}: {i + 10}" for i, j in enumerate(_joints()[:5]))
+    table = (
+        "transport: {interface: virtual, channel: t, fd: true, data_bitrate: 5000000}\n"
+        f"drives: {{wrist_3_joint: {{node_id: 16, max_torque_nm: 20}}, {others}}}\n"
+    )
     assert _config_runtime(tmp_path, table) == 0
     config = load_runtime_config(tmp_path / "runtime.yaml")
     assert [j.node_id for j in config.bus.joints] == [10, 11, 12, 13, 14, 16]
@@ -187,7 +190,7 @@ def test_config_runtime_refuses_a_bad_table(
 
 def test_config_runtime_writes_another_arms_conditions(tmp_path: Path, panda) -> None:  # type: ignore[no-untyped-def]
     """A 7-joint bundle is not at hand without a pipeline run: the conditions file is written from the robot."""
-    from models.deploy_config import _conditions
+    from models.lab.deploy import _conditions
 
     manifest = SimpleNamespace(robot=SimpleNamespace(name="panda", n_joints=7))
     path = _conditions(manifest, None, tmp_path / "runtime.yaml", None)

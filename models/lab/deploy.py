@@ -23,7 +23,6 @@ from typing import Any
 
 import yaml
 
-from drivers.config import read_yaml_config
 from models.errors import ModelInputError
 
 #: The bus section's fields the bundle decides.
@@ -100,6 +99,7 @@ def runtime_config_from_bundle(
     robot: str | None = None,
 ) -> dict[str, Any]:
     """Write ``out`` (and its conditions file when needed); return the config, checked as ``hil run`` checks it."""
+    from drivers.config import read_yaml_config
     from hil_runtime.config import RuntimeConfigError, parse_runtime_config
     from hil_runtime.loading import condition_for, load_bundle_for, safety_limits_for
 
