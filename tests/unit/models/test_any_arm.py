@@ -16,14 +16,14 @@ from hil_runtime.cli import main
 from hil_runtime.conditions import load_conditions as paper_conditions
 from models.conditions import load_conditions
 from models.default_conditions import MAX_EFFORT_FACTOR, default_conditions, home_pose_rad
-from models.robots import load_robot
+from models.robots import RobotModel, load_robot
 
 ROOT = Path(__file__).resolve().parents[3]
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
 
 
 @pytest.fixture(scope="module")
-def panda():  # type: ignore[no-untyped-def]  # RobotModel, typed where used
+def panda() -> RobotModel:
     return load_robot("panda")
 
 
@@ -45,7 +45,7 @@ def test_other_arms_get_five_conditions_inside_their_limits(name: str) -> None:
         assert np.all(np.abs(c.disturbance.torque_nm) <= MAX_EFFORT_FACTOR * robot.torque_limit_nm + 1e-9)
 
 
-def test_the_pandas_home_pose_lies_inside_its_range(panda) -> None:  # type: ignore[no-untyped-def]
+def test_the_pandas_home_pose_lies_inside_its_range(panda: RobotModel) -> None:
     home = home_pose_rad(panda)
     # the elbow's range [-3.07, -0.07] excludes 0: its midpoint; joint 6 [-0.02, 3.75]: 0 is at its edge
     assert home[3] == pytest.approx(0.5 * (panda.position_lower_rad[3] + panda.position_upper_rad[3]))
@@ -54,7 +54,7 @@ def test_the_pandas_home_pose_lies_inside_its_range(panda) -> None:  # type: ign
     assert np.all(home > panda.position_lower_rad) and np.all(home < panda.position_upper_rad)
 
 
-def test_paper_range_draws_stay_inside_an_asymmetric_range(panda) -> None:  # type: ignore[no-untyped-def]
+def test_paper_range_draws_stay_inside_an_asymmetric_range(panda: RobotModel) -> None:
     from models.lmpc.paper_range import paper_range_conditions
 
     for c in paper_range_conditions(panda, 40, 7101):
@@ -75,7 +75,7 @@ def test_paper_range_draws_on_ur5_paper_are_unchanged() -> None:
         rng.uniform(0.0, c.duration_s)
 
 
-def test_hmpc_bounds_an_asymmetric_range_about_its_centre(panda) -> None:  # type: ignore[no-untyped-def]
+def test_hmpc_bounds_an_asymmetric_range_about_its_centre(panda: RobotModel) -> None:
     from models.feedback import make_law
     from models.hmpc import HMPCConfig, HMPCSolver
 
@@ -188,7 +188,7 @@ def test_config_runtime_refuses_a_bad_table(
     assert not (tmp_path / "runtime.yaml").exists()
 
 
-def test_config_runtime_writes_another_arms_conditions(tmp_path: Path, panda) -> None:  # type: ignore[no-untyped-def]
+def test_config_runtime_writes_another_arms_conditions(tmp_path: Path, panda: RobotModel) -> None:
     """A 7-joint bundle is not at hand without a pipeline run: the conditions file is written from the robot."""
     from models.lab.deploy import _conditions
 
