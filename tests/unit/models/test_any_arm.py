@@ -197,3 +197,17 @@ def test_config_runtime_writes_another_arms_conditions(tmp_path: Path, panda: Ro
     assert path is not None and path.name == "runtime.conditions.yaml"
     written = paper_conditions(path, limits=panda)
     assert written == default_conditions(panda)
+
+
+def test_a_seven_joint_arm_gets_a_bus_that_carries_it(panda: RobotModel) -> None:
+    """7 drives at 1 kHz on a 5 Mbit/s CAN FD data phase are 92 % of the bus: refused; 8 Mbit/s: both ends."""
+    from models.lab.configs import target_config
+    from models.robot_target import target_robot_config
+    from sim_target.launch import launch_target
+
+    config = target_robot_config(panda, target_config("panda", 1e-3, 4))
+    assert config["bus"]["data_bitrate"] == 8_000_000
+    with launch_target(config, "virtual") as target:  # the target's config passes its bus-load check
+        assert target.transport["data_bitrate"] == 8_000_000  # the runtime's end of the same bus
+    six = target_robot_config(load_robot("ur5"), target_config("ur5", 1e-3, 4))
+    assert six["bus"]["data_bitrate"] == 5_000_000  # six drives: unchanged
