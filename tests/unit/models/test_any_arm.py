@@ -195,7 +195,7 @@ def test_config_runtime_writes_another_arms_conditions(tmp_path: Path, panda: Ro
     manifest = SimpleNamespace(robot=SimpleNamespace(name="panda", n_joints=7))
     path = _conditions(manifest, None, tmp_path / "runtime.yaml", None)
     assert path is not None and path.name == "runtime.conditions.yaml"
-    written = paper_conditions(path, limits=panda)
+    written = load_conditions(path, robot=panda)
     assert written == default_conditions(panda)
 
 
