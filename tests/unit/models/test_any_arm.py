@@ -130,9 +130,9 @@ def test_a_urdf_robot_is_named_to_the_target_by_its_file(tmp_path: Path) -> None
     from models.robot_target import robot_spec, target_robot_config
     from models.robots import urdf_path
 
-    builtin = load_robot("panda")
-    assert robot_spec(builtin) == "panda"
-    assert target_robot_config(builtin, {"plant": {"substeps": 4}}) == {"plant": {"substeps": 4}, "robot": "panda"}
+    builtin = load_robot("ur5")
+    assert robot_spec(builtin) == "ur5"
+    assert target_robot_config(builtin, {"plant": {"substeps": 4}}) == {"plant": {"substeps": 4}, "robot": "ur5"}
     copy = tmp_path / "my_panda.urdf"
     copy.write_text(urdf_path("panda").read_text())
     arm = load_robot(copy)
