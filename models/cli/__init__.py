@@ -4,6 +4,7 @@
     pipeline.py     hil pipeline     the LMPC bundles from scratch (models/lmpc/pipeline/, structured)
     demo.py         hil demo         the runtime on the emulated arm, watched live (models/demo/)
     stability.py    hil stability    Theorem 1's conditions along a reference
+    (lab)           hil faults       the fault campaign (models/lab/faults/cli.py, docs/faults.md)
     options.py      the value checks they share (one line naming the option, exit code 2)
 
 ``register`` adds them to the ``hil`` root; hil_runtime/cli.py finds it through the ``hil.commands``
@@ -24,11 +25,13 @@ def register(app: typer.Typer) -> None:
     from models.cli.demo import demo
     from models.cli.pipeline import pipeline
     from models.cli.stability import stability
+    from models.lab.faults.cli import faults
 
     app.command("experiment")(experiment)
     app.command("pipeline")(pipeline)
     app.command("demo")(demo)
     app.command("stability")(stability)
+    app.command("faults")(faults)
 
 
 __all__ = ["ROBOTS_HELP", "experiment", "register"]

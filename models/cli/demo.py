@@ -117,6 +117,6 @@ def demo(
         f"({results['wall_s']['total_s']:g} s)"
     )
     if results["fault"]:
-        from models.demo.processes import DemoError
+        from models.lab.processes import DemoError
 
         raise DemoError(f"the run faulted: {results['fault']} (outputs written to {out})")

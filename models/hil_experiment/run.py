@@ -65,7 +65,8 @@ def run_hil_experiment(
 
     ``progress(label, total)`` returns a callable advancing a progress bar (periods).
     """
-    from sim_target.launch import launch_target, target_config_dict
+    from models.lab.configs import target_config as lab_target_config
+    from sim_target.launch import launch_target
 
     check_hil_inputs(robot, conditions, config, options)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -102,15 +103,11 @@ def run_hil_experiment(
     )
     advance = progress(label, total) if progress else None
     try:
-        realism = config.realism
-        if realism not in ("ideal", "realistic", "harsh"):
-            realism = str(Path(realism).resolve())  # the target may run in another directory
-        target_config = target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
-        if options.clock == "realtime":  # its physics on its own CPU, apart from the runtime's loop
-            from sim_target.rt_settings import split_cpus
-
-            target_config["clock"] = "realtime"
-            target_config["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
+        # The target's physics on its own CPU when free-running, apart from the runtime's loop.
+        realtime_cpus = options.cpus if options.clock == "realtime" else None
+        target_config = lab_target_config(
+            robot.name, period_s, options.target_substeps, realism=config.realism, realtime_cpus=realtime_cpus
+        )
         with launch_target(target_config, options.transport) as target:
             for law in config.laws:
                 for mode in config.modes:

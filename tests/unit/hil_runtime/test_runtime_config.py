@@ -60,6 +60,23 @@ def test_a_valid_config_loads_frozen_with_paths_relative_to_the_file(tmp_path: P
         config.robot = "other"  # type: ignore[misc]  # a frozen field assigned on purpose: refused
 
 
+def test_telemetry_files_are_relative_to_the_config_not_to_the_working_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from hil_runtime.telemetry.auth import write_users_file
+
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    write_users_file(folder / "zenoh-users", {"operator": "s3cret"})
+    (folder / "z.json5").write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7447"] } }')
+    telemetry = {"controls_enabled": True, "zenoh_config": "z.json5", "auth": {"users_file": "zenoh-users"}}
+    path = _write(folder, config_dict(telemetry=telemetry))
+    monkeypatch.chdir(tmp_path)  # the daemon started from elsewhere: the files are still the config's
+    config = load_runtime_config(path)
+    assert config.telemetry.zenoh_config == folder / "z.json5"
+    assert config.telemetry.auth is not None and config.telemetry.auth.users_file == folder / "zenoh-users"
+
+
 @pytest.mark.parametrize(
     ("change", "fragments"),
     [

@@ -10,10 +10,12 @@ import pytest
 import yaml
 
 from hil_runtime.conditions import parse_conditions
+from hil_runtime.supervisor import FaultKind
 from models.conditions import load_conditions, random_conditions
 from models.hil_experiment import PAPER_TABLE_II, HilRun, conditions_yaml, initial_state, run_start
 from models.hil_experiment.parity import per_run_scores
 from models.hil_experiment.target_runs import pad_record
+from models.lab.runs import is_rig_fault
 from models.robots import load_robot
 from sim_target.config import ImpulseFault, RunStart, TargetConfigError, TargetLayout, check_run_start, parse_run_start
 
@@ -75,8 +77,22 @@ def test_a_faulted_record_is_held_at_its_last_position() -> None:
     np.testing.assert_allclose(out["q"][rows:], np.repeat(record["q"][-1:], steps - rows, axis=0))
     np.testing.assert_allclose(out["qd"][rows:], 0.0)  # braked
     np.testing.assert_allclose(out["tau"][rows:], 0.0)
-    assert HilRun(out, rows, "feedback_timeout: x", {}).rig_fault
-    assert not HilRun(out, rows, "position_limit: x", {}).rig_fault
+    assert HilRun(out, rows, "feedback_timeout: x", {}, rig_fault=is_rig_fault(FaultKind.FEEDBACK_TIMEOUT)).rig_fault
+    assert not HilRun(out, rows, "position_limit: x", {}, rig_fault=is_rig_fault(FaultKind.POSITION_LIMIT)).rig_fault
+
+
+def test_a_rig_fault_is_told_by_its_kind_never_by_its_text() -> None:
+    """models.lab.runs classifies Runtime.last_fault's FaultKind: the bus and the drives' state are
+    the rig's, a limit or a bad policy output the controller's, whatever the detail text says."""
+    assert {k for k in FaultKind if is_rig_fault(k)} == {
+        FaultKind.FEEDBACK_TIMEOUT,
+        FaultKind.HEARTBEAT_LOST,
+        FaultKind.TRANSPORT,
+        FaultKind.DRIVE_STATE,
+        FaultKind.STALE_FEEDBACK,
+    }
+    assert not is_rig_fault(None)
+    assert not is_rig_fault(FaultKind.VELOCITY_LIMIT)
 
 
 def test_per_run_scores_normalize_within_a_condition() -> None:
