@@ -13,15 +13,23 @@ from models.lab import configs as lab
 
 def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_socket: Path) -> dict[str, Any]:
     """``hil target serve``'s config: the pybullet arm on the ipc bus in ``bus_dir``, a control socket;
-    real time: SCHED_FIFO and mlockall by default, its own CPU, apart from the runtime's."""
-    return lab.target_config(
-        options.robot,
-        period_s,
-        target_substeps(options),
-        realism=options.realism,
-        realtime_cpus=options.cpus if options.realtime else None,
-        bus={"interface": "ipc", "channel": str(bus_dir)},
-        control_socket=control_socket,
+    real time: SCHED_FIFO and mlockall by default, its own CPU, apart from the runtime's. A URDF
+    robot: its file and its joints (models/robot_target.py)."""
+    from models.robot_target import target_robot_config
+    from models.robots import load_robot
+
+    robot = load_robot(options.robot)
+    return target_robot_config(
+        robot,
+        lab.target_config(
+            robot.name,
+            period_s,
+            target_substeps(options),
+            realism=options.realism,
+            realtime_cpus=options.cpus if options.realtime else None,
+            bus={"interface": "ipc", "channel": str(bus_dir)},
+            control_socket=control_socket,
+        ),
     )
 
 

@@ -77,7 +77,6 @@ def check_hil_inputs(
 ) -> None:
     """Refuse what the HIL plant cannot do, with one line each (exit 2)."""
     from models.lmpc.controller import bundle_path
-    from models.robots.description import robot_names
     from sim_target.launch import TRANSPORTS
 
     bad_modes = [m for m in config.modes if m not in HIL_MODES]
@@ -101,8 +100,6 @@ def check_hil_inputs(
         split_cpus(options.cpus)
     except ValueError as exc:
         raise ModelInputError(str(exc)) from None
-    if robot.name not in robot_names():
-        raise ModelInputError(f"--robot: --plant hil needs a built-in robot (known: {', '.join(robot_names())})")
     for c in conditions:
         if not c.mismatch.is_nominal:
             raise ModelInputError(

@@ -21,6 +21,7 @@ from models.hil_experiment.config import HilOptions, check_hil_inputs, condition
 from models.hil_experiment.parity import parity
 from models.hil_experiment.tables import PAPER_TABLE_II, format_hil_table, plot_parity
 from models.hil_experiment.target_runs import run_on_target, run_record
+from models.robot_target import robot_spec, target_robot_config
 from models.robots import RobotModel
 
 _DEFAULT_OPTIONS = HilOptions()
@@ -86,7 +87,7 @@ def run_hil_experiment(
         sim_config = replace(config, timing_cycles=min(config.timing_cycles, 200), save_trajectories=True)
         sim_process = get_context("spawn").Process(
             target=_simulate,
-            args=(robot.name, conditions, sim_config, sim_dir, options.bundle_dir),
+            args=(robot_spec(robot), conditions, sim_config, sim_dir, options.bundle_dir),
             name="hil-experiment-sim",
             daemon=True,
         )
@@ -105,8 +106,11 @@ def run_hil_experiment(
     try:
         # The target's physics on its own CPU when free-running, apart from the runtime's loop.
         realtime_cpus = options.cpus if options.clock == "realtime" else None
-        target_config = lab_target_config(
-            robot.name, period_s, options.target_substeps, realism=config.realism, realtime_cpus=realtime_cpus
+        target_config = target_robot_config(  # a URDF robot: its file and joints
+            robot,
+            lab_target_config(
+                robot.name, period_s, options.target_substeps, realism=config.realism, realtime_cpus=realtime_cpus
+            ),
         )
         with launch_target(target_config, options.transport) as target:
             for law in config.laws:

@@ -5,6 +5,8 @@ its controller manager.
 
 - :mod:`models.lab.configs`: the one runtime-config builder and the one target-config builder (and
   the writing and checking of both before any process starts)
+- :mod:`models.lab.deploy`: ``hil config runtime``, a deployment's runtime config from a bundle and
+  a drive table, checked as ``hil run`` checks it
 - :mod:`models.lab.ports`: the one free loopback port helper
 - :mod:`models.lab.rigs`: the rigs, runtime and target in one process or in two
 - :mod:`models.lab.runs`: one HIL run of the experiment on a launched target (a runtime built by

@@ -4,6 +4,7 @@ target's run start, padding of a faulted record, parity arithmetic, the Table II
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,8 @@ from hil_runtime.conditions import parse_conditions
 from hil_runtime.supervisor import FaultKind
 from models.conditions import load_conditions, random_conditions
 from models.hil_experiment import PAPER_TABLE_II, HilRun, conditions_yaml, initial_state, run_start
-from models.hil_experiment.parity import per_run_scores
+from models.hil_experiment.parity import parity, per_run_scores
+from models.hil_experiment.tables import format_parity_table
 from models.hil_experiment.target_runs import pad_record
 from models.lab.runs import is_rig_fault
 from models.robots import load_robot
@@ -108,6 +110,34 @@ def test_per_run_scores_normalize_within_a_condition() -> None:
     # On another table's scale (parity: the simulation's), a run is scored against that table's maxima.
     worse = [{**runs[1], "mode": "fb", "metrics": {k: 4 * v for k, v in metrics.items()}}]
     assert per_run_scores(worse, scale=runs)[("pd", "fb", "C1")] == pytest.approx(4.0)
+
+
+def test_parity_never_averages_a_run_that_faulted_in_either_plant(tmp_path: Path) -> None:
+    metrics = {"rmse": 1.0, "mae": 1.0, "p95": 1.0, "peak": 1.0, "settle_s": 1.0, "dedt_rms": 1.0}
+    t = np.linspace(0.0, 1.0, 11)
+    traj: dict[str, np.ndarray] = {"t": t, "q": np.zeros((11, 6)), "tau": np.zeros((11, 6))}
+
+    def run(cond: str, within: bool, scale: float) -> dict:
+        return {"law": "pd", "mode": "fb", "condition": cond, "finite": True, "within_limits": within,
+                "metrics": {k: scale * v for k, v in metrics.items()}}  # fmt: skip
+
+    sim = {"runs": [run("C1", True, 1.0), run("C2", True, 1.0)], "table": {"pd": {"fb": {"score": 1.0}}}, "config": {},
+           "all_runs_finite_and_within_limits": True}  # fmt: skip
+    for cond in ("C1", "C2"):
+        np.savez(tmp_path / f"pd_fb_{cond}.npz", t=traj["t"], q=traj["q"], tau=traj["tau"])
+    trajectories = {("pd", "fb", c): traj for c in ("C1", "C2")}
+    # C2 faulted on the HIL after a good start: its (partial) score is lower, it must not count.
+    hil_runs = [run("C1", True, 1.02), run("C2", False, 0.1)]
+    hil = {"runs": hil_runs, "table": {"pd": {"fb": {"score": 0.5}}}}
+    row = parity(hil, sim, trajectories, tmp_path)["table"]["pd"]["fb"]
+    assert (row["runs_compared"], row["runs_failed"]) == (1, 1)
+    assert row["score_rel"] == pytest.approx(0.02) and row["within_tolerance"]
+    assert "+2.0 ✗1" in "\n".join(format_parity_table(parity(hil, sim, trajectories, tmp_path), ["fb"]))
+    # every run failed: no figure, never a within-tolerance verdict
+    hil_runs[0]["within_limits"] = False
+    row = parity(hil, sim, trajectories, tmp_path)["table"]["pd"]["fb"]
+    assert row["score_rel"] is None and row["score_hil"] is None and not row["within_tolerance"]
+    assert "| — | — | — ✗2 |" in "\n".join(format_parity_table(parity(hil, sim, trajectories, tmp_path), ["fb"]))
 
 
 def test_paper_table_ii_values() -> None:  # the paper's Table II (hardware), FB -> LMPC
