@@ -13,12 +13,15 @@ builds its controller manager::
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.joint_bus import JointBus
 from hil_runtime.config import RuntimeConfig
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.sink import FanOutTelemetry, NullTelemetry, TelemetrySink
+
+if TYPE_CHECKING:
+    from drivers.drive_bus import DriveBus
 
 
 def telemetry_sink(config: RuntimeConfig, runtime: Runtime) -> TelemetrySink:
@@ -38,6 +41,16 @@ def telemetry_sink(config: RuntimeConfig, runtime: Runtime) -> TelemetrySink:
     return make_sink(config.telemetry, config.robot, info, controls=runtime)
 
 
+def runtime_drive_bus(config: RuntimeConfig, can_bus: Any = None) -> DriveBus:
+    """The runtime's :class:`drivers.drive_bus.DriveBus` on ``config.bus`` (over ``can_bus`` when
+    given). Stale feedback has one budget in the runtime, the supervisor's
+    ``safety.max_stale_cycles`` (FAULT stale_feedback): the driver counts none of its own, so which
+    fault fires never depends on which of two budgets runs out first."""
+    from drivers.drive_bus import DriveBus
+
+    return DriveBus(config.bus.model_copy(update={"max_missed_cycles": None}), bus=can_bus)
+
+
 def build_runtime(
     config: RuntimeConfig,
     bus: JointBus | None = None,
@@ -49,15 +62,13 @@ def build_runtime(
 ) -> Runtime:
     """A runtime for ``config``; no I/O yet (``configure()`` connects).
 
-    ``bus``: the joint bus (default: :class:`drivers.drive_bus.DriveBus` on ``config.bus``, over
-    ``can_bus`` when given, an open python-can bus such as a capture). ``telemetry``: the config's
+    ``bus``: the joint bus (default: :func:`runtime_drive_bus`, over ``can_bus`` when given, an open
+    python-can bus such as a capture). ``telemetry``: the config's
     telemetry section (off when it is disabled); False: none (``hil run --check``). ``recording``:
     a second sink made for the runtime (it needs its bundle), fed the same calls. ``kwargs``: the
     rest of :class:`Runtime`'s (bundle, notifier, record_cycles, clock, sleep)."""
     if bus is None:
-        from drivers.drive_bus import DriveBus
-
-        bus = DriveBus(config.bus, bus=can_bus)
+        bus = runtime_drive_bus(config, can_bus)
 
     def sinks(runtime: Runtime) -> TelemetrySink:
         made = [telemetry_sink(config, runtime)] if telemetry else []
@@ -70,4 +81,4 @@ def build_runtime(
     return Runtime(config, bus, telemetry_for=sinks, **kwargs)
 
 
-__all__ = ["build_runtime", "telemetry_sink"]
+__all__ = ["build_runtime", "runtime_drive_bus", "telemetry_sink"]

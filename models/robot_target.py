@@ -23,7 +23,12 @@ def robot_spec(robot: RobotModel) -> str:
 
 
 def target_robot_config(robot: RobotModel, config: dict[str, Any]) -> dict[str, Any]:
-    """``config`` (a target config mapping) for ``robot``: its built-in name, or its URDF and joints."""
+    """``config`` (a target config mapping) for ``robot``: its built-in name, or its URDF and joints;
+    a bus fast enough for its drives (more than six at 1 kHz need an 8 Mbit/s CAN FD data phase)."""
+    from sim_target.launch import can_fd
+
+    if robot.n_joints > 6:
+        config = {**config, "bus": {**config.get("bus", {}), **can_fd(robot.n_joints)}}
     if is_builtin(robot):
         return {**config, "robot": robot.name}
     plant = {**config.get("plant", {}), "joint_names": list(robot.joint_names)}

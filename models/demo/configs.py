@@ -47,6 +47,7 @@ def runtime_config(
     connecting to the demo's session, a control socket; lock-step (bus pacing) or real time (clock)."""
     from models.lab.runs import DRIVER_TIMEOUTS
     from models.lmpc.controller import bundle_path
+    from sim_target.launch import can_fd
 
     steps = round(condition.duration_s / period_s)
     # The stats cover the whole run (not the default last 4096 cycles). duration_s: a backstop only,
@@ -63,7 +64,7 @@ def runtime_config(
         lab.robot_joints(robot.joint_names, robot.torque_limit_nm),
         bundle_path(robot.name, options.law, None),
         options.mode,
-        {"interface": "ipc", "channel": str(bus_dir)},
+        {"interface": "ipc", "channel": str(bus_dir), **can_fd(robot.n_joints)},  # the target's rates
         period_s,
         driver=DRIVER_TIMEOUTS,
         reference=lab.condition_reference(conditions_file, condition.name),

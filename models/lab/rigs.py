@@ -138,15 +138,14 @@ class InProcessRig:
         tap: bool = True,
         bundle: Any = None,
     ) -> None:
-        from drivers.drive_bus import DriveBus
         from drivers.transport import open_bus
-        from hil_runtime.factory import build_runtime
+        from hil_runtime.factory import build_runtime, runtime_drive_bus
 
         self.target = target
         self.config = config
         # The campaign opens the python-can bus itself, so that a case can close it under the driver.
         self.can_bus = open_bus(config.bus.transport)
-        self.drive_bus = DriveBus(config.bus, bus=self.can_bus)
+        self.drive_bus = runtime_drive_bus(config, self.can_bus)
         self.runtime = build_runtime(
             config, self.drive_bus, telemetry=telemetry_port is not None, record_cycles=record_cycles, bundle=bundle
         )

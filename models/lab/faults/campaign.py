@@ -141,7 +141,7 @@ FAULTS: tuple[FaultSpec, ...] = (
     FaultSpec(
         "tpdo_drop_1_one",
         "TPDO dropped, 1 cycle, one drive",
-        "tolerated (max_missed_cycles 1), counted",
+        "tolerated (max_stale_cycles 1), counted",
         True,
         _ip(inj.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
     ),

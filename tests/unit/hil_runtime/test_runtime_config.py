@@ -258,3 +258,24 @@ def test_hil_run_check_validates_without_touching_the_bus(tmp_path: Path) -> Non
     data["bus"]["period_s"] = 0.002
     result = _hil("run", "--config", str(_write(tmp_path, data)), "--check")
     assert result.returncode == 2 and "control period" in result.stderr
+
+
+def test_the_runtime_has_one_stale_feedback_budget(tmp_path: Path) -> None:
+    """safety.max_stale_cycles is the one budget (FAULT stale_feedback): the runtime's drive bus
+    counts none of its own, and a config that names bus.max_missed_cycles too must agree."""
+    from hil_runtime.factory import runtime_drive_bus
+
+    def with_budgets(missed: int | None, stale: int) -> dict:
+        data = config_dict(safety={"max_stale_cycles": stale})
+        if missed is not None:
+            data["bus"]["max_missed_cycles"] = missed
+        return data
+
+    for missed, stale in ((None, 3), (3, 3), (1, 1)):  # the old deploy configs named both, equal
+        config = parse_runtime_config(with_budgets(missed, stale), "r.yaml")
+        assert config.safety.max_stale_cycles == stale
+        assert runtime_drive_bus(config).max_missed_cycles is None
+    with pytest.raises(
+        RuntimeConfigError, match=r"^r\.yaml: .*bus\.max_missed_cycles 25 differs from safety\.max_stale_cycles 1"
+    ):
+        parse_runtime_config(with_budgets(25, 1), "r.yaml")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -105,10 +106,11 @@ def test_runtime_soft_limits_follow_an_asymmetric_bundle_range() -> None:
         position_lower_rad=lower,
         position_upper_rad=upper,
     )
-    bundle = SimpleNamespace(manifest=SimpleNamespace(limits=limits), torque_limit_nm=np.full(6, 50.0))
+    # A stand-in with the two attributes safety_limits_for reads (Any: not a PolicyBundle).
+    bundle: Any = SimpleNamespace(manifest=SimpleNamespace(limits=limits), torque_limit_nm=np.full(6, 50.0))
     joints = [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 50.0} for i in range(6)]
     config = parse_runtime_config({"robot": "x", "bundle": {"path": "b"}, "bus": {"period_s": 5e-3, "joints": joints}})
-    safety = safety_limits_for(config, bundle)  # type: ignore[arg-type]  # the two attributes it reads
+    safety = safety_limits_for(config, bundle)
     assert np.array_equal(safety.position_lower_rad, lower) and np.array_equal(safety.position_upper_rad, upper)
 
 
@@ -130,9 +132,9 @@ def test_a_urdf_robot_is_named_to_the_target_by_its_file(tmp_path: Path) -> None
     from models.robot_target import robot_spec, target_robot_config
     from models.robots import urdf_path
 
-    builtin = load_robot("panda")
-    assert robot_spec(builtin) == "panda"
-    assert target_robot_config(builtin, {"plant": {"substeps": 4}}) == {"plant": {"substeps": 4}, "robot": "panda"}
+    builtin = load_robot("ur5")
+    assert robot_spec(builtin) == "ur5"
+    assert target_robot_config(builtin, {"plant": {"substeps": 4}}) == {"plant": {"substeps": 4}, "robot": "ur5"}
     copy = tmp_path / "my_panda.urdf"
     copy.write_text(urdf_path("panda").read_text())
     arm = load_robot(copy)
@@ -195,5 +197,19 @@ def test_config_runtime_writes_another_arms_conditions(tmp_path: Path, panda: Ro
     manifest = SimpleNamespace(robot=SimpleNamespace(name="panda", n_joints=7))
     path = _conditions(manifest, None, tmp_path / "runtime.yaml", None)
     assert path is not None and path.name == "runtime.conditions.yaml"
-    written = paper_conditions(path, limits=panda)
+    written = load_conditions(path, robot=panda)
     assert written == default_conditions(panda)
+
+
+def test_a_seven_joint_arm_gets_a_bus_that_carries_it(panda: RobotModel) -> None:
+    """7 drives at 1 kHz on a 5 Mbit/s CAN FD data phase are 92 % of the bus: refused; 8 Mbit/s: both ends."""
+    from models.lab.configs import target_config
+    from models.robot_target import target_robot_config
+    from sim_target.launch import launch_target
+
+    config = target_robot_config(panda, target_config("panda", 1e-3, 4))
+    assert config["bus"]["data_bitrate"] == 8_000_000
+    with launch_target(config, "virtual") as target:  # the target's config passes its bus-load check
+        assert target.transport["data_bitrate"] == 8_000_000  # the runtime's end of the same bus
+    six = target_robot_config(load_robot("ur5"), target_config("ur5", 1e-3, 4))
+    assert six["bus"]["data_bitrate"] == 5_000_000  # six drives: unchanged
