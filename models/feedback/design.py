@@ -27,11 +27,12 @@ The laws (docs/feedback_laws.md, "Designed gains", gives the equations and the f
   tau_max / E_SAT), so the heaviest configuration has damping ratio >= ZETA; w_j = sqrt(K_p / m_max).
 - PID: PD's K_p, K_d; K_i = K_p w_j / 10 (the integral's corner a decade below the loop).
 - ADRC: b0_j = m_max_j; omega_c (one for the arm) = min_j of w_j and of the damping budget
-  b0_j 2 omega_c <= C_V m_min_j / T; omega_o = min(8 omega_c, w_phase). (b0 = m_min, the textbook
+  b0_j 2 omega_c <= C_V m_min_j / T; omega_o = max(w_phase / 2, 4 omega_c): the observer as fast as
+  the delay allows with a factor 2 (at 1 kHz and d = 1: 67 rad/s). (b0 = m_min, the textbook
   "b0 <= 2 m" side, leaves slow unstable modes at most poses when m_max / m_min is large: 46 on
   ur5_paper's elbow; b0 = m_max and a slow omega_c do not.)
-- H-infinity: the paper's mixed-sensitivity weights on the unit plant, scaled to each joint's
-  nominal inertia sqrt(m_min m_max) and bandwidth w_j (hinf.design_joint).
+- H-infinity: the paper's mixed-sensitivity weights on the unit plant 1 / (s + 0.1)^2, the result
+  scaled to each joint's nominal inertia m_min_j and bandwidth w_j (hinf.design_joint).
 - SMC: lambda_j = w_j; boundary layer epsilon = 0.02 rad/s (the paper's); k_j = C_V m_min_j epsilon / T
   (the layer's gain k / epsilon at the delay budget: no relay chatter), at most 5 % of tau_max.
 - MRAC: inertia box at 1x diag M^(0) (=: m0); alpha_j = C_V m_min_j / (4 T); Lambda_j = min(w_j,
@@ -39,8 +40,9 @@ The laws (docs/feedback_laws.md, "Designed gains", gives the equations and the f
   alpha_j w_j / 10 (the offset's integral action a decade below).
 
 The linear laws (PD, PID, ADRC, H-infinity) are then checked with ``models.delay_margin.delay_margin``;
-a design that fails it is retried with its bandwidths scaled by BACKOFF, and refused (DesignError, the
-reason named) after RETRIES. SMC and MRAC are checked by simulation (``hil stability``).
+a design that fails it is retried with its bandwidths and damping budget scaled by BACKOFF, and refused
+(DesignError, the reason named) after RETRIES. SMC and MRAC take the scale the PD design passed with
+(the same budget against the same coupling) and are checked by simulation (``hil stability``).
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ SMC_EPSILON = 0.02  # the paper's boundary layer, rad/s
 SMC_MAX_SWITCHING_RATIO = 0.05  # of the torque limit
 BACKOFF = 0.7  # bandwidth scale per retry when the delay check fails
 RETRIES = 4
+PAPER_HINF_ALPHA = 0.2  # W_T, the paper's (models/feedback/hinf.py)
 DESIGN_POSES = 200  # envelope poses of the design's own delay check (``hil stability`` uses 400)
 LINEAR = ("pd", "pid", "adrc", "hinf")
 
@@ -143,7 +146,7 @@ def envelope(robot: RobotModel, period_s: float = 1e-3, delay_periods: int = 1, 
 
 def law_gains(name: str, env: Envelope, scale: float = 1.0) -> tuple[dict[str, Any], np.ndarray]:
     """One law's gains from the envelope, bandwidths scaled by ``scale``: (make_law kwargs, w_j rad/s)."""
-    t, w_phase = env.period_s, scale * env.phase_bandwidth_rad_s
+    w_phase = scale * env.phase_bandwidth_rad_s
     budget = scale * env.damping_budget_nm_s
     kd = np.minimum(budget, 2.0 * ZETA * env.m_max * w_phase)
     kp = np.minimum.reduce(
@@ -156,9 +159,10 @@ def law_gains(name: str, env: Envelope, scale: float = 1.0) -> tuple[dict[str, A
         return {"kp": kp, "kd": kd, "ki": kp * bandwidth / 10.0}, bandwidth
     if name == "adrc":  # b0 = m_max: a smaller b0 leaves slow unstable modes (docs/feedback_laws.md)
         omega_c = float(min(bandwidth.min(), (budget / (2.0 * env.m_max)).min()))
-        return {"b0": env.m_max, "omega_o": float(min(8.0 * omega_c, w_phase)), "omega_c": omega_c}, bandwidth
+        return {"b0": env.m_max, "omega_o": float(max(0.5 * w_phase, 4.0 * omega_c)), "omega_c": omega_c}, bandwidth
     if name == "hinf":
-        return {"nominal_inertia_kg_m2": np.sqrt(env.m_min * env.m_max), "bandwidth_rad_s": bandwidth}, bandwidth
+        nominal = env.m_min  # the geometric mean leaves slow unstable modes on the Panda (docs)
+        return {"alpha": PAPER_HINF_ALPHA, "nominal_inertia_kg_m2": nominal, "bandwidth_rad_s": bandwidth}, bandwidth
     if name == "smc":
         k = np.minimum(budget * SMC_EPSILON, SMC_MAX_SWITCHING_RATIO * env.torque_limit_nm)
         return {"lam": bandwidth, "k": k, "epsilon": SMC_EPSILON}, bandwidth
@@ -221,8 +225,9 @@ def _design_by_key(
 
     robot = _ROBOTS[key]
     env = _envelope_by_key(key, period_s, delay_periods)
-    if name not in LINEAR:
-        return law_gains(name, env)[0], 1.0, None
+    if name not in LINEAR:  # SMC, MRAC: the damping budget the PD design's delayed loop was proven with
+        scale = _design_by_key(key, period_s, delay_periods, "pd")[1]
+        return law_gains(name, env, scale)[0], scale, None
     poses = envelope_poses(robot, DESIGN_POSES, seed=1)  # other poses than the envelope's own
     scale = 1.0
     last: dict[str, Any] = {}

@@ -41,6 +41,9 @@ PAPER_ALPHA = 0.2
 PAPER_WS = (10.0, 1.0, 0.01)  # makeweight(dc gain, crossover rad/s, high-frequency gain)
 PAPER_WU = (0.1, 1.0, 10.0)
 PLANT_POLE_SHIFT_RAD_S = 1e-3
+#: The designed set's unit-plant pole shift (in units of the bandwidth): 0.1 w makes the synthesis give
+#: the loop a real static stiffness; 1e-3 leaves slow unstable modes on a coupled arm (docs/feedback_laws.md)
+SCALED_POLE_SHIFT = 0.1
 
 
 def makeweight_coefficients(dc_gain: float, crossover_rad_s: float, hf_gain: float) -> tuple[list[float], list[float]]:
@@ -97,11 +100,12 @@ def design_joint(
 
     With ``bandwidth_rad_s`` = w the synthesis runs on the unit plant (m = 1) with the same weights and
     is scaled to K(s) = m w^2 K~(s / w): the unit design's loop (S, T) moved to crossover w, the effort
-    weight W_u read per unit of m w^2 (the designed gain set, models/feedback/design.py)."""
+    weight W_u read per unit of m w^2, the plant's poles at -SCALED_POLE_SHIFT w (the designed gain set,
+    models/feedback/design.py)."""
     if bandwidth_rad_s is None:
         gamma, order, (a, b, c, d) = _synthesize(inertia_kg_m2, alpha, ws, wu)
     else:
-        gamma, order, (a, b, c, d) = _synthesize(1.0, alpha, ws, wu)
+        gamma, order, (a, b, c, d) = _synthesize(1.0, alpha, ws, wu, SCALED_POLE_SHIFT)
         w, gain = float(bandwidth_rad_s), float(inertia_kg_m2) * float(bandwidth_rad_s) ** 2
         a, b, c, d = w * a, w * b, gain * c, gain * d
     a, b, c, d = residualize_fast_modes(a, b, c, d, max_rad_s=0.2 * 2.0 / period_s)
@@ -110,12 +114,15 @@ def design_joint(
 
 
 def _synthesize(
-    inertia_kg_m2: float, alpha: float, ws: tuple[float, float, float], wu: tuple[float, float, float]
+    inertia_kg_m2: float,
+    alpha: float,
+    ws: tuple[float, float, float],
+    wu: tuple[float, float, float],
+    delta: float = PLANT_POLE_SHIFT_RAD_S,
 ) -> tuple[float, int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """mixsyn on the joint's plant: (gamma, controller order, continuous (A, B, C, D))."""
+    """mixsyn on the joint's plant 1 / (m (s + delta)^2): (gamma, controller order, continuous (A, B, C, D))."""
     import control as ct
 
-    delta = PLANT_POLE_SHIFT_RAD_S
     plant = ct.tf([1.0], [inertia_kg_m2, 2 * inertia_kg_m2 * delta, inertia_kg_m2 * delta**2])
     weights = [ct.tf(*makeweight_coefficients(*ws)), ct.tf(*makeweight_coefficients(*wu)), ct.tf([alpha], [1.0])]
     with warnings.catch_warnings():
