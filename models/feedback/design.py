@@ -25,7 +25,8 @@ The laws (docs/feedback_laws.md, "Designed gains", gives the equations and the f
 
 - PD: K_d = min(C_V m_min / T, 2 ZETA m_max w_phase); K_p = min(K_d^2 / (4 ZETA^2 m_max), m_max w_phase^2,
   tau_max / E_SAT), so the heaviest configuration has damping ratio >= ZETA; w_j = sqrt(K_p / m_max).
-- PID: PD's K_p, K_d; K_i = K_p w_j / 10 (the integral's corner a decade below the loop).
+- PID: PD's K_p, K_d; K_i = K_p w_j / 30 (the integral's corner 30x below the loop: at w / 10 the
+  integral against the Panda's gravity stiffness leaves a slow unstable mode).
 - ADRC: b0_j = m_max_j; omega_c (one for the arm) = min_j of w_j and of the damping budget
   b0_j 2 omega_c <= C_V m_min_j / T; omega_o = max(w_phase / 2, 4 omega_c): the observer as fast as
   the delay allows with a factor 2 (at 1 kHz and d = 1: 67 rad/s). (b0 = m_min, the textbook
@@ -62,6 +63,7 @@ E_SAT_RAD = 0.1  # position error at which the P term alone reaches the torque l
 ZETA = 0.5  # damping ratio at the heaviest configuration, at least
 SMC_EPSILON = 0.02  # the paper's boundary layer, rad/s
 SMC_MAX_SWITCHING_RATIO = 0.05  # of the torque limit
+PID_INTEGRAL_RATIO = 30.0  # K_i = K_p w / this (w / 10 leaves a slow mode against the Panda's gravity)
 BACKOFF = 0.7  # bandwidth scale per retry when the delay check fails
 RETRIES = 4
 PAPER_HINF_ALPHA = 0.2  # W_T, the paper's (models/feedback/hinf.py)
@@ -155,7 +157,7 @@ def law_gains(name: str, env: Envelope, scale: float = 1.0) -> tuple[dict[str, A
     if name == "pd":
         return {"kp": kp, "kd": kd}, bandwidth
     if name == "pid":
-        return {"kp": kp, "kd": kd, "ki": kp * bandwidth / 10.0}, bandwidth
+        return {"kp": kp, "kd": kd, "ki": kp * bandwidth / PID_INTEGRAL_RATIO}, bandwidth
     if name == "adrc":  # b0 = m_max: a smaller b0 leaves slow unstable modes (docs/feedback_laws.md)
         omega_c = float(min(bandwidth.min(), (budget / (2.0 * env.m_max)).min()))
         return {"b0": env.m_max, "omega_o": float(max(0.5 * w_phase, 4.0 * omega_c)), "omega_c": omega_c}, bandwidth
