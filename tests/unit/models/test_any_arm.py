@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -105,10 +106,11 @@ def test_runtime_soft_limits_follow_an_asymmetric_bundle_range() -> None:
         position_lower_rad=lower,
         position_upper_rad=upper,
     )
-    bundle = SimpleNamespace(manifest=SimpleNamespace(limits=limits), torque_limit_nm=np.full(6, 50.0))
+    # A stand-in with the two attributes safety_limits_for reads (Any: not a PolicyBundle).
+    bundle: Any = SimpleNamespace(manifest=SimpleNamespace(limits=limits), torque_limit_nm=np.full(6, 50.0))
     joints = [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 50.0} for i in range(6)]
     config = parse_runtime_config({"robot": "x", "bundle": {"path": "b"}, "bus": {"period_s": 5e-3, "joints": joints}})
-    safety = safety_limits_for(config, bundle)  # type: ignore[arg-type]  # the two attributes it reads
+    safety = safety_limits_for(config, bundle)
     assert np.array_equal(safety.position_lower_rad, lower) and np.array_equal(safety.position_upper_rad, upper)
 
 
