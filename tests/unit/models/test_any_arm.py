@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -105,10 +106,11 @@ def test_runtime_soft_limits_follow_an_asymmetric_bundle_range() -> None:
         position_lower_rad=lower,
         position_upper_rad=upper,
     )
-    bundle = SimpleNamespace(manifest=SimpleNamespace(limits=limits), torque_limit_nm=np.full(6, 50.0))
+    # A stand-in with the two attributes safety_limits_for reads (Any: not a PolicyBundle).
+    bundle: Any = SimpleNamespace(manifest=SimpleNamespace(limits=limits), torque_limit_nm=np.full(6, 50.0))
     joints = [{"name": f"j{i}", "node_id": i + 1, "max_torque_nm": 50.0} for i in range(6)]
     config = parse_runtime_config({"robot": "x", "bundle": {"path": "b"}, "bus": {"period_s": 5e-3, "joints": joints}})
-    safety = safety_limits_for(config, bundle)  # type: ignore[arg-type]  # the two attributes it reads
+    safety = safety_limits_for(config, bundle)
     assert np.array_equal(safety.position_lower_rad, lower) and np.array_equal(safety.position_upper_rad, upper)
 
 
@@ -211,3 +213,13 @@ def test_a_seven_joint_arm_gets_a_bus_that_carries_it(panda: RobotModel) -> None
         assert target.transport["data_bitrate"] == 8_000_000  # the runtime's end of the same bus
     six = target_robot_config(load_robot("ur5"), target_config("ur5", 1e-3, 4))
     assert six["bus"]["data_bitrate"] == 5_000_000  # six drives: unchanged
+
+
+def test_random_conditions_stay_inside_an_asymmetric_range(panda: RobotModel) -> None:
+    """The dataset's draws (``hil pipeline --design paper``): around the home pose, inside the range."""
+    from models.conditions import random_conditions
+
+    for c in random_conditions(panda, 40, 3):
+        c.check_limits(panda)
+    paper = load_robot("ur5_paper")
+    assert all(c.offset_rad is None for c in random_conditions(paper, 3, 3))  # ur5_paper: around 0 as before
