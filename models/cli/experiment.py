@@ -46,7 +46,8 @@ def experiment(
     hmpc_formulation: Annotated[
         str,
         typer.Option(
-            help="HMPC torque cost: 'absolute' (W2 on tau) or 'anchored' (W2 on tau - w* tau_fb, docs/hmpc.md)."
+            help="HMPC formulation: 'absolute' (W2 on tau), 'anchored' (W2 on tau - w* tau_fb) or 'deployable' "
+            "(W2 on tau - ID(q, qd, qdd_d), smoothness on tau_j - tau_(j-1), libfranka's rate bound; docs/hmpc.md)."
         ),
     ] = "absolute",
     hmpc_prediction_step_s: Annotated[
@@ -125,7 +126,9 @@ def experiment(
         positive(hmpc_prediction_step_s, "--hmpc-prediction-step-s")
     positive(hmpc_anchor_scale, "--hmpc-anchor-scale")
     one_of(plant_backend, ("pinocchio", "rne"), "--plant-backend")
-    one_of(hmpc_formulation, ("absolute", "anchored"), "--hmpc-formulation")
+    from models.hmpc.config import FORMULATIONS
+
+    one_of(hmpc_formulation, tuple(FORMULATIONS), "--hmpc-formulation")
     created = not out.exists()
     prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
     try:
@@ -218,8 +221,11 @@ def _experiment(
 
         options: dict = {"lmpc": {"bundle_dir": lmpc_bundles}} if lmpc_bundles is not None else {}
         hmpc_options: dict = {}
-        if hmpc_formulation != "absolute":
-            hmpc_options.update(torque_cost=hmpc_formulation, anchor_weight_scale=hmpc_anchor_scale)
+        from models.hmpc.config import FORMULATIONS
+
+        hmpc_options.update(FORMULATIONS[hmpc_formulation])
+        if hmpc_formulation == "anchored":
+            hmpc_options["anchor_weight_scale"] = hmpc_anchor_scale
         if hmpc_prediction_step_s is not None:
             hmpc_options["prediction_step_s"] = hmpc_prediction_step_s
         if hmpc_options:

@@ -48,12 +48,13 @@ def pipeline(
         str,
         typer.Option(
             help="'structured' (nominal feed-forward in the graph + bounded residual; docs/lmpc.md section 9; "
-            "its own stages: rollouts, relabel, fit, export) or 'paper' (Eq. 22 MLP, Theorem 2; the stages above)."
+            "its own stages: rollouts, relabel, fit, export; the default) or 'paper' (Eq. 22 MLP, Theorem 2; the "
+            "stages above)."
         ),
-    ] = "paper",
+    ] = "structured",
     hmpc_formulation: Annotated[
-        str, typer.Option(help="The HMPC imitated: 'absolute' or 'anchored' (docs/hmpc.md).")
-    ] = "absolute",
+        str, typer.Option(help="The HMPC imitated: 'absolute', 'anchored' or 'deployable' (docs/hmpc.md).")
+    ] = "deployable",
     target: Annotated[
         str, typer.Option(help="Structured design: 'hmpc', or 'law' (the control row: imitate the law itself).")
     ] = "hmpc",
@@ -76,7 +77,9 @@ def pipeline(
     if workers is not None and workers < 1:
         raise ModelInputError(f"--workers: must be >= 1, got {workers}")
     one_of(design, ("paper", "structured"), "--design")
-    one_of(hmpc_formulation, ("absolute", "anchored"), "--hmpc-formulation")
+    from models.hmpc.config import FORMULATIONS
+
+    one_of(hmpc_formulation, tuple(FORMULATIONS), "--hmpc-formulation")
     law_list = split_names(laws, LAW_NAMES, "laws")
     if design == "structured":
         if not residual_bound_scale > 0:
@@ -177,7 +180,9 @@ def _structured(
     from models.lmpc.structured import C_FIXED, PERTURBATION, StructuredConfig, run_structured
 
     torch.set_num_threads(1)
-    options = {} if formulation == "absolute" else {"torque_cost": formulation}
+    from models.hmpc.config import FORMULATIONS
+
+    options = dict(FORMULATIONS[formulation])
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(
         laws=law_list,

@@ -47,6 +47,7 @@ class Rows:
     previous: np.ndarray | None = None  # (K, N) tau_0, the torque applied last cycle (smoothness term)
     lower: np.ndarray | None = None  # (K, T, N) the torque box of each step (the rate limit), None: the limits
     upper: np.ndarray | None = None
+    rate_weight: np.ndarray | None = None  # (K, N, N) c dt^2 M(q)^-2 of the smoothness term, None: no term
 
     def _map(self, fn: Callable[[np.ndarray], np.ndarray]) -> Rows:
         """The same rows with ``fn`` applied to every array (row selection, repetition)."""
@@ -61,6 +62,7 @@ class Rows:
             None if self.previous is None else fn(self.previous),
             None if self.lower is None else fn(self.lower),
             None if self.upper is None else fn(self.upper),
+            None if self.rate_weight is None else fn(self.rate_weight),
         )
 
     def take(self, index: np.ndarray) -> Rows:

@@ -97,9 +97,14 @@ class HMPCSolver:
         if self.anchored or self.feedforward:
             self.anchor_weight = config.anchor_weight_scale * self.prediction_step_s**2 / inertia**2
             self.cost_torque_weight = self.anchor_weight
-        # smoothness: Wd on tau_j - tau_{j-1}, scaled like W2a (equal cost per unit of acceleration change)
-        self.rate_weight = config.rate_weight_scale * self.prediction_step_s**2 / inertia**2  # (N,)
+        # smoothness: c dt^2 |M(q)^-1 (tau_j - tau_{j-1})|^2, the change of the acceleration the torque change
+        # makes, at the row's own inertia (the full M(q)^-1: a diagonal 1/M_ii^2 let the coupled joints move
+        # further from tau_0 than without the term)
         self.smooth = config.rate_weight_scale > 0
+        if self.smooth:
+            from models.dynamics import make_dynamics
+
+            self._mass = make_dynamics(robot, "pinocchio" if config.backend == "pinocchio" else "rne")
         # the hard rate bound: per control period on tau_1, per prediction step on the later steps
         self.rate_step_nm: np.ndarray | None = None
         if config.torque_rate_limit == "franka":
@@ -131,10 +136,10 @@ class HMPCSolver:
         self._rho = float(config.state_bound_weight) if config.use_state_bounds else 0.0
         # Constant pieces of the condensed model.
         self._stage_torque_weight = (self.temporal[:, None] * self.cost_torque_weight).reshape(-1)  # (T N,)
-        self._stage_rate_weight = self.temporal[:, None] * self.rate_weight  # (T, N)
-        # (D U)_j = U_j - U_{j-1}: its Hessian D' diag(w_j Wd) D is the same for every row
-        difference = np.eye(self.horizon * n) - np.eye(self.horizon * n, k=-n)
-        self._rate_hessian = difference.T @ (self._stage_rate_weight.reshape(-1)[:, None] * difference)
+        # (D U)_j = U_j - U_{j-1} over the steps; with stage weights w_j: B = D' diag(w) D (T, T), and the
+        # Hessian of sum_j w_j (D U)_j' A (D U)_j is kron(B, A) for a row's A = c dt^2 M^-2
+        difference = np.eye(self.horizon) - np.eye(self.horizon, k=-1)
+        self._rate_steps = difference.T @ (self.temporal[:, None] * difference)
         if self.rate_step_nm is not None:
             ratio = self.prediction_step_s / law.period_s
             self._rate_reach = (1.0 + ratio * np.arange(self.horizon))[:, None] * self.rate_step_nm  # (T, N)
@@ -180,7 +185,7 @@ class HMPCSolver:
         ``hold_torque_nm`` (B, N): what to apply where neither the MPC nor the law gives a finite
         torque (default zero).
         ``previous_torque_nm`` (B, N): tau_0, the torque applied last cycle, for the smoothness term and
-        the rate bound (None: the law's torque is tau_0 and no rate bound applies, e.g. the first cycle).
+        the rate bound (None: neither applies, e.g. the first cycle, or a cold solve of a logged state).
         """
         q, qd, q_d, qd_d, qdd_d = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (q, qd, q_d, qd_d, qdd_d))
         batch, n, horizon = q.shape[0], self.n_joints, self.horizon
@@ -218,8 +223,11 @@ class HMPCSolver:
                 if previous is not None:
                     previous = np.broadcast_to(previous, (batch, n))[valid]
                     previous = np.where(np.isfinite(previous), previous, tau_fb[valid])
-                if self.smooth:
-                    rows.previous = np.ascontiguousarray(tau_fb[valid] if previous is None else previous)
+                if self.smooth and previous is not None:
+                    rows.previous = np.ascontiguousarray(previous)
+                    inverse = np.linalg.inv(np.asarray(self._mass.mass_matrix(q[valid]), float).reshape(-1, n, n))
+                    scale = self.config.rate_weight_scale * self.prediction_step_s**2
+                    rows.rate_weight = np.ascontiguousarray(scale * np.swapaxes(inverse, 1, 2) @ inverse)
                 if self.rate_step_nm is not None and previous is not None:
                     limit = self.torque_limit_nm
                     rows.lower = np.maximum(-limit, previous[:, None] - self._rate_reach)
@@ -376,9 +384,9 @@ class HMPCSolver:
             self.state_limit,
             self._rho,
         )
-        if self.smooth and rows.previous is not None:
+        if self.smooth and rows.previous is not None and rows.rate_weight is not None:
             change = self._torque_changes(rows, u)
-            cost = cost + np.einsum("ktn,tn->k", change * change, self._stage_rate_weight)
+            cost = cost + np.einsum("ktn,knm,ktm,t->k", change, rows.rate_weight, change, self.temporal)
         return Rollout(q_path, qd_path, features, law_states, cost)
 
     @staticmethod
@@ -496,10 +504,11 @@ class HMPCSolver:
             float(self.config.damping),
             levenberg,
         )
-        if self.smooth and rows.previous is not None:
+        if self.smooth and rows.previous is not None and rows.rate_weight is not None:
             # 1/2 (D U - d0)' W (D U - d0): Hessian D' W D, gradient D' W (D U - d0), (D' y)_j = y_j - y_{j+1}
-            weighted = self._torque_changes(rows, u) * self._stage_rate_weight
+            weighted = np.einsum("knm,ktm,t->ktn", rows.rate_weight, self._torque_changes(rows, u), self.temporal)
             shifted = np.concatenate([weighted[:, 1:], np.zeros_like(weighted[:, :1])], 1)
-            hessian = hessian + self._rate_hessian
+            blocks = np.einsum("ab,kij->kaibj", self._rate_steps, rows.rate_weight).reshape(k, horizon * n, horizon * n)
+            hessian = hessian + blocks
             gradient = gradient + (weighted - shifted).reshape(k, -1)
         return hessian, gradient, sens
