@@ -25,7 +25,8 @@ def experiment(
     conditions: Annotated[
         str | None,
         typer.Option(
-            help="Conditions YAML (default: the paper's five), or random:COUNT:SEED (seeded, the paper's range)."
+            help="Conditions YAML (default: the paper's five), random:COUNT:SEED (seeded, the paper's range) or "
+            "envelope:COUNT:SEED (seeded, the whole envelope: offsets, sines, holds, random disturbance times)."
         ),
     ] = None,
     robot: RobotOption = "ur5_paper",
@@ -191,9 +192,14 @@ def _experiment(
     arm = load_robot(robot)
     from models.lmpc.paper_range import paper_range_conditions, parse_random_spec
 
+    from models.envelope_conditions import envelope_conditions, parse_envelope_spec
+
     spec = parse_random_spec(conditions) if conditions is not None else None
+    envelope = parse_envelope_spec(conditions) if conditions is not None else None
     if spec is not None:
         condition_list = paper_range_conditions(arm, *spec)
+    elif envelope is not None:
+        condition_list = envelope_conditions(arm, *envelope)
     else:
         condition_list = load_conditions(None if conditions is None else Path(conditions), robot=arm)
     if mismatch == "paper":
