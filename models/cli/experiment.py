@@ -190,9 +190,8 @@ def _experiment(
     from models.sim import SimConfig
 
     arm = load_robot(robot)
-    from models.lmpc.paper_range import paper_range_conditions, parse_random_spec
-
     from models.envelope_conditions import envelope_conditions, parse_envelope_spec
+    from models.lmpc.paper_range import paper_range_conditions, parse_random_spec
 
     spec = parse_random_spec(conditions) if conditions is not None else None
     envelope = parse_envelope_spec(conditions) if conditions is not None else None

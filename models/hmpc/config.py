@@ -19,9 +19,10 @@ KERNELS = ("auto", "numba", "numpy")
 #: the applied torque's rate bound: "none", or "franka": libfranka's kMaxTorqueRate (1000 N m/s on its
 #: 87 N m joints) scaled by each joint's torque limit (models.effort.max_torque_step_nm, docs/scoring.md)
 RATE_LIMITS = ("none", "franka")
-#: Named HMPC formulations (``hil experiment --hmpc-formulation``, ``hil pipeline --hmpc-formulation``): HMPCConfig
-#: options. "deployable" is the one a real arm can run (docs/hmpc.md, "Effort and smoothness"): W2a = 10 dt^2 / M_ii(0)^2
-#: on the torque beyond the model's feed-forward, a smoothness weight on tau_j - tau_{j-1} and libfranka's rate bound.
+#: Named HMPC formulations (``hil experiment --hmpc-formulation``, ``hil pipeline --hmpc-formulation``):
+#: HMPCConfig options. "deployable" is the one a real arm can run (docs/hmpc.md, "Effort and smoothness"):
+#: W2a = 10 dt^2 / M_ii(0)^2 on the torque beyond the model's feed-forward, a smoothness weight on the
+#: acceleration change tau_j - tau_{j-1} makes and libfranka's rate bound.
 FORMULATIONS: dict[str, dict[str, Any]] = {
     "absolute": {},
     "anchored": {"torque_cost": "anchored"},
