@@ -81,6 +81,12 @@ def pipeline(
 
     one_of(hmpc_formulation, tuple(FORMULATIONS), "--hmpc-formulation")
     law_list = split_names(laws, LAW_NAMES, "laws")
+    stage_list = split_names(stages, STAGES, "stages")
+    if design == "structured" and stage_list != STAGES:
+        raise ModelInputError(
+            "--stages: the stages of --design paper (the structured design, the default, runs rollouts, relabel, "
+            "fit and export)"
+        )
     if design == "structured":
         if not residual_bound_scale > 0:
             raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
@@ -110,7 +116,6 @@ def pipeline(
 
     from models.lmpc.pipeline import PipelineConfig, run_pipeline
 
-    stage_list = split_names(stages, STAGES, "stages")
     one_of(lipschitz, ("zero", "estimate"), "--lipschitz")
     if conditions < 2:
         raise ModelInputError(f"--conditions: need >= 2 (a pool and held-out ones), got {conditions}")
