@@ -43,7 +43,8 @@ from runtime_parts import time_parts
 
 from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
-from hil_runtime.runtime import Runtime, build_runtime
+from hil_runtime.factory import build_runtime
+from hil_runtime.runtime import Runtime
 from sim_target.testing.hil_target import target_in_process, target_process, unique_channel
 from sim_target.testing.ur5 import MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, bus_joints
 

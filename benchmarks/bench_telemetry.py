@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -43,12 +42,6 @@ time.sleep(0.3)
 print(count[0], flush=True)
 session.close()
 """
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _summary(values_us: np.ndarray) -> dict[str, float]:
@@ -76,8 +69,9 @@ def run(
     express: bool | None = None,
 ) -> dict[str, Any]:
     from hil_runtime.telemetry import CycleState, NullTelemetry, TelemetryConfig, make_sink
+    from models.lab.ports import free_loopback_port
 
-    port = _free_port()
+    port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     config = TelemetryConfig(enabled=True, listen=(endpoint,), publish_period_s=publish_period_s)
     if express is not None:

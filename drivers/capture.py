@@ -20,13 +20,14 @@ import collections
 import logging
 import os
 import struct
-import threading
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import can
+
+from drivers.draining import DrainingWriter
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +62,7 @@ def check_capture_path(path: Path, option: str = "--can-log") -> Path:
     return path
 
 
-class CanCapture:
+class CanCapture(DrainingWriter):
     """A capture file being written by python-can's writer for its suffix, fed by :meth:`tap`.
 
     Written under a temporary name (same suffix) and renamed into place by :meth:`close`.
@@ -69,19 +70,16 @@ class CanCapture:
 
     def __init__(self, path: Path | str, queue_size: int = 65_536, drain_period_s: float = 0.01) -> None:
         self.path = check_capture_path(Path(path))
+        super().__init__(drain_period_s, "hil-can-log", "CAN capture")
         self.queue_size = queue_size
-        self.drain_period_s = drain_period_s
         self.captured = 0
         self.written = 0
         self.dropped = 0
-        self.error: BaseException | None = None
         self._tmp = self.path.with_name(f".{self.path.stem}.{os.getpid()}.partial{self.path.suffix}")
         self._logger: Any = can.Logger(str(self._tmp))
         self._frames: collections.deque[_Frame] = collections.deque()
-        self._stop = threading.Event()
         self._closed = False
-        self._thread = threading.Thread(target=self._run, name="hil-can-log", daemon=True)
-        self._thread.start()
+        self._start_draining()
 
     def tap(self, msg: can.Message, is_rx: bool) -> None:
         """Copy one frame (caller's thread: a tuple append, never a wait)."""
@@ -128,24 +126,13 @@ class CanCapture:
             )
             self.written += 1
 
-    def _run(self) -> None:
-        try:
-            while not self._stop.wait(self.drain_period_s):
-                self._drain()
-        except BaseException as exc:  # noqa: BLE001 - a full disk must not stop the loop: reported at close
-            self.error = exc
-            log.error("CAN capture stopped: %r", exc)
-
     def close(self) -> None:
         """Write what is queued, close the writer, rename into place. Idempotent."""
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
-        self._thread.join()
         try:
-            if self.error is None:
-                self._drain()
+            self._stop_draining()
         finally:
             self._logger.stop()
         os.replace(self._tmp, self.path)
@@ -163,8 +150,7 @@ class CanCapture:
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
-        self._thread.join()
+        self._stop_draining(write_rest=False)
         self._logger.stop()
         self._tmp.unlink(missing_ok=True)
 

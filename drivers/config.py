@@ -140,7 +140,9 @@ class DriveBusConfig(_Frozen):
     # still answer SIGTERM (docs/security.md, "Configs").
     heartbeat_timeout_s: float = Field(1.0, gt=0, le=60.0)  # no heartbeat for this long: HeartbeatLostError
     feedback_timeout_s: float = Field(0.02, gt=0, le=1.0)  # wait for TPDOs after SYNC, per cycle
-    max_missed_cycles: int = Field(25, ge=0, le=10_000)  # consecutive cycles a drive may miss before raising
+    # Consecutive cycles a drive may miss before the driver raises FeedbackTimeoutError; None: not
+    # enforced here, the caller supervises staleness (the runtime: safety.max_stale_cycles, one budget).
+    max_missed_cycles: int | None = Field(25, ge=0, le=10_000)
     sdo_timeout_s: float = Field(0.3, gt=0, le=10.0)
     state_change_timeout_s: float = Field(2.0, gt=0, le=60.0)  # NMT / CiA 402 transitions at start-up
     quick_stop_option: int = Field(2, ge=0, le=8)  # written to 0x605A

@@ -36,13 +36,12 @@ drive; the values read from the drive are checked again at start-up (:mod:`drive
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from drivers.strict_input import StrictModel
+from drivers.strict_input import StrictModel, config_relative_path
 
 FromDrive = Literal["drive"]
 
@@ -92,11 +91,7 @@ class DriveSpec(_Frozen):
     @field_validator("eds", mode="after")
     @classmethod
     def _resolve(cls, value: Path, info: ValidationInfo) -> Path:
-        base = (info.context or {}).get("base_dir") if isinstance(info.context, dict) else None
-        value = value.expanduser()
-        if base is not None and not value.is_absolute():
-            return Path(os.path.normpath(Path(base) / value))
-        return value
+        return config_relative_path(value, info)
 
     @model_validator(mode="after")
     def _check(self) -> DriveSpec:

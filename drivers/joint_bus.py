@@ -104,7 +104,8 @@ class JointBusBase(abc.ABC):
     - an error queued by a receiving thread or handler (:meth:`_raise_pending`) is raised by the
       exchange that follows it, checked once, after the cycle;
     - a joint without fresh feedback for more than ``max_missed_cycles`` consecutive exchanges raises
-      :class:`FeedbackTimeoutError`; a fresh joint out of Operation Enabled raises
+      :class:`FeedbackTimeoutError` (None: the caller supervises staleness, as the runtime's
+      supervisor does with its one budget, ``safety.max_stale_cycles``); a fresh joint out of Operation Enabled raises
       :class:`DriveFaultError` (Fault) or :class:`DriveStateError`;
     - any of :data:`drivers.errors.FATAL_ERRORS` first runs :meth:`_fail_safe` (quick stop of every
       drive that answers) and leaves :attr:`enabled` false.
@@ -113,7 +114,9 @@ class JointBusBase(abc.ABC):
     buffers made here once.
     """
 
-    def __init__(self, node_ids: Sequence[int], max_torque_nm: Sequence[float] | np.ndarray, max_missed_cycles: int):
+    def __init__(
+        self, node_ids: Sequence[int], max_torque_nm: Sequence[float] | np.ndarray, max_missed_cycles: int | None
+    ):
         self.node_ids = tuple(node_ids)
         n = len(self.node_ids)
         self._n = n
@@ -192,9 +195,9 @@ class JointBusBase(abc.ABC):
                     self._raise_for_state(i, state)
             else:
                 missed[i] += 1
-                if missed[i] > budget:
+                if budget is not None and missed[i] > budget:
                     timed_out = (timed_out or []) + [self.node_ids[i]]
-        if timed_out:
+        if timed_out and budget is not None:
             raise FeedbackTimeoutError(tuple(timed_out), budget + 1)
 
     def _raise_for_state(self, joint: int, state: State) -> None:

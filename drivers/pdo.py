@@ -191,15 +191,24 @@ class CyclicExchange:
         self._pending -= 1
         return True
 
-    def on_tpdo1(self, node: DriveNode, msg: can.Message, now: float) -> None:
-        statusword, torque, position, _ = fr.decode_tpdo1(msg.data)
+    def _store_tpdo1(
+        self, node: DriveNode, statusword: int, torque: int, position: int, velocity: int | None, now: float
+    ) -> None:
+        """A TPDO1's values into the drive's record, when it counts for the open cycle. ``velocity``:
+        the CAN FD layouts carry it (0 when a layout leaves it out); None on classical CAN (TPDO2's)."""
         if decode_statusword_fast(statusword) is State.UNKNOWN:
             raise fr.MalformedFrameError("statusword")
         if self._accept_tpdo1(node):
             node.statusword = statusword
             node.torque_permille = torque
             node.position_counts = position
+            if velocity is not None:
+                node.velocity_counts_s = velocity
             node.rx_time_s = now
+
+    def on_tpdo1(self, node: DriveNode, msg: can.Message, now: float) -> None:
+        statusword, torque, position, _ = fr.decode_tpdo1(msg.data)
+        self._store_tpdo1(node, statusword, torque, position, None, now)
 
     def on_tpdo2(self, node: DriveNode, msg: can.Message, now: float) -> None:
         velocity = fr.decode_tpdo2(msg.data)
@@ -215,25 +224,13 @@ class CyclicExchange:
         """A vendor's drive on CAN FD: the 12-byte TPDO without the SYNC counter echo (stale
         feedback is recognised by the drain only, as with classical CAN)."""
         statusword, torque, position, velocity = fr.decode_tpdo_fd(msg.data)
-        if decode_statusword_fast(statusword) is State.UNKNOWN:
-            raise fr.MalformedFrameError("statusword")
-        if self._accept_tpdo1(node):
-            node.statusword = statusword
-            node.torque_permille = torque
-            node.position_counts = position
-            node.velocity_counts_s = velocity if velocity is not None else 0
-            node.rx_time_s = now
+        self._store_tpdo1(node, statusword, torque, position, velocity if velocity is not None else 0, now)
 
     def on_tpdo_fd(self, node: DriveNode, msg: can.Message, now: float) -> None:
         (statusword, torque, position, velocity), counter = fr.decode_tpdo_fd_sync(msg.data)
-        if decode_statusword_fast(statusword) is State.UNKNOWN:
-            raise fr.MalformedFrameError("statusword")
         if counter != self.sync.counter:  # answers an older SYNC: stale whenever it arrives
+            if decode_statusword_fast(statusword) is State.UNKNOWN:
+                raise fr.MalformedFrameError("statusword")
             self.late += 1
             return
-        if self._accept_tpdo1(node):
-            node.statusword = statusword
-            node.torque_permille = torque
-            node.position_counts = position
-            node.velocity_counts_s = velocity if velocity is not None else 0  # always set in this layout
-            node.rx_time_s = now
+        self._store_tpdo1(node, statusword, torque, position, velocity if velocity is not None else 0, now)

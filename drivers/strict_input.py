@@ -15,13 +15,15 @@ Only pydantic, PyYAML and the standard library: the daemon, the driver and the t
 from __future__ import annotations
 
 import json
+import os
 import re
 import types
 import typing
+from pathlib import Path
 from typing import Annotated, Any, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, ValidationInfo, model_validator
 from pydantic_core import PydanticCustomError
 
 
@@ -66,6 +68,14 @@ class StrictModel(BaseModel):
                         {"field": key, "value": _short(data[key])},
                     )
         return data
+
+
+def config_relative_path(value: Path, info: ValidationInfo) -> Path:
+    """A path field of a config file: relative to the file's folder (the validation context's
+    ``base_dir``), not to whatever directory the daemon was started from."""
+    base = info.context.get("base_dir") if isinstance(info.context, dict) else None
+    value = value.expanduser()
+    return Path(os.path.normpath(Path(base) / value)) if base is not None and not value.is_absolute() else value
 
 
 def error_location(error: Any) -> tuple[Any, ...]:

@@ -108,9 +108,13 @@ class Robot(_Strict):
 
 
 class Limits(_Strict):
-    position_rad: list[float]
+    position_rad: list[float]  # symmetric bound |q| <= this (the conservative one of an asymmetric range)
     velocity_rad_s: list[float]
     torque_nm: list[float]
+    # An arm whose range is not symmetric about 0 (the Panda's elbow: [-3.07, -0.07] rad) gives it
+    # here; the runtime's soft limits are then [lower, upper] instead of [-position, position].
+    position_lower_rad: list[float] | None = None
+    position_upper_rad: list[float] | None = None
 
 
 class InitialState(_Strict):
@@ -186,9 +190,15 @@ class Manifest(_Strict):
         n, s = self.robot.n_joints, self.law.state_size
         if len(self.robot.joint_names) != n:
             raise ValueError(f"robot.joint_names has {len(self.robot.joint_names)} names for n_joints {n}")
-        for name in ("position_rad", "velocity_rad_s", "torque_nm"):
-            if len(getattr(self.limits, name)) != n:
+        for name in ("position_rad", "velocity_rad_s", "torque_nm", "position_lower_rad", "position_upper_rad"):
+            values = getattr(self.limits, name)
+            if values is not None and len(values) != n:
                 raise ValueError(f"limits.{name} needs {n} values")
+        lower, upper = self.limits.position_lower_rad, self.limits.position_upper_rad
+        if (lower is None) != (upper is None):
+            raise ValueError("limits.position_lower_rad and position_upper_rad go together")
+        if lower is not None and upper is not None and any(not lo < hi for lo, hi in zip(lower, upper, strict=True)):
+            raise ValueError("limits.position_lower_rad must be below position_upper_rad on every joint")
         if any(not t > 0 for t in self.limits.torque_nm):
             raise ValueError("limits.torque_nm must be positive")
         init = self.law.initial_state

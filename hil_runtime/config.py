@@ -169,6 +169,14 @@ class RuntimeConfig(_Frozen):
             value = getattr(self.safety, name)
             if value is not None and len(value) != n:
                 raise ValueError(f"safety.{name}: {len(value)} values for {n} joints")
+        # One stale-feedback budget: the supervisor's (FAULT stale_feedback); the runtime's drive bus
+        # does not count its own (hil_runtime.factory). A config naming both must agree.
+        missed, stale = self.bus.max_missed_cycles, self.safety.max_stale_cycles
+        if "max_missed_cycles" in self.bus.model_fields_set and missed != stale:
+            raise ValueError(
+                f"bus.max_missed_cycles {missed} differs from safety.max_stale_cycles {stale}: the runtime has "
+                "one stale-feedback budget, safety.max_stale_cycles (remove bus.max_missed_cycles)"
+            )
         return self
 
     @property

@@ -22,38 +22,23 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from hil_runtime.config import RuntimeConfig, RuntimeConfigError, load_runtime_config
+from hil_runtime.config import RuntimeConfigError, load_runtime_config
 from hil_runtime.control import ControlServer
+from hil_runtime.factory import build_runtime
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.realtime import lock_memory
 from hil_runtime.record import check_record_path
-from hil_runtime.runtime import Runtime, build_runtime
+from hil_runtime.runtime import Runtime
 from hil_runtime.sdnotify import Notifier
 
 log = logging.getLogger("hil_runtime.daemon")
-
-
-def make_telemetry(config: RuntimeConfig, runtime: Runtime) -> Any:
-    """The telemetry hook: ``hil_runtime.telemetry.make_sink`` with what it publishes."""
-    from hil_runtime.telemetry.codec import STATS_FIELDS
-    from hil_runtime.telemetry.factory import make_sink
-
-    bundle = runtime.bundle
-    digest = next(iter(bundle.manifest.files.values()), "")
-    info = {
-        "joints": list(config.joint_names),
-        "config": config.model_dump(mode="json"),
-        "bundle": {**bundle.describe(), "bundle_id": f"{bundle.law_name}:{str(digest)[:12]}"},
-        "stats_fields": [name for name in runtime.stats() if name not in STATS_FIELDS],  # beyond the standard
-    }
-    return make_sink(config.telemetry, config.robot, info, controls=runtime)
 
 
 def check(config_path: Path | str) -> str:
     """Everything ``hil run`` checks before it touches the bus (config, bus-load budget, bundle vs
     drives, condition vs limits), and nothing more: a summary, or the same one-line errors."""
     config = load_runtime_config(config_path)
-    runtime = build_runtime(config)
+    runtime = build_runtime(config, telemetry=False)
     bundle, limits = runtime.bundle, runtime.limits
     reference = config.reference.condition if config.reference.kind == "condition" else "hold"
     transport = config.bus.transport
@@ -106,19 +91,26 @@ def serve(
         from drivers.transport import open_bus
 
         capture = CaptureBus(open_bus(config.bus.transport), CanCapture(can_log))
-    recording: Any = None
-    try:
-        runtime = build_runtime(config, capture, notifier=notifier, record_cycles=0 if mcap else record_cycles)
-        runtime.telemetry = make_telemetry(config, runtime)
-        if mcap:  # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
-            from hil_runtime.formats.mcap_record import mcap_sink_for_run
-            from hil_runtime.telemetry.sink import FanOutTelemetry
+    recordings: list[Any] = []  # the MCAP sink, made by the factory for the runtime (it needs its bundle)
 
-            assert record_path is not None
-            recording = mcap_sink_for_run(
-                record_path, config.robot, config.joint_names, runtime.bundle, config.period_s, urdf
-            )
-            runtime.telemetry = FanOutTelemetry(runtime.telemetry, recording)
+    def record_to_mcap(runtime: Runtime) -> Any:
+        # a second sink beside telemetry, fed the same per-cycle state (docs/formats.md)
+        from hil_runtime.formats.mcap_record import mcap_sink_for_run
+
+        assert record_path is not None
+        recordings.append(
+            mcap_sink_for_run(record_path, config.robot, config.joint_names, runtime.bundle, config.period_s, urdf)
+        )
+        return recordings[-1]
+
+    try:
+        runtime = build_runtime(
+            config,
+            can_bus=capture,
+            notifier=notifier,
+            record_cycles=0 if mcap else record_cycles,
+            recording=record_to_mcap if mcap else None,
+        )
     except BaseException:
         if capture is not None:  # a refused start-up (bad bundle...) leaves no capture file
             capture.bus.shutdown()
@@ -185,7 +177,7 @@ def serve(
         runtime.record.save_npz(record_path)
     if capture is not None:
         _say(f"captured {capture.capture.written} CAN frames to {can_log}, {capture.capture.dropped} dropped")
-    if recording is not None:
+    for recording in recordings:
         _say(f"recorded {recording.recorder.states_written} cycles to {record_path}, {recording.dropped} dropped")
     if "error" in outcome:
         _say(f"loop failed: {outcome['error']!r}")

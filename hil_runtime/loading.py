@@ -50,16 +50,18 @@ def safety_limits_for(config: RuntimeConfig, bundle: PolicyBundle) -> SafetyLimi
     """Soft limits: the config's, else the bundle manifest's; torque: the tighter of bundle and drives."""
     limits = bundle.manifest.limits
     position = np.asarray(limits.position_rad, float)
+    bundle_lower = -position if limits.position_lower_rad is None else np.asarray(limits.position_lower_rad, float)
+    bundle_upper = position if limits.position_upper_rad is None else np.asarray(limits.position_upper_rad, float)
     velocity = np.asarray(limits.velocity_rad_s, float)
     safety = config.safety
-    lower = np.asarray(safety.position_lower_rad, float) if safety.position_lower_rad is not None else -position
-    upper = np.asarray(safety.position_upper_rad, float) if safety.position_upper_rad is not None else position
+    lower = np.asarray(safety.position_lower_rad, float) if safety.position_lower_rad is not None else bundle_lower
+    upper = np.asarray(safety.position_upper_rad, float) if safety.position_upper_rad is not None else bundle_upper
     vmax = np.asarray(safety.velocity_limit_rad_s, float) if safety.velocity_limit_rad_s is not None else velocity
     # The config may tighten the bundle's limits (the URDF's, which the exporter copied), never widen
     # them: the law was trained and checked inside them, and the arm's own description ends there.
     for name, values, bound, beyond in (
-        ("position_lower_rad", lower, -position, lower < -position - 1e-9),
-        ("position_upper_rad", upper, position, upper > position + 1e-9),
+        ("position_lower_rad", lower, bundle_lower, lower < bundle_lower - 1e-9),
+        ("position_upper_rad", upper, bundle_upper, upper > bundle_upper + 1e-9),
         ("velocity_limit_rad_s", vmax, velocity, vmax > velocity + 1e-9),
     ):
         if beyond.any():

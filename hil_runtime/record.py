@@ -75,8 +75,10 @@ class RunRecord:
 
         # Through an open file: np.savez appends '.npz' to a name without it, and the renamed file
         # would then be missing while the written one stayed behind as a hidden partial file.
+        # Any values: numpy's stub types savez_compressed's **kwds as also reaching its bool allow_pickle.
+        arrays: dict[str, Any] = self.arrays()
         with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-            np.savez_compressed(handle, **self.arrays())  # type: ignore[arg-type]  # numpy's stub types **kwds too narrowly
+            np.savez_compressed(handle, **arrays)
             handle.flush()
             with contextlib.suppress(OSError):  # a pipe or a special file cannot be synced
                 os.fsync(handle.fileno())

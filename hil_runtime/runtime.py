@@ -83,6 +83,7 @@ class Runtime:
         *,
         bundle: PolicyBundle | None = None,
         telemetry: TelemetrySink | None = None,
+        telemetry_for: Callable[[Runtime], TelemetrySink] | None = None,
         notifier: Notifier | None = None,
         record_cycles: int = 0,
         clock: Callable[[], float] = time.monotonic,
@@ -113,7 +114,6 @@ class Runtime:
         self.pipeline = CyclePipeline(
             self.supervisor, self.controller, self.record, config.joint_names, config.period_s, clock
         )
-        self.telemetry = telemetry if telemetry is not None else NullTelemetry()
         # Wall time: a skipped period moves the reference on (a real arm moved meanwhile); cycles:
         # one reference row per exchange (a lock-stepped target advanced exactly one period).
         base = config.loop.time_base
@@ -140,6 +140,11 @@ class Runtime:
         self.fault_cycle: int | None = None  # total_cycles when the last fault was entered
         self._last_stats: dict[str, Any] = {}
         self._rises = CounterRises()
+        # Last: a sink built for this runtime (hil_runtime.factory: the Zenoh publisher names its stats
+        # and takes its controls) needs the rest of it. Fixed for the runtime's life.
+        sink = telemetry_for(self) if telemetry_for is not None else telemetry
+        self._telemetry: TelemetrySink = sink if sink is not None else NullTelemetry()
+        self.pipeline.telemetry = self._telemetry
 
     # --- requests from any thread -------------------------------------------------------------
     def request_stop(self) -> None:
@@ -170,13 +175,8 @@ class Runtime:
 
     @property
     def telemetry(self) -> TelemetrySink:
+        """The sink given at construction (``telemetry`` or ``telemetry_for``; hil_runtime.factory)."""
         return self._telemetry
-
-    @telemetry.setter
-    def telemetry(self, sink: TelemetrySink) -> None:
-        """Replaceable until configure() (the daemon wires the Zenoh sink to the runtime it reports on)."""
-        self._telemetry = sink
-        self.pipeline.telemetry = sink
 
     @property
     def reference(self) -> Reference:
@@ -467,15 +467,6 @@ class Runtime:
         return status_snapshot(self, self._last_stats or {})
 
 
-def build_runtime(config: RuntimeConfig, can_bus: Any = None, **kwargs: Any) -> Runtime:
-    """A runtime on the config's own drive bus (:class:`drivers.drive_bus.DriveBus`); no I/O yet.
-    ``can_bus``: an open python-can bus to use instead of opening the config's (a capture)."""
-    from drivers.drive_bus import DriveBus
-
-    bus: JointBus = DriveBus(config.bus, bus=can_bus)
-    return Runtime(config, bus, **kwargs)
-
-
 __all__ = [
     "BundleError",
     "ConditionError",
@@ -484,7 +475,6 @@ __all__ = [
     "Runtime",
     "StartupError",
     "WARNING_COUNTERS",
-    "build_runtime",
     "condition_for",
     "load_bundle_for",
     "safety_limits_for",

@@ -187,25 +187,27 @@ class Supervisor:
     # --- policy output --------------------------------------------------------------------------
     def select_torque(self, tau: np.ndarray, tau_fb: np.ndarray, fallback: float, out: np.ndarray) -> Fault | None:
         """Write the torque to command into ``out``; None, or the FAULT when nothing is usable."""
-        values = tau.tolist()
+        source = tau
+        values = tau.tolist()  # read as Python floats: six of them test faster than numpy calls
         # A NaN or an infinity anywhere makes the sum non-finite (so would a sum past 1e308: no
         # torque of an arm is that large, and falling back to the law is then right too).
         if not math.isfinite(sum(values)):
+            source = tau_fb
             values = tau_fb.tolist()
             if not math.isfinite(sum(values)):
                 return Fault(FaultKind.POLICY_NONFINITE, "policy and feedback-law torques are both non-finite")
             self.law_substitutions += 1
+        out[:] = source  # the set-point stays an array (no list back into it); clipped joints below
         saturated = False
         for i, (x, limit, level) in enumerate(zip(values, self._tmax_list, self._sat_list, strict=True)):
             if x >= level:
                 saturated = True
                 if x > limit:
-                    values[i] = limit
+                    out[i] = limit
             elif x <= -level:
                 saturated = True
                 if x < -limit:
-                    values[i] = -limit
-        out[:] = values
+                    out[i] = -limit
         if saturated:
             self.saturated_cycles += 1
         if fallback > 0.0:  # NaN trust is no fallback evidence either way: not counted

@@ -6,6 +6,7 @@ re-exports them, turns their errors into ``ModelInputError`` and adds the seeded
 which draws inside a robot's limits (docs/conditions.md).
 
     conditions = load_conditions()                 # the paper's five
+    conditions = load_conditions(robot=load_robot("panda"))   # the Panda's defaults (default_conditions.py)
     conditions = load_conditions("my_conditions.yaml", robot=load_robot("ur5_paper"))
     q_d, qd_d, qdd_d = conditions[0].reference(t_s)  # t_s scalar or (T,) -> (..., N)
 """
@@ -47,8 +48,13 @@ __all__ = [
 
 
 def load_conditions(path: str | Path | None = None, robot: RobotModel | None = None) -> list[Condition]:
-    """Conditions from a YAML file (the paper's five when ``path`` is None), checked against ``robot``."""
+    """Conditions from a YAML file, checked against ``robot``; with no file, the robot's default
+    conditions (the paper's five for ur5_paper or no robot; models/default_conditions.py)."""
+    from models.default_conditions import default_conditions
+
     try:
+        if path is None and robot is not None:
+            return default_conditions(robot)
         return _runtime.load_conditions(path, limits=robot)
     except ConditionError as exc:
         raise ModelInputError(str(exc)) from None

@@ -108,6 +108,3 @@ def inject(
 
 def register(app: typer.Typer) -> None:
     app.add_typer(target_app, name="target")
-    from sim_target.faults.cli import register as register_faults  # hil faults (docs/faults.md)
-
-    register_faults(app)

@@ -1,5 +1,5 @@
 """Pytest fixtures for the multi-user security tests: ``other_user`` (session) is the second,
-unprivileged local user of :mod:`sim_target.faults.other_user` (created with ``useradd``; the test
+unprivileged local user of :mod:`models.lab.faults.other_user` (created with ``useradd``; the test
 is skipped, saying why, when the suite does not run as root); ``shared_dir`` a 1777 directory."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from sim_target.faults.other_user import OtherUser, OtherUserUnavailable, run_as, shared_directory
-from sim_target.faults.other_user import other_user as _other_user
+from models.lab.faults.other_user import OtherUser, OtherUserUnavailable, run_as, shared_directory
+from models.lab.faults.other_user import other_user as _other_user
 
 __all__ = ["OtherUser", "other_user", "run_as", "shared_dir"]
 

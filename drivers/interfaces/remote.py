@@ -44,7 +44,7 @@ def _remote_bus_class() -> type[can.BusABC]:
     from can_remote.protocol import RemoteError
     from can_remote.websocket import WebsocketClosed
 
-    class BatchingRemoteBus(RemoteBus):  # type: ignore[misc]  # untyped package
+    class BatchingRemoteBus(RemoteBus):
         """python-can-remote's client with ``send_batch``, a typed peer-closed error and a
         shutdown that cannot raise."""
 
@@ -169,7 +169,7 @@ def _client_handler_class() -> type:
     from can_remote.server import ClientRequestHandler, RemoteServerProtocol
     from can_remote.websocket import WebSocket, WebsocketClosed, get_accept_key
 
-    class _Protocol(RemoteServerProtocol):  # type: ignore[misc]  # untyped package
+    class _Protocol(RemoteServerProtocol):
         running: bool  # set by RemoteServerProtocol.__init__
 
         def _send_to_client(self) -> None:
@@ -184,7 +184,7 @@ def _client_handler_class() -> type:
             finally:
                 self.bus.shutdown()
 
-    class _Handler(ClientRequestHandler):  # type: ignore[misc]  # untyped package
+    class _Handler(ClientRequestHandler):
         def start_websocket(self) -> None:
             # python-can-remote 0.3's start_websocket, building the protocol above.
             self.send_response(101)
@@ -218,7 +218,7 @@ def start_bridge_server(host: str = "127.0.0.1", port: int = 0, channel: str = "
     except ImportError as exc:
         raise TransportError("python-can-remote is not installed (pip install python-can-remote)") from exc
 
-    class _Server(RemoteServer):  # type: ignore[misc]  # untyped package
+    class _Server(RemoteServer):
         address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
 
     try:

@@ -28,7 +28,6 @@ import json
 import logging
 import os
 import struct
-import threading
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -36,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.draining import DrainingWriter
 from hil_runtime.formats.ros2 import JOINT_STATE, JOINT_STATE_DEFINITION, JointStateEncoder, decode_joint_state
 from hil_runtime.telemetry.sink import CycleState
 
@@ -219,7 +219,7 @@ class McapRecorder:
         self._tmp.unlink(missing_ok=True)
 
 
-class McapSink:
+class McapSink(DrainingWriter):
     """A :class:`~hil_runtime.telemetry.sink.TelemetrySink` recording into an MCAP file.
 
     The loop's side is a copy into a bounded deque (``queue_size`` cycles); a full deque drops the
@@ -227,22 +227,17 @@ class McapSink:
     """
 
     def __init__(self, recorder: McapRecorder, queue_size: int = 8192, drain_period_s: float = 0.01) -> None:
+        super().__init__(drain_period_s, "hil-mcap", "MCAP recording")
         self.recorder = recorder
         self.queue_size = queue_size
-        self.drain_period_s = drain_period_s
         self.dropped = 0
         self.offered = 0
         self._states: collections.deque[tuple[int, int, np.ndarray, float, float]] = collections.deque()
         self._other: collections.deque[tuple[str, int, dict[str, Any]]] = collections.deque(maxlen=4096)
         self._bundle_id: str | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.error: BaseException | None = None
 
     def start(self) -> None:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name="hil-mcap", daemon=True)
-            self._thread.start()
+        self._start_draining()
 
     def offer_state(self, sample: CycleState) -> None:
         self.offered += 1
@@ -278,24 +273,12 @@ class McapSink:
             else:
                 recorder.write_event(t_ns, body)
 
-    def _run(self) -> None:
-        try:
-            while not self._stop.wait(self.drain_period_s):
-                self._drain()
-        except BaseException as exc:  # noqa: BLE001 - a full disk must not stop the loop: reported at close
-            self.error = exc
-            log.error("MCAP recording stopped: %r", exc)
-
     def close(self) -> None:
         """Stop the writer thread, write what is queued, finish the file (none if never started:
         a refused start-up leaves no recording)."""
-        self._stop.set()
-        if self._thread is None:
+        if not self._stop_draining():
             self.recorder.abandon()
             return
-        self._thread.join()
-        if self.error is None:
-            self._drain()
         self.recorder.add_metadata(
             "recording",
             {"states_written": str(self.recorder.states_written), "dropped": str(self.dropped)},

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -127,6 +127,9 @@ class JointStateEncoder:
 
     joint_names: tuple[str, ...]
     frame_id: str = ""
+    # Made by __post_init__ from the two above (frozen: set there with object.__setattr__).
+    _middle: bytes = field(init=False, repr=False, compare=False)
+    _prefixes: tuple[bytes, bytes, bytes] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Offsets count from the start of the body (after the 4-byte encapsulation header).
@@ -153,12 +156,12 @@ class JointStateEncoder:
     def encode(self, stamp_ns: int, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> bytes:
         """One message from three (N,) float64 arrays; ``stamp_ns`` becomes header.stamp."""
         sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-        p0, p1, p2 = self._prefixes  # type: ignore[attr-defined]  # set in __post_init__ (frozen)
+        p0, p1, p2 = self._prefixes
         return b"".join(
             (
                 CDR_LE_HEADER,
                 _STAMP.pack(sec, nanosec),
-                self._middle,  # type: ignore[attr-defined]  # set in __post_init__ (frozen)
+                self._middle,
                 p0,
                 np.asarray(position, dtype="<f8").tobytes(),
                 p1,

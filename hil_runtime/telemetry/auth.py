@@ -20,7 +20,9 @@ import os
 import stat
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator, model_validator
+
+from drivers.strict_input import config_relative_path
 
 # The controls' key expressions for the access-control rule (every robot of this session).
 CONTROL_KEY_EXPRS = ("hil/*/stop", "hil/*/reset")
@@ -35,6 +37,11 @@ class TelemetryAuth(BaseModel):
     users_file: Path
     # Users whose stop/reset queries are accepted; None: every user of users_file.
     control_users: tuple[str, ...] | None = None
+
+    @field_validator("users_file", mode="after")
+    @classmethod
+    def _resolve(cls, value: Path, info: ValidationInfo) -> Path:
+        return config_relative_path(value, info)
 
     @model_validator(mode="after")
     def _check(self) -> TelemetryAuth:

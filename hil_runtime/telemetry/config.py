@@ -30,8 +30,9 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from drivers.strict_input import config_relative_path
 from hil_runtime.telemetry.auth import TelemetryAuth, read_users_file
 
 if TYPE_CHECKING:
@@ -155,6 +156,11 @@ class TelemetryConfig(BaseModel):
     def _robot_chunk(cls, value: str | None) -> str | None:
         return None if value is None else check_key_chunk(value, "robot")
 
+    @field_validator("zenoh_config", mode="after")
+    @classmethod
+    def _resolve(cls, value: Path | None, info: ValidationInfo) -> Path | None:
+        return None if value is None else config_relative_path(value, info)
+
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
@@ -190,12 +196,13 @@ class TelemetryConfig(BaseModel):
         return summary
 
 
-def parse_telemetry_config(data: Any, source: str = "config") -> TelemetryConfig:
-    """Validate a mapping (the ``telemetry:`` section of a larger config)."""
+def parse_telemetry_config(data: Any, source: str = "config", base_dir: Path | None = None) -> TelemetryConfig:
+    """Validate a mapping (the ``telemetry:`` section of a larger config); relative paths are taken
+    relative to ``base_dir`` (the config file's folder)."""
     from drivers.config import format_validation_error
 
     try:
-        return TelemetryConfig.model_validate({} if data is None else data)
+        return TelemetryConfig.model_validate({} if data is None else data, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise TelemetryConfigError(format_validation_error(source, exc)) from None
 

@@ -341,8 +341,10 @@ def save_record(recording: StateRecording, path: Path, extra: dict[str, Any] | N
     }
     for name, document in (extra or {}).items():
         documents[name] = np.asarray(document if isinstance(document, float) else json.dumps(document))
+    # Any values: numpy's stub types savez_compressed's **kwds as also reaching its bool allow_pickle.
+    named: dict[str, Any] = {**arrays, **documents}
     with atomic_path(path) as tmp:
-        np.savez_compressed(tmp, **arrays, **documents)  # type: ignore[arg-type]  # numpy's stub types **kwds poorly
+        np.savez_compressed(tmp, **named)
     return len(arrays["seq"])
 
 

@@ -48,6 +48,13 @@ def demo(
             metavar="PROFILE|FILE",
         ),
     ] = "ideal",
+    robot: Annotated[
+        str,
+        typer.Option(
+            help="Robot: ur5_paper, ur5, panda, or a URDF path; its bundles models/bundles/<robot>/<law>/ "
+            "(hil pipeline --robot) and its default condition (docs/any_arm.md)."
+        ),
+    ] = "ur5_paper",
 ) -> None:
     """Run the runtime (hil run) on the pybullet arm (hil target serve) as separate processes over the
     ipc CAN bus at 1 kHz, watch its telemetry live, stop everything, write the run and its scores."""
@@ -64,6 +71,7 @@ def demo(
         target_substeps=target_substeps,
         cpus=cpus,
         realism=realism,
+        robot=robot,
     )
     created = not out.exists()
     try:
@@ -117,6 +125,6 @@ def demo(
         f"({results['wall_s']['total_s']:g} s)"
     )
     if results["fault"]:
-        from models.demo.processes import DemoError
+        from models.lab.processes import DemoError
 
         raise DemoError(f"the run faulted: {results['fault']} (outputs written to {out})")

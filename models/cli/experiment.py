@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, cast
 
 import typer
 
-from models.cli.options import RobotOption, one_of, positive, split_names
+from models.cli.options import GainsOption, RobotOption, gain_set_for, one_of, positive, split_names
 
 if TYPE_CHECKING:  # imported where used: the CLI starts without the HIL experiment's imports
     from models.hil_experiment import HilOptions
@@ -25,8 +25,9 @@ def experiment(
     conditions: Annotated[
         str | None,
         typer.Option(
-            help="Conditions YAML (default: the paper's five), random:COUNT:SEED (seeded, the paper's range) or "
-            "envelope:COUNT:SEED (seeded, the whole envelope: offsets, sines, holds, random disturbance times)."
+            help="Conditions YAML (default: the robot's five: the paper's for ur5_paper), random:COUNT:SEED "
+            "(seeded, the paper's range) or envelope:COUNT:SEED (seeded, the whole envelope: offsets, sines, "
+            "holds, random disturbance times)."
         ),
     ] = None,
     robot: RobotOption = "ur5_paper",
@@ -34,9 +35,7 @@ def experiment(
         "results/experiment"
     ),
     mismatch: Annotated[str, typer.Option(help="'none', or 'paper': +0.5 kg payload, inertias ±20 %.")] = "none",
-    gains: Annotated[
-        str, typer.Option(help="Gain set: 'stabilized' (default) or 'paper' (docs/feedback_laws.md).")
-    ] = "stabilized",
+    gains: GainsOption = None,
     period_s: Annotated[float, typer.Option(help="Control period (s).")] = 1e-3,
     substeps: Annotated[int, typer.Option(help="RK4 plant steps per control period.")] = 2,
     plant_backend: Annotated[str, typer.Option(help="Plant dynamics: pinocchio or rne (own RNEFDA).")] = "pinocchio",
@@ -95,7 +94,7 @@ def experiment(
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
-    from models.feedback import GAIN_SETS, LAW_NAMES
+    from models.feedback import LAW_NAMES
     from models.modes import MODES
 
     law_list = split_names(laws, LAW_NAMES, "laws")
@@ -119,7 +118,6 @@ def experiment(
             bundle_dir=lmpc_bundles,
         )
     one_of(mismatch, ("none", "paper"), "--mismatch")
-    one_of(gains, GAIN_SETS, "--gains")
     positive(period_s, "--period-s")
     positive(substeps, "--substeps", integer=True)
     positive(timing_cycles, "--timing-cycles", integer=True)
@@ -130,6 +128,9 @@ def experiment(
     from models.hmpc.config import FORMULATIONS
 
     one_of(hmpc_formulation, tuple(FORMULATIONS), "--hmpc-formulation")
+    from models.robots import load_robot
+
+    gains = gain_set_for(load_robot(robot).name, gains)  # a bad robot or gain set: one line before any work
     created = not out.exists()
     prepare_output_dir(out, "--out")  # before any work: a read-only or blocked --out fails now, not after minutes
     try:

@@ -14,14 +14,33 @@ from models.errors import ModelInputError
 # The built-in robots (models.robots.robot_names(); tests/unit/models/test_readme_snippets.py keeps them equal).
 ROBOTS_HELP = "ur5_paper, ur5, panda"
 
-#: ``--robot`` of the commands that run the laws with the shipped gain sets.
+#: ``--robot`` of the commands that run the laws.
 RobotOption = Annotated[
     str,
     typer.Option(
-        help=f"Robot: {ROBOTS_HELP}, or a URDF path. The gain sets are ur5_paper's: on another robot the laws need "
-        "their own gains (models.feedback.make_law), so this command refuses it."
+        help=f"Robot: {ROBOTS_HELP}, or a URDF path. ur5_paper runs the paper's gains and five conditions; any "
+        "other arm the gains designed from its URDF and its own default conditions (docs/any_arm.md)."
     ),
 ]
+#: ``--gains`` of the commands that run the laws: None picks the robot's default (:func:`gain_set_for`).
+GainsOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Gain set: 'stabilized' (ur5_paper's default), 'paper' (ur5_paper), 'designed' (from the URDF: "
+        "every other robot's default) (docs/feedback_laws.md)."
+    ),
+]
+#: The gain set of a robot other than ur5_paper: designed from its URDF (models/feedback/design.py).
+DESIGNED_GAIN_SET = "designed"
+
+
+def gain_set_for(robot_name: str, gains: str | None) -> str:
+    """``--gains``, else the robot's default: ur5_paper's shipped set, the designed one for any other arm."""
+    from models.feedback import DEFAULT_GAIN_SET, GAIN_SET_ROBOT, GAIN_SETS
+
+    if gains is None:
+        gains = DEFAULT_GAIN_SET if robot_name == GAIN_SET_ROBOT else DESIGNED_GAIN_SET
+    return one_of(gains, GAIN_SETS, "--gains")
 
 
 def positive(value: float, option: str, integer: bool = False) -> None:

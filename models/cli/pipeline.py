@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from models.cli.options import one_of, split_names
+from models.cli.options import GainsOption, RobotOption, gain_set_for, one_of, split_names
 from models.errors import ModelInputError
 
 STAGES = ("dataset", "label", "train", "augment", "export")
@@ -20,11 +20,16 @@ def pipeline(
     stages: Annotated[
         str, typer.Option(help="Comma-separated stages: dataset, label, train, augment (beyond the paper), export.")
     ] = ",".join(STAGES),
-    work: Annotated[Path, typer.Option(help="Working directory (raw.h5, labels.h5, training, plots).")] = Path(
-        "results/lmpc"
-    ),
+    work: Annotated[
+        Path,
+        typer.Option(
+            help="Working directory (raw.h5, labels.h5, training, plots); results/lmpc/<robot> for another arm."
+        ),
+    ] = Path("results/lmpc"),
     bundles: Annotated[Path, typer.Option(help="Where bundles go: <bundles>/<robot>/<law>/.")] = Path("models/bundles"),
     laws: Annotated[str, typer.Option(help="Comma-separated feedback laws.")] = "pd,pid,adrc,hinf,smc,mrac",
+    robot: RobotOption = "ur5_paper",
+    gains: GainsOption = None,
     conditions: Annotated[int, typer.Option(help="Random operating conditions in D_input.")] = 100,
     seed: Annotated[int, typer.Option(help="Seed of the random conditions.")] = 20240601,
     budget: Annotated[int, typer.Option(help="Labeled samples over all laws (Theorem 2 budget).")] = 100_000,
@@ -87,6 +92,13 @@ def pipeline(
             "--stages: the stages of --design paper (the structured design, the default, runs rollouts, relabel, "
             "fit and export)"
         )
+    from models.robot_target import robot_spec
+    from models.robots import load_robot
+
+    arm = load_robot(robot)  # a bad name or URDF: one line before any work
+    robot, gain_set = robot_spec(arm), gain_set_for(arm.name, gains)
+    if arm.name != "ur5_paper" and work == Path("results/lmpc"):  # the default: one directory per robot
+        work = work / arm.name
     if design == "structured":
         if not residual_bound_scale > 0:
             raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
@@ -102,6 +114,8 @@ def pipeline(
             residual_bound_scale,
             executor,
             workers,
+            robot,
+            gain_set,
         )
         return
     from rich.console import Console
@@ -122,7 +136,15 @@ def pipeline(
     base = PipelineConfig()
     config = replace(
         base,
-        dataset=replace(base.dataset, laws=law_list, conditions=conditions, seed=seed, duration_s=duration),
+        dataset=replace(
+            base.dataset,
+            robot=robot,
+            gain_set=gain_set,
+            laws=law_list,
+            conditions=conditions,
+            seed=seed,
+            duration_s=duration,
+        ),
         budget=budget,
         pool_conditions=max(1, int(round(0.9 * conditions))),
         test_per_law=min(base.test_per_law, max(10, budget // (5 * len(law_list)))),
@@ -176,6 +198,8 @@ def _structured(
     bound_scale: float = 10.0,
     executor: str = "local",
     workers: int | None = None,
+    robot: str = "ur5_paper",
+    gain_set: str = "stabilized",
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -190,6 +214,8 @@ def _structured(
     options = dict(FORMULATIONS[formulation])
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(
+        robot=robot,
+        gain_set=gain_set,
         laws=law_list,
         hmpc_options=options,
         target=target,

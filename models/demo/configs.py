@@ -1,5 +1,6 @@
 """The configs ``hil demo`` writes for its two processes: ``hil target serve`` and ``hil run`` on
-one ipc bus, lock-step (the runtime paces on the bus) or free-running (both on their own clocks)."""
+one ipc bus, lock-step (the runtime paces on the bus) or free-running (both on their own clocks).
+Built by the lab's builders (models/lab/configs.py) with the demo's options."""
 
 from __future__ import annotations
 
@@ -7,27 +8,29 @@ from pathlib import Path
 from typing import Any
 
 from models.demo.options import DemoOptions, target_substeps
+from models.lab import configs as lab
 
 
 def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_socket: Path) -> dict[str, Any]:
-    """``hil target serve``'s config: the pybullet arm on the ipc bus in ``bus_dir``, a control socket."""
-    from sim_target.launch import CAN_FD
-    from sim_target.rt_settings import split_cpus
+    """``hil target serve``'s config: the pybullet arm on the ipc bus in ``bus_dir``, a control socket;
+    real time: SCHED_FIFO and mlockall by default, its own CPU, apart from the runtime's. A URDF
+    robot: its file and its joints (models/robot_target.py)."""
+    from models.robot_target import target_robot_config
+    from models.robots import load_robot
 
-    data: dict[str, Any] = {
-        "robot": options.robot,
-        "period_s": period_s,
-        "clock": "realtime" if options.realtime else "lockstep",
-        "bus": {"interface": "ipc", "channel": str(bus_dir), **CAN_FD},
-        "plant": {"substeps": target_substeps(options)},
-        "control_socket": str(control_socket),
-        "realism": options.realism
-        if options.realism in ("ideal", "realistic", "harsh")
-        else str(Path(options.realism).resolve()),
-    }
-    if options.realtime:  # SCHED_FIFO and mlockall by default; its own CPU, apart from the runtime's
-        data["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
-    return data
+    robot = load_robot(options.robot)
+    return target_robot_config(
+        robot,
+        lab.target_config(
+            robot.name,
+            period_s,
+            target_substeps(options),
+            realism=options.realism,
+            realtime_cpus=options.cpus if options.realtime else None,
+            bus={"interface": "ipc", "channel": str(bus_dir)},
+            control_socket=control_socket,
+        ),
+    )
 
 
 def runtime_config(
@@ -42,37 +45,33 @@ def runtime_config(
 ) -> dict[str, Any]:
     """``hil run``'s config: the shipped bundle, the condition from t = 0 on the placed arm, telemetry
     connecting to the demo's session, a control socket; lock-step (bus pacing) or real time (clock)."""
-    from models.hil_experiment.config import runtime_config_dict
+    from models.lab.runs import DRIVER_TIMEOUTS
     from models.lmpc.controller import bundle_path
-    from sim_target.launch import CAN_FD
+    from sim_target.launch import can_fd
 
-    transport = {"interface": "ipc", "channel": str(bus_dir), **CAN_FD}
-    data = runtime_config_dict(
-        robot,
+    steps = round(condition.duration_s / period_s)
+    # The stats cover the whole run (not the default last 4096 cycles). duration_s: a backstop only,
+    # the demo stops the daemon with SIGTERM when the run has covered the condition.
+    stats = {"stats_window": min(steps + 20_000, 1 << 20), "stats_interval_s": 1.0}
+    duration_s = condition.duration_s + 10.0
+    loop = (
+        lab.realtime_loop(duration_s, options.cpus, stats["stats_window"], stats_interval_s=1.0, lock_memory=True)
+        if options.realtime
+        else lab.lockstep_loop(**stats, duration_s=duration_s)
+    )
+    return lab.runtime_config(
+        robot.name,
+        lab.robot_joints(robot.joint_names, robot.torque_limit_nm),
         bundle_path(robot.name, options.law, None),
         options.mode,
-        transport,
+        {"interface": "ipc", "channel": str(bus_dir), **can_fd(robot.n_joints)},  # the target's rates
         period_s,
-        conditions_file,
-        condition.name,
+        driver=DRIVER_TIMEOUTS,
+        reference=lab.condition_reference(conditions_file, condition.name),
+        loop=loop,
+        telemetry=lab.telemetry_section(1.0, connect=[endpoint]),
+        control_socket=control_socket,
     )
-    steps = round(condition.duration_s / period_s)
-    data["loop"] = {
-        "pacing": "clock" if options.realtime else "bus",
-        "time_base": "wall" if options.realtime else "cycles",
-        # The stats cover the whole run (not the default last 4096 cycles).
-        "stats_window": min(steps + 20_000, 1 << 20),
-        "stats_interval_s": 1.0,
-        # A backstop only: the demo stops the daemon with SIGTERM when the run has covered the condition.
-        "duration_s": condition.duration_s + 10.0,
-    }
-    if options.realtime:  # the loop thread on its own CPU, apart from the target's physics
-        from sim_target.rt_settings import split_cpus
-
-        data["loop"].update(cpu_affinity=split_cpus(options.cpus)[0], fifo_priority=80, lock_memory=True)
-    data["telemetry"] = {"enabled": True, "listen": [], "connect": [endpoint], "stats_period_s": 1.0}
-    data["control_socket"] = str(control_socket)
-    return data
 
 
 __all__ = ["runtime_config", "target_config"]

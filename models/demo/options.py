@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 from models.errors import ModelInputError
@@ -34,7 +35,6 @@ class DemoOptions:
 def check_options(options: DemoOptions) -> None:
     """Refuse bad input with one line (exit 2) before any process starts."""
     from models.feedback import LAW_NAMES
-    from models.lmpc.controller import bundle_path
 
     if not sys.platform.startswith("linux"):
         raise ModelInputError("hil demo: the ipc bus between the processes is Linux only (docs/ipc_bus.md)")
@@ -42,7 +42,7 @@ def check_options(options: DemoOptions) -> None:
         raise ModelInputError(f"--law: unknown '{options.law}' (known: {', '.join(LAW_NAMES)})")
     if options.mode not in MODES:
         raise ModelInputError(f"--mode: unknown '{options.mode}' (known: {', '.join(MODES)})")
-    manifest = bundle_path(options.robot, options.law, None) / "manifest.json"
+    manifest = bundle_dir(options) / "manifest.json"
     if not manifest.is_file():
         raise ModelInputError(f"{manifest}: no bundle for law '{options.law}' (export one with `hil pipeline`)")
     if options.duration_s is not None and not (math.isfinite(options.duration_s) and options.duration_s >= 0.05):
@@ -56,6 +56,14 @@ def check_options(options: DemoOptions) -> None:
     except ValueError as exc:
         raise ModelInputError(str(exc)) from None
     realism_specs(options)  # a bad profile: one line naming the file and field
+
+
+def bundle_dir(options: DemoOptions) -> Path:
+    """The shipped bundle of the robot's law: models/bundles/<robot name>/<law>/ (a bad robot: one line)."""
+    from models.lmpc.controller import bundle_path
+    from models.robots import load_robot
+
+    return bundle_path(load_robot(options.robot).name, options.law, None)
 
 
 def target_substeps(options: DemoOptions) -> int:
@@ -82,7 +90,8 @@ def realism_specs(options: DemoOptions) -> tuple[Any, Any]:
 
 
 def demo_condition(options: DemoOptions, robot: Any) -> Any:
-    """The paper's condition, cut to ``duration_s`` when given (its disturbance kept where it falls)."""
+    """The robot's default condition (the paper's for ur5_paper), cut to ``duration_s`` when given
+    (its disturbance kept where it falls)."""
     from models.conditions import load_conditions
 
     conditions = load_conditions(None, robot=robot)
@@ -95,7 +104,7 @@ def demo_condition(options: DemoOptions, robot: Any) -> Any:
                     condition = replace(condition, disturbance=None)  # the run ends before it
             return condition
     names = ", ".join(c.name for c in conditions)
-    raise ModelInputError(f"--condition: unknown '{options.condition}' (the paper's: {names})")
+    raise ModelInputError(f"--condition: unknown '{options.condition}' (the robot's: {names})")
 
 
 __all__ = ["BEST_LMPC_LAW", "DEFAULT_CONDITION", "MODES", "DemoOptions", "check_options", "demo_condition"]

@@ -214,10 +214,14 @@ def write_outputs(
         write_text_atomic(logs / f"{name}.log", text)
     save_record(recording, out_dir / "run.npz", outcome.documents)
     simulation = {k: v for k, v in sim.items() if k != "within_limits"}
-    for name, arrays in (("runtime_record.npz", outcome.record), ("simulation.npz", simulation)):
+    # Any values: numpy's stub types savez_compressed's **kwds as also reaching its bool allow_pickle.
+    records: tuple[tuple[str, dict[str, Any]], ...] = (
+        ("runtime_record.npz", outcome.record),
+        ("simulation.npz", simulation),
+    )
+    for name, arrays in records:
         with atomic_path(out_dir / name) as tmp:
-            # numpy's stub types savez_compressed's **kwds as also reaching its bool allow_pickle.
-            np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]  # see the line above
+            np.savez_compressed(tmp, **arrays)
     figure = out_dir / "tracking_error.png"
     plot_tracking_error(hil, sim, list(outcome.schema.joints), plot_title, results["demo"]["disturbance_s"], figure)
     results["wall_s"]["total_s"] = round(time.monotonic() - started, 2)

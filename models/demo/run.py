@@ -91,9 +91,9 @@ def run_demo(options: DemoOptions, out_dir: Path, headless: bool = False, gui: b
 
 
 def _bundle_dir(options: DemoOptions) -> Path:
-    from models.lmpc.controller import bundle_path
+    from models.demo.options import bundle_dir
 
-    return bundle_path(options.robot, options.law, None)
+    return bundle_dir(options)
 
 
 def _bundle_gain_set(options: DemoOptions) -> str:

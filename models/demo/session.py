@@ -14,7 +14,7 @@ tracks the condition from its t = 0. When the run has covered the condition, the
 as systemd stops it (SIGTERM: quick stop, disable, exit 0), the drives are checked stopped at the
 target, the target is stopped, and the private directory (bus sockets, control sockets, configs)
 is removed. The same stop runs on Ctrl-C or any error, at any moment (try/finally; the children
-run in their own sessions and die with the demo: models/demo/processes.py). docs/demo.md.
+run in their own sessions and die with the demo: models/lab/processes.py). docs/demo.md.
 
 The options are models/demo/options.py, the two configs models/demo/configs.py.
 """
@@ -29,16 +29,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import yaml
 
 from models.demo.configs import runtime_config, target_config
 from models.demo.options import BEST_LMPC_LAW, DEFAULT_CONDITION, DemoOptions, check_options, demo_condition
-from models.demo.processes import (
+from models.lab.configs import write_checked_configs
+from models.lab.ports import free_loopback_port
+from models.lab.processes import (
     OWNER_FILE,
     WORK_PREFIX,
     Child,
     DemoError,
-    free_loopback_port,
     make_work_dir,
     remove_stale_work_dirs,
     signals_blocked,
@@ -163,16 +163,13 @@ class _HilRun:
 
     def prepare(self) -> None:
         """Write and check both configs (one line, exit 2, before any process starts); listen."""
-        from hil_runtime.daemon import check as check_runtime_config
         from models.hil_experiment.config import conditions_yaml
-        from sim_target.config import load_target_config
 
         work = self.work
         self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
         conditions_file = work / "conditions.yaml"
         conditions_file.write_text(conditions_yaml([self.condition]))
         target = target_config(self.options, self.period_s, self.bus_dir, self.target_sock)
-        (work / "target.yaml").write_text(yaml.safe_dump(target))
         runtime = runtime_config(
             self.options,
             self.robot,
@@ -183,9 +180,7 @@ class _HilRun:
             self.runtime_sock,
             self.endpoint,
         )
-        (work / "runtime.yaml").write_text(yaml.safe_dump(runtime))
-        load_target_config(work / "target.yaml")
-        check_runtime_config(work / "runtime.yaml")
+        write_checked_configs(work, target, runtime)
         # Listen first: the daemon connects at start-up, so no sample is published before the
         # demo's subscriptions exist.
         self.client = _open_listener(self.endpoint, self.robot.name)

@@ -9,8 +9,8 @@ import os
 from types import TracebackType
 from typing import Any
 
-from models.demo.processes import DemoError
 from models.demo.session import DemoPhase
+from models.lab.processes import DemoError
 
 
 class NoDisplayError(ValueError):

@@ -120,7 +120,7 @@ class ADRCLaw(FeedbackLaw):
         state[:, : self.n_joints] = q0
         return state
 
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         n = self.n_joints
         if xp is not np:  # traced for the ONNX graph: the same step as one product (_step_matrix)
             z_u = xp.concatenate([q, qd, q_d, qd_d, qdd_d, state], -1) @ const(xp, self.step_matrix)

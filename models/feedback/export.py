@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -40,7 +41,7 @@ def export_law_onnx(law: FeedbackLaw, path: str | Path) -> Path:
     import torch
 
     class Step(torch.nn.Module):
-        def forward(self, q, qd, q_d, qd_d, qdd_d, state):  # type: ignore[no-untyped-def]
+        def forward(self, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any, state: Any) -> Any:  # torch tensors
             # The tracer drops inputs a law does not read (PD ignores qdd_d); a zero-weighted use keeps
             # every input in the graph so all six laws share one signature.
             anchor = 0.0 * (q + qd + q_d + qd_d + qdd_d)

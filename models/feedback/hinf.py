@@ -67,7 +67,9 @@ class JointDesign:
     d: np.ndarray
 
 
-def residualize_fast_modes(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, max_rad_s: float):  # type: ignore[no-untyped-def]
+def residualize_fast_modes(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, max_rad_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Drop modes faster than max_rad_s, keeping the DC gain (singular perturbation)."""
     t, z, n_slow = schur(a, output="real", sort=lambda re, im: abs(complex(re, im)) <= max_rad_s)
     if n_slow == a.shape[0]:
@@ -166,7 +168,7 @@ class HinfLaw(FeedbackLaw):
             "gravity_compensation": self.gravity_compensation,
         }
 
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         tau, nxt, _ = self.step_sharing_id(xp, state, q, qd, q_d, qd_d, qdd_d, None)
         return tau, nxt
 

@@ -100,7 +100,7 @@ class MRACLaw(FeedbackLaw):
     def initial_state(self, q0: np.ndarray) -> np.ndarray:
         return np.tile(self._theta0(), (np.atleast_2d(q0).shape[0], 1))
 
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         n = self.n_joints
         if xp is not np:  # traced for the ONNX graph: the same step as two products (_step_map)
             a, b, total = (const(xp, v) for v in self.step_map)

@@ -39,7 +39,7 @@ class PDLaw(FeedbackLaw):
         """Kp e + Kd e_dot, unsaturated (PID adds its integral term to it)."""
         return const(xp, self.kp) * e + const(xp, self.kd) * e_dot
 
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         if xp is not np:
             tau = xp.concatenate([q, qd, q_d, qd_d], -1) @ const(xp, self.pd_matrix)
             return self.saturate(xp, tau), state

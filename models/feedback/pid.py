@@ -57,7 +57,7 @@ class PIDLaw(PDLaw):
             "integration": "backward rectangle",
         }
 
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         ki, limit = const(xp, self.ki), const(xp, self.integral_limit_rad_s)
         if xp is not np:  # traced for the ONNX graph: Concat, MatMul, Split, clamp, Gemm, saturation
             n = self.n_joints

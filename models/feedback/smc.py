@@ -66,7 +66,7 @@ class SMCLaw(FeedbackLaw):
             "equivalent_control": "computed torque ID^(q, qd, qdd_d + lambda e_dot), one RNEIDA call",
         }
 
-    def step(self, xp, state, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def step(self, xp: Any, state: Any, q: Any, qd: Any, q_d: Any, qd_d: Any, qdd_d: Any) -> tuple[Any, Any]:
         tau, nxt, _ = self.step_sharing_id(xp, state, q, qd, q_d, qd_d, qdd_d, None)
         return tau, nxt
 

@@ -34,7 +34,6 @@ from models.hil_experiment.config import (
     conditions_yaml,
     initial_state,
     run_start,
-    runtime_config_dict,
 )
 from models.hil_experiment.parity import parity
 from models.hil_experiment.run import run_hil_experiment
@@ -53,5 +52,4 @@ __all__ = [
     "run_hil_experiment",
     "run_on_target",
     "run_start",
-    "runtime_config_dict",
 ]

@@ -1,6 +1,6 @@
 """What ``hil experiment --plant hil`` is asked (checked with one line each), and what it hands the
-runtime and the target for one run: the conditions file, the runtime's config, the target's run
-start. ``hil demo`` hands its processes the same (models/demo/configs.py)."""
+target for one run: the conditions file, the target's run start (the runtime's config: the lab's
+builder, models/lab/runs.py). ``hil demo`` hands its processes the same (models/demo/configs.py)."""
 
 from __future__ import annotations
 
@@ -21,18 +21,6 @@ if TYPE_CHECKING:
     from sim_target.launch import Transport
 
 HIL_MODES = ("fb", "lmpc")
-# Bounds on waits for frames, not assertions on time: a lock-stepped target does not care about
-# wall time, and on a shared 2-core machine a niced experiment was measured stalled for over 1 s
-# (a feedback timeout of 50 ms and a heartbeat timeout of 1 s then faulted runs that were fine).
-# The drives' own master-loss watch (comm_loss_timeout_s) stays on: a dead experiment process
-# still leaves the arm quick-stopped, after 10 s.
-DRIVER_TIMEOUTS = {
-    "feedback_timeout_s": 1.0,  # the driver config's upper bound (drivers/config.py, issue 20)
-    "heartbeat_timeout_s": 10.0,
-    "sdo_timeout_s": 5.0,
-    "state_change_timeout_s": 10.0,
-    "comm_loss_timeout_s": 10.0,
-}
 
 
 @dataclass(frozen=True)
@@ -84,40 +72,11 @@ def run_start(condition: Condition) -> dict[str, Any]:
     return {"kind": "start", "position_rad": q0.tolist(), "velocity_rad_s": qd0.tolist(), "faults": faults}
 
 
-def runtime_config_dict(
-    robot: RobotModel,
-    bundle: Path,
-    mode: str,
-    transport: dict[str, Any],
-    period_s: float,
-    conditions_file: Path,
-    condition: str,
-) -> dict[str, Any]:
-    """The runtime's config for one run: lock-step (bus pacing), no ramp (the arm is placed)."""
-    joints = [
-        {"name": name, "node_id": i + 1, "max_torque_nm": float(t)}
-        for i, (name, t) in enumerate(zip(robot.joint_names, robot.torque_limit_nm, strict=True))
-    ]
-    return {
-        "robot": robot.name,
-        "bundle": {"path": str(bundle), "mode": mode},
-        "bus": {"transport": transport, "period_s": period_s, "joints": joints, **DRIVER_TIMEOUTS},
-        "reference": {
-            "kind": "condition",
-            "conditions_file": str(conditions_file),
-            "condition": condition,
-            "start": "condition",
-        },
-        "loop": {"pacing": "bus", "time_base": "cycles", "stats_interval_s": 3600.0},
-    }
-
-
 def check_hil_inputs(
     robot: RobotModel, conditions: list[Condition], config: ExperimentConfig, options: HilOptions
 ) -> None:
     """Refuse what the HIL plant cannot do, with one line each (exit 2)."""
     from models.lmpc.controller import bundle_path
-    from models.robots.description import robot_names
     from sim_target.launch import TRANSPORTS
 
     bad_modes = [m for m in config.modes if m not in HIL_MODES]
@@ -141,8 +100,6 @@ def check_hil_inputs(
         split_cpus(options.cpus)
     except ValueError as exc:
         raise ModelInputError(str(exc)) from None
-    if robot.name not in robot_names():
-        raise ModelInputError(f"--robot: --plant hil needs a built-in robot (known: {', '.join(robot_names())})")
     for c in conditions:
         if not c.mismatch.is_nominal:
             raise ModelInputError(
@@ -173,12 +130,10 @@ def check_hil_inputs(
 
 
 __all__ = [
-    "DRIVER_TIMEOUTS",
     "HIL_MODES",
     "HilOptions",
     "check_hil_inputs",
     "conditions_yaml",
     "initial_state",
     "run_start",
-    "runtime_config_dict",
 ]

@@ -83,17 +83,23 @@ def parity(
         table[law] = {}
         for mode in row:
             mine = [p for p in per_run if p["law"] == law and p["mode"] == mode]
-            h_score = float(np.mean([p["score_hil"] for p in mine]))
-            s_score = float(np.mean([p["score_sim"] for p in mine]))
+            # A run that faulted or left the limits in either plant is not compared: its score is that
+            # of a partial or failed run (reported as such), never averaged into the parity figure.
+            compared = [p for p in mine if p["both_within_limits"]]
+            h_score = float(np.mean([p["score_hil"] for p in compared])) if compared else None
+            s_score = float(np.mean([p["score_sim"] for p in compared])) if compared else None
+            rel = _relative(h_score, s_score) if h_score is not None and s_score is not None else None
             table[law][mode] = {
                 "score_hil": h_score,
                 "score_sim": s_score,
-                "score_rel": _relative(h_score, s_score),
+                "score_rel": rel,
+                "runs_compared": len(compared),
+                "runs_failed": len(mine) - len(compared),
                 "score_hil_own_table": row[mode]["score"],
                 "score_sim_own_table": sim["table"][law][mode]["score"],
                 "trajectory_rms_diff_deg": float(np.sqrt(np.mean([p["trajectory_rms_diff_deg"] ** 2 for p in mine]))),
                 "trajectory_rms_diff_rel_to_sim_rmse": max(p["trajectory_rms_diff_rel_to_sim_rmse"] for p in mine),
-                "within_tolerance": abs(_relative(h_score, s_score)) <= PARITY_TOLERANCE,
+                "within_tolerance": rel is not None and abs(rel) <= PARITY_TOLERANCE,
             }
     return {
         "tolerance": PARITY_TOLERANCE,

@@ -21,6 +21,7 @@ from models.hil_experiment.config import HilOptions, check_hil_inputs, condition
 from models.hil_experiment.parity import parity
 from models.hil_experiment.tables import PAPER_TABLE_II, format_hil_table, plot_parity
 from models.hil_experiment.target_runs import run_on_target, run_record
+from models.robot_target import robot_spec, target_robot_config
 from models.robots import RobotModel
 
 _DEFAULT_OPTIONS = HilOptions()
@@ -65,7 +66,8 @@ def run_hil_experiment(
 
     ``progress(label, total)`` returns a callable advancing a progress bar (periods).
     """
-    from sim_target.launch import launch_target, target_config_dict
+    from models.lab.configs import target_config as lab_target_config
+    from sim_target.launch import launch_target
 
     check_hil_inputs(robot, conditions, config, options)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -85,7 +87,7 @@ def run_hil_experiment(
         sim_config = replace(config, timing_cycles=min(config.timing_cycles, 200), save_trajectories=True)
         sim_process = get_context("spawn").Process(
             target=_simulate,
-            args=(robot.name, conditions, sim_config, sim_dir, options.bundle_dir),
+            args=(robot_spec(robot), conditions, sim_config, sim_dir, options.bundle_dir),
             name="hil-experiment-sim",
             daemon=True,
         )
@@ -102,15 +104,14 @@ def run_hil_experiment(
     )
     advance = progress(label, total) if progress else None
     try:
-        realism = config.realism
-        if realism not in ("ideal", "realistic", "harsh"):
-            realism = str(Path(realism).resolve())  # the target may run in another directory
-        target_config = target_config_dict(robot.name, period_s, options.target_substeps, realism=realism)
-        if options.clock == "realtime":  # its physics on its own CPU, apart from the runtime's loop
-            from sim_target.rt_settings import split_cpus
-
-            target_config["clock"] = "realtime"
-            target_config["realtime"] = {"cpus": split_cpus(options.cpus)[1]}
+        # The target's physics on its own CPU when free-running, apart from the runtime's loop.
+        realtime_cpus = options.cpus if options.clock == "realtime" else None
+        target_config = target_robot_config(  # a URDF robot: its file and joints
+            robot,
+            lab_target_config(
+                robot.name, period_s, options.target_substeps, realism=config.realism, realtime_cpus=realtime_cpus
+            ),
+        )
         with launch_target(target_config, options.transport) as target:
             for law in config.laws:
                 for mode in config.modes:

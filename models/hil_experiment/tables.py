@@ -80,12 +80,16 @@ def format_parity_table(parity_results: dict[str, Any], modes: list[str]) -> lis
         cells = [LAW_TITLES.get(law, law)]
         for mode in modes:
             p = row[mode]
+            failed = f" ✗{p['runs_failed']}" if p["runs_failed"] else ""
+            if p["score_rel"] is None:  # every run of the row faulted or left the limits in a plant
+                cells += ["—", "—", f"—{failed}", f"{p['trajectory_rms_diff_deg']:.4f}"]
+                continue
             worst = max(worst, abs(p["score_rel"]))
             mark = "" if p["within_tolerance"] else " ⚠"
             cells += [
                 f"{p['score_sim']:.3f}",
                 f"{p['score_hil']:.3f}",
-                f"{100 * p['score_rel']:+.1f}{mark}",
+                f"{100 * p['score_rel']:+.1f}{mark}{failed}",
                 f"{p['trajectory_rms_diff_deg']:.4f}",
             ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -93,7 +97,9 @@ def format_parity_table(parity_results: dict[str, Any], modes: list[str]) -> lis
     return lines + [
         "",
         f"Parity: HIL vs the simulation (`hil experiment --modes {','.join(modes)}`, RK4, same conditions), both "
-        "scored on the simulation's scale (its per-condition maxima), so a law's Δ is its own runs' difference. "
+        "scored on the simulation's scale (its per-condition maxima), so a law's Δ is its own runs' difference, over "
+        "the conditions on which both runs stayed inside the limits (✗k: k conditions faulted or left the limits in "
+        "either plant, not compared; — none compared). "
         f"Largest |Δ| {100 * worst:.1f} % (budget {tol:g} %; ⚠ beyond it). Traj. RMS Δ: RMS over time and joints of "
         "q_HIL − q_sim, over the law's runs; docs/hil.md explains the differences.",
         "",
@@ -124,7 +130,8 @@ def plot_parity(
     width = 0.8 / len(modes)
     for i, mode in enumerate(modes):
         x = np.arange(len(laws)) + (i - (len(modes) - 1) / 2) * width
-        axes[0].bar(x, [100 * par["table"][law][mode]["score_rel"] for law in laws], width, label=mode.upper())
+        rel = [par["table"][law][mode]["score_rel"] for law in laws]
+        axes[0].bar(x, [np.nan if r is None else 100 * r for r in rel], width, label=mode.upper())
         axes[1].bar(x, [par["table"][law][mode]["trajectory_rms_diff_deg"] for law in laws], width, label=mode.upper())
     for ax, title in zip(axes, ("composite score, HIL vs sim (%)", "trajectory RMS difference (deg)"), strict=True):
         ax.set_xticks(np.arange(len(laws)), [LAW_TITLES.get(law, law) for law in laws])

@@ -1,6 +1,6 @@
 """One run of ``hil experiment --plant hil``: a fresh runtime loop on the target's bus for one
-(law, mode, condition), its record as the simulator's trajectory, and the run's entry in
-results.json."""
+(law, mode, condition) (run by the lab, models/lab/runs.py), its record as the simulator's
+trajectory, and the run's entry in results.json."""
 
 from __future__ import annotations
 
@@ -8,24 +8,20 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from models.conditions import Condition
 from models.effort import effort_metrics
-from models.hil_experiment.config import HilOptions, run_start, runtime_config_dict
+from models.hil_experiment.config import HilOptions, run_start
+from models.lab.runs import CHUNK_CYCLES, is_rig_fault, placed_run_config, run_placed
 from models.robots import RobotModel
 from models.scoring import run_metrics
 
-if TYPE_CHECKING:
-    from hil_runtime.config import RuntimeConfig
-
-# Faults of the rig, not of the controller (a lock-stepped run's result cannot depend on them):
-# such a run is run again, up to RIG_RETRIES times, and the retries are counted in results.json.
-RIG_FAULTS = ("feedback_timeout", "heartbeat_lost", "transport", "drive_state", "stale_feedback")
+# A fault of the rig, not of the controller (models.lab.runs.RIG_FAULTS: the bus, the drives'
+# state) runs the run again, up to RIG_RETRIES times; the retries are counted in results.json.
 RIG_RETRIES = 2
-CHUNK_CYCLES = 250  # the loop runs in chunks of this many cycles so the progress bar moves
 
 
 @dataclass
@@ -36,13 +32,10 @@ class HilRun:
     rows: int  # rows the runtime recorded (< steps when it faulted)
     fault: str | None
     stats: dict[str, Any]
-    rig_retries: int = 0  # runs done again after a fault of the rig (RIG_FAULTS)
+    rig_retries: int = 0  # runs done again after a fault of the rig
     lateness: dict[str, Any] | None = None  # the free-running target's, over this run (sim_target/lateness.py)
     invalid_reason: str | None = None  # why the plant's lateness voids this run; None: valid
-
-    @property
-    def rig_fault(self) -> bool:
-        return self.fault is not None and self.fault.split(":", 1)[0] in RIG_FAULTS
+    rig_fault: bool = False  # the fault's kind (FaultKind, never its text) is one of the rig's
 
 
 def run_on_target(
@@ -58,35 +51,23 @@ def run_on_target(
 ) -> HilRun:
     """One run: a fresh runtime on the target's bus, the arm placed on the condition, the loop for
     the condition's duration (or until a fault), the drives stopped. ``target``: a LaunchedTarget.
-    A fault of the rig (RIG_FAULTS: the bus, not the controller) runs it again, RIG_RETRIES times."""
-    from hil_runtime.config import parse_runtime_config
+    A fault of the rig (the bus, not the controller) runs it again, RIG_RETRIES times."""
     from models.lmpc.controller import bundle_path
 
-    data = runtime_config_dict(
+    data = placed_run_config(
         robot,
         bundle_path(robot.name, law, options.bundle_dir),
         mode,
         target.transport,
         period_s,
         conditions_file,
-        condition.name,
+        condition,
+        realtime_cpus=options.cpus if options.clock == "realtime" else None,
     )
-    if options.clock == "realtime":  # free-running: wall-clock deadlines, the loop on its own CPU
-        from sim_target.rt_settings import split_cpus
-
-        data["loop"] = {
-            "pacing": "clock",
-            "time_base": "wall",
-            "duration_s": condition.duration_s,
-            "stats_interval_s": 3600.0,
-            "stats_window": min(int(round(condition.duration_s / period_s)) + 1000, 1 << 20),
-            "cpu_affinity": split_cpus(options.cpus)[0],
-            "fifo_priority": 80,
-        }
-    config = parse_runtime_config(data, f"hil experiment {law}/{mode}/{condition.name}")
+    source = f"hil experiment {law}/{mode}/{condition.name}"
     retries = 0
     while True:
-        run = _run_once(target, config, condition, period_s, advance)
+        run = _run_once(target, data, source, condition, period_s, advance)
         if not run.rig_fault or retries >= RIG_RETRIES:
             run.rig_retries = retries
             return run
@@ -95,67 +76,31 @@ def run_on_target(
 
 def _run_once(
     target: Any,
-    config: RuntimeConfig,
+    data: dict[str, Any],
+    source: str,
     condition: Condition,
     period_s: float,
     advance: Callable[[int], None] | None,
 ) -> HilRun:
-    from drivers.drive_bus import DriveBus
-    from hil_runtime.runtime import Runtime
-    from sim_target.config import parse_run_start
-
     steps = int(round(condition.duration_s / period_s))
-    runtime = Runtime(config, DriveBus(config.bus), record_cycles=steps)
-    fault: str | None = None
-    shown = 0  # periods shown on the progress bar for this run
-    try:
-        runtime.configure()
-        target.start_run(parse_run_start(run_start(condition), "start"))
-        active = runtime.activate()
-        if active and config.loop.pacing == "clock":  # free-running: no chunks, no pause between them
-            runtime.run(stop_on_fault=True)  # until loop.duration_s of wall time in ACTIVE, or a fault
-        elif active:
-            done = 0
-            while done < steps - 1:  # row 0 is the activation's feedback (t = 0)
-                result = runtime.run(max_cycles=min(CHUNK_CYCLES, steps - 1 - done), stop_on_fault=True)
-                done = runtime.record.n - 1
-                if advance is not None:
-                    advance(done - shown)
-                    shown = done
-                if result.reason == "fault":
-                    break
-        fault = runtime.lifecycle.fault
-        stats = runtime.stats()
-    finally:
-        runtime.shutdown()
-        if config.loop.pacing == "clock":
-            _release_thread_settings()
-    record = {k: np.array(v) for k, v in runtime.record.arrays().items()}
+    placed = run_placed(target, data, source, run_start(condition), steps, advance)
+    record = placed.record
+    free_running = data["loop"]["pacing"] == "clock"
     lateness = None
-    if config.loop.pacing == "clock":
+    if free_running:
         record = resample_record(record, period_s, steps)  # wall slots: a skipped period holds the last row
         lateness = target.status().get("lateness")
-    run = HilRun(pad_record(record, steps, period_s), int(record["q"].shape[0]), fault, stats)
+    run = HilRun(pad_record(record, steps, period_s), int(record["q"].shape[0]), placed.fault, placed.stats)
+    run.rig_fault = is_rig_fault(placed.fault_kind)
     if lateness is not None:
         from sim_target.lateness import invalid_reason
 
         run.lateness = lateness
         run.invalid_reason = invalid_reason(lateness, period_s)
     if advance is not None:  # a rig fault runs again: take its periods back; else count the rest as done
+        shown = placed.periods_shown
         advance(-shown if run.rig_fault else steps - 1 - shown)
     return run
-
-
-def _release_thread_settings() -> None:
-    """The loop ran on this thread with SCHED_FIFO on one CPU: back to the default policy and every
-    CPU, so the next run's bus threads (created before its loop starts) do not inherit them."""
-    import contextlib
-    import os
-
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setaffinity(0, range(os.cpu_count() or 1))
 
 
 def resample_record(
@@ -242,7 +187,6 @@ def run_record(robot: RobotModel, law: str, mode: str, condition: Condition, run
 
 __all__ = [
     "CHUNK_CYCLES",
-    "RIG_FAULTS",
     "RIG_RETRIES",
     "HilRun",
     "pad_record",

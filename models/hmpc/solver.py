@@ -68,7 +68,16 @@ class HMPCSolver:
             raise ModelInputError(f"hmpc: prediction_step_s must be > 0, got {self.prediction_step_s}")
         self.predictor = make_predictor(robot, config.backend)
         self.torque_limit_nm = self._limit("torque_limit_nm", config.torque_limit_nm, robot.torque_limit_nm)
-        self.position_limit_rad = self._limit("position_limit_rad", config.position_limit_rad, robot.position_limit_rad)
+        # The position bound is |q - centre| <= limit: centre 0 for a symmetric range, else the range's
+        # midpoint (the Panda's elbow lives in [-3.07, -0.07] rad: |q| <= 0 would be infeasible).
+        self.position_centre_rad = np.zeros(n)
+        position_limit = robot.position_limit_rad
+        if config.position_limit_rad is None and robot.position_range_rad is not None:
+            lower, upper = robot.position_lower_rad, robot.position_upper_rad
+            bounded = np.isfinite(lower) & np.isfinite(upper)
+            self.position_centre_rad = np.where(bounded, 0.5 * (lower + upper), 0.0)
+            position_limit = np.where(bounded, 0.5 * (upper - lower), np.inf)
+        self.position_limit_rad = self._limit("position_limit_rad", config.position_limit_rad, position_limit)
         self.velocity_limit_rad_s = self._limit(
             "velocity_limit_rad_s", config.velocity_limit_rad_s, robot.velocity_limit_rad_s
         )
@@ -375,7 +384,7 @@ class HMPCSolver:
         features, law_states = self._features(rows, u, q_path, qd_path)
         cost = self.inner_loops.stage_cost(
             features,
-            q_path,
+            q_path - self.position_centre_rad,  # the bound penalty's coordinates (only it reads q_path)
             qd_path,
             deviation,
             self.feature_weight,
@@ -466,7 +475,7 @@ class HMPCSolver:
             hessian0,
             gradient0,
             sens,
-            np.concatenate([state.q, state.qd], -1).reshape(k, -1),
+            np.concatenate([state.q - self.position_centre_rad, state.qd], -1).reshape(k, -1),
             self._state_box,
             (-self._torque_box if rows.lower is None else rows.lower.reshape(k, -1)) - flat_u,
             (self._torque_box if rows.upper is None else rows.upper.reshape(k, -1)) - flat_u,

@@ -215,6 +215,15 @@ def export_bundle(
                 "position_rad": robot.position_limit_rad.tolist(),
                 "velocity_rad_s": robot.velocity_limit_rad_s.tolist(),
                 "torque_nm": law.torque_limit_nm.tolist(),
+                # an asymmetric range (the Panda's): the runtime's soft limits are [lower, upper]
+                **(
+                    {}
+                    if robot.position_range_rad is None
+                    else {
+                        "position_lower_rad": robot.position_lower_rad.tolist(),
+                        "position_upper_rad": robot.position_upper_rad.tolist(),
+                    }
+                ),
             },
             "law": {
                 "name": law.name,

@@ -97,7 +97,9 @@ class LMPCController:
             "clamped_cycles": self.clamped.tolist(),
         }
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         start = time.perf_counter()
         if q.shape[0] == 1:
             row = self.state[0]

@@ -93,7 +93,9 @@ class _LoggingController:
         self.state = self.law.initial_state(np.atleast_2d(q0))
         self.k = 0
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         state_before = self.state
         tau, self.state = self.law.step(np, self.state, q, qd, q_d, qd_d, qdd_d)
         if self.k % self.stride == 0:

@@ -64,7 +64,9 @@ class StateLogger:
         self.inner.reset(q0)
         self.k = 0
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         before = np.array(self.inner.state)  # the law state before the call (a copy)
         tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
         self.last_tau_fb = self.inner.last_tau_fb

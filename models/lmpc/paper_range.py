@@ -30,13 +30,19 @@ def paper_range_conditions(robot: RobotModel, count: int, seed: int, prefix: str
     template = load_conditions(None, robot=robot)[0]
     rng = np.random.default_rng(seed)
     n = robot.n_joints
-    pos_limit = np.minimum(robot.position_limit_rad, math.pi) * 0.8
+    # Around the robot's home pose (0 for ur5_paper; models/default_conditions.py): the room towards
+    # each limit, so an arm whose range excludes q = 0 (the Panda's elbow) is drawn inside it.
+    home = np.zeros(n) if template.offset_rad is None else np.asarray(template.offset_rad, float)
+    room_up = np.minimum(np.asarray(robot.position_upper_rad, float) - home, math.pi) * 0.8
+    room_down = np.minimum(home - np.asarray(robot.position_lower_rad, float), math.pi) * 0.8
     vel_limit = np.asarray(robot.velocity_limit_rad_s, float) * 0.8
     out = []
     for k in range(count):
         freq = float(rng.uniform(*PAPER_FREQUENCY_RANGE_HZ))
+        draw = rng.uniform(-1.0, 1.0, size=n)
+        pos_limit = np.where(draw > 0, room_up, room_down)
         cap = np.minimum(np.minimum(pos_limit, PAPER_AMPLITUDE_RAD), vel_limit / (math.pi * freq))
-        amp = rng.uniform(-1.0, 1.0, size=n) * cap
+        amp = draw * cap
         phase = float(rng.uniform(0.0, template.duration_s))
         out.append(
             replace(

@@ -52,7 +52,9 @@ class FeedbackController:
         self.state = self.law.initial_state(np.atleast_2d(q0))
         self.cycle_times_s = []
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         start = time.perf_counter()
         tau, self.state = self.law.step(np, self.state, q, qd, q_d, qd_d, qdd_d)
         self.last_tau_fb = tau
@@ -78,7 +80,9 @@ class ControllerStack:
         for controller, part in zip(self.controllers, self.slices, strict=True):
             controller.reset(q0[part])
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         out = np.empty_like(q)
         fb = np.full_like(q, np.nan)
         for controller, part in zip(self.controllers, self.slices, strict=True):

@@ -20,12 +20,11 @@ In a target config (``hil target serve``), one entry per joint::
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 from pydantic import Field, ValidationInfo, field_validator
 
-from drivers.strict_input import StrictModel
+from drivers.strict_input import StrictModel, config_relative_path
 
 
 class DriveProfile(StrictModel):
@@ -42,8 +41,7 @@ class DriveProfile(StrictModel):
     @field_validator("eds", mode="after")
     @classmethod
     def _resolve(cls, value: Path, info: ValidationInfo) -> Path:
-        base = info.context.get("base_dir") if isinstance(info.context, dict) else None
-        return Path(os.path.normpath(Path(base) / value)) if base is not None and not value.is_absolute() else value
+        return config_relative_path(value, info)
 
     @field_validator("polarity")
     @classmethod

@@ -17,7 +17,7 @@ import yaml
 
 from drivers.config import DriveBusConfig, parse_drive_bus_config
 from sim_target.config import parse_target_config
-from sim_target.launch import CAN_FD, bridge_url, serve_in_thread, start_hil, wait_ready
+from sim_target.launch import CAN_FD, bridge_url, serve_in_thread, start_hil, target_config_dict, wait_ready
 from sim_target.server import TargetServer
 from sim_target.testing.ur5 import MAX_TORQUE_NM, NODE_IDS, Q0_RAD
 
@@ -26,12 +26,13 @@ def unique_channel() -> str:
     return f"hil-{uuid.uuid4().hex[:8]}"
 
 
-def target_config_dict(channel: str, period_s: float, substeps: int = 32, **extra: Any) -> dict[str, Any]:
+def ur5_target_config(channel: str, period_s: float, substeps: int = 32, **extra: Any) -> dict[str, Any]:
+    """:func:`sim_target.launch.target_config_dict` for ur5_paper's six drives on the virtual
+    ``channel``, starting at Q0_RAD; ``extra`` merged on top."""
+    base = target_config_dict("ur5_paper", period_s, substeps)
     return {
-        "robot": "ur5_paper",
-        "period_s": period_s,
-        "clock": "lockstep",
-        "bus": {"interface": "virtual", "channel": channel, **CAN_FD},
+        **base,
+        "bus": {**base["bus"], "channel": channel},
         "drives": {"node_ids": list(NODE_IDS)},
         "plant": {"substeps": substeps, "initial_position_rad": list(Q0_RAD)},
         **extra,
@@ -55,7 +56,7 @@ def drive_bus_config(transport: dict[str, Any], period_s: float, **extra: Any) -
 @contextlib.contextmanager
 def target_in_process(channel: str, period_s: float, **config: Any) -> Iterator[TargetServer]:
     """The target on the in-process virtual ``channel``, its lock-step clock in a thread."""
-    with serve_in_thread(parse_target_config(target_config_dict(channel, period_s, **config))) as server:
+    with serve_in_thread(parse_target_config(ur5_target_config(channel, period_s, **config))) as server:
         yield server
 
 
@@ -101,10 +102,10 @@ def target_process(
     sock = tmp_dir / "target.sock"
     ipc_dir = tmp_dir / "bus" if transport == "ipc" else None
     if ipc_dir is not None:
-        data = target_config_dict("hil", period_s, substeps, control_socket=str(sock), **config)
+        data = ur5_target_config("hil", period_s, substeps, control_socket=str(sock), **config)
         data["bus"] = {**data["bus"], "interface": "ipc", "channel": str(ipc_dir)}
     else:
-        data = target_config_dict(
+        data = ur5_target_config(
             "hil", period_s, substeps, bridge={"host": "127.0.0.1", "port": 0}, control_socket=str(sock), **config
         )
     process, ready = serve_config(data, tmp_dir / "target.yaml")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -34,6 +35,39 @@ class StateValues(TypedDict):
     tau_fb: np.ndarray
     fallback: float
     compute_s: float
+
+
+class FakeLoop:
+    """The fake loop as a child process, started and ready (publishers warm, token declared)."""
+
+    def __init__(
+        self, port: int, seconds: float = 60.0, timing: Path | None = None, controls: Path | None = None
+    ) -> None:
+        command = [sys.executable, str(Path(__file__)), "--port", str(port), "--seconds", str(seconds)]
+        if timing is not None:
+            command += ["--timing", str(timing)]
+        if controls is not None:
+            command += ["--controls", str(controls)]
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert self.process.stdout is not None and self.process.stderr is not None
+        line = self.process.stdout.readline().strip()
+        if line != "ready":
+            self.process.kill()
+            raise AssertionError(f"fake loop did not start: {line!r} {self.process.stderr.read()}")
+        self.endpoint = f"tcp/127.0.0.1:{port}"
+
+    def finish(self, timeout_s: float = 20.0) -> dict:
+        """SIGTERM, wait, and the counters it printed."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+        out, err = self.process.communicate(timeout=timeout_s)
+        assert self.process.returncode == 0, err
+        return json.loads(out.strip().splitlines()[-1])
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(10)
 
 
 def expected_state(seq: int, n: int = len(JOINTS)) -> StateValues:

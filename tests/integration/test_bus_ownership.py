@@ -9,6 +9,7 @@ import json
 import os
 import socket
 import stat
+import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -43,9 +44,10 @@ while True:
 """
 
 
-def _wait_line(proc: object, expected: str) -> None:
-    line = proc.stdout.readline()  # type: ignore[attr-defined]  # a Popen with text stdout
-    assert line.strip() == expected, proc.stderr.read()  # type: ignore[attr-defined]
+def _wait_line(proc: subprocess.Popen[str], expected: str) -> None:
+    assert proc.stdout is not None and proc.stderr is not None  # piped, text
+    line = proc.stdout.readline()
+    assert line.strip() == expected, proc.stderr.read()
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_target.faults.campaign import QUICK
+from models.lab.faults.campaign import QUICK
 
 
 @pytest.mark.timeout(660)  # the campaign's own subprocess bound (600 s) governs, not the suite's 300 s

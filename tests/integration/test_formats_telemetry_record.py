@@ -10,16 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models.lab.ports import free_loopback_port
+
 pytest.importorskip("zenoh")
 mcap_reader = pytest.importorskip("mcap.reader")
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
-from tests.integration.telemetry_fake_loop import JOINTS, expected_state  # noqa: E402
-from tests.integration.test_telemetry_zenoh import FakeLoop, _free_port, _hil  # noqa: E402
+from tests.integration.telemetry_fake_loop import JOINTS, FakeLoop, expected_state  # noqa: E402
+from tests.integration.test_telemetry_zenoh import _hil  # noqa: E402
 
 
 def test_telemetry_record_writes_an_mcap_that_standard_readers_open(tmp_path: Path) -> None:
-    loop = FakeLoop(_free_port(), seconds=40.0)
+    loop = FakeLoop(free_loopback_port(), seconds=40.0)
     out = tmp_path / "live.mcap"
     try:
         result = _hil("telemetry", "record", "--connect", loop.endpoint, "--seconds", "2", "--out", str(out))

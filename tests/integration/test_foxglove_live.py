@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import re
-import socket
 import struct
 import subprocess
 import sys
@@ -17,6 +16,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+
+from models.lab.ports import free_loopback_port
 
 pytest.importorskip("zenoh")
 pytest.importorskip("foxglove")
@@ -29,14 +30,8 @@ PD_BUNDLE = REPO / "models" / "bundles" / "ur5_paper" / "pd"
 JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def test_a_foxglove_client_connects_sees_the_channels_and_receives_the_arm() -> None:
-    zenoh_port = _free_port()
+    zenoh_port = free_loopback_port()
     config = TelemetryConfig.model_validate({"enabled": True, "listen": [f"tcp/127.0.0.1:{zenoh_port}"]})
     sink = make_sink(config, "ur5_paper", {"joints": JOINTS, "bundle": {"path": str(PD_BUNDLE), "bundle_id": "pd:x"}})
     sink.start()

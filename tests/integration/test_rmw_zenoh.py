@@ -5,13 +5,14 @@ library this project did not write; the type hash is the one rosbags computes.""
 from __future__ import annotations
 
 import re
-import socket
 import threading
 import time
 from typing import Any
 
 import numpy as np
 import pytest
+
+from models.lab.ports import free_loopback_port
 
 zenoh = pytest.importorskip("zenoh")
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
@@ -30,12 +31,6 @@ PUBLISHER_TOKEN = re.compile(
 )
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def _state(k: int) -> CycleState:
     base = np.linspace(-1.0, 1.0, 6) + 1e-3 * k
     return CycleState(k, time.monotonic_ns(), base, base * 2, base, base, base * 3, base, 0.0, 1e-5)
@@ -43,7 +38,7 @@ def _state(k: int) -> CycleState:
 
 @pytest.mark.parametrize(("namespace", "domain_id"), [("/", 0), ("/arm1", 7)])
 def test_joint_states_follow_rmw_zenoh_s_design(namespace: str, domain_id: int) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     config = TelemetryConfig.model_validate(
         {
             "enabled": True,

@@ -27,8 +27,9 @@ from drivers.drive_bus import DriveBus
 from drivers.transport import socketcan_unavailable
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.control import send_command
+from hil_runtime.factory import build_runtime
 from hil_runtime.lifecycle import LifecycleState
-from hil_runtime.runtime import RunResult, Runtime, build_runtime
+from hil_runtime.runtime import RunResult, Runtime
 from sim_target.config import parse_fault
 from sim_target.server import send_control
 from sim_target.testing.hil_target import start_hil_run, target_in_process, target_process, unique_channel

@@ -8,7 +8,7 @@ from __future__ import annotations
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
 import numpy as np
@@ -19,6 +19,7 @@ from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State
 from sim_target.config import parse_target_config
+from sim_target.drives import EmulatedDrives
 from sim_target.server import TargetServer, build_server
 
 NODE_IDS = (1, 2, 3, 4, 5, 6)
@@ -26,13 +27,20 @@ SYNC_TIMEOUT_MS = 40
 PERIOD_S = 0.002
 
 
-def _wait_until(predicate: object, timeout_s: float = 5.0) -> bool:
+def _wait_until(predicate: Callable[[], object], timeout_s: float = 5.0) -> bool:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        if predicate():  # type: ignore[operator]
+        if predicate():
             return True
         time.sleep(0.001)
     return False
+
+
+def emulated(server: TargetServer) -> EmulatedDrives:
+    """The target's drives as the emulated ones they are here (the server types them by protocol)."""
+    drives = server.drives
+    assert isinstance(drives, EmulatedDrives)
+    return drives
 
 
 @pytest.fixture
@@ -49,7 +57,7 @@ def target() -> Iterator[tuple[TargetServer, can.BusABC]]:
     )
     server, close = build_server(config)
     for node_id in NODE_IDS:  # what the master's SDO configuration would write
-        node = server.drives._drive(node_id).node  # type: ignore[attr-defined]
+        node = emulated(server)._drive(node_id).node
         for index, value in ((odx.SYNC_TIMEOUT, SYNC_TIMEOUT_MS), (odx.ABORT_CONNECTION_OPTION, 3)):
             entry = node.sdo[index]
             assert isinstance(entry, SdoVariable)
@@ -82,14 +90,14 @@ def test_a_late_sync_holds_the_last_torque_until_the_sync_timeout_then_quick_sto
     target: tuple[TargetServer, can.BusABC],
 ) -> None:
     server, master = target
-    drives = server.drives
+    drives = emulated(server)
     master.send(
         can.Message(arbitration_id=fr.NMT_COB_ID, data=fr.encode_nmt(fr.NmtCommand.START, 0), is_extended_id=False)
     )
     for controlword in (0x06, 0x07, 0x0F):
         _cycle(master, controlword, 0)
-    assert _wait_until(lambda: all(s is State.OPERATION_ENABLED for s in drives.states()))  # type: ignore[attr-defined]
-    rated_nm = np.array([d.rated_torque_mnm for d in drives._drives]) * 1e-3  # type: ignore[attr-defined]
+    assert _wait_until(lambda: all(s is State.OPERATION_ENABLED for s in drives.states()))
+    rated_nm = np.array([d.rated_torque_mnm for d in drives._drives]) * 1e-3
     for _ in range(5):
         _cycle(master, 0x0F, 20)  # 2 % of rated torque, SYNC on time
     held_nm = 0.020 * rated_nm
@@ -103,12 +111,12 @@ def test_a_late_sync_holds_the_last_torque_until_the_sync_timeout_then_quick_sto
         torques.append(server.plant.state().torque_nm.copy())
         time.sleep(PERIOD_S)
     assert torques and all(np.allclose(t, held_nm) for t in torques)  # the last latched torque, held
-    assert all(s is State.OPERATION_ENABLED for s in drives.states())  # type: ignore[attr-defined]
+    assert all(s is State.OPERATION_ENABLED for s in drives.states())
     steps_before = server.stats.steps
 
     # Past the SYNC timeout: the configured reaction (0x6007 = 3, quick stop), torque off, brakes on.
-    assert _wait_until(lambda: all(s is State.QUICK_STOP_ACTIVE for s in drives.states()), 2.0)  # type: ignore[attr-defined]
-    losses = drives.master_losses  # type: ignore[attr-defined]
+    assert _wait_until(lambda: all(s is State.QUICK_STOP_ACTIVE for s in drives.states()), 2.0)
+    losses = drives.master_losses
     assert {loss.cause for loss in losses} == {"sync"} and len(losses) == len(NODE_IDS)
     assert all(SYNC_TIMEOUT_MS <= loss.silent_s * 1e3 <= SYNC_TIMEOUT_MS + 30 for loss in losses)
     assert _wait_until(lambda: not server.plant.state().torque_nm.any())

@@ -23,12 +23,14 @@ from typing import Any
 import numpy as np
 import pytest
 
+from models.lab.ports import free_loopback_port
+
 zenoh = pytest.importorskip("zenoh")
 
 from hil_runtime.telemetry import CycleState, TelemetryConfig, make_sink  # noqa: E402
 from hil_runtime.telemetry.auth import TelemetryAuth, write_users_file  # noqa: E402
 from hil_runtime.telemetry.codec import build_schema, encode_state  # noqa: E402
-from tests.integration.test_telemetry_zenoh import JOINTS, REPO, _free_port  # noqa: E402
+from tests.integration.test_telemetry_zenoh import JOINTS, REPO  # noqa: E402
 
 
 def _session(listen: list[str], connect: list[str], user: str | None = None, password: str | None = None) -> Any:
@@ -115,8 +117,8 @@ def _record(tmp_path: Path, *connect: str) -> tuple[subprocess.CompletedProcess[
 
 
 def test_record_names_the_publisher_and_warns_when_two_sessions_publish(tmp_path: Path) -> None:
-    runtime_endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    fake_endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    runtime_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    fake_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     with _runtime(runtime_endpoint) as sink:
         zid = str(sink._session.zid())
         done, publishers = _record(tmp_path, runtime_endpoint)
@@ -132,8 +134,8 @@ def test_record_names_the_publisher_and_warns_when_two_sessions_publish(tmp_path
 
 
 def test_watch_warns_when_two_sessions_publish() -> None:
-    runtime_endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    fake_endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    runtime_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    fake_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     with _runtime(runtime_endpoint), _impersonator(fake_endpoint):
         done = subprocess.run(
             [sys.executable, "-m", "hil_runtime.cli", "telemetry", "watch", "--robot", "arm_q"]
@@ -151,7 +153,7 @@ def test_watch_warns_when_two_sessions_publish() -> None:
 
 def test_with_auth_an_unauthenticated_session_cannot_join(tmp_path: Path) -> None:
     users = write_users_file(tmp_path / "users", {"viewer": "v1ew"})
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     with _runtime(endpoint, users) as sink:
         runtime_zid = str(sink._session.zid())
         for user, password in ((None, None), ("viewer", "wrong"), ("intruder", "v1ew")):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -32,16 +31,10 @@ from hil_runtime.telemetry.auth import TelemetryAuth, write_client_config, write
 from hil_runtime.telemetry.codec import Schema
 from hil_runtime.telemetry.sink import TelemetrySink
 from hil_runtime.telemetry.subscriber import TelemetryClient, TelemetryUnavailable, missing_samples
-from tests.integration.telemetry_fake_loop import JOINTS, expected_state
+from models.lab.ports import free_loopback_port
+from tests.integration.telemetry_fake_loop import JOINTS, FakeLoop, expected_state
 
-FAKE_LOOP = Path(__file__).with_name("telemetry_fake_loop.py")
 REPO = Path(__file__).resolve().parents[2]
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -53,39 +46,6 @@ def _hil(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str
         cwd=REPO,
         check=False,
     )
-
-
-class FakeLoop:
-    """The fake loop as a child process, started and ready (publishers warm, token declared)."""
-
-    def __init__(
-        self, port: int, seconds: float = 60.0, timing: Path | None = None, controls: Path | None = None
-    ) -> None:
-        command = [sys.executable, str(FAKE_LOOP), "--port", str(port), "--seconds", str(seconds)]
-        if timing is not None:
-            command += ["--timing", str(timing)]
-        if controls is not None:
-            command += ["--controls", str(controls)]
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        assert self.process.stdout is not None and self.process.stderr is not None
-        line = self.process.stdout.readline().strip()
-        if line != "ready":
-            self.process.kill()
-            raise AssertionError(f"fake loop did not start: {line!r} {self.process.stderr.read()}")
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-
-    def finish(self, timeout_s: float = 20.0) -> dict:
-        """SIGTERM, wait, and the counters it printed."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-        out, err = self.process.communicate(timeout=timeout_s)
-        assert self.process.returncode == 0, err
-        return json.loads(out.strip().splitlines()[-1])
-
-    def kill(self) -> None:
-        if self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
 
 
 def _check_record(path: Path, min_samples: int) -> tuple[int, int]:
@@ -106,7 +66,7 @@ def _check_record(path: Path, min_samples: int) -> tuple[int, int]:
 
 
 def _record_and_check(tmp_path: Path, seconds: float) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     loop = FakeLoop(port, seconds=seconds + 30.0)
     out = tmp_path / "run.npz"
     try:
@@ -150,7 +110,7 @@ def test_subscriber_process_receives_state_10s(tmp_path: Path) -> None:
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
 def test_liveliness_reports_a_lost_publisher_within_2s(how: str) -> None:
     """SIGKILL: the kernel closes the socket. SIGSTOP: a hung runtime, socket open: its 1 s lease runs out."""
-    port = _free_port()
+    port = free_loopback_port()
     loop = FakeLoop(port)
     changes: list[tuple[float, bool]] = []
     seen = threading.Event()
@@ -180,7 +140,7 @@ def test_a_dead_or_stalled_subscriber_leaves_the_loop_timing_unchanged(tmp_path:
     """SIGKILL: the peer's socket closes. SIGSTOP: it stays open and stops reading, so the TCP
     window fills and every put meets a congested link (Zenoh's default 1 ms wait-before-drop,
     spent holding the GIL, raised the loop's p99 lateness from ~150 to ~900 µs here)."""
-    port = _free_port()
+    port = free_loopback_port()
     timing = tmp_path / "timing.npz"
     loop = FakeLoop(port, seconds=60.0, timing=timing)
     code = (
@@ -267,7 +227,7 @@ def _sink(port: int, controls: _Controls | None, users: Path | None = None) -> T
 
 
 def test_queryables_status_stats_events_and_controls(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     controls = _Controls()
     users, operator = credentials(tmp_path)
     sink = _sink(port, controls, users)
@@ -304,7 +264,7 @@ def test_queryables_status_stats_events_and_controls(tmp_path: Path) -> None:
 
 
 def test_no_control_queryables_unless_enabled() -> None:
-    port = _free_port()
+    port = free_loopback_port()
     sink = _sink(port, None)
     sink.start()
     try:
@@ -320,7 +280,7 @@ def test_no_control_queryables_unless_enabled() -> None:
 
 
 def test_cli_errors_are_one_line(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     result = _hil("telemetry", "query", "schema", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "0.5")
     assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
     assert "no runtime alive at" in result.stderr
@@ -333,7 +293,7 @@ def test_cli_errors_are_one_line(tmp_path: Path) -> None:
 
 
 def test_watch_shows_the_arm_live() -> None:
-    port = _free_port()
+    port = free_loopback_port()
     loop = FakeLoop(port)
     try:
         result = subprocess.run(
@@ -412,7 +372,7 @@ def test_the_documented_access_control_restricts_the_controls(
     users, operator = credentials(tmp_path)
     acl = tmp_path / "acl.json5"
     acl.write_text(_acl_example(users, interfaces))
-    port = _free_port()
+    port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     controls = _Controls()
     config = TelemetryConfig(enabled=True, listen=(endpoint,), controls_enabled=True, zenoh_config=acl)
@@ -443,7 +403,7 @@ def test_the_documented_access_control_restricts_the_controls(
 
 
 def test_close_is_bounded_with_a_stalled_subscriber() -> None:
-    port = _free_port()
+    port = free_loopback_port()
     sink = make_sink(
         TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",), close_timeout_s=0.5),
         "arm_q",
@@ -497,7 +457,7 @@ def test_close_is_bounded_with_a_stalled_subscriber() -> None:
 def test_a_port_in_use_is_one_line() -> None:
     from hil_runtime.telemetry.publisher import TelemetryStartError
 
-    port = _free_port()
+    port = free_loopback_port()
     config = TelemetryConfig(enabled=True, listen=(f"tcp/127.0.0.1:{port}",))
     first = make_sink(config, "arm_q", {"joints": list(JOINTS)})
     first.start()

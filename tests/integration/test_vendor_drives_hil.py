@@ -17,7 +17,7 @@ import pytest
 
 from drivers.drive_bus import DriveBus
 from hil_runtime.config import parse_runtime_config
-from hil_runtime.runtime import build_runtime
+from hil_runtime.factory import build_runtime
 from sim_target.testing.hil_target import target_in_process, unique_channel
 from sim_target.testing.ur5 import MAX_TORQUE_NM, NODE_IDS
 from sim_target.testing.vendor_drives import VENDORS, target_profiles, vendor_bus_joints

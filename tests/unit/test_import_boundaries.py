@@ -7,7 +7,10 @@ every module of the three deployable packages, two ways:
   still a dependency; it would only fail later, on the machine next to the arm).
 
 ``hil_runtime`` and ``drivers`` never import models, sim_target, torch, pinocchio or pybullet;
-``sim_target`` imports drivers and pybullet, never hil_runtime or models.
+``sim_target`` imports drivers and pybullet, never hil_runtime or models. In ``models``, only the
+lab (``models/lab``, the composition root of the demo, the HIL experiment and the fault campaign)
+imports drivers and the runtime's internals; the rest uses the runtime's public APIs listed in
+``MODELS_RUNTIME_API`` (read statically, every import statement of every file).
 """
 
 from __future__ import annotations
@@ -29,13 +32,24 @@ FORBIDDEN: dict[str, frozenset[str]] = {
     "sim_target": frozenset({"hil_runtime", "models", "torch", "pinocchio"}),
 }
 
-# Known exceptions, each with its reason; an import not listed here fails the test.
-# sim_target/faults is the `hil faults` campaign: it runs the runtime daemon against the target and
-# judges it, so it needs both sides (lazy imports, inside the functions that start the runtime).
-# It belongs beside them, not inside the target; until it moves, its imports are allowed here.
-ALLOWED: dict[str, frozenset[str]] = {
-    "sim_target.faults": frozenset({"hil_runtime"}),
+# What models outside models/lab may import of the runtime, each with its reason; anything else of
+# hil_runtime (the Runtime, its factory, the daemon, the loop, the supervisor, the config) and all of
+# drivers belong to the lab.
+MODELS_RUNTIME_API: dict[str, str] = {
+    "hil_runtime.bundle": "the bundle API: experiments score exactly what the runtime runs",
+    "hil_runtime.bundle_schema": "the bundle API: the manifest's schema, shared by writer and loader",
+    "hil_runtime.bundle_security": "the bundle API: the manifest's seal and signatures",
+    "hil_runtime.trust_region": "the bundle API: the emulator's trust features, exported into the bundle",
+    "hil_runtime.conditions": "the operating conditions, evaluated by the runtime and the simulator alike",
+    "hil_runtime.outputs": "atomic output files and directories (results, tables, plots)",
+    "hil_runtime.machine": "the machine description stamped on results",
+    "hil_runtime.telemetry.subscriber": "the public telemetry decoder (contract 3): the demo subscribes",
+    "hil_runtime.telemetry.codec": "the public telemetry decoder's payload layouts",
+    "hil_runtime.telemetry.cli": "the `hil watch` view the demo shows",
+    "hil_runtime.telemetry.config": "a subscriber's Zenoh session config (loopback, no scouting)",
+    "hil_runtime.control": "the control socket's client (status of a daemon the demo started)",
 }
+MODELS_LAB = "models.lab"
 
 CODE = r"""
 import importlib, json, pkgutil, sys
@@ -54,10 +68,6 @@ for name in names:
         pulled[name] = new
 print(json.dumps({"modules": names, "failed": failed, "pulled": pulled}))
 """
-
-
-def _allowed(module: str) -> frozenset[str]:
-    return frozenset().union(*(v for k, v in ALLOWED.items() if module == k or module.startswith(k + ".")))
 
 
 def _module_name(path: Path) -> str:
@@ -84,8 +94,7 @@ def test_every_module_imports_without_the_forbidden_side(package: str) -> None:
     files = [p for p in (ROOT / package).rglob("*.py") if "__pycache__" not in p.parts]
     assert len(report["modules"]) == len(files), "every file is a module the walk reached"
     assert report["failed"] == {}, report["failed"]
-    pulled = {m: sorted(set(v) - _allowed(m)) for m, v in report["pulled"].items()}
-    assert {m: v for m, v in pulled.items() if v} == {}, f"{package}: modules that pull in a forbidden package"
+    assert report["pulled"] == {}, f"{package}: modules that pull in a forbidden package"
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
@@ -95,7 +104,7 @@ def test_no_import_statement_crosses_the_architecture(package: str) -> None:
     crossings = {}
     for path in files:
         module = _module_name(path)
-        bad = (_imported_top_levels(path) & FORBIDDEN[package]) - _allowed(module)
+        bad = _imported_top_levels(path) & FORBIDDEN[package]
         if bad:
             crossings[module] = sorted(bad)
     assert crossings == {}, f"{package}: import statements (also inside functions) that cross the architecture"
@@ -106,3 +115,48 @@ def test_the_guard_sees_a_lazy_import(tmp_path: Path) -> None:
     source = tmp_path / "m.py"
     source.write_text("def f():\n    import torch.nn\n    from models.robots import urdf_path\n    from . import x\n")
     assert _imported_top_levels(source) == {"torch", "models"}
+
+
+def _imported_modules(path: Path) -> set[str]:
+    """Every absolute module an import statement names (``from a import b``: ``a.b`` when ``a`` is a
+    package the rule looks into, so ``from hil_runtime import conditions`` is hil_runtime.conditions)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if node.module in ("hil_runtime", "hil_runtime.telemetry"):
+                names.update(f"{node.module}.{alias.name}" for alias in node.names)
+            else:
+                names.add(node.module)
+    return names
+
+
+def _lab_only(modules: set[str]) -> list[str]:
+    """The imports of ``modules`` that only the lab may make."""
+    bad = []
+    for name in sorted(modules):
+        top = name.split(".")[0]
+        if top == "drivers":
+            bad.append(name)
+        elif top == "hil_runtime" and not any(name == a or name.startswith(a + ".") for a in MODELS_RUNTIME_API):
+            bad.append(name)
+    return bad
+
+
+def test_only_the_lab_imports_the_runtime_beyond_its_public_apis() -> None:
+    files = sorted(p for p in (ROOT / "models").rglob("*.py") if "__pycache__" not in p.parts)
+    outside = [p for p in files if not _module_name(p).startswith(MODELS_LAB)]
+    assert outside and len(outside) < len(files), "the lab and the rest of models are both there"
+    crossings = {_module_name(p): bad for p in outside if (bad := _lab_only(_imported_modules(p)))}
+    assert crossings == {}, "models outside models/lab importing drivers or the runtime's internals"
+
+
+def test_the_models_guard_tells_the_bundle_api_from_the_runtime(tmp_path: Path) -> None:
+    source = tmp_path / "m.py"
+    source.write_text(
+        "from hil_runtime import conditions\nfrom hil_runtime.bundle import PolicyBundle\n"
+        "def f():\n    from hil_runtime.factory import build_runtime\n    import drivers.drive_bus\n"
+        "    from hil_runtime import runtime\n"
+    )
+    assert _lab_only(_imported_modules(source)) == ["drivers.drive_bus", "hil_runtime.factory", "hil_runtime.runtime"]

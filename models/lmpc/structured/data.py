@@ -71,7 +71,9 @@ class _Excited:
         self.inner.reset(q0)
         self.k, self.rng, self.noise = 0, np.random.default_rng(self.seed), np.zeros_like(np.atleast_2d(q0))
 
-    def __call__(self, t_s, q, qd, q_d, qd_d, qdd_d):  # type: ignore[no-untyped-def]
+    def __call__(
+        self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
+    ) -> np.ndarray:
         tau = self.inner(t_s, q, qd, q_d, qd_d, qdd_d)
         self.last_tau_fb = self.inner.last_tau_fb
         if self.k % self.hold == 0:

@@ -28,7 +28,7 @@ def structured_policy_class() -> type:
     from models.feedback.base import SharedId
     from models.lmpc.bundle_export import FusedPolicy
 
-    class _StructuredPolicy(FusedPolicy):  # type: ignore[misc, valid-type]
+    class _StructuredPolicy(FusedPolicy):  # type: ignore[misc, valid-type]  # a torch Module: Any to mypy
         _compact: dict[str, Any] | None = None
 
         def compact_constants(self) -> dict[str, Any]:

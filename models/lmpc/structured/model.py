@@ -71,7 +71,7 @@ class StructuredEmulator(nn.Module):
     def coefficients(self, live: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(c, g, Kp, Kd): r = c tau_fb + g ID(p, qdd_d + Kp e + Kd e_dot); c, g per joint, Kp, Kd (N, N)."""
         if self.frozen is not None and not live:
-            return self.frozen  # type: ignore[return-value]
+            return self.frozen  # type: ignore[return-value]  # frozen is the 4-tuple coefficients() made
         return self.c, self.g, self.KP_SCALE * self.theta_kp, self.KD_SCALE * self.theta_kd
 
     def project(self) -> None:

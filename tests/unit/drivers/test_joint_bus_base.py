@@ -96,3 +96,16 @@ def test_both_buses_share_the_base_and_every_fatal_error_has_its_fault_kind() ->
     for error_type in FATAL_ERRORS:
         assert FaultKind(error_type.fault_kind) is not FaultKind.INTERNAL
     assert classify_bus_error(TransportError("gone")).kind is FaultKind.TRANSPORT
+
+
+def test_no_missed_cycle_budget_leaves_staleness_to_the_caller() -> None:
+    """max_missed_cycles None (the runtime's drive bus: its supervisor has the one budget): stale
+    cycles pass through, marked not fresh; the drives' states are still checked."""
+    stale = ([False, False], State.OPERATION_ENABLED)
+    bus = _Scripted([stale] * 5 + [([True, True], State.FAULT)])
+    bus.max_missed_cycles = None
+    for _ in range(5):
+        assert not bus.exchange(np.zeros(2)).fresh.any()
+    with pytest.raises(DriveFaultError):
+        bus.exchange(np.zeros(2))
+    assert bus.stops == 1

@@ -54,11 +54,12 @@ def _helper() -> tuple[threading.Thread, threading.Event, dict[str, int]]:
 def test_helper_threads_leave_the_loop_cpu_and_the_caller_keeps_its_own(restored_affinity: None) -> None:
     cpu = max(os.sched_getaffinity(0))
     thread, done, ids = _helper()
-    seen: dict[str, object] = {}
+    seen: dict[str, bool] = {}
+    mine: set[int] = set()  # the loop thread's CPUs, as it saw them
 
     def loop() -> None:
         seen["ok"] = keep_other_threads_off((cpu,))
-        seen["mine"] = os.sched_getaffinity(0)
+        mine.update(os.sched_getaffinity(0))
 
     caller = threading.Thread(target=loop)
     caller.start()
@@ -66,7 +67,7 @@ def test_helper_threads_leave_the_loop_cpu_and_the_caller_keeps_its_own(restored
     done.set()
     assert seen["ok"] is True
     assert cpu not in os.sched_getaffinity(ids["tid"]) and cpu not in os.sched_getaffinity(0)
-    assert cpu in seen["mine"]  # type: ignore[operator]  # a set of CPUs, stored untyped
+    assert cpu in mine
 
 
 @needs_two_cpus

@@ -60,6 +60,23 @@ def test_a_valid_config_loads_frozen_with_paths_relative_to_the_file(tmp_path: P
         config.robot = "other"  # type: ignore[misc]  # a frozen field assigned on purpose: refused
 
 
+def test_telemetry_files_are_relative_to_the_config_not_to_the_working_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from hil_runtime.telemetry.auth import write_users_file
+
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    write_users_file(folder / "zenoh-users", {"operator": "s3cret"})
+    (folder / "z.json5").write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7447"] } }')
+    telemetry = {"controls_enabled": True, "zenoh_config": "z.json5", "auth": {"users_file": "zenoh-users"}}
+    path = _write(folder, config_dict(telemetry=telemetry))
+    monkeypatch.chdir(tmp_path)  # the daemon started from elsewhere: the files are still the config's
+    config = load_runtime_config(path)
+    assert config.telemetry.zenoh_config == folder / "z.json5"
+    assert config.telemetry.auth is not None and config.telemetry.auth.users_file == folder / "zenoh-users"
+
+
 @pytest.mark.parametrize(
     ("change", "fragments"),
     [
@@ -241,3 +258,24 @@ def test_hil_run_check_validates_without_touching_the_bus(tmp_path: Path) -> Non
     data["bus"]["period_s"] = 0.002
     result = _hil("run", "--config", str(_write(tmp_path, data)), "--check")
     assert result.returncode == 2 and "control period" in result.stderr
+
+
+def test_the_runtime_has_one_stale_feedback_budget(tmp_path: Path) -> None:
+    """safety.max_stale_cycles is the one budget (FAULT stale_feedback): the runtime's drive bus
+    counts none of its own, and a config that names bus.max_missed_cycles too must agree."""
+    from hil_runtime.factory import runtime_drive_bus
+
+    def with_budgets(missed: int | None, stale: int) -> dict:
+        data = config_dict(safety={"max_stale_cycles": stale})
+        if missed is not None:
+            data["bus"]["max_missed_cycles"] = missed
+        return data
+
+    for missed, stale in ((None, 3), (3, 3), (1, 1)):  # the old deploy configs named both, equal
+        config = parse_runtime_config(with_budgets(missed, stale), "r.yaml")
+        assert config.safety.max_stale_cycles == stale
+        assert runtime_drive_bus(config).max_missed_cycles is None
+    with pytest.raises(
+        RuntimeConfigError, match=r"^r\.yaml: .*bus\.max_missed_cycles 25 differs from safety\.max_stale_cycles 1"
+    ):
+        parse_runtime_config(with_budgets(25, 1), "r.yaml")

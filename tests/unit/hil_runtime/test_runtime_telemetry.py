@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
 import threading
 import time
 from pathlib import Path
@@ -17,20 +16,14 @@ import pytest
 
 from drivers.testing import FakeJointBus
 from hil_runtime.config import parse_runtime_config
-from hil_runtime.daemon import make_telemetry
+from hil_runtime.factory import build_runtime
 from hil_runtime.lifecycle import LifecycleState
-from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.auth import write_users_file
+from models.lab.ports import free_loopback_port
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
 from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, config_dict
 
 zenoh = pytest.importorskip("zenoh")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _session(endpoint: str, user: str | None = None, password: str | None = None) -> Any:
@@ -54,12 +47,11 @@ def _controlled(tmp_path: Path, endpoint: str, **telemetry: Any) -> Any:
 
 
 def test_state_status_and_the_stop_queryable(caplog: pytest.LogCaptureFixture, tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     config = _controlled(tmp_path, endpoint)
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
-    runtime = Runtime(config, bus)
-    runtime.telemetry = make_telemetry(config, runtime)
+    runtime = build_runtime(config, bus)
 
     samples = {"state": 0, "status": 0}
     caplog.set_level(logging.WARNING, logger="hil_runtime.telemetry")
@@ -102,12 +94,11 @@ def test_a_zenoh_reset_clears_the_fault_to_inactive(tmp_path: Path, remote_reset
     stops at INACTIVE with the drives off, unless telemetry.remote_reset_activates says otherwise."""
     from drivers.errors import DriveFaultError
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     config = _controlled(tmp_path, endpoint, remote_reset_activates=remote_reset_activates)
     assert config.loop.activate_on_reset
     bus = FakeJointBus(6, period_s=0.001, inertia_kgm2=1.0, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
-    runtime = Runtime(config, bus)
-    runtime.telemetry = make_telemetry(config, runtime)
+    runtime = build_runtime(config, bus)
     runtime.configure()
     session = _session(endpoint, "operator", "s3cret")
     thread = threading.Thread(target=runtime.run)

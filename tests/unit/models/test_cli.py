@@ -21,7 +21,10 @@ def hil(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]
     [
         (["experiment", "--laws", "pd,foo"], "--laws: unknown 'foo'"),
         (["experiment", "--robot", "ur6"], "robot: unknown name 'ur6'"),
-        (["experiment", "--robot", "ur5"], "gain set 'stabilized' holds the gains of 'ur5_paper', not of robot 'ur5'"),
+        (
+            ["experiment", "--robot", "ur5", "--gains", "stabilized"],
+            "gain set 'stabilized' holds the gains of 'ur5_paper', not of robot 'ur5'",
+        ),
         (["stability", "pd", "--robot", "ur5"], "not of robot 'ur5' (6 joints); pass kp, kd for it"),
         (["experiment", "--conditions", "missing.yaml"], "missing.yaml: file not found"),
         (["experiment", "--modes", "xyz"], "--modes: unknown 'xyz'"),

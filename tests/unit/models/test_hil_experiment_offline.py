@@ -4,16 +4,20 @@ target's run start, padding of a faulted record, parity arithmetic, the Table II
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
 from hil_runtime.conditions import parse_conditions
+from hil_runtime.supervisor import FaultKind
 from models.conditions import load_conditions, random_conditions
 from models.hil_experiment import PAPER_TABLE_II, HilRun, conditions_yaml, initial_state, run_start
-from models.hil_experiment.parity import per_run_scores
+from models.hil_experiment.parity import parity, per_run_scores
+from models.hil_experiment.tables import format_parity_table
 from models.hil_experiment.target_runs import pad_record
+from models.lab.runs import is_rig_fault
 from models.robots import load_robot
 from sim_target.config import ImpulseFault, RunStart, TargetConfigError, TargetLayout, check_run_start, parse_run_start
 
@@ -75,8 +79,22 @@ def test_a_faulted_record_is_held_at_its_last_position() -> None:
     np.testing.assert_allclose(out["q"][rows:], np.repeat(record["q"][-1:], steps - rows, axis=0))
     np.testing.assert_allclose(out["qd"][rows:], 0.0)  # braked
     np.testing.assert_allclose(out["tau"][rows:], 0.0)
-    assert HilRun(out, rows, "feedback_timeout: x", {}).rig_fault
-    assert not HilRun(out, rows, "position_limit: x", {}).rig_fault
+    assert HilRun(out, rows, "feedback_timeout: x", {}, rig_fault=is_rig_fault(FaultKind.FEEDBACK_TIMEOUT)).rig_fault
+    assert not HilRun(out, rows, "position_limit: x", {}, rig_fault=is_rig_fault(FaultKind.POSITION_LIMIT)).rig_fault
+
+
+def test_a_rig_fault_is_told_by_its_kind_never_by_its_text() -> None:
+    """models.lab.runs classifies Runtime.last_fault's FaultKind: the bus and the drives' state are
+    the rig's, a limit or a bad policy output the controller's, whatever the detail text says."""
+    assert {k for k in FaultKind if is_rig_fault(k)} == {
+        FaultKind.FEEDBACK_TIMEOUT,
+        FaultKind.HEARTBEAT_LOST,
+        FaultKind.TRANSPORT,
+        FaultKind.DRIVE_STATE,
+        FaultKind.STALE_FEEDBACK,
+    }
+    assert not is_rig_fault(None)
+    assert not is_rig_fault(FaultKind.VELOCITY_LIMIT)
 
 
 def test_per_run_scores_normalize_within_a_condition() -> None:
@@ -92,6 +110,34 @@ def test_per_run_scores_normalize_within_a_condition() -> None:
     # On another table's scale (parity: the simulation's), a run is scored against that table's maxima.
     worse = [{**runs[1], "mode": "fb", "metrics": {k: 4 * v for k, v in metrics.items()}}]
     assert per_run_scores(worse, scale=runs)[("pd", "fb", "C1")] == pytest.approx(4.0)
+
+
+def test_parity_never_averages_a_run_that_faulted_in_either_plant(tmp_path: Path) -> None:
+    metrics = {"rmse": 1.0, "mae": 1.0, "p95": 1.0, "peak": 1.0, "settle_s": 1.0, "dedt_rms": 1.0}
+    t = np.linspace(0.0, 1.0, 11)
+    traj: dict[str, np.ndarray] = {"t": t, "q": np.zeros((11, 6)), "tau": np.zeros((11, 6))}
+
+    def run(cond: str, within: bool, scale: float) -> dict:
+        return {"law": "pd", "mode": "fb", "condition": cond, "finite": True, "within_limits": within,
+                "metrics": {k: scale * v for k, v in metrics.items()}}  # fmt: skip
+
+    sim = {"runs": [run("C1", True, 1.0), run("C2", True, 1.0)], "table": {"pd": {"fb": {"score": 1.0}}}, "config": {},
+           "all_runs_finite_and_within_limits": True}  # fmt: skip
+    for cond in ("C1", "C2"):
+        np.savez(tmp_path / f"pd_fb_{cond}.npz", t=traj["t"], q=traj["q"], tau=traj["tau"])
+    trajectories = {("pd", "fb", c): traj for c in ("C1", "C2")}
+    # C2 faulted on the HIL after a good start: its (partial) score is lower, it must not count.
+    hil_runs = [run("C1", True, 1.02), run("C2", False, 0.1)]
+    hil = {"runs": hil_runs, "table": {"pd": {"fb": {"score": 0.5}}}}
+    row = parity(hil, sim, trajectories, tmp_path)["table"]["pd"]["fb"]
+    assert (row["runs_compared"], row["runs_failed"]) == (1, 1)
+    assert row["score_rel"] == pytest.approx(0.02) and row["within_tolerance"]
+    assert "+2.0 ✗1" in "\n".join(format_parity_table(parity(hil, sim, trajectories, tmp_path), ["fb"]))
+    # every run failed: no figure, never a within-tolerance verdict
+    hil_runs[0]["within_limits"] = False
+    row = parity(hil, sim, trajectories, tmp_path)["table"]["pd"]["fb"]
+    assert row["score_rel"] is None and row["score_hil"] is None and not row["within_tolerance"]
+    assert "| — | — | — ✗2 |" in "\n".join(format_parity_table(parity(hil, sim, trajectories, tmp_path), ["fb"]))
 
 
 def test_paper_table_ii_values() -> None:  # the paper's Table II (hardware), FB -> LMPC

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -49,9 +51,10 @@ def _sink(path: Path, queue_size: int = 20_000) -> McapSink:
     return McapSink(recorder, queue_size=queue_size, drain_period_s=0.001)
 
 
-def _messages(path: Path) -> dict[str, list[tuple[int, object]]]:
-    by_topic: dict[str, list[tuple[int, object]]] = {}
-    decoders: dict[int, object] = {}
+def _messages(path: Path) -> dict[str, list[tuple[int, Any]]]:
+    """Per topic: (log time, message), a CDR one decoded lazily, a JSON one as parsed (Any: both untyped)."""
+    by_topic: dict[str, list[tuple[int, Any]]] = {}
+    decoders: dict[int, Callable[[bytes], Any]] = {}
     factory = mcap_ros2_decoder.DecoderFactory()
     with path.open("rb") as stream:
         reader = mcap_reader.make_reader(stream, decoder_factories=[mcap_ros2_decoder.DecoderFactory()])
@@ -59,7 +62,7 @@ def _messages(path: Path) -> dict[str, list[tuple[int, object]]]:
             if channel.message_encoding == "cdr":
                 assert schema is not None and schema.encoding == "ros2msg"
                 decode = decoders.setdefault(schema.id, factory.decoder_for("cdr", schema))
-                decoded: object = Lazy(decode, message.data)  # decoded when a test looks (20k messages)
+                decoded: Any = Lazy(decode, message.data)  # decoded when a test looks (20k messages)
             else:
                 assert channel.message_encoding == "json" and schema is not None and schema.encoding == "jsonschema"
                 decoded = json.loads(message.data)
@@ -70,12 +73,12 @@ def _messages(path: Path) -> dict[str, list[tuple[int, object]]]:
 class Lazy:
     """A CDR message decoded by mcap-ros2-support on first attribute access."""
 
-    def __init__(self, decode: object, data: bytes) -> None:
+    def __init__(self, decode: Callable[[bytes], Any], data: bytes) -> None:
         self._decode, self._data, self._msg = decode, data, None
 
-    def __getattr__(self, name: str) -> object:
+    def __getattr__(self, name: str) -> Any:
         if self._msg is None:
-            self._msg = self._decode(self._data)  # type: ignore[operator]  # mcap-ros2's decoder
+            self._msg = self._decode(self._data)
         return getattr(self._msg, name)
 
 
@@ -96,15 +99,15 @@ def test_a_run_through_the_sink_reads_back_with_standard_types_urdf_and_every_sa
     assert len(states) == cycles and len(topics["/joint_reference"]) == cycles
     assert [t for t, _ in states] == [1_000_000_000 + 1_000_000 * k for k in range(cycles)]  # the runtime's clock
     t, msg = states[1234]
-    assert list(msg.name) == list(JOINTS)  # type: ignore[attr-defined]
-    assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == t  # type: ignore[attr-defined]
-    np.testing.assert_array_equal(msg.position, _sample(1234).q)  # type: ignore[attr-defined]
-    np.testing.assert_array_equal(msg.effort, _sample(1234).tau)  # type: ignore[attr-defined]
+    assert list(msg.name) == list(JOINTS)
+    assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == t
+    np.testing.assert_array_equal(msg.position, _sample(1234).q)
+    np.testing.assert_array_equal(msg.effort, _sample(1234).tau)
     ref = topics["/joint_reference"][1234][1]
-    np.testing.assert_array_equal(ref.position, _sample(1234).q_ref)  # type: ignore[attr-defined]
-    np.testing.assert_array_equal(ref.effort, _sample(1234).tau_fb)  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(ref.position, _sample(1234).q_ref)
+    np.testing.assert_array_equal(ref.effort, _sample(1234).tau_fb)
     cycle = [body for _, body in topics["/hil/cycle"]]
-    assert [c["seq"] for c in cycle] == list(range(cycles))  # type: ignore[index]
+    assert [c["seq"] for c in cycle] == list(range(cycles))
     assert cycle[7] == {"seq": 7, "fallback": 0.5, "compute_s": _sample(7).compute_s}
     assert topics["/hil/stats"][0][1] == {"rate_hz": 1000.0, "overruns": 0.0, "compute_p99_s": None}
     assert topics["/hil/status"][0][1] == {"state": "ACTIVE", "fault": None}

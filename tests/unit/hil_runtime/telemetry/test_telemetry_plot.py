@@ -6,6 +6,7 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,11 +15,11 @@ from hil_runtime.telemetry.plot import PlotError, load_record, plot_record
 from tests.unit.hil_runtime.telemetry import npz_files
 
 
-def _write(path: Path, samples: int = 200, n_joints: int = 3, **extra: object) -> Path:
+def _write(path: Path, samples: int = 200, n_joints: int = 3, **extra: Any) -> Path:
     t_s = np.arange(samples) * 1e-3
     q = np.sin(t_s[:, None] + np.arange(n_joints))
-    # numpy's stub types savez's **kwds as also reaching its bool allow_pickle:
-    np.savez(path, t_s=t_s, q=q, q_ref=q + 0.01, tau=q * 2, tau_fb=q * 1.5, **extra)  # type: ignore[arg-type]
+    # extra: Any, as numpy's stub types savez's **kwds as also reaching its bool allow_pickle
+    np.savez(path, t_s=t_s, q=q, q_ref=q + 0.01, tau=q * 2, tau_fb=q * 1.5, **extra)
     return path
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+from typing import Any
 
 import numpy as np
 import pytest
@@ -97,8 +98,8 @@ def test_caller_bugs_are_counted_never_raised(caplog: pytest.LogCaptureFixture) 
     zeros = np.zeros(3)
     caplog.set_level(logging.ERROR)
     sink.offer_state(CycleState(-1, 0, zeros, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # negative seq: u64
-    # A list where an array belongs: the caller bug under test.
-    sink.offer_state(CycleState(1, 0, [0.0] * 3, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # type: ignore[arg-type]
+    not_an_array: Any = [0.0] * 3  # a list where an array belongs: the caller bug under test
+    sink.offer_state(CycleState(1, 0, not_an_array, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))
     short = np.zeros(2)
     sink.offer_state(CycleState(2, 0, short, zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))  # wrong joint count
     sink.offer_state(CycleState(3, 0, zeros.astype(np.float32), zeros, zeros, zeros, zeros, zeros, 0.0, 0.0))

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from models.demo import analysis
-from models.demo.processes import OWNER_FILE, WORK_PREFIX, remove_stale_work_dirs
+from models.lab.processes import OWNER_FILE, WORK_PREFIX, remove_stale_work_dirs
 
 
 def _record(t_s: np.ndarray, n: int = 6) -> dict[str, np.ndarray]:

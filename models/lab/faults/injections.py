@@ -1,4 +1,4 @@
-"""What the in-process fault cases inject, each ``inject(rig, rng) -> detail`` (sim_target/faults/
+"""What the in-process fault cases inject, each ``inject(rig, rng) -> detail`` (models/lab/faults/
 cases.run_in_process calls it once the rig is ACTIVE): frame faults at the emulated drives (drop,
 delay, corrupt TPDOs), floods of foreign frames, plant and drive faults at the target, the bus or
 the target process taken away, a starved CPU, telemetry subscribers started and killed."""
@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from sim_target.faults import rig as rigs
-from sim_target.faults.rig import InProcessRig
+from models.lab import rigs
+from models.lab.rigs import InProcessRig
 
 
 def _server(rig: InProcessRig) -> Any:

@@ -2,9 +2,9 @@
 of a drive's frames, a second master (at run time and at start-up), a bus directory and a control
 socket squatted by another local user.
 
-In-process injections (``inject(rig, rng) -> detail``, run by sim_target/faults/cases.run_in_process
+In-process injections (``inject(rig, rng) -> detail``, run by models/lab/faults/cases.run_in_process
 once the loop is ACTIVE) and whole cases (``case(name, repeat, seed, work) -> CaseResult``). The
-multi-user cases act as a second, unprivileged user (:mod:`sim_target.faults.other_user`); not run
+multi-user cases act as a second, unprivileged user (:mod:`models.lab.faults.other_user`); not run
 as root, they report that they were not run and why.
 """
 
@@ -20,10 +20,10 @@ import can
 import numpy as np
 
 from drivers.cia402 import frames as fr
-from sim_target.faults import rig as rigs
-from sim_target.faults.cases import CaseResult, run_cli_in_process
-from sim_target.faults.other_user import OtherUserUnavailable, other_user, run_as, shared_directory
-from sim_target.faults.rig import InProcessRig
+from models.lab import rigs
+from models.lab.faults.cases import CaseResult, run_cli_in_process
+from models.lab.faults.other_user import OtherUserUnavailable, other_user, run_as, shared_directory
+from models.lab.rigs import InProcessRig
 
 FORGED_OFFSET_RAD = 0.03  # the campaign's forger: drive 3's TPDO moved by this much
 FORGED_NODE = 3

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from sim_target.faults import cases as c
+from models.lab.faults import cases as c
 
 PROFILES = ("realistic", "harsh")
 

@@ -19,15 +19,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hil_runtime.machine import machine
-from sim_target.faults import cases as c
-from sim_target.faults import injections as inj
-from sim_target.faults import realism_cases, zenoh_cases
-from sim_target.faults import security as sec
-from sim_target.faults.cases import Expect
-from sim_target.faults.report import summarize, write_outputs
+from models.lab.faults import cases as c
+from models.lab.faults import daemon_cases, realism_cases, zenoh_cases
+from models.lab.faults import injections as inj
+from models.lab.faults import security as sec
+from models.lab.faults.cases import Expect
+from models.lab.faults.report import summarize, write_outputs
 
 if TYPE_CHECKING:
-    from sim_target.faults.crafted import CraftKind
+    from models.lab.faults.crafted import CraftKind
 
 RIG_RETRIES = 2
 TOLERATED_DROP = ("supervisor.stale_cycles", "bus.dropped", "bus.late", "bus.malformed")
@@ -48,7 +48,7 @@ def _ip(inject: Callable[..., Any], expect: Expect, **kwargs: Any) -> Callable[[
 
 def _crafted(kind: CraftKind, expect: Expect, **kwargs: Any) -> Callable[[str, int, int, Path], c.CaseResult]:
     def run(name: str, repeat: int, seed: int, work: Path) -> c.CaseResult:
-        from sim_target.faults.crafted import craft_bundle
+        from models.lab.faults.crafted import craft_bundle
         from sim_target.testing.ur5 import Q0_RAD
 
         trigger = craft_bundle(c.rigs.PD_BUNDLE, work / f"bundle-{kind}", kind)
@@ -93,7 +93,7 @@ def _telemetry_sent(rig: Any, result: c.CaseResult) -> None:
 
 TWO = "2 cycles"
 F = ("feedback_timeout", "stale_feedback")
-SECURITY_FAULTS: tuple[FaultSpec, ...] = (  # issue 20, sim_target/faults/security.py
+SECURITY_FAULTS: tuple[FaultSpec, ...] = (  # issue 20, models/lab/faults/security.py
     FaultSpec(
         "forged_tpdo",
         "forged TPDO: another station answers each SYNC first with drive 3's TPDO (+0.03 rad)",
@@ -141,7 +141,7 @@ FAULTS: tuple[FaultSpec, ...] = (
     FaultSpec(
         "tpdo_drop_1_one",
         "TPDO dropped, 1 cycle, one drive",
-        "tolerated (max_missed_cycles 1), counted",
+        "tolerated (max_stale_cycles 1), counted",
         True,
         _ip(inj.drop_tpdos(1, False), Expect(counters=TOLERATED_DROP, max_cycles=None)),
     ),
@@ -332,10 +332,14 @@ FAULTS: tuple[FaultSpec, ...] = (
         "the loop stalled (daemon SIGSTOPped past the watchdog)",
         "WatchdogSec (0.2 s here)",
         True,
-        c.loop_stall,
+        daemon_cases.loop_stall,
     ),
     FaultSpec(
-        "sigterm_during_enable", "SIGTERM during enable (daemon)", "a request: exit 0", True, c.sigterm_during_enable
+        "sigterm_during_enable",
+        "SIGTERM during enable (daemon)",
+        "a request: exit 0",
+        True,
+        daemon_cases.sigterm_during_enable,
     ),
     FaultSpec(
         "payload_jump",

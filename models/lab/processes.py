@@ -16,7 +16,6 @@ import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -49,13 +48,6 @@ if os.getppid() != int(os.environ["HIL_DEMO_PARENT_PID"]):
     sys.exit(1)
 runpy.run_module("hil_runtime.cli", run_name="__main__", alter_sys=True)
 """
-
-
-def free_loopback_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class Child:
@@ -202,7 +194,6 @@ __all__ = [
     "WORK_PREFIX",
     "Child",
     "DemoError",
-    "free_loopback_port",
     "make_work_dir",
     "remove_stale_work_dirs",
     "signals_blocked",

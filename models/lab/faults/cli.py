@@ -25,8 +25,8 @@ def faults(
     import logging
 
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
-    from sim_target.faults.campaign import run_campaign, select
-    from sim_target.faults.cases import CaseResult
+    from models.lab.faults.campaign import run_campaign, select
+    from models.lab.faults.cases import CaseResult
 
     names = tuple(x.strip() for x in only.split(",") if x.strip()) if only else None
     select(quick, names)  # unknown names: one line, exit 2, before any work
@@ -51,7 +51,3 @@ def faults(
     )
     if failed:
         raise typer.Exit(1)
-
-
-def register(app: typer.Typer) -> None:
-    app.command("faults")(faults)

@@ -11,9 +11,8 @@ Two compositions (sim_target.launch has the target's side of both):
   with a Unix datagram socket as ``$NOTIFY_SOCKET`` (sd_notify: READY, STATUS, WATCHDOG,
   STOPPING) and the daemon's control socket.
 
-This module and its package are the one place in sim_target that imports hil_runtime: the
-campaign composes the runtime with the target; the target itself (server, drives, plant) never
-imports the runtime.
+The campaign's configs come from the lab's builders (models/lab/configs.py), its runtime from
+:func:`hil_runtime.factory.build_runtime` (telemetry wired at construction).
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import threading
 import time
@@ -33,7 +31,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from sim_target.faults.observers import RpdoTap, TelemetryWatch
+from models.lab import configs
+from models.lab.faults.observers import RpdoTap, TelemetryWatch
+from models.lab.ports import free_loopback_port
 from sim_target.testing.notify import NotifyListener
 from sim_target.testing.ur5 import PD_BUNDLE, Q0_RAD, bus_joints
 
@@ -51,10 +51,14 @@ COMM_LOSS_TIMEOUT_S = 1.0
 STATS_INTERVAL_S = 0.1
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+CAMPAIGN_DRIVER: dict[str, Any] = {
+    "feedback_timeout_s": FEEDBACK_TIMEOUT_S,
+    "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
+    "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S,
+    "sdo_timeout_s": 2.0,
+    "state_change_timeout_s": 5.0,
+    "comm_loss_timeout_s": COMM_LOSS_TIMEOUT_S,
+}
 
 
 def runtime_config_dict(
@@ -65,44 +69,28 @@ def runtime_config_dict(
     loop: dict[str, Any] | None = None,
     **sections: Any,
 ) -> dict[str, Any]:
-    """The runtime's config for the campaign's target: PD bundle (LMPC), hold, bus pacing. A
-    ``telemetry`` section completes the campaign's own (controls, auth: the Zenoh cases)."""
+    """The runtime's config for the campaign's target (the lab's builder): PD bundle (LMPC), hold,
+    bus pacing. A ``telemetry`` section completes the campaign's own (controls, auth: the Zenoh cases)."""
     telemetry = sections.pop("telemetry", None) or {}
-    data: dict[str, Any] = {
-        "robot": "ur5_paper",
-        "bundle": {"path": str(bundle), "mode": "lmpc"},
-        "bus": {
-            "transport": {"fd": True, "data_bitrate": 5_000_000, **transport},
-            "period_s": PERIOD_S,
-            "joints": bus_joints(),
-            "feedback_timeout_s": FEEDBACK_TIMEOUT_S,
-            "heartbeat_producer_ms": HEARTBEAT_PRODUCER_MS,
-            "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S,
-            "sdo_timeout_s": 2.0,
-            "state_change_timeout_s": 5.0,
-            "comm_loss_timeout_s": COMM_LOSS_TIMEOUT_S,
-            **(bus or {}),
-        },
-        "reference": {"kind": "hold"},
-        "loop": {"pacing": "bus", "stats_interval_s": STATS_INTERVAL_S, "warmup_cycles": 50, **(loop or {})},
+    return configs.runtime_config(
+        "ur5_paper",
+        bus_joints(),
+        bundle,
+        "lmpc",
+        transport,
+        PERIOD_S,
+        driver={**CAMPAIGN_DRIVER, **(bus or {})},
+        loop=configs.lockstep_loop(stats_interval_s=STATS_INTERVAL_S, warmup_cycles=50, **(loop or {})),
+        telemetry=None
+        if telemetry_port is None
+        else configs.telemetry_section(STATS_INTERVAL_S, listen_port=telemetry_port, close_timeout_s=0.5, **telemetry),
         **sections,
-    }
-    if telemetry_port is not None:
-        data["telemetry"] = {
-            "enabled": True,
-            "listen": [f"tcp/127.0.0.1:{telemetry_port}"],
-            "stats_period_s": STATS_INTERVAL_S,
-            "close_timeout_s": 0.5,
-            **telemetry,
-        }
-    return data
+    )
 
 
 def target_config(q0_rad: tuple[float, ...] = Q0_RAD, **extra: Any) -> dict[str, Any]:
-    from sim_target.launch import target_config_dict
-
-    plant = {"substeps": TARGET_SUBSTEPS, "initial_position_rad": list(q0_rad)}
-    return target_config_dict("ur5_paper", PERIOD_S, TARGET_SUBSTEPS, plant=plant, **extra)
+    """The campaign's target (the lab's builder): ur5_paper lock-stepped, starting at ``q0_rad``."""
+    return configs.target_config("ur5_paper", PERIOD_S, TARGET_SUBSTEPS, initial_position_rad=q0_rad, **extra)
 
 
 # --- in process -----------------------------------------------------------------------------------
@@ -150,19 +138,17 @@ class InProcessRig:
         tap: bool = True,
         bundle: Any = None,
     ) -> None:
-        from drivers.drive_bus import DriveBus
         from drivers.transport import open_bus
-        from hil_runtime.daemon import make_telemetry
-        from hil_runtime.runtime import Runtime
+        from hil_runtime.factory import build_runtime, runtime_drive_bus
 
         self.target = target
         self.config = config
         # The campaign opens the python-can bus itself, so that a case can close it under the driver.
         self.can_bus = open_bus(config.bus.transport)
-        self.drive_bus = DriveBus(config.bus, bus=self.can_bus)
-        self.runtime = Runtime(config, self.drive_bus, record_cycles=record_cycles, bundle=bundle)
-        if telemetry_port is not None:
-            self.runtime.telemetry = make_telemetry(config, self.runtime)
+        self.drive_bus = runtime_drive_bus(config, self.can_bus)
+        self.runtime = build_runtime(
+            config, self.drive_bus, telemetry=telemetry_port is not None, record_cycles=record_cycles, bundle=bundle
+        )
         self.telemetry_port = telemetry_port
         self.watch: TelemetryWatch | None = None
         self.tap: RpdoTap | None = None
@@ -235,7 +221,7 @@ def in_process_rig(
     from sim_target.launch import launch_target
 
     with launch_target(target_config(q0_rad, **(target_extra or {})), transport) as target:
-        port = free_port() if telemetry else None
+        port = free_loopback_port() if telemetry else None
         data = runtime_config_dict(dict(target.transport), bundle_path, port, **(config_extra or {}))
         config = parse_runtime_config(data, "fault-campaign")
         rig = InProcessRig(target, config, telemetry_port=port, tap=tap)
@@ -314,7 +300,7 @@ def daemon_rig(
 
     (work / "t").mkdir(parents=True, exist_ok=True)
     with launch_target(target_config(), "ipc", work_dir=work / "t") as target:
-        port = free_port()
+        port = free_loopback_port()
         sock = work / "runtime.sock"
         data = runtime_config_dict(
             dict(target.transport), PD_BUNDLE, port if telemetry else None, bus=bus, control_socket=str(sock)
@@ -365,7 +351,7 @@ __all__ = [
     "TelemetryWatch",
     "daemon_rig",
     "note_plant_lateness",
-    "free_port",
+    "free_loopback_port",
     "in_process_rig",
     "runtime_config_dict",
     "target_config",

@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sim_target.faults import cases as c
+from models.lab.faults import cases as c
 
 if TYPE_CHECKING:
-    from sim_target.faults.campaign import FaultSpec
+    from models.lab.faults.campaign import FaultSpec
 
 SECONDS_ROWS = ("heartbeat_lost", "loop_stall")  # bounds in seconds: the wall time is shown too
 

@@ -1,4 +1,4 @@
-"""The fault campaign's crafted bundles (sim_target/faults/crafted.py): the runtime's own loader
+"""The fault campaign's crafted bundles (models/lab/faults/crafted.py): the runtime's own loader
 accepts them (sha256, layout, probes, saturation), they misbehave only inside their trigger band,
 and a tampered copy is refused."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hil_runtime.bundle import BundleError, NonFiniteOutputError, PolicyBundle
-from sim_target.faults.crafted import (
+from models.lab.faults.crafted import (
     SATURATING_TORQUE_NM,
     TRIGGER_HALF_WIDTH_RAD,
     CraftKind,

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from sim_target.faults import cases as c
-from sim_target.faults.cases import Expect
+from models.lab.faults import cases as c
+from models.lab.faults.cases import Expect
 
 ROBOT = "ur5_paper"
 OPERATOR = ("operator", "campaign-s3cret")
