@@ -47,9 +47,10 @@ def experiment(
         str,
         typer.Option(
             help="HMPC formulation: 'absolute' (W2 on tau), 'anchored' (W2 on tau - w* tau_fb) or 'deployable' "
-            "(W2 on tau - ID(q, qd, qdd_d), smoothness on tau_j - tau_(j-1), libfranka's rate bound; docs/hmpc.md)."
+            "(W2 on tau - ID(q, qd, qdd_d), smoothness on tau_j - tau_(j-1), libfranka's rate bound; the default, "
+            "the HMPC the shipped LMPC imitates; docs/hmpc.md)."
         ),
-    ] = "absolute",
+    ] = "deployable",
     hmpc_prediction_step_s: Annotated[
         float | None, typer.Option(help="HMPC prediction step (s); default: the control period.")
     ] = None,
