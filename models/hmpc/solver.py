@@ -402,7 +402,10 @@ class HMPCSolver:
     def _torque_changes(rows: Rows, u: np.ndarray) -> np.ndarray:
         """tau_j - tau_{j-1} (K, T, N), tau_0 = rows.previous."""
         assert rows.previous is not None
-        return np.diff(np.concatenate([rows.previous[:, None], u], 1), axis=1)
+        change = np.empty_like(u)
+        np.subtract(u[:, 0], rows.previous, out=change[:, 0])
+        np.subtract(u[:, 1:], u[:, :-1], out=change[:, 1:])
+        return change
 
     def _features(
         self, rows: Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
