@@ -129,7 +129,9 @@ class BusGuard:
                 # consumer reports the reboot itself (DriveStateError), so a forged boot-up faults too.
                 self._senders[node_id] = sender
             first = self._senders.setdefault(node_id, sender)
-            if sender != first:
+            # The same peer's frames carry the same Sender object: identity first (30 ns) spares the
+            # dataclass __eq__ (1 µs) on every drive frame of a healthy bus.
+            if sender is not first and sender != first:
                 self._trip(
                     f"second sender of 0x{cob_id:03X} (drive {node_id}): {_describe(sender)} besides {_describe(first)}"
                 )

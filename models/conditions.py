@@ -69,18 +69,26 @@ def random_conditions(
     template: Condition | None = None,
 ) -> list[Condition]:
     """Seeded raised-sine conditions whose references stay inside ``limit_fraction`` of the limits."""
+    from models.default_conditions import home_pose_rad
+
     rng = np.random.default_rng(seed)
+    # Around the robot's home pose (0 for ur5_paper, the Panda's elbow at its range's midpoint).
+    home = home_pose_rad(robot)
     template = template or Condition(
         name="template", amplitude_rad=(0.0,) * robot.n_joints, frequency_hz=(0.1,) * robot.n_joints
     )
-    pos_limit = np.minimum(robot.position_limit_rad, math.pi) * limit_fraction
+    offset = template.offset_rad if not home.any() else tuple(float(h) for h in home)
+    room_up = np.minimum(robot.position_upper_rad - home, math.pi) * limit_fraction
+    room_down = np.minimum(home - robot.position_lower_rad, math.pi) * limit_fraction
     vel_limit = np.minimum(robot.velocity_limit_rad_s, 10.0) * limit_fraction
     out = []
     for k in range(count):
         freq = rng.uniform(*frequency_range_hz, size=robot.n_joints)
-        # |A| bounded by the position range (the reference spans [0, A]) and by the peak velocity pi f |A|.
-        max_amp = np.minimum(pos_limit, vel_limit / (math.pi * freq))
-        amp = rng.uniform(-1.0, 1.0, size=robot.n_joints) * max_amp
+        draw = rng.uniform(-1.0, 1.0, size=robot.n_joints)
+        # |A| bounded by the room towards the limit it moves to (the reference spans [h, h + A]) and
+        # by the peak velocity pi f |A|.
+        max_amp = np.minimum(np.where(draw > 0, room_up, room_down), vel_limit / (math.pi * freq))
+        amp = draw * max_amp
         out.append(
             replace(
                 template,
@@ -88,6 +96,7 @@ def random_conditions(
                 amplitude_rad=tuple(amp),
                 frequency_hz=tuple(freq),
                 phase_s=float(rng.uniform(0.0, template.duration_s)),
+                offset_rad=offset,
             )
         )
     return out

@@ -212,11 +212,14 @@ class PlantConfig(_Frozen):
 
 
 class RealtimeConfig(_Frozen):
-    """The physics thread's OS settings, applied with ``clock: realtime`` (sim_target/rt_settings.py)."""
+    """The physics thread's OS settings, applied with ``clock: realtime`` (sim_target/rt_settings.py),
+    and in lock-step with ``in_lockstep`` (a lock-stepped run's rate is the two processes' hand-offs:
+    on a shared machine each waits behind other jobs without SCHED_FIFO, docs/target.md)."""
 
     fifo_priority: int = Field(80, ge=0, le=99)  # SCHED_FIFO priority; 0: leave the default policy
     cpus: tuple[int, ...] | None = None  # CPUs the physics thread may run on; None: any
     lock_memory: bool = True  # mlockall: no page fault in the loop
+    in_lockstep: bool = False  # also with clock: lockstep (the thread serving the SYNCs)
 
     @model_validator(mode="after")
     def _check(self) -> RealtimeConfig:

@@ -86,6 +86,19 @@ def share_thread_settings(native_id: int, fifo_priority: int, cpus: Sequence[int
     return refused
 
 
+def start_lockstep(config: Any, control_thread_id: int | None) -> dict[str, Any]:
+    """``realtime.in_lockstep``: the same settings for the thread that serves the SYNCs (and steps
+    the plant in them) and the control thread, gc frozen; no cost probe (lock-step has no deadline
+    of its own). Returns the status's ``realtime`` entry."""
+    rt = config.realtime
+    applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
+    if control_thread_id is not None:
+        refused += share_thread_settings(control_thread_id, rt.fifo_priority, rt.cpus)
+    gc.collect()
+    gc.freeze()
+    return {"applied": applied, "refused": refused}
+
+
 _COST_PROBE_STEPS = 200  # physics steps timed at start-up
 # A step costing more than this share of the period leaves too little for the bus and wake-up
 # jitter: the target says at start-up that it cannot keep real time.

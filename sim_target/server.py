@@ -66,7 +66,7 @@ from sim_target.control import ControlServer, send_control  # noqa: F401 - send_
 from sim_target.lateness import Lateness
 from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
 from sim_target.plant_protocol import JointState
-from sim_target.rt_settings import start_realtime
+from sim_target.rt_settings import start_lockstep, start_realtime
 
 log = logging.getLogger(__name__)
 
@@ -236,6 +236,8 @@ class TargetServer:
                 self._apply_realtime_settings()
                 self._run_realtime()
             else:
+                if self.config.realtime.in_lockstep:
+                    self._apply_lockstep_settings()
                 while not self._stop.is_set():  # the SYNC handler steps the plant, on this thread
                     self.drives.serve_until(time.monotonic() + _LOCKSTEP_WAKE_S)
                     self._publish_snapshot()
@@ -283,6 +285,11 @@ class TargetServer:
         """The start-up cost probe and warning, then this thread's real-time settings."""
         control_id = None if self._control is None else self._control.native_thread_id
         self.realtime_settings = start_realtime(self.plant, self.config, control_id)
+        self._publish_snapshot()
+
+    def _apply_lockstep_settings(self) -> None:
+        control_id = None if self._control is None else self._control.native_thread_id
+        self.realtime_settings = start_lockstep(self.config, control_id)
         self._publish_snapshot()
 
     def stop(self) -> None:

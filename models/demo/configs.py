@@ -27,6 +27,7 @@ def target_config(options: DemoOptions, period_s: float, bus_dir: Path, control_
             target_substeps(options),
             realism=options.realism,
             realtime_cpus=options.cpus if options.realtime else None,
+            lockstep_fifo=not options.realtime,
             bus={"interface": "ipc", "channel": str(bus_dir)},
             control_socket=control_socket,
         ),
@@ -57,7 +58,7 @@ def runtime_config(
     loop = (
         lab.realtime_loop(duration_s, options.cpus, stats["stats_window"], stats_interval_s=1.0, lock_memory=True)
         if options.realtime
-        else lab.lockstep_loop(**stats, duration_s=duration_s)
+        else lab.lockstep_loop(**stats, duration_s=duration_s, fifo_priority=lab.FIFO_PRIORITY)
     )
     return lab.runtime_config(
         robot.name,

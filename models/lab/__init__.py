@@ -12,6 +12,7 @@ its controller manager.
 - :mod:`models.lab.runs`: one HIL run of the experiment on a launched target (a runtime built by
   :func:`hil_runtime.factory.build_runtime`, its fault classified by :class:`FaultKind`)
 - :mod:`models.lab.processes`: the demo's child processes, their signals, the private directory
+- :mod:`models.lab.deploy`: ``hil config runtime``, a deployment config from a bundle and a drive table
 - :mod:`models.lab.faults`: the fault campaign
 
 Only this package may import ``drivers`` and the runtime beyond its public client APIs (the guard:

@@ -109,13 +109,15 @@ def target_config(
     *,
     realism: str | None = None,
     realtime_cpus: str | None = None,
+    lockstep_fifo: bool = False,
     initial_position_rad: Sequence[float] | None = None,
     bus: Mapping[str, Any] | None = None,
     control_socket: Path | None = None,
     **extra: Any,
 ) -> dict[str, Any]:
     """``hil target serve``'s config (sim_target/config.py): lock-stepped unless ``realtime_cpus``
-    (then free-running, its physics on the target's CPU of ``split_cpus``); ``realism`` a profile
+    (then free-running, its physics on the target's CPU of ``split_cpus``; ``lockstep_fifo``: lock-step
+    with SCHED_FIFO on the thread serving the SYNCs, docs/target.md); ``realism`` a profile
     name or a file (resolved: the target may run in another directory); ``bus`` over the default
     (virtual, CAN FD; :func:`sim_target.launch.launch_target` sets the channel)."""
     from sim_target.launch import target_config_dict
@@ -134,6 +136,8 @@ def target_config(
 
         data["clock"] = "realtime"
         data["realtime"] = {"cpus": split_cpus(realtime_cpus)[1]}
+    elif lockstep_fifo:
+        data["realtime"] = {"in_lockstep": True, "fifo_priority": FIFO_PRIORITY}
     return data
 
 

@@ -213,3 +213,13 @@ def test_a_seven_joint_arm_gets_a_bus_that_carries_it(panda: RobotModel) -> None
         assert target.transport["data_bitrate"] == 8_000_000  # the runtime's end of the same bus
     six = target_robot_config(load_robot("ur5"), target_config("ur5", 1e-3, 4))
     assert six["bus"]["data_bitrate"] == 5_000_000  # six drives: unchanged
+
+
+def test_random_conditions_stay_inside_an_asymmetric_range(panda: RobotModel) -> None:
+    """The dataset's draws (``hil pipeline --design paper``): around the home pose, inside the range."""
+    from models.conditions import random_conditions
+
+    for c in random_conditions(panda, 40, 3):
+        c.check_limits(panda)
+    paper = load_robot("ur5_paper")
+    assert all(c.offset_rad is None for c in random_conditions(paper, 3, 3))  # ur5_paper: around 0 as before

@@ -155,3 +155,28 @@ def test_cpus_are_split_apart_or_refused_with_one_line() -> None:
         split_cpus("1")
     with pytest.raises(ValueError, match="--cpus: CPU 999 is not one this process may use"):
         split_cpus(f"999,{available[0]}")
+
+
+@pytest.mark.parametrize("in_lockstep", [False, True])
+def test_lockstep_applies_the_realtime_settings_only_when_asked(in_lockstep: bool) -> None:
+    import os
+
+    cpu = sorted(os.sched_getaffinity(0))[-1]
+    realtime = {"fifo_priority": 0, "lock_memory": False, "cpus": [cpu], "in_lockstep": in_lockstep}
+    server = _server(clock="lockstep", realtime=realtime)  # SCHED_FIFO and mlockall: not for pytest
+    seen: list[set[int]] = []
+
+    def probe(deadline_s: float, return_on_sync: bool = False) -> None:  # on the serving thread
+        seen.append(os.sched_getaffinity(0))
+        server.stop()
+
+    with mock.patch.object(server.drives, "serve_until", probe):
+        runner = threading.Thread(target=server.run)
+        runner.start()
+        runner.join(timeout=30)
+    assert seen
+    if in_lockstep:  # the thread serving the SYNCs took them, and the status says so
+        assert seen[0] == {cpu} and server.realtime_settings["applied"] == [f"CPU [{cpu}]"]
+        assert server.status()["realtime"]["refused"] == []
+    else:
+        assert server.realtime_settings == {}
