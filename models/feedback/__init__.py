@@ -72,11 +72,28 @@ def _adrc(
     )
 
 
-def _hinf(robot: RobotModel, period_s: float, alpha: Any = None, gravity_compensation: bool = True) -> FeedbackLaw:
+def _hinf(
+    robot: RobotModel,
+    period_s: float,
+    alpha: Any = None,
+    gravity_compensation: bool = True,
+    nominal_inertia_kg_m2: Any = None,
+    bandwidth_rad_s: Any = None,
+) -> FeedbackLaw:
     from models.feedback.hinf import PAPER_ALPHA, HinfLaw
 
     # alpha is uniform in the paper, so it fits any joint count.
-    return HinfLaw(robot, period_s, PAPER_ALPHA if alpha is None else alpha, gravity_compensation)
+    n = robot.n_joints
+    return HinfLaw(
+        robot,
+        period_s,
+        PAPER_ALPHA if alpha is None else alpha,
+        gravity_compensation,
+        None
+        if nominal_inertia_kg_m2 is None
+        else joint_vector("hinf", "nominal_inertia_kg_m2", nominal_inertia_kg_m2, n),
+        None if bandwidth_rad_s is None else joint_vector("hinf", "bandwidth_rad_s", bandwidth_rad_s, n),
+    )
 
 
 def _smc(
@@ -128,6 +145,7 @@ _FACTORIES: dict[str, Callable[..., FeedbackLaw]] = {
 }
 
 
+DESIGNED_GAIN_SET = "designed"
 #: Gain sets. "paper": Sec. IV-B values with our first readings. "stabilized" (the default): the
 #: same, except where those diverge on this model or do not tolerate the cyclic protocol's one period
 #: of measurement delay (free-running CiA 402: the torque from the sample of SYNC k acts from SYNC
@@ -148,6 +166,9 @@ GAIN_SETS: dict[str, dict[str, dict[str, Any]]] = {
             "inertia_bound_scale": 1.0,
         },
     },
+    # Designed from the robot's URDF for any serial revolute arm (models/feedback/design.py): computed
+    # by make_law, not stored here.
+    DESIGNED_GAIN_SET: {},
 }
 DEFAULT_GAIN_SET = "stabilized"
 #: The robot the paper's gains and every gain set were tuned for.
@@ -171,17 +192,22 @@ def make_law(
         raise ModelInputError(f"feedback law: unknown '{name}' (known: {', '.join(LAW_NAMES)})")
     if gain_set not in GAIN_SETS:
         raise ModelInputError(f"gain set: unknown '{gain_set}' (known: {', '.join(GAIN_SETS)})")
-    if robot.name == GAIN_SET_ROBOT:
+    if not (period_s > 0 and period_s < 1.0):
+        raise ModelInputError(f"feedback law '{name}': period_s must be in (0, 1) s, got {period_s}")
+    if gain_set == DESIGNED_GAIN_SET:
+        from models.feedback.design import design_law
+
+        gains = {**design_law(robot, name, period_s), **gains}
+    elif robot.name == GAIN_SET_ROBOT:
         gains = {**GAIN_SETS[gain_set].get(name, {}), **gains}
     else:  # the paper's gains on another arm would run silently and mean nothing there
         missing = [g for g in ROBOT_GAINS[name] if gains.get(g) is None]
         if missing:
             raise ModelInputError(
                 f"feedback law '{name}': gain set '{gain_set}' holds the gains of '{GAIN_SET_ROBOT}', not of robot "
-                f"'{robot.name}' ({robot.n_joints} joints); pass {', '.join(missing)} for it"
+                f"'{robot.name}' ({robot.n_joints} joints); pass {', '.join(missing)} for it, or use gain set "
+                f"'{DESIGNED_GAIN_SET}'"
             )
-    if not (period_s > 0 and period_s < 1.0):
-        raise ModelInputError(f"feedback law '{name}': period_s must be in (0, 1) s, got {period_s}")
     try:
         return _FACTORIES[name](robot, period_s, **gains)
     except TypeError as exc:
@@ -190,6 +216,7 @@ def make_law(
 
 __all__ = [
     "DEFAULT_GAIN_SET",
+    "DESIGNED_GAIN_SET",
     "GAIN_SETS",
     "GAIN_SET_ROBOT",
     "LAW_NAMES",

@@ -41,6 +41,9 @@ PAPER_ALPHA = 0.2
 PAPER_WS = (10.0, 1.0, 0.01)  # makeweight(dc gain, crossover rad/s, high-frequency gain)
 PAPER_WU = (0.1, 1.0, 10.0)
 PLANT_POLE_SHIFT_RAD_S = 1e-3
+#: The designed set's unit-plant pole shift (in units of the bandwidth): 0.1 w makes the synthesis give
+#: the loop a real static stiffness; 1e-3 leaves slow unstable modes on a coupled arm (docs/feedback_laws.md)
+SCALED_POLE_SHIFT = 0.1
 
 
 def makeweight_coefficients(dc_gain: float, crossover_rad_s: float, hf_gain: float) -> tuple[list[float], list[float]]:
@@ -91,10 +94,35 @@ def design_joint(
     alpha: float = PAPER_ALPHA,
     ws: tuple[float, float, float] = PAPER_WS,
     wu: tuple[float, float, float] = PAPER_WU,
+    bandwidth_rad_s: float | None = None,
 ) -> JointDesign:
+    """One joint's synthesis on 1 / (m (s + delta)^2), discretized at period_s.
+
+    With ``bandwidth_rad_s`` = w the synthesis runs on the unit plant (m = 1) with the same weights and
+    is scaled to K(s) = m w^2 K~(s / w): the unit design's loop (S, T) moved to crossover w, the effort
+    weight W_u read per unit of m w^2, the plant's poles at -SCALED_POLE_SHIFT w (the designed gain set,
+    models/feedback/design.py)."""
+    if bandwidth_rad_s is None:
+        gamma, order, (a, b, c, d) = _synthesize(inertia_kg_m2, alpha, ws, wu)
+    else:
+        gamma, order, (a, b, c, d) = _synthesize(1.0, alpha, ws, wu, SCALED_POLE_SHIFT)
+        w, gain = float(bandwidth_rad_s), float(inertia_kg_m2) * float(bandwidth_rad_s) ** 2
+        a, b, c, d = w * a, w * b, gain * c, gain * d
+    a, b, c, d = residualize_fast_modes(a, b, c, d, max_rad_s=0.2 * 2.0 / period_s)
+    ad, bd, cd, dd, _ = cont2discrete((a, b, c, d), period_s, method="bilinear")
+    return JointDesign(gamma, float(inertia_kg_m2), order, ad, bd, cd, dd)
+
+
+def _synthesize(
+    inertia_kg_m2: float,
+    alpha: float,
+    ws: tuple[float, float, float],
+    wu: tuple[float, float, float],
+    delta: float = PLANT_POLE_SHIFT_RAD_S,
+) -> tuple[float, int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """mixsyn on the joint's plant 1 / (m (s + delta)^2): (gamma, controller order, continuous (A, B, C, D))."""
     import control as ct
 
-    delta = PLANT_POLE_SHIFT_RAD_S
     plant = ct.tf([1.0], [inertia_kg_m2, 2 * inertia_kg_m2 * delta, inertia_kg_m2 * delta**2])
     weights = [ct.tf(*makeweight_coefficients(*ws)), ct.tf(*makeweight_coefficients(*wu)), ct.tf([alpha], [1.0])]
     with warnings.catch_warnings():
@@ -111,9 +139,7 @@ def design_joint(
     if np.any(np.real(closed_loop.poles()) >= 0):
         raise ModelInputError(f"law 'hinf': synthesized loop unstable for inertia {inertia_kg_m2:.3g}")
     k = ct.ss(controller)
-    a, b, c, d = residualize_fast_modes(k.A, k.B, k.C, k.D, max_rad_s=0.2 * 2.0 / period_s)
-    ad, bd, cd, dd, _ = cont2discrete((a, b, c, d), period_s, method="bilinear")
-    return JointDesign(float(info[0]), float(inertia_kg_m2), k.nstates, ad, bd, cd, dd)
+    return float(info[0]), int(k.nstates), (np.asarray(k.A), np.asarray(k.B), np.asarray(k.C), np.asarray(k.D))
 
 
 class HinfLaw(FeedbackLaw):
@@ -125,13 +151,29 @@ class HinfLaw(FeedbackLaw):
         period_s: float,
         alpha: np.ndarray | float = PAPER_ALPHA,
         gravity_compensation: bool = True,
+        nominal_inertia_kg_m2: np.ndarray | None = None,
+        bandwidth_rad_s: np.ndarray | None = None,
     ) -> None:
+        """``nominal_inertia_kg_m2`` (default diag M^(q = 0)) and ``bandwidth_rad_s`` (default: the paper's
+        weights as they are, on the physical plant) per joint: see ``design_joint``."""
         super().__init__(robot.n_joints, period_s, robot.torque_limit_nm)
-        self.alpha = np.broadcast_to(np.asarray(alpha, float), (robot.n_joints,)).copy()
+        n = robot.n_joints
+        self.alpha = np.broadcast_to(np.asarray(alpha, float), (n,)).copy()
         self.gravity_compensation = gravity_compensation
         self.nominal = NominalModel(robot)
-        inertia = self.nominal.mass_matrix_diagonal(np.zeros(robot.n_joints))
-        self.designs = [design_joint(m, self.period_s, a) for m, a in zip(inertia, self.alpha, strict=True)]
+        inertia = (
+            self.nominal.mass_matrix_diagonal(np.zeros(n))
+            if nominal_inertia_kg_m2 is None
+            else np.broadcast_to(np.asarray(nominal_inertia_kg_m2, float), (n,))
+        )
+        bandwidth = [None] * n if bandwidth_rad_s is None else np.broadcast_to(np.asarray(bandwidth_rad_s, float), (n,))
+        if np.any(inertia <= 0) or (bandwidth_rad_s is not None and not np.all(np.asarray(bandwidth, float) > 0)):
+            raise ModelInputError("law 'hinf': nominal inertias and bandwidths must be positive")
+        self.bandwidth_rad_s = None if bandwidth_rad_s is None else np.asarray(bandwidth, float)
+        self.designs = [
+            design_joint(m, self.period_s, a, bandwidth_rad_s=None if w is None else float(w))
+            for m, a, w in zip(inertia, self.alpha, bandwidth, strict=True)
+        ]
         orders = [j.a.shape[0] for j in self.designs]
         nx, n = sum(orders), robot.n_joints
         self.ad, self.bd, self.cd, self.dd = np.zeros((nx, nx)), np.zeros((nx, n)), np.zeros((n, nx)), np.zeros((n, n))
@@ -163,6 +205,7 @@ class HinfLaw(FeedbackLaw):
             "wu": list(PAPER_WU),
             "gamma": self.gammas,
             "nominal_inertia_kg_m2": [j.inertia_kg_m2 for j in self.designs],
+            **({} if self.bandwidth_rad_s is None else {"bandwidth_rad_s": self.bandwidth_rad_s.tolist()}),
             "plant_pole_shift_rad_s": PLANT_POLE_SHIFT_RAD_S,
             "discretization": "tustin",
             "gravity_compensation": self.gravity_compensation,

@@ -20,6 +20,7 @@ from models.errors import ModelInputError
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 _MOVING = {"revolute", "continuous"}
+_FLOATING = {"floating", "planar"}
 
 
 def _example_robot_data_dir() -> Path:
@@ -206,6 +207,34 @@ def _link_inertial(path: Path, link: ET.Element) -> tuple[float, np.ndarray, np.
     return mass, com, rotation @ tensor @ rotation.T
 
 
+def _check_moves_inertia(
+    path: Path,
+    chain_joints: list[ET.Element],
+    bodies: list[tuple[float, np.ndarray, np.ndarray]],
+    rotations: list[np.ndarray],
+    translations: list[np.ndarray],
+    axes: list[np.ndarray],
+) -> None:
+    """Refuse a joint that moves no inertia at q = 0 (zero mass and inertia after it): the mass matrix
+    would be singular, and the forward dynamics, the laws and pinocchio would divide by zero."""
+    world_r, world_p = np.eye(3), np.zeros(3)
+    frames = []
+    for rotation, translation in zip(rotations, translations, strict=True):  # body frames at q = 0
+        world_p, world_r = world_r @ translation + world_p, world_r @ rotation
+        frames.append((world_r, world_p))
+    for i, joint in enumerate(chain_joints):
+        axis, origin = frames[i][0] @ axes[i], frames[i][1]
+        moved = 0.0
+        for (mass, com, inertia), (r, p) in zip(bodies[i:], frames[i:], strict=True):
+            offset = np.cross(axis, r @ com + p - origin)
+            moved += float(axis @ r @ inertia @ r.T @ axis) + mass * float(offset @ offset)
+        if not moved > 1e-12:
+            raise ModelInputError(
+                f"{path.name}: joint '{joint.get('name')}' moves no inertia (zero mass and inertia on the links "
+                f"after it): the mass matrix would be singular"
+            )
+
+
 def _parse_urdf(path: Path) -> tuple[ET.Element, dict[str, ET.Element], list[ET.Element]]:
     if not path.is_file():
         raise ModelInputError(f"{path}: file not found")
@@ -260,7 +289,20 @@ def load_robot(name_or_path: str | Path, ee_link: str | None = None) -> RobotMod
 def _chain_from_urdf(
     path: Path, name: str, links: dict[str, ET.Element], joints: list[ET.Element], ee_link: str | None
 ) -> RobotModel:
-    child_joint = {_joint_link(path, j, "child"): j for j in joints}
+    child_joint: dict[str, ET.Element] = {}
+    for j in joints:
+        if j.get("type") in _FLOATING:
+            raise ModelInputError(
+                f"{path.name}: joint '{j.get('name')}' type '{j.get('type')}': a floating base is not supported "
+                "(fix the arm's base link to the world)"
+            )
+        child = _joint_link(path, j, "child")
+        if child in child_joint:  # a URDF is a tree: a second parent closes a loop
+            raise ModelInputError(
+                f"{path.name}: link '{child}' is the child of joints '{child_joint[child].get('name')}' and "
+                f"'{j.get('name')}': a closed chain (only serial arms are supported)"
+            )
+        child_joint[child] = j
     roots = [link for link in links if link not in child_joint]
     if len(roots) != 1:
         raise ModelInputError(f"{path.name}: expected one root link, found {len(roots)} ({', '.join(roots[:4])})")
@@ -346,23 +388,31 @@ def _chain_from_urdf(
         if np.linalg.norm(axis) < 1e-12:
             raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <axis> xyz: zero vector")
         axes.append(axis / np.linalg.norm(axis))
-        limit = joint.find("limit")
-        if limit is None and joint.get("type") == "revolute":  # URDF requires it; NaN limits otherwise
+        if joint.find("mimic") is not None:  # it would move with another joint, not as its own DOF
             raise ModelInputError(
-                f"{path.name}: joint '{joint.get('name')}' <limit>: missing "
-                "(a revolute joint needs lower, upper, effort and velocity)"
+                f"{path.name}: joint '{joint.get('name')}' <mimic>: a mimic joint on the arm's chain is not supported "
+                "(mimic joints off the chain, e.g. fingers, are locked)"
             )
-        lower = float(_floats(path, limit, "lower", "0", 1)[0]) if limit is not None else -math.inf
-        upper = float(_floats(path, limit, "upper", "0", 1)[0]) if limit is not None else math.inf
-        if joint.get("type") == "continuous":
+        limit = joint.find("limit")
+        if limit is None:  # URDF requires it for revolute; the runtime saturates to effort and velocity
+            needs = "lower, upper, effort and velocity" if joint.get("type") == "revolute" else "effort and velocity"
+            raise ModelInputError(
+                f"{path.name}: joint '{joint.get('name')}' <limit>: missing (a {joint.get('type')} joint needs {needs})"
+            )
+        for attribute in ("effort", "velocity") + (("lower", "upper") if joint.get("type") == "revolute" else ()):
+            if limit.get(attribute) is None:
+                raise ModelInputError(f"{path.name}: joint '{joint.get('name')}' <limit> {attribute}: missing")
+        lower = float(_floats(path, limit, "lower", "0", 1)[0])
+        upper = float(_floats(path, limit, "upper", "0", 1)[0])
+        if joint.get("type") == "continuous":  # treated as unbounded in position (docs/robots.md)
             lower, upper = -math.inf, math.inf
         elif lower > upper:
             raise ModelInputError(
                 f"{path.name}: joint '{joint.get('name')}' <limit>: lower {lower:g} above upper {upper:g}"
             )
         pos_range.append((lower, upper))
-        velocity = float(_floats(path, limit, "velocity", "inf", 1)[0]) if limit is not None else math.inf
-        effort = float(_floats(path, limit, "effort", "inf", 1)[0]) if limit is not None else math.inf
+        velocity = float(_floats(path, limit, "velocity", None, 1)[0])
+        effort = float(_floats(path, limit, "effort", None, 1)[0])
         if velocity <= 0 or effort <= 0:
             raise ModelInputError(
                 f"{path.name}: joint '{joint.get('name')}' <limit>: velocity and effort must be positive"
@@ -370,6 +420,7 @@ def _chain_from_urdf(
         vel_lim.append(velocity)
         tau_lim.append(effort)
 
+    _check_moves_inertia(path, chain_joints, merged, rotations, translations, axes)
     ee_rotation, ee_translation = np.eye(3), np.zeros(3)
     if ee_link is not None:
         if ee_link not in body_of or body_of[ee_link][0] != n - 1:

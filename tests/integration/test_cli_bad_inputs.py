@@ -208,6 +208,50 @@ CASES: list[Case] = [
     ),
     _urdf_case("urdf-negative-inertia", _urdf(r'ixx="', 'ixx="-'), "<inertia> ixx: negative"),
     _urdf_case("urdf-binary", b"\x89PNG\r\n\x1a\n\x00\x00", "not valid XML"),
+    # issue 25 item 4: shapes of URDF the loader refuses (continuous joints are treated as unbounded)
+    _urdf_case(
+        "urdf-floating-base",
+        _urdf(
+            r'<link name="base_link"/>',
+            '<link name="world"/><joint name="free" type="floating"><parent link="world"/>'
+            '<child link="base_link"/></joint><link name="base_link"/>',
+        ),
+        "joint 'free' type 'floating': a floating base is not supported",
+    ),
+    _urdf_case(
+        "urdf-closed-chain",
+        _urdf(
+            r'<link name="base_link"/>',
+            '<link name="base_link"/><joint name="strut" type="fixed"><parent link="base_link"/>'
+            '<child link="forearm_link"/></joint>',
+        ),
+        "link 'forearm_link' is the child of joints 'strut' and 'elbow_joint': a closed chain",
+    ),
+    _urdf_case(
+        "urdf-mimic",
+        _urdf(r'(<joint name="elbow_joint" type="revolute">)', r'\1<mimic joint="shoulder_lift_joint"/>'),
+        "joint 'elbow_joint' <mimic>",
+    ),
+    _urdf_case(
+        "urdf-continuous-no-limit",
+        _urdf(r'(<joint name="elbow_joint" type=)"revolute"(.*?)<limit [^>]*/>', r'\1"continuous"\2'),
+        "joint 'elbow_joint' <limit>: missing",
+    ),
+    _urdf_case(
+        "urdf-massless-tail",
+        _urdf(
+            r'<mass value="0.4"/>\s*<inertia [^>]*/>',
+            '<mass value="0"/><inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/>',
+        ),
+        "joint 'wrist_3_joint' moves no inertia",
+    ),
+    _urdf_case("urdf-no-effort", _urdf(r'effort="102" ', ""), "joint 'shoulder_pan_joint' <limit> effort: missing"),
+    _target_case(
+        "target-unknown-joint",
+        {"t.yaml": FD + "plant: {joint_names: [shoulder_pan_joint, thumb_joint]}\n"},
+        "plant.joint_names",
+        "thumb_joint",
+    ),
     # target configs
     _target_case(
         "target-q0-outside",

@@ -3,6 +3,8 @@ of delay from the paper's elbow gain (docs/feedback_laws.md, "Delay margin")."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -76,3 +78,14 @@ def test_stabilized_adrc_holds_and_the_papers_omega_c_does_not() -> None:
 def test_nonlinear_laws_are_refused_by_the_linear_check() -> None:
     with pytest.raises(ModelInputError, match="law 'smc'.*simulation"):
         delay_margin(make_law("smc", ROBOT), ROBOT, 1, poses=POSES[:2])
+
+
+def test_hil_stability_prints_the_delay_margin(capsys: pytest.CaptureFixture[str]) -> None:
+    from hil_runtime.cli import main
+
+    assert main(["stability", "pd", "--gains", "paper", "--stride", "500", "--poses", "100"]) == 0
+    out = capsys.readouterr().out
+    assert "Theorem 1 for pd" in out
+    assert re.search(r"Delay margin \(1 period\(s\), linear, 100 envelope poses\): FAILS; unstable poses \d+", out)
+    assert main(["stability", "pd", "--stride", "500", "--poses", "100"]) == 0  # the stabilized set holds
+    assert "envelope poses): holds" in capsys.readouterr().out
