@@ -4,7 +4,7 @@ and the smoothness weight (c_d dt^2 |M(q)^-1 (tau_j - tau_{j-1})|^2), under a re
 absolute (paper) and the anchored formulations. Prints JSON; writes the plot (docs/hmpc.md).
 
     python benchmarks/sweep_hmpc.py [--laws pd] [--realism realistic] [--effort 1 3 10 30 100]
-        [--rate 0 1 10 100] [--plot docs/figures/hmpc_weight_sweep.png] [--out FILE.json]
+        [--rate 0 1 100] [--duration-s 5] [--plot docs/figures/hmpc_weight_sweep.png] [--out FILE.json]
 
 Each point is one ``run_experiment`` (FB and HMPC on the paper's five conditions, one seeded world).
 """
@@ -16,6 +16,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +31,10 @@ from models.robots import load_robot
 DEPLOYABLE = FORMULATIONS["deployable"]
 
 
-def point(robot: Any, laws: tuple[str, ...], realism: str, label: str, options: dict[str, Any]) -> list[dict]:
-    conditions = load_conditions(None, robot=robot)
+def point(
+    robot: Any, laws: tuple[str, ...], realism: str, label: str, options: dict[str, Any], duration_s: float = 5.0
+) -> list[dict]:
+    conditions = [replace(c, duration_s=duration_s) for c in load_conditions(None, robot=robot)]
     config = ExperimentConfig(
         laws=laws, modes=("fb", "hmpc"), timing_cycles=20, save_trajectories=False, plots=False, realism=realism
     )
@@ -69,19 +72,26 @@ def sweep(args: argparse.Namespace) -> dict[str, Any]:
     laws = tuple(args.laws.split(","))
     started = time.monotonic()
     rows: list[dict] = []
+    world, seconds = args.realism, args.duration_s
     for c in args.effort:
-        rows += point(robot, laws, args.realism, f"effort c={c:g}", {**DEPLOYABLE, "anchor_weight_scale": c})
+        rows += point(robot, laws, world, f"effort c={c:g}", {**DEPLOYABLE, "anchor_weight_scale": c}, seconds)
     for w in args.rate:
-        rows += point(robot, laws, args.realism, f"smoothness c_d={w:g}", {**DEPLOYABLE, "rate_weight_scale": w})
-    rows += point(robot, laws, args.realism, "absolute (paper)", {})
-    rows += point(robot, laws, args.realism, "anchored c=10", {"torque_cost": "anchored"})
+        rows += point(robot, laws, world, f"smoothness c_d={w:g}", {**DEPLOYABLE, "rate_weight_scale": w}, seconds)
+    rows += point(robot, laws, world, "absolute (paper)", {}, seconds)
+    rows += point(robot, laws, world, "anchored c=10", {"torque_cost": "anchored"}, seconds)
     rows += point(
-        robot, laws, args.realism, "anchored c=10 + smoothness + rate bound", {**DEPLOYABLE, "torque_cost": "anchored"}
+        robot,
+        laws,
+        world,
+        "anchored c=10 + smoothness + rate bound",
+        {**DEPLOYABLE, "torque_cost": "anchored"},
+        seconds,
     )
     return {
         "benchmark": "sweep_hmpc",
         "realism": args.realism,
         "laws": list(laws),
+        "duration_s": seconds,
         "deployable_options": DEPLOYABLE,
         "rows": rows,
         "wall_s": round(time.monotonic() - started, 1),
@@ -97,12 +107,22 @@ def plot(result: dict[str, Any], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, prefix, key, name in (
-        (axes[0], "effort c=", "anchor_weight_scale", "effort weight c (W2a = c dt² / M_ii(0)²)"),
-        (axes[1], "smoothness c_d=", "rate_weight_scale", "smoothness weight c_d (c_d dt² |M⁻¹ Δτ|²)"),
+    for ax, key, other, name in (
+        (axes[0], "anchor_weight_scale", "rate_weight_scale", "effort weight c (W2a = c dt² / M_ii(0)²)"),
+        (axes[1], "rate_weight_scale", "anchor_weight_scale", "smoothness weight c_d (c_d dt² |M⁻¹ Δτ|², 0 at 0.1)"),
     ):
         for law in result["laws"]:
-            rows = [r for r in result["rows"] if r["law"] == law and r["label"].startswith(prefix)]
+            # the feed-forward family with the other weight at the shipped value, by this weight
+            rows = sorted(
+                (
+                    r
+                    for r in result["rows"]
+                    if r["law"] == law
+                    and r["options"].get("torque_cost") == "feedforward"
+                    and r["options"].get(other) == DEPLOYABLE[other]
+                ),
+                key=lambda r: r["options"][key],
+            )
             x = [max(r["options"][key], 0.1) for r in rows]
             ax.plot(x, [100 * (r["eta"] or np.nan) for r in rows], "o-", label=f"{law} η paper")
             ax.plot(x, [100 * (r["eta_effort"] or np.nan) for r in rows], "s--", label=f"{law} η effort")
@@ -112,7 +132,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
             for xi, r in zip(x, rows, strict=True):
                 ax.annotate(f"{r['deployable']}/{r['runs']}", (xi, 100 * (r["eta"] or 0.0)), fontsize=7)
         ax.set_xscale("log")
-        ax.set_xlabel(name + " (0 plotted at 0.1)" if prefix.startswith("smooth") else name)
+        ax.set_xlabel(name)
         ax.set_ylabel("η (%)")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7, loc="lower left")
@@ -130,6 +150,9 @@ def main() -> None:
     parser.add_argument("--rate", type=float, nargs="*", default=[0.0, 1.0, 100.0])
     parser.add_argument("--plot", type=Path, default=Path("docs/figures/hmpc_weight_sweep.png"))
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "--duration-s", type=float, default=5.0, help="each paper condition cut to this (impulse at 2 s)"
+    )
     args = parser.parse_args()
     result = sweep(args)
     if args.out is not None:
