@@ -73,7 +73,9 @@ def _stats(wall_ms: np.ndarray, cpu_ms: np.ndarray) -> dict:
     }
 
 
-def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto") -> dict:
+def cycle_times(
+    robot_name: str, cycles: int, backend: str, kernels: str = "auto", formulation: str = "absolute"
+) -> dict:
     from models.conditions import Condition, load_conditions
     from models.feedback import make_law
     from models.feedback.pd import PDLaw
@@ -82,7 +84,9 @@ def cycle_times(robot_name: str, cycles: int, backend: str, kernels: str = "auto
 
     robot = load_robot(robot_name)
     dt = 1e-3
-    options: dict = {"backend": backend, "kernels": kernels}
+    from models.hmpc.config import FORMULATIONS
+
+    options: dict = {"backend": backend, "kernels": kernels, **FORMULATIONS[formulation]}
     if robot_name == "ur5_paper":
         conditions = [replace(c, duration_s=cycles * dt) for c in load_conditions(robot=robot)]
         make = partial(make_law, "pd", robot, dt)
@@ -215,10 +219,18 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--kernels", default="auto", choices=("auto", "numba", "numpy"))
     parser.add_argument("--skip", nargs="*", default=[], choices=("ur5", "panda", "rne", "batch"))
+    parser.add_argument(
+        "--formulation",
+        nargs="*",
+        default=["absolute"],
+        help="HMPC formulations timed per cycle, interleaved in one run (models.hmpc.config.FORMULATIONS)",
+    )
     args = parser.parse_args()
     result: dict = {"machine": benchinfo.machine("numpy", "scipy", "pin", "numba"), "cycle": []}
     if "ur5" not in args.skip:
-        result["cycle"].append(cycle_times("ur5_paper", args.cycles, "pinocchio", args.kernels))
+        for formulation in args.formulation:
+            row = cycle_times("ur5_paper", args.cycles, "pinocchio", args.kernels, formulation)
+            result["cycle"].append({**row, "formulation": formulation})
     if "panda" not in args.skip:
         result["cycle"].append(cycle_times("panda", args.cycles, "pinocchio", args.kernels))
     if "rne" not in args.skip:

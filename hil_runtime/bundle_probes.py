@@ -67,7 +67,40 @@ def check_graph(manifest: Manifest, run_rows: RunRows, manifest_path: Path) -> n
             f"'{manifest.law.name}', or was changed"
         )
     sat_y = run_rows(saturation_probe_inputs(manifest))
-    return _check_saturation(manifest, manifest_path, np.concatenate([y, sat_y]), sat_y)
+    joints = _check_saturation(manifest, manifest_path, np.concatenate([y, sat_y]), sat_y)
+    bound = probes.position_sensitivity_nm_per_mrad
+    if bound is not None:
+        if len(bound) != manifest.robot.n_joints or not all(np.isfinite(bound)) or min(bound) < 0:
+            raise GraphCheckError(
+                f"bundle {manifest_path}: probes.position_sensitivity_nm_per_mrad: needs "
+                f"{manifest.robot.n_joints} finite values >= 0"
+            )
+        measured = position_sensitivity(manifest, run_rows, x)
+        worst = int(np.argmax(measured - np.asarray(bound)))
+        if measured[worst] > bound[worst] * (1 + PROBE_RTOL) + probes.atol:
+            raise GraphCheckError(
+                f"bundle {manifest_path}: probes.position_sensitivity_nm_per_mrad: the graph turns 1 mrad of "
+                f"position error into {measured[worst]:.3g} N m on joint {worst + 1} (bound {bound[worst]:.3g})"
+            )
+    return joints
+
+
+SENSITIVITY_STEP_RAD = 1e-3  # the measurement error the sensitivity is stated for (1 mrad)
+
+
+def position_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -> np.ndarray:
+    """Per joint i: max over the rows x and the joints j of |tau_i(q + 1 mrad e_j) - tau_i(q)|, N m per
+    mrad: what one encoder's error of 1 mrad does to the commanded torque (the law's state kept)."""
+    n = manifest.robot.n_joints
+    base = run_rows(x)[:, :n]
+    worst = np.zeros(n)
+    for j in range(n):
+        for sign in (1.0, -1.0):
+            moved = x.copy()
+            moved[:, j] += sign * SENSITIVITY_STEP_RAD
+            change = np.abs(run_rows(moved)[:, :n] - base)
+            worst = np.maximum(worst, np.nanmax(np.where(np.isfinite(change), change, np.inf), 0))
+    return worst
 
 
 def _check_saturation(manifest: Manifest, manifest_path: Path, y: np.ndarray, sat_y: np.ndarray) -> np.ndarray:
@@ -256,6 +289,7 @@ def probe_section(manifest: Manifest, run_rows: RunRows, where: str, count: int 
     return {
         "inputs": x.tolist(),
         "outputs": y.tolist(),
+        "position_sensitivity_nm_per_mrad": position_sensitivity(manifest, run_rows, x).tolist(),
         "atol": 1e-6,
         "note": "graph inputs (hil_runtime.bundle_probes.make_probe_inputs, clamp_probe_inputs) and the "
         "exporter's onnxruntime outputs; the loader reruns them (atol + 1e-6 relative)",

@@ -151,6 +151,9 @@ class Probes(_Strict):
     outputs: list[list[float]] = Field(min_length=1, max_length=MAX_PROBE_ROWS)
     atol: float = Field(1e-6, gt=0, le=PROBE_ATOL_MAX)  # N m, plus rtol 1e-6: another CPU's BLAS
     note: str = ""
+    # per joint: the largest torque change (N m) 1 mrad of error on one measured joint position makes on the
+    # probe rows (hil_runtime.bundle_probes.position_sensitivity); the loader refuses a graph above it
+    position_sensitivity_nm_per_mrad: list[float] | None = None
 
 
 class Signature(_Strict):

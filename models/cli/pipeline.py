@@ -53,12 +53,13 @@ def pipeline(
         str,
         typer.Option(
             help="'structured' (nominal feed-forward in the graph + bounded residual; docs/lmpc.md section 9; "
-            "its own stages: rollouts, relabel, fit, export) or 'paper' (Eq. 22 MLP, Theorem 2; the stages above)."
+            "its own stages: rollouts, relabel, fit, export; the default) or 'paper' (Eq. 22 MLP, Theorem 2; the "
+            "stages above)."
         ),
-    ] = "paper",
+    ] = "structured",
     hmpc_formulation: Annotated[
-        str, typer.Option(help="The HMPC imitated: 'absolute' or 'anchored' (docs/hmpc.md).")
-    ] = "absolute",
+        str, typer.Option(help="The HMPC imitated: 'absolute', 'anchored' or 'deployable' (docs/hmpc.md).")
+    ] = "deployable",
     target: Annotated[
         str, typer.Option(help="Structured design: 'hmpc', or 'law' (the control row: imitate the law itself).")
     ] = "hmpc",
@@ -81,8 +82,16 @@ def pipeline(
     if workers is not None and workers < 1:
         raise ModelInputError(f"--workers: must be >= 1, got {workers}")
     one_of(design, ("paper", "structured"), "--design")
-    one_of(hmpc_formulation, ("absolute", "anchored"), "--hmpc-formulation")
+    from models.hmpc.config import FORMULATIONS
+
+    one_of(hmpc_formulation, tuple(FORMULATIONS), "--hmpc-formulation")
     law_list = split_names(laws, LAW_NAMES, "laws")
+    stage_list = split_names(stages, STAGES, "stages")
+    if design == "structured" and stage_list != STAGES:
+        raise ModelInputError(
+            "--stages: the stages of --design paper (the structured design, the default, runs rollouts, relabel, "
+            "fit and export)"
+        )
     from models.robot_target import robot_spec
     from models.robots import load_robot
 
@@ -121,7 +130,6 @@ def pipeline(
 
     from models.lmpc.pipeline import PipelineConfig, run_pipeline
 
-    stage_list = split_names(stages, STAGES, "stages")
     one_of(lipschitz, ("zero", "estimate"), "--lipschitz")
     if conditions < 2:
         raise ModelInputError(f"--conditions: need >= 2 (a pool and held-out ones), got {conditions}")
@@ -201,7 +209,9 @@ def _structured(
     from models.lmpc.structured import C_FIXED, PERTURBATION, StructuredConfig, run_structured
 
     torch.set_num_threads(1)
-    options = {} if formulation == "absolute" else {"torque_cost": formulation}
+    from models.hmpc.config import FORMULATIONS
+
+    options = dict(FORMULATIONS[formulation])
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(
         robot=robot,

@@ -12,9 +12,27 @@ from models.errors import ModelInputError
 
 PAPER_CANDIDATE_SCALES = tuple(round(0.5 + 0.1 * i, 1) for i in range(11))  # w_sel = [0.5:0.1:1.5]
 BUDGET_POLICIES = ("fallback", "best_iterate")
-#: W2's argument: "absolute" (the paper's tau' W2 tau) or "anchored" ((tau - w* tau_fb)' W2a (tau - w* tau_fb))
-TORQUE_COSTS = ("absolute", "anchored")
+#: W2's argument: "absolute" (the paper's tau' W2 tau), "anchored" ((tau - w* tau_fb)' W2a (tau - w* tau_fb)) or
+#: "feedforward" ((tau - tau_ff)' W2a (tau - tau_ff), tau_ff = ID(q, qd, qdd_d): the feedback effort)
+TORQUE_COSTS = ("absolute", "anchored", "feedforward")
 KERNELS = ("auto", "numba", "numpy")
+#: the applied torque's rate bound: "none", or "franka": libfranka's kMaxTorqueRate (1000 N m/s on its
+#: 87 N m joints) scaled by each joint's torque limit (models.effort.max_torque_step_nm, docs/scoring.md)
+RATE_LIMITS = ("none", "franka")
+#: Named HMPC formulations (``hil experiment --hmpc-formulation``, ``hil pipeline --hmpc-formulation``):
+#: HMPCConfig options. "deployable" is the one a real arm can run (docs/hmpc.md, "Effort and smoothness"):
+#: W2a = 10 dt^2 / M_ii(0)^2 on the torque beyond the model's feed-forward, a smoothness weight on the
+#: acceleration change tau_j - tau_{j-1} makes and libfranka's rate bound.
+FORMULATIONS: dict[str, dict[str, Any]] = {
+    "absolute": {},
+    "anchored": {"torque_cost": "anchored"},
+    "deployable": {
+        "torque_cost": "feedforward",
+        "anchor_weight_scale": 10.0,
+        "rate_weight_scale": 10.0,
+        "torque_rate_limit": "franka",
+    },
+}
 
 Weight = float | tuple[float, ...]
 
@@ -47,7 +65,15 @@ class HMPCConfig:
     # load; a large W2 would pull the arm off the reference to save holding torque.
     torque_weight: Weight = 1.0e-6  # 1/(N m)^2
     torque_cost: str = "absolute"  # TORQUE_COSTS
-    anchor_weight_scale: float = 10.0  # c in W2a_i = c dt^2 / M_ii(0)^2 (anchored only)
+    anchor_weight_scale: float = 10.0  # c in W2a_i = c dt^2 / M_ii(0)^2 (anchored and feedforward)
+    # Smoothness (docs/hmpc.md, "Effort and smoothness"): sum_j w_j (tau_j - tau_{j-1})' Wd (tau_j - tau_{j-1}),
+    # tau_0 = the torque applied last cycle, Wd_i = rate_weight_scale * dt^2 / M_ii(0)^2 (a torque change
+    # that changes joint i's acceleration by da costs rate_weight_scale * (dt da)^2 on every joint alike).
+    rate_weight_scale: float = 0.0
+    # Effort: W2 on tau per joint = torque_weight + effort_weight_scale / limit_i^2 (a torque at the limit
+    # costs effort_weight_scale on every joint alike).
+    effort_weight_scale: float = 0.0
+    torque_rate_limit: str = "none"  # RATE_LIMITS: a hard bound on |tau_1 - tau_0| (and j x it on tau_j)
     state_bound_weight: float = 1.0e6  # quadratic penalty on |q| > limit, |qd| > limit (soft bounds)
     use_state_bounds: bool = True
     position_limit_rad: tuple[float, ...] | None = None  # None: the robot's (Sec. IV-C) limits
@@ -84,7 +110,15 @@ class HMPCConfig:
         scales = np.asarray(self.candidate_scales, float)
         if scales.ndim != 1 or scales.size == 0 or not np.all(np.isfinite(scales)):
             fail("candidate_scales", "must be a non-empty list of finite numbers", self.candidate_scales)
-        for name in ("temporal_decay", "extra_feature_weight", "state_bound_weight", "cost_atol", "damping"):
+        for name in (
+            "temporal_decay",
+            "extra_feature_weight",
+            "state_bound_weight",
+            "cost_atol",
+            "damping",
+            "rate_weight_scale",
+            "effort_weight_scale",
+        ):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 fail(name, "must be a finite number >= 0", value)
@@ -110,6 +144,8 @@ class HMPCConfig:
             fail("on_budget_exhausted", f"must be one of {', '.join(BUDGET_POLICIES)}", self.on_budget_exhausted)
         if self.torque_cost not in TORQUE_COSTS:
             fail("torque_cost", f"must be one of {', '.join(TORQUE_COSTS)}", self.torque_cost)
+        if self.torque_rate_limit not in RATE_LIMITS:
+            fail("torque_rate_limit", f"must be one of {', '.join(RATE_LIMITS)}", self.torque_rate_limit)
         if self.kernels not in KERNELS:
             fail("kernels", f"must be one of {', '.join(KERNELS)}", self.kernels)
         if not isinstance(self.backend, str):

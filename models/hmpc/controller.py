@@ -59,7 +59,9 @@ class HMPCController:
         start = time.perf_counter()
         if self.state is None:
             self.reset(q)
-        result = self.solver.solve(q, qd, q_d, qd_d, qdd_d, self.state, self._sequence, self._applied)
+        result = self.solver.solve(
+            q, qd, q_d, qd_d, qdd_d, self.state, self._sequence, self._applied, previous_torque_nm=self._applied
+        )
         self.state = result.law_state
         self._sequence = result.sequence_nm
         self._applied = result.tau_nm

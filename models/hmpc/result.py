@@ -44,6 +44,10 @@ class Rows:
     qdd_d: np.ndarray  # (K, N), held over the preview
     law_state: np.ndarray  # (K, S)
     anchor: np.ndarray | None = None  # (K, T, N) torque the W2 term is measured from (anchored cost), None: 0
+    previous: np.ndarray | None = None  # (K, N) tau_0, the torque applied last cycle (smoothness term)
+    lower: np.ndarray | None = None  # (K, T, N) the torque box of each step (the rate limit), None: the limits
+    upper: np.ndarray | None = None
+    rate_weight: np.ndarray | None = None  # (K, N, N) c dt^2 M(q)^-2 of the smoothness term, None: no term
 
     def _map(self, fn: Callable[[np.ndarray], np.ndarray]) -> Rows:
         """The same rows with ``fn`` applied to every array (row selection, repetition)."""
@@ -55,6 +59,10 @@ class Rows:
             fn(self.qdd_d),
             fn(self.law_state),
             None if self.anchor is None else fn(self.anchor),
+            None if self.previous is None else fn(self.previous),
+            None if self.lower is None else fn(self.lower),
+            None if self.upper is None else fn(self.upper),
+            None if self.rate_weight is None else fn(self.rate_weight),
         )
 
     def take(self, index: np.ndarray) -> Rows:

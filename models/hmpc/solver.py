@@ -86,16 +86,41 @@ class HMPCSolver:
         self.temporal = config.temporal_weights
         self.torque_weight = per_joint("torque_weight", config.torque_weight, n)
         self.anchored = config.torque_cost == "anchored"
+        # feedforward: W2a on tau - ID(q, qd, qdd_d), the torque beyond the model's feed-forward
+        self.feedforward = config.torque_cost == "feedforward"
         # W2 of the optimized cost: on tau (absolute), or on tau - w* tau_fb with c dt^2 / M_ii(0)^2
         # (anchored: equal cost per unit of acceleration deviation on every joint).
         self.anchor_weight: np.ndarray | None = None
+        # effort: a torque at the limit costs effort_weight_scale on every joint alike
+        self.torque_weight = self.torque_weight + config.effort_weight_scale / self.torque_limit_nm**2
         self.cost_torque_weight = self.torque_weight
-        if self.anchored:
+        inertia = np.ones(n)
+        if self.anchored or self.feedforward or config.rate_weight_scale > 0:
             from models.dynamics import make_dynamics
 
             inertia = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n)), float).reshape(n, n))
+        if self.feedforward:
+            from models.dynamics import make_dynamics
+
+            self._inverse_dynamics = make_dynamics(robot, "pinocchio" if config.backend == "pinocchio" else "rne")
+        if self.anchored or self.feedforward:
             self.anchor_weight = config.anchor_weight_scale * self.prediction_step_s**2 / inertia**2
             self.cost_torque_weight = self.anchor_weight
+        # smoothness: c dt^2 |M(q)^-1 (tau_j - tau_{j-1})|^2, the change of the acceleration the torque change
+        # makes, at the row's own inertia (the full M(q)^-1: a diagonal 1/M_ii^2 let the coupled joints move
+        # further from tau_0 than without the term)
+        self.smooth = config.rate_weight_scale > 0
+        if self.smooth:
+            from models.dynamics import make_dynamics
+
+            self._mass = make_dynamics(robot, "pinocchio" if config.backend == "pinocchio" else "rne")
+        # the hard rate bound: per control period on tau_1, per prediction step on the later steps
+        self.rate_step_nm: np.ndarray | None = None
+        if config.torque_rate_limit == "franka":
+            from models.effort import max_torque_step_nm
+
+            # a hair inside the bound: the verdict compares tau_k - tau_{k-1} recomputed in floating point
+            self.rate_step_nm = max_torque_step_nm(self.torque_limit_nm, law.period_s) * (1.0 - 1e-6)
         # A law that overrides error_features gets its own E (and its state propagated along the
         # preview); the base E = [e, e_dot] does not depend on the law's state, which saves the work.
         self.law_features = type(law).error_features is not FeedbackLaw.error_features
@@ -120,6 +145,13 @@ class HMPCSolver:
         self._rho = float(config.state_bound_weight) if config.use_state_bounds else 0.0
         # Constant pieces of the condensed model.
         self._stage_torque_weight = (self.temporal[:, None] * self.cost_torque_weight).reshape(-1)  # (T N,)
+        # (D U)_j = U_j - U_{j-1} over the steps; with stage weights w_j: B = D' diag(w) D (T, T), and the
+        # Hessian of sum_j w_j (D U)_j' A (D U)_j is kron(B, A) for a row's A = c dt^2 M^-2
+        difference = np.eye(self.horizon) - np.eye(self.horizon, k=-1)
+        self._rate_steps = difference.T @ (self.temporal[:, None] * difference)
+        if self.rate_step_nm is not None:
+            ratio = self.prediction_step_s / law.period_s
+            self._rate_reach = (1.0 + ratio * np.arange(self.horizon))[:, None] * self.rate_step_nm  # (T, N)
         self._preview_s = self.prediction_step_s * np.arange(1, self.horizon + 1)
         self._stage_feature_weight = np.ascontiguousarray(self.temporal[:, None] * self.feature_weight)  # (T, nE)
         self._torque_box = np.tile(self.torque_limit_nm, self.horizon)
@@ -154,12 +186,15 @@ class HMPCSolver:
         law_state: np.ndarray | None = None,
         warm_start_nm: np.ndarray | None = None,
         hold_torque_nm: np.ndarray | None = None,
+        previous_torque_nm: np.ndarray | None = None,
     ) -> HMPCResult:
         """HMPC torques for B independent states (all arrays (B, N); law_state (B, S)).
 
         ``warm_start_nm`` (B, T, N): last cycle's ``sequence_nm``, shifted here by one period.
         ``hold_torque_nm`` (B, N): what to apply where neither the MPC nor the law gives a finite
         torque (default zero).
+        ``previous_torque_nm`` (B, N): tau_0, the torque applied last cycle, for the smoothness term and
+        the rate bound (None: neither applies, e.g. the first cycle, or a cold solve of a logged state).
         """
         q, qd, q_d, qd_d, qdd_d = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (q, qd, q_d, qd_d, qdd_d))
         batch, n, horizon = q.shape[0], self.n_joints, self.horizon
@@ -190,6 +225,22 @@ class HMPCSolver:
             valid = np.flatnonzero(finite)
             if valid.size:
                 rows = Rows(q[valid], qd[valid], ref_q[valid], ref_qd[valid], qdd_d[valid], next_state[valid])
+                if self.feedforward:
+                    ff = np.asarray(self._inverse_dynamics.inverse_dynamics(q[valid], qd[valid], qdd_d[valid]), float)
+                    rows.anchor = np.ascontiguousarray(np.broadcast_to(ff.reshape(-1, 1, n), (valid.size, horizon, n)))
+                previous = None if previous_torque_nm is None else np.asarray(previous_torque_nm, float)
+                if previous is not None:
+                    previous = np.broadcast_to(previous, (batch, n))[valid]
+                    previous = np.where(np.isfinite(previous), previous, tau_fb[valid])
+                if self.smooth and previous is not None:
+                    rows.previous = np.ascontiguousarray(previous)
+                    inverse = np.linalg.inv(np.asarray(self._mass.mass_matrix(q[valid]), float).reshape(-1, n, n))
+                    scale = self.config.rate_weight_scale * self.prediction_step_s**2
+                    rows.rate_weight = np.ascontiguousarray(scale * np.swapaxes(inverse, 1, 2) @ inverse)
+                if self.rate_step_nm is not None and previous is not None:
+                    limit = self.torque_limit_nm
+                    rows.lower = np.maximum(-limit, previous[:, None] - self._rate_reach)
+                    rows.upper = np.minimum(limit, previous[:, None] + self._rate_reach)
                 warm = None
                 if self.config.warm_start and warm_start_nm is not None:
                     warm = np.asarray(warm_start_nm, float)[valid]
@@ -218,6 +269,11 @@ class HMPCSolver:
             tau = np.clip(
                 np.nan_to_num(tau, nan=0.0, posinf=0.0, neginf=0.0), -self.torque_limit_nm, self.torque_limit_nm
             )
+            if self.rate_step_nm is not None and previous_torque_nm is not None:
+                # the rate bound holds for the fallback too (a real arm rate-limits every command)
+                last = np.broadcast_to(np.asarray(previous_torque_nm, float), (batch, n))
+                last = np.where(np.isfinite(last), last, tau)
+                tau = np.clip(tau, last - self.rate_step_nm, last + self.rate_step_nm)
             # A law state that went non-finite (NaN measurement) is not carried into the next cycle.
             keep = np.isfinite(next_state).all(1) if next_state.size else np.ones(batch, bool)
             next_state = np.where(keep[:, None], next_state, law_state) if next_state.size else next_state
@@ -238,6 +294,8 @@ class HMPCSolver:
         candidates = np.broadcast_to(candidates[:, :, None, :], (k, len(self.scales), horizon, n))
         if warm is not None:
             candidates = np.concatenate([candidates, np.clip(warm, -limit, limit)[:, None]], 1)
+        if rows.lower is not None and rows.upper is not None:  # inside each row's rate box
+            candidates = np.clip(candidates, rows.lower[:, None], rows.upper[:, None])
         n_candidates = candidates.shape[1]
         flat = np.ascontiguousarray(candidates.reshape(k * n_candidates, horizon, n))
         w_star = None
@@ -335,7 +393,19 @@ class HMPCSolver:
             self.state_limit,
             self._rho,
         )
+        if self.smooth and rows.previous is not None and rows.rate_weight is not None:
+            change = self._torque_changes(rows, u)
+            cost = cost + np.einsum("ktn,knm,ktm,t->k", change, rows.rate_weight, change, self.temporal)
         return Rollout(q_path, qd_path, features, law_states, cost)
+
+    @staticmethod
+    def _torque_changes(rows: Rows, u: np.ndarray) -> np.ndarray:
+        """tau_j - tau_{j-1} (K, T, N), tau_0 = rows.previous."""
+        assert rows.previous is not None
+        change = np.empty_like(u)
+        np.subtract(u[:, 0], rows.previous, out=change[:, 0])
+        np.subtract(u[:, 1:], u[:, :-1], out=change[:, 1:])
+        return change
 
     def _features(
         self, rows: Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
@@ -410,8 +480,8 @@ class HMPCSolver:
             sens,
             np.concatenate([state.q - self.position_centre_rad, state.qd], -1).reshape(k, -1),
             self._state_box,
-            -self._torque_box - flat_u,
-            self._torque_box - flat_u,
+            (-self._torque_box if rows.lower is None else rows.lower.reshape(k, -1)) - flat_u,
+            (self._torque_box if rows.upper is None else rows.upper.reshape(k, -1)) - flat_u,
             self._rho,
             PENALTY_ROUNDS,
             config.max_qp_iterations,
@@ -446,4 +516,11 @@ class HMPCSolver:
             float(self.config.damping),
             levenberg,
         )
+        if self.smooth and rows.previous is not None and rows.rate_weight is not None:
+            # 1/2 (D U - d0)' W (D U - d0): Hessian D' W D, gradient D' W (D U - d0), (D' y)_j = y_j - y_{j+1}
+            weighted = np.einsum("knm,ktm,t->ktn", rows.rate_weight, self._torque_changes(rows, u), self.temporal)
+            shifted = np.concatenate([weighted[:, 1:], np.zeros_like(weighted[:, :1])], 1)
+            blocks = np.einsum("ab,kij->kaibj", self._rate_steps, rows.rate_weight).reshape(k, horizon * n, horizon * n)
+            hessian = hessian + blocks
+            gradient = gradient + (weighted - shifted).reshape(k, -1)
         return hessian, gradient, sens

@@ -12,9 +12,9 @@ from models.errors import ModelInputError
 FF_POINTS = ("measured", "reference")
 #: perturbation (sigma_e rad, sigma_e_dot rad/s) of the relabeled copies per HMPC formulation: small enough
 #: that the absolute-cost HMPC (gains ~1e5 1/s^2, ~1e3 1/s) stays off its torque limits
-PERTURBATION = {"absolute": (1e-4, 1e-2), "anchored": (2e-3, 2e-2)}
+PERTURBATION = {"absolute": (1e-4, 1e-2), "anchored": (2e-3, 2e-2), "deployable": (1e-3, 2e-2)}
 #: c fixed per formulation (None: fitted): the absolute-cost optimum does not depend on the law
-C_FIXED = {"absolute": -1.0, "anchored": None}
+C_FIXED = {"absolute": -1.0, "anchored": None, "deployable": -1.0}
 TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
 TRAINED_FORMAT = "structured-lmpc-trained/1"  # <work>/trained_<law>.pt (save_trained, reexport)
 

@@ -120,3 +120,23 @@ def test_reexport_refuses_a_work_directory_without_trained_files(tmp_path: Path)
     with pytest.raises(ModelInputError, match=r"trained_pd.pt: unreadable"):
         reexport(tmp_path, tmp_path / "b", log=lambda _: None)
     assert main(["--work", str(tmp_path), "--residual-bound-scale", "0"]) == 2
+
+
+def test_a_graph_more_sensitive_to_position_error_than_its_manifest_is_refused(tmp_path: Path) -> None:
+    """Issue 24: the writer records what 1 mrad of position error does to the torque (N m per mrad, per
+    joint); the loader measures it again on the probe rows and refuses a graph above the recorded bound."""
+    _export(tmp_path / "pd", 10.0)
+    bundle = PolicyBundle.load(tmp_path / "pd")
+    recorded = np.asarray(_probes(bundle).position_sensitivity_nm_per_mrad, float)
+    # the deadbeat-like gains (K_p = 9e4 1/s^2) turn 1 mrad into ~M_ii K_p 1e-3: tens of N m on the shoulder
+    assert recorded.shape == (ROBOT.n_joints,) and recorded[1] > 10.0
+    shutil.copytree(tmp_path / "pd", tmp_path / "tight")
+    manifest = json.loads((tmp_path / "tight" / "manifest.json").read_text())
+    manifest["probes"]["position_sensitivity_nm_per_mrad"] = (recorded * 0.5).tolist()
+    (tmp_path / "tight" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(BundleError, match=r"position_sensitivity_nm_per_mrad: the graph turns 1 mrad .* on joint"):
+        PolicyBundle.load(tmp_path / "tight")
+    manifest["probes"]["position_sensitivity_nm_per_mrad"] = [1.0, 2.0]
+    (tmp_path / "tight" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(BundleError, match=r"position_sensitivity_nm_per_mrad: needs 6 finite values"):
+        PolicyBundle.load(tmp_path / "tight")

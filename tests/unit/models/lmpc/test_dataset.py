@@ -63,7 +63,18 @@ def test_cli_refuses_a_corrupt_dataset_with_exit_2_and_leaves_it_alone(tmp_path)
     bad.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 100)
     before = bad.read_bytes()
     done = subprocess.run(
-        [sys.executable, "-m", "hil_runtime.cli", "pipeline", "--stages", "dataset", "--work", str(tmp_path)],
+        [
+            sys.executable,
+            "-m",
+            "hil_runtime.cli",
+            "pipeline",
+            "--design",
+            "paper",
+            "--stages",
+            "dataset",
+            "--work",
+            str(tmp_path),
+        ],
         capture_output=True,
         text=True,
         timeout=120,
