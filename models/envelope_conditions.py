@@ -76,13 +76,6 @@ def envelope_conditions(robot: RobotModel, count: int, seed: int, prefix: str = 
 
 def parse_envelope_spec(text: str) -> tuple[int, int] | None:
     """(count, seed) from 'envelope:COUNT:SEED', None for anything else."""
-    if not text.startswith("envelope:"):
-        return None
-    parts = text.split(":")
-    try:
-        count, seed = int(parts[1]), int(parts[2])
-        if len(parts) != 3 or count < 1:
-            raise ValueError
-    except (ValueError, IndexError):
-        raise ModelInputError(f"--conditions: expected envelope:COUNT:SEED (COUNT >= 1), got {text!r}") from None
-    return count, seed
+    from models.lmpc.paper_range import parse_generator_spec
+
+    return parse_generator_spec(text, "envelope")

@@ -56,9 +56,9 @@ def paper_range_conditions(robot: RobotModel, count: int, seed: int, prefix: str
     return out
 
 
-def parse_random_spec(text: str) -> tuple[int, int] | None:
-    """(count, seed) from 'random:COUNT:SEED', None for anything else (a file path)."""
-    if not text.startswith("random:"):
+def parse_generator_spec(text: str, kind: str) -> tuple[int, int] | None:
+    """(count, seed) from 'KIND:COUNT:SEED', None for anything else (a file path)."""
+    if not text.startswith(f"{kind}:"):
         return None
     parts = text.split(":")
     try:
@@ -66,5 +66,10 @@ def parse_random_spec(text: str) -> tuple[int, int] | None:
         if len(parts) != 3 or count < 1:
             raise ValueError
     except (ValueError, IndexError):
-        raise ModelInputError(f"--conditions: expected random:COUNT:SEED (COUNT >= 1), got {text!r}") from None
+        raise ModelInputError(f"--conditions: expected {kind}:COUNT:SEED (COUNT >= 1), got {text!r}") from None
     return count, seed
+
+
+def parse_random_spec(text: str) -> tuple[int, int] | None:
+    """(count, seed) from 'random:COUNT:SEED', None for anything else (a file path)."""
+    return parse_generator_spec(text, "random")
