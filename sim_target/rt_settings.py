@@ -86,16 +86,23 @@ def share_thread_settings(native_id: int, fifo_priority: int, cpus: Sequence[int
     return refused
 
 
-def start_lockstep(config: Any, control_thread_id: int | None) -> dict[str, Any]:
-    """``realtime.in_lockstep``: the same settings for the thread that serves the SYNCs (and steps
-    the plant in them) and the control thread, gc frozen; no cost probe (lock-step has no deadline
-    of its own). Returns the status's ``realtime`` entry."""
+def _apply(config: Any, control_thread_id: int | None) -> tuple[list[str], list[str]]:
+    """``config.realtime`` on this thread and the control thread; start-up's objects frozen out of
+    the garbage collector."""
     rt = config.realtime
     applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
     if control_thread_id is not None:
         refused += share_thread_settings(control_thread_id, rt.fifo_priority, rt.cpus)
     gc.collect()
     gc.freeze()
+    return applied, refused
+
+
+def start_lockstep(config: Any, control_thread_id: int | None) -> dict[str, Any]:
+    """``realtime.in_lockstep``: the same settings for the thread that serves the SYNCs (and steps
+    the plant in them) and the control thread, gc frozen; no cost probe (lock-step has no deadline
+    of its own). Returns the status's ``realtime`` entry."""
+    applied, refused = _apply(config, control_thread_id)
     return {"applied": applied, "refused": refused}
 
 
@@ -123,12 +130,7 @@ def start_realtime(plant: Any, config: Any, control_thread_id: int | None) -> di
             100 * fraction,
             period_s * 1e3,
         )
-    rt = config.realtime
-    applied, refused = apply_thread_settings(rt.fifo_priority, rt.cpus, rt.lock_memory)
-    if control_thread_id is not None:
-        refused += share_thread_settings(control_thread_id, rt.fifo_priority, rt.cpus)
-    gc.collect()
-    gc.freeze()
+    applied, refused = _apply(config, control_thread_id)
     return {
         "plant_step_us": round(cost_s * 1e6, 1),
         "plant_step_fraction": round(fraction, 3),
