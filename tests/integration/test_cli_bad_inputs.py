@@ -367,13 +367,13 @@ CASES: list[Case] = [
         "telemetry-zenoh-config-0.0.0.0",
         "{enabled: true, zenoh_config: z.json5}",
         {"z.json5": '{ listen: { endpoints: ["tcp/0.0.0.0:7447"] } }'},
-        "zenoh_config 'z.json5': listen/endpoints 'tcp/0.0.0.0:7447' is not loopback",
+        "z.json5': listen/endpoints 'tcp/0.0.0.0:7447' is not loopback",
     ),
     _telemetry_check_case(
         "telemetry-zenoh-config-connect-remote",
         "{enabled: true, listen: [tcp/127.0.0.1:7447], zenoh_config: z.json5}",
         {"z.json5": '{ connect: { endpoints: ["tcp/192.0.2.7:7447"] } }'},
-        "zenoh_config 'z.json5': connect/endpoints 'tcp/192.0.2.7:7447' is not loopback",
+        "z.json5': connect/endpoints 'tcp/192.0.2.7:7447' is not loopback",
     ),
     _telemetry_check_case(
         "telemetry-zenoh-config-default-listen",

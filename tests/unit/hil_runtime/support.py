@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.testing import PlantStep
 from hil_runtime.bundle import PolicyBundle
 from hil_runtime.bundle_schema import Emulator, Graph, GraphLayout, InitialState, Law, Limits, Manifest, Port, Robot
 from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_joints
@@ -125,3 +126,16 @@ class StubBundle(PolicyBundle):
 
     def describe(self) -> dict[str, Any]:
         return {"law": "stub"}
+
+
+def model_plant(period_s: float = 0.001) -> PlantStep:
+    """ur5_paper's rigid-body dynamics (pinocchio ABA, RK4, two substeps a period, no mismatch): the plant the shipped
+    bundles were made for. The fake bus's default double integrator has no gravity and no coupling,
+    which a model-based policy (the LMPC's feed-forward) is not meant to survive; the loop's tests
+    run the policy on its own model so that a fault there is the loop's, not the plant's."""
+    from models.conditions import Mismatch
+    from models.robots import load_robot
+    from models.sim.closed_loop import ModelPlant, SimConfig
+
+    plant = ModelPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(period_s=period_s, substeps=2))
+    return plant.integrate

@@ -18,7 +18,7 @@ from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.config import TelemetryConfig
 from hil_runtime.telemetry.publisher import ZenohTelemetry
 from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import config_dict
+from tests.unit.hil_runtime.support import config_dict, model_plant
 from tests.unit.hil_runtime.test_runtime_loop import INERTIA
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -52,6 +52,7 @@ def _runtime() -> tuple[Runtime, FakeJointBus]:
         max_torque_nm=MAX_TORQUE_NM,
         initial_position_rad=Q0_RAD,
         keep_commands=False,
+        plant=model_plant(),
     )
     return Runtime(config, bus, record_cycles=4 * CYCLES, telemetry=EncodingSink()), bus
 

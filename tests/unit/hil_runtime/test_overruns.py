@@ -17,7 +17,7 @@ from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import Runtime
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import config_dict
+from tests.unit.hil_runtime.support import config_dict, model_plant
 from tests.unit.hil_runtime.test_runtime_loop import INERTIA, RecordingSink
 
 PERIOD_S = 0.001
@@ -51,7 +51,7 @@ class WallClockPlantBus(FakeJointBus):
         )
         self.clock = clock
         self.work_s = work_s
-        self.dynamics = self.plant
+        self.dynamics = model_plant()
         self.plant = lambda q, qd, tau, dt: (q, qd)  # the fake's own per-exchange step: time moves here instead
         self._last_s: float | None = None
         self.held_periods = 0  # SYNC intervals longer than a period

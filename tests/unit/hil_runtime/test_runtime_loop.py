@@ -22,14 +22,19 @@ from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.codec import STATS_FIELDS
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, StubBundle, config_dict
+from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, StubBundle, config_dict, model_plant
 
 INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
 
 
 def _bus(**kwargs: Any) -> FakeJointBus:
     return FakeJointBus(
-        6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD, **kwargs
+        6,
+        period_s=0.001,
+        inertia_kgm2=INERTIA,
+        max_torque_nm=MAX_TORQUE_NM,
+        initial_position_rad=Q0_RAD,
+        **kwargs,
     )
 
 
@@ -73,7 +78,7 @@ def _runtime(bus: FakeJointBus, record: int = 0, bundle: PolicyBundle | None = N
 
 
 def test_pd_bundle_ramps_onto_c1_and_tracks_it_inside_the_limits() -> None:
-    bus = _bus()
+    bus = _bus(plant=model_plant())
     rt = _runtime(bus, record=8000, reference={"kind": "condition", "condition": "C1", "ramp_s": 1.0})
     rt.configure()
     assert rt.state is LifecycleState.INACTIVE and bus.events == ["connect"]
@@ -85,7 +90,7 @@ def test_pd_bundle_ramps_onto_c1_and_tracks_it_inside_the_limits() -> None:
     rec = rt.record.arrays()
     assert rec["q"].shape == (ramp + 5001, 6)  # the activation row + every cycle
     # The reference starts at the measured pose (no step) and reaches C1's start at the ramp's end.
-    np.testing.assert_allclose(rec["q_ref"][0], Q0_RAD, atol=1e-12)
+    np.testing.assert_allclose(rec["q_ref"][0], rec["q"][0], atol=1e-12)
     np.testing.assert_allclose(rec["qd_ref"][0], 0.0, atol=1e-12)
     steps = np.abs(np.diff(rec["q_ref"], axis=0)).max()
     assert steps < 3e-3, f"reference step {steps}"

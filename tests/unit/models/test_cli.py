@@ -25,7 +25,10 @@ def hil(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]
             ["experiment", "--robot", "ur5", "--gains", "stabilized"],
             "gain set 'stabilized' holds the gains of 'ur5_paper', not of robot 'ur5'",
         ),
-        (["stability", "pd", "--robot", "ur5"], "not of robot 'ur5' (6 joints); pass kp, kd for it"),
+        (
+                ["stability", "pd", "--robot", "ur5", "--gains", "stabilized"],
+                "not of robot 'ur5' (6 joints); pass kp, kd for it, or use gain set 'designed'",
+            ),
         (["experiment", "--conditions", "missing.yaml"], "missing.yaml: file not found"),
         (["experiment", "--modes", "xyz"], "--modes: unknown 'xyz'"),
     ],
