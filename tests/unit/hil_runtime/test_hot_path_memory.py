@@ -1,6 +1,7 @@
 """The hot path keeps nothing per cycle (tracemalloc over 1,000 cycles of the runtime with the PD
-bundle on the fake bus, its torque-rate limit, record and telemetry hand-off on): what one cycle allocates is short-lived
-and bounded, and the runtime's own code holds no more memory after 1,000 cycles than before."""
+bundle on the fake bus, its torque-rate limit, record and telemetry hand-off on): what one cycle
+allocates is short-lived and bounded, and the runtime's own code holds no more memory after 1,000
+cycles than before."""
 
 from __future__ import annotations
 

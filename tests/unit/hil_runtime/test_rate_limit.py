@@ -15,7 +15,6 @@ from tests.unit.hil_runtime.support import config_dict, model_plant
 from tests.unit.hil_runtime.test_runtime_loop import INERTIA
 
 
-
 def test_the_bound_is_libfrankas_rate_scaled_by_the_joint_limit() -> None:
     np.testing.assert_allclose(max_torque_step_nm(np.array([87.0, 102.0, 34.0]), 1e-3), [1.0, 102 / 87, 34 / 87])
     np.testing.assert_allclose(max_torque_step_nm(np.array([87.0]), 2e-3), [2.0])
