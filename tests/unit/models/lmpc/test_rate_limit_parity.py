@@ -14,7 +14,7 @@ import pytest
 from hil_runtime.bundle import PolicyBundle
 from hil_runtime.controller import Controller
 from hil_runtime.rate_limit import max_torque_step_nm
-from models.conditions import load_conditions
+from models.conditions import Condition, load_conditions
 from models.effort import deployable, effort_metrics
 from models.errors import ModelInputError
 from models.feedback import make_law
@@ -23,7 +23,7 @@ from models.robots import load_robot
 from models.sim import SimConfig, simulate
 
 
-def _c1_through_the_impulse() -> object:
+def _c1_through_the_impulse() -> Condition:
     return replace(load_conditions()[0], duration_s=2.06)  # the impulse at 2 s, and 60 ms after it
 
 
