@@ -304,6 +304,9 @@ def format_table(results: dict[str, Any]) -> str:
         for m, v in etas.items()
     ]
     limits = "yes" if results["all_runs_finite_and_within_limits"] else "NO (see results.json runs)"
+    rate_limit = (results.get("controller_options") or {}).get("lmpc", {}).get("torque_rate_limit")
+    if rate_limit is not None:  # docs/lmpc.md section 10: the LMPC's output rate limit, opt-in
+        notes.append(f"LMPC torque-rate limit: {rate_limit} (hil_runtime.rate_limit).")
     footer = [
         "",
         f"Robot {results['robot']}; conditions: {', '.join(c['name'] for c in results['conditions'])}; "
