@@ -54,7 +54,6 @@ class TorqueRateLimiter:
         self.previous_nm = np.zeros_like(self.step_nm)
         self._delta = np.zeros_like(self.step_nm)
         self._out = np.zeros_like(self.step_nm)
-        self._clamped = np.zeros(self.step_nm.shape, bool)
         self.limited_cycles = 0
 
     def reset(self, held_torque_nm: np.ndarray | None = None, arms: int | None = None) -> None:
@@ -64,7 +63,6 @@ class TorqueRateLimiter:
             self.previous_nm = np.zeros(shape)
             self._delta = np.zeros(shape)
             self._out = np.zeros(shape)
-            self._clamped = np.zeros(shape, bool)
         if held_torque_nm is None:
             self.previous_nm[...] = 0.0
         else:
@@ -77,8 +75,9 @@ class TorqueRateLimiter:
         np.subtract(tau_nm, self.previous_nm, out=delta)
         np.minimum(delta, self.step_nm, out=out)
         np.maximum(out, self._neg_step_nm, out=out)
-        # NaN compares unequal: a non-finite tau counts, and passes on as NaN
-        if np.not_equal(out, delta, out=self._clamped).any():
+        # A clamp only shrinks a change, so |out|^2 < |delta|^2 exactly when one acted (NaN: unequal,
+        # counted, passed on as NaN); two dot products cost less than a comparison and a reduction.
+        if np.vdot(out, out) != np.vdot(delta, delta):
             self.limited_cycles += 1
         np.add(self.previous_nm, out, out=out)
         return out
