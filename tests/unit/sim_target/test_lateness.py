@@ -243,3 +243,36 @@ def test_lockstep_applies_the_realtime_settings_only_when_asked(in_lockstep: boo
         assert server.status()["realtime"]["refused"] == []
     else:
         assert server.realtime_settings == {}
+
+
+def test_serve_until_returns_on_a_sync_found_while_draining_not_after_the_next_frame() -> None:
+    """The drives drain the bus every few ms (the master watch); a SYNC handled there must end a
+    ``return_on_sync`` wait at once: waiting on for the next frame made the free-running target
+    step its physics a period late, into the next cycle's frames."""
+    import can
+
+    from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+
+    with (
+        can.Bus(interface="virtual", channel="drain-sync") as bus,
+        can.Bus(interface="virtual", channel="drain-sync") as master,
+    ):
+        drives = EmulatedDrives(bus, EmulatedDrivesConfig(node_ids=(1,)))
+        drives.start(own_thread=False)
+        syncs: list[float] = []
+        drives.set_sync_handler(lambda: syncs.append(time.monotonic()))
+        drives.serve_until(time.monotonic() + 0.05)  # boot-up sent, the first drain done
+        master.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        drives._next_check_s = 0.0  # the next wait begins with a drain, which finds the SYNC
+        waits: list[tuple[float | None, int]] = []  # (recv timeout, SYNCs handled before the call)
+        real_recv = bus.recv
+
+        def recv(timeout: float | None = None) -> can.Message | None:
+            waits.append((timeout, len(syncs)))
+            return real_recv(timeout)
+
+        bus.recv = recv  # type: ignore[method-assign]  # counts the waits of this one bus
+        drives.serve_until(time.monotonic() + 5.0, return_on_sync=True)
+        assert len(syncs) == 1
+        assert [timeout for timeout, seen in waits if seen] == [0.0]  # the drain's last look, no wait
+        drives.close()
