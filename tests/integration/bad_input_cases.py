@@ -11,6 +11,8 @@ from pathlib import Path
 from subprocess import run
 from typing import Any
 
+from sim_target.testing.ur5 import JOINT_NAMES
+
 ROOT = Path(__file__).resolve().parents[2]
 UR5_URDF = (ROOT / "models" / "robots" / "data" / "ur5_paper.urdf").read_text()
 PD_BUNDLE = ROOT / "models" / "bundles" / "ur5_paper" / "pd"
@@ -52,17 +54,7 @@ def _plot_case(name: str, content: str | bytes, *expected: str) -> Case:
 def _runtime_yaml(telemetry: str) -> str:
     """A runtime config ``hil run --check`` accepts, with ``telemetry`` as its telemetry section."""
     joints = "".join(
-        f"    - {{name: {name}, node_id: {i + 1}, max_torque_nm: 30.0}}\n"
-        for i, name in enumerate(
-            (
-                "shoulder_pan_joint",
-                "shoulder_lift_joint",
-                "elbow_joint",
-                "wrist_1_joint",
-                "wrist_2_joint",
-                "wrist_3_joint",
-            )
-        )
+        f"    - {{name: {name}, node_id: {i + 1}, max_torque_nm: 30.0}}\n" for i, name in enumerate(JOINT_NAMES)
     )
     return (
         f"robot: ur5_paper\nbundle: {{path: {PD_BUNDLE}, mode: lmpc}}\n"
