@@ -44,10 +44,9 @@ def test_every_shipped_bundle_passes_its_behavioural_check(law: str) -> None:
     assert bundle.saturation_checked.all()  # every joint's saturation was observed and matched
     # and every joint's residual clamp: some recorded probe puts that joint at its bound (the loader's
     # check of residual_bound_nm), whatever the bound's size (issue 13: 10x the labels' largest residual)
-    n, s = bundle.n_joints, bundle.state_size
     assert bundle.manifest.probes is not None
-    y = np.asarray(bundle.manifest.probes.outputs)
-    tau, tau_fb, alpha, clamped = y[:, :n], y[:, n : 2 * n], 1.0 - y[:, 2 * n + s], y[:, 2 * n + s + 1]
+    tau, tau_fb, _, trust = bundle.layout.split(np.asarray(bundle.manifest.probes.outputs))
+    alpha, clamped = 1.0 - trust[:, 0], trust[:, 1]
     acting = (alpha > 0) & (clamped >= 1) & (np.abs(tau) < bundle.torque_limit_nm).all(axis=1)
     residual = np.abs(tau - tau_fb)[acting] / alpha[acting, None]
     bound = bundle.residual_bound_nm
