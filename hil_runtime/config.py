@@ -8,6 +8,7 @@
       mode: lmpc                         # lmpc: the fused law + emulator; fb: the law alone
       urdf_sha256: null                  # the arm's URDF hash: the bundle's must match; null: unchecked
       trusted_keys: []                   # Ed25519 public keys (PEM): the bundle must be signed by one
+      torque_rate_limit: none            # none | libfranka: the LMPC torque's change per cycle clamped
     bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
       transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
                   fd: true, data_bitrate: 5000000}
@@ -80,6 +81,9 @@ class BundleSection(_Frozen):
     # Ed25519 public keys (PEM files, `hil bundle keygen`): when any is listed, the bundle must be
     # signed by one of them (`hil bundle sign`); an unsigned or re-signed bundle is refused.
     trusted_keys: tuple[Path, ...] = ()
+    # libfranka: the lmpc torque's change per cycle clamped per joint to libfranka's rate bound
+    # (hil_runtime.rate_limit, docs/lmpc.md section 10), against the torque last commanded; none: off.
+    torque_rate_limit: Literal["none", "libfranka"] = "none"
 
 
 class ReferenceSection(_Frozen):

@@ -98,7 +98,7 @@ class Runtime:
         self.bundle = bundle if bundle is not None else load_bundle_for(config)
         self.limits = safety_limits_for(config, self.bundle)
         self.condition = condition_for(config, self.limits)
-        self.controller = Controller(self.bundle, config.bundle.mode)
+        self.controller = Controller(self.bundle, config.bundle.mode, config.bundle.torque_rate_limit)
         self.supervisor = Supervisor(self.limits, config.joint_names)
         self.notifier = notifier if notifier is not None else Notifier(None)
         self.lifecycle = Lifecycle()
@@ -228,7 +228,8 @@ class Runtime:
             return False
         pipeline = self.pipeline
         pipeline.reference = self._build_reference(q0)
-        self.controller.reset(q0)
+        # the rate limit (if any) starts from the set-point the drives hold now (enable's: zero)
+        self.controller.reset(q0, feedback.commanded_torque_nm)
         self.loop.ref_base = 1
         pipeline.t0_s = now = self._clock()
         fault = pipeline.run(feedback, 0, now, now)

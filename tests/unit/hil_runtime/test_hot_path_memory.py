@@ -1,6 +1,7 @@
 """The hot path keeps nothing per cycle (tracemalloc over 1,000 cycles of the runtime with the PD
-bundle on the fake bus, record and telemetry hand-off on): what one cycle allocates is short-lived
-and bounded, and the runtime's own code holds no more memory after 1,000 cycles than before."""
+bundle on the fake bus, its torque-rate limit, record and telemetry hand-off on): what one cycle
+allocates is short-lived and bounded, and the runtime's own code holds no more memory after 1,000
+cycles than before."""
 
 from __future__ import annotations
 
@@ -41,9 +42,13 @@ class EncodingSink(ZenohTelemetry):
         pass
 
 
-def _runtime() -> tuple[Runtime, FakeJointBus]:
+def _runtime(torque_rate_limit: str) -> tuple[Runtime, FakeJointBus]:
     config = parse_runtime_config(
-        config_dict(reference={"kind": "condition", "condition": "C1", "ramp_s": 0.5}), "rt.yaml"
+        config_dict(
+            bundle={"torque_rate_limit": torque_rate_limit},
+            reference={"kind": "condition", "condition": "C1", "ramp_s": 0.5},
+        ),
+        "rt.yaml",
     )
     bus = FakeJointBus(
         6,
@@ -72,7 +77,7 @@ def _own_lines(snapshot: tracemalloc.Snapshot) -> tracemalloc.Snapshot:
 
 
 def test_a_thousand_cycles_keep_nothing_and_each_allocates_little() -> None:
-    rt, bus = _runtime()
+    rt, bus = _runtime("libfranka")  # every stage on: the rate limit's path is the default's plus its clamp
     rt.configure()
     assert rt.activate()
     tracemalloc.start(1)  # before the warm run: what it makes and later replaces is traced too
