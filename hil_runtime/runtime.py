@@ -105,7 +105,12 @@ class Runtime:
         self.lifecycle.subscribe(self._on_lifecycle)
         self._clock = clock
         self.pacer = Pacer(
-            config.period_s, config.loop.pacing, clock=clock, sleep=sleep, stats_window=config.loop.stats_window
+            config.period_s,
+            config.loop.pacing,
+            clock=clock,
+            sleep=sleep,
+            stats_window=config.loop.stats_window,
+            spin_s=config.loop_spin_s,
         )
         n = self.bundle.n_joints
         self.record = RunRecord(record_cycles, n)

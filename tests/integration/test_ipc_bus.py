@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import select
 import signal
+import socket
 import stat
 import subprocess
 import sys
@@ -155,6 +156,40 @@ def test_classical_bus_refuses_to_send_fd_and_ignores_fd_it_receives(bus_dir: Pa
     finally:
         fd_bus.shutdown()
         classic.shutdown()
+
+
+def test_a_batch_is_one_datagram_handed_out_frame_by_frame_in_order(bus_dir: Path) -> None:
+    """send_batch: one datagram per peer (one wake-up and one system call for a cycle's frames);
+    the receiver's recv hands its frames out one by one, in order, classical and FD mixed, with
+    the sender; a classical receiver ignores the FD frames of a batch."""
+    raw_path = bus_dir / "0-raw.sock"
+    bus_dir.mkdir(mode=0o700, exist_ok=True)
+    raw = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    raw.bind(os.fspath(raw_path))
+    raw.listen(1)
+    sender, fd_rx, classic_rx = IpcBus(bus_dir, fd=True), IpcBus(bus_dir, fd=True), IpcBus(bus_dir)
+    conn, _ = raw.accept()  # the sender joined the raw listener as a peer
+    try:
+        batch = [_msg(0x181 + i, bytes([i]) * 12, is_fd=True) for i in range(6)] + [_msg(0x80, b"\x07")]
+        sender.send_batch(batch)
+        conn.settimeout(2.0)
+        datagram = conn.recv(65536)
+        assert len(datagram) == 6 * 72 + 16  # the whole batch, one datagram
+        got = [_recv(fd_rx, 2.0) for _ in batch]
+        assert [(m.arbitration_id, bytes(m.data), m.is_fd) for m in got] == [
+            (m.arbitration_id, bytes(m.data), m.is_fd) for m in batch
+        ]
+        assert all(m.sender is got[0].sender for m in got) and fd_rx.recv(0) is None  # type: ignore[attr-defined]
+        only = _recv(classic_rx, 2.0)
+        assert only.arbitration_id == 0x80 and classic_rx.stats.fd_frames_ignored == 6
+        assert sender.stats.frames_sent == 7 and fd_rx.stats.frames_received == 7
+        conn.send(datagram[:-3])  # to the sender, a batch cut short: counted, nothing handed out
+        assert sender.recv(0.5) is None and sender.stats.malformed == 1
+    finally:
+        conn.close()
+        raw.close()
+        for bus in (sender, fd_rx, classic_rx):
+            bus.shutdown()
 
 
 def test_invalid_message_is_a_can_operation_error(pair: tuple[IpcBus, IpcBus]) -> None:

@@ -111,18 +111,81 @@ def _server(**overrides: object) -> TargetServer:
     return TargetServer(config, make_plant(config), _Drives())  # a stand-in: satisfies the DriveBank protocol
 
 
-def test_the_physics_tick_locks_to_a_quarter_period_after_sync() -> None:
+def test_the_physics_tick_locks_its_phase_to_the_sync() -> None:
     server = _server()
-    server._deadline_s = 0.0006  # the next tick 0.6 ms after a SYNC at 0: 0.35 ms off the lock
+    server._deadline_s = 0.0004  # the next tick 0.4 ms after a SYNC at 0: 0.4 ms off the lock
     for k in range(40):
         sync_s = k * PERIOD_S
-        while server._deadline_s < sync_s:  # the ticks the loop would run meanwhile
+        while server._deadline_s < sync_s - PERIOD_S / 2:  # the ticks the loop would run meanwhile
             server._deadline_s += PERIOD_S
         server._lock_phase_to_sync(sync_s)
         if k == 0:  # a quarter of the error per SYNC, never a jump
-            assert 0.0006 - server._deadline_s == pytest.approx(0.25 * 0.35 * PERIOD_S)
-    assert server._deadline_s - 39 * PERIOD_S == pytest.approx(0.25 * PERIOD_S, abs=1e-6)
+            assert 0.0004 - server._deadline_s == pytest.approx(0.25 * 0.4 * PERIOD_S)
+    assert server._deadline_s - 39 * PERIOD_S == pytest.approx(0.0, abs=1e-6)
     server.shutdown()
+
+
+class _FakeClock:
+    def __init__(self) -> None:
+        self.now_s = 100.0
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+
+class _SyncingDrives(_Drives):
+    """SYNCs at given times on a fake clock; a physics step costs ``step_s`` of it."""
+
+    def __init__(self, clock: _FakeClock, syncs_s: list[float], server_stop: list[TargetServer]) -> None:
+        super().__init__()
+        self.clock = clock
+        self.syncs_s = syncs_s
+        self.stop = server_stop
+        self.answered: list[tuple[float, float]] = []  # (SYNC sent, answered)
+
+    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
+        if not self.syncs_s:
+            self.stop[0].stop()
+            return
+        if self.syncs_s[0] <= deadline_s:
+            sent_s = self.syncs_s.pop(0)
+            self.clock.now_s = max(self.clock.now_s, sent_s)  # a step still running delays the answer
+            self.answered.append((sent_s, self.clock.now_s))
+            self.handler()  # type: ignore[operator]
+            if return_on_sync:
+                return
+        self.clock.now_s = max(self.clock.now_s, deadline_s)
+
+
+@pytest.mark.parametrize(("jitter", "step_periods"), [(0.0, 0.8), (0.2, 0.5)])
+def test_a_sync_is_answered_before_the_physics_of_its_period_steps(jitter: float, step_periods: float) -> None:
+    """A physics step of 0.8 period, or 0.5 with the master's SYNCs jittering by up to 0.2 period:
+    run right after each SYNC's answer, it never delays the next SYNC (a tick a quarter period
+    after the SYNC delayed them); one tick per period, on the wall clock."""
+    clock = _FakeClock()
+    rng = np.random.default_rng(1)
+    syncs_s = [clock.now_s + 0.37e-3 + k * PERIOD_S + jitter * PERIOD_S * rng.uniform(-1, 1) for k in range(300)]
+    server = _server()
+    holder = [server]
+    drives = _SyncingDrives(clock, syncs_s, holder)
+    server.drives = drives
+    drives.set_sync_handler(server._on_sync)
+    plant_step = server.plant.step
+
+    def slow_step(*args: object) -> object:
+        clock.now_s += step_periods * PERIOD_S
+        return plant_step(*args)  # type: ignore[arg-type]
+
+    with (
+        mock.patch("sim_target.server.time", clock),
+        mock.patch.object(server, "_apply_realtime_settings"),
+        mock.patch.object(server.plant, "step", slow_step),
+    ):
+        server.run()
+    delays_s = np.array([answered - sent for sent, answered in drives.answered])
+    assert len(delays_s) == 300 and np.all(delays_s[20:] == 0.0)  # after the phase lock settles
+    assert server.stats.steps == pytest.approx(300, abs=2)  # one tick per period, never a burst
+    assert server.lateness.skipped_periods == 0 and server.lateness.worst_lag_s < 0.6 * PERIOD_S
 
 
 def test_a_target_that_cannot_keep_real_time_says_so_and_its_run_is_invalid(caplog: pytest.LogCaptureFixture) -> None:
