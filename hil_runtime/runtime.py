@@ -448,7 +448,6 @@ class Runtime:
         out.update(counters)
         for name, value in counters_dict(self.bus.counters).items():
             out[f"bus_{name}"] = value
-        out["nonfinite_fallbacks"] = self.bundle.nonfinite_fallbacks
         out["activations"] = self._activations
         out["faults"] = self._faults
         out["record_overflow"] = self.record.overflow

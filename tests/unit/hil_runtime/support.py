@@ -58,7 +58,6 @@ class StubBundle(PolicyBundle):
     ) -> None:
         self.n_joints, self.period_s, self.state_size = n, period_s, state_size
         self.law_name = "stub"
-        self.nonfinite_fallbacks = 0  # PolicyBundle's counter: this stub never falls back
         self.joint_names = JOINT_NAMES[:n]
         self.torque_limit_nm = np.array(MAX_TORQUE_NM[:n])
         # The typed manifest the runtime reads, built without the fields a stub has no use for.
@@ -95,6 +94,7 @@ class StubBundle(PolicyBundle):
         self.tau_value: np.ndarray | None = None
         self.tau_fb_value: np.ndarray | None = None
         self.trust_value = 0.0
+        self.next_state_value: float | None = None  # when set, every entry of the law's next state
         self.states_seen: list[np.ndarray] = []
         self.calls = 0
         self.before_step: Callable[[], None] | None = None
@@ -120,7 +120,7 @@ class StubBundle(PolicyBundle):
         tau[:] = (
             np.clip(tau_fb, -self.torque_limit_nm, self.torque_limit_nm) if self.tau_value is None else self.tau_value
         )
-        next_state[:] = state + 1.0
+        next_state[:] = state + 1.0 if self.next_state_value is None else self.next_state_value
         trust[0] = self.trust_value
         return tau, tau_fb, next_state
 
