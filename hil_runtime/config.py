@@ -29,7 +29,7 @@
       fifo_priority: null                # e.g. 50: SCHED_FIFO on the loop thread only
       lock_memory: false                 # mlockall(MCL_CURRENT | MCL_FUTURE)
       spin_s: null                       # hybrid wait: spin this long before each deadline (null:
-                                         # 200 µs with cpu_affinity, else 0; docs/runtime.md)
+                                         # 100 µs with cpu_affinity, else 0; docs/runtime.md)
       duration_s: null                   # stop (exit 0) after this long in ACTIVE; null: run on
     safety:                              # null: the bundle manifest's limits
       position_lower_rad: null
@@ -109,7 +109,7 @@ class ReferenceSection(_Frozen):
         return self
 
 
-DEFAULT_SPIN_S = 200e-6  # the hybrid wait's spin with a CPU of its own (docs/runtime.md, measured)
+DEFAULT_SPIN_S = 100e-6  # the hybrid wait's spin with a CPU of its own (docs/runtime.md, measured)
 
 
 class LoopSection(_Frozen):
@@ -125,7 +125,7 @@ class LoopSection(_Frozen):
     fifo_priority: int | None = Field(None, ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     lock_memory: bool = False  # mlockall; needs LimitMEMLOCK (systemd) or CAP_IPC_LOCK
     # Clock pacing's hybrid wait: sleep until spin_s before each deadline, then spin on the clock
-    # (the loop's CPU never idles into a cold wake-up). None: DEFAULT_SPIN_S when the loop has
+    # (no late wake-up at the cycle's start). None: DEFAULT_SPIN_S when the loop has
     # CPUs of its own (cpu_affinity), else 0 (spinning on a shared CPU takes it from others).
     spin_s: float | None = Field(None, ge=0.0, le=0.5e-3)
     warmup_cycles: int = Field(200, ge=0, le=100_000)  # policy/supervisor calls before ACTIVE

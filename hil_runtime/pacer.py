@@ -6,11 +6,12 @@ and skipped, never run in a burst to catch up. ``tick`` counts periods since :me
 skipped ones included, so a reference indexed by it stays on the wall clock.
 
 Hybrid wait (``spin_s`` > 0): the pacer sleeps until ``spin_s`` before the deadline, then spins on
-the clock. A core that sleeps the whole slack drops into its idle state (on a VM: the vCPU halts,
-the host deschedules it) and the cycle after the wake-up runs cold: the policy call took 321 µs
-right after a 1 ms sleep against 203 µs back to back (docs/runtime.md). Spinning the last stretch
-keeps the loop's own CPU busy and its caches warm; only for a loop that has a CPU of its own, and
-only when the slack leaves a sleep of at least ``MIN_SLEEP_S`` first.
+the clock onto it. A sleep to the deadline wakes late (on this VM a halted vCPU waits for the
+host: 17-34 µs median, p99 50-57 µs of the period lost at every cycle's start); the spin starts
+the cycle on its deadline (0.1 / 0.2 µs, ``benchmarks/bench_pacer_wake.py``). It does not warm the
+policy call: that is cold from what ran on the CPU during the sleep (``bench_policy_cold.py``).
+Only for a loop that has a CPU of its own, and only when the slack leaves a sleep of at least
+``MIN_SLEEP_S`` first.
 
 With ``pacing="bus"`` the pacer never sleeps: a lock-stepped target answers each SYNC after one
 simulated period, so the bus itself paces the loop and ``tick`` advances one per cycle.
@@ -161,7 +162,7 @@ class Pacer:
             if now < deadline:
                 spin_s = self.spin_s
                 if spin_s > 0.0 and deadline - now > spin_s + MIN_SLEEP_S:
-                    # Hybrid wait: sleep, then spin the rest; the CPU stays awake and warm.
+                    # Hybrid wait: sleep, then spin onto the deadline (no late wake-up).
                     self._sleep(deadline - now - spin_s)
                     now = clock()
                     while now < deadline:

@@ -291,7 +291,7 @@ def test_the_hybrid_wait_spins_by_default_only_on_a_cpu_of_its_own(tmp_path: Pat
         return config.loop_spin_s
 
     assert spin_of() == 0.0  # a shared CPU: spinning would take it from the others
-    assert spin_of(cpu_affinity=[0]) == pytest.approx(200e-6)
+    assert spin_of(cpu_affinity=[0]) == pytest.approx(100e-6)
     assert spin_of(cpu_affinity=[0], pacing="bus") == 0.0  # nothing to wait for
     assert spin_of(cpu_affinity=[0], spin_s=0.0) == 0.0
     assert spin_of(spin_s=50e-6) == pytest.approx(50e-6)
