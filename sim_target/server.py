@@ -41,17 +41,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import can
 import numpy as np
 
 from drivers.transport import BridgeServer, open_bus, start_bridge_server
 from sim_target.config import (
-    DriveFault,
     EncoderNoiseFault,
     Fault,
-    FrameFault,
     HeartbeatFault,
     ImpulseFault,
     PayloadFault,
@@ -64,42 +62,13 @@ from sim_target.config import (
     target_layout,
 )
 from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
+from sim_target.drive_bank import DriveBank
 from sim_target.lateness import Lateness
 from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
 from sim_target.plant_protocol import JointState
 from sim_target.rt_settings import start_lockstep, start_realtime
 
 log = logging.getLogger(__name__)
-
-
-class DriveBank(Protocol):
-    """What the server needs from the emulated drives (sim_target/drives.py)."""
-
-    def set_sync_handler(self, handler: Callable[[], None]) -> None:
-        """Call ``handler`` on every SYNC, after latching the RPDO set-points, before the TPDOs."""
-
-    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
-        """Handle the bus on the calling thread until ``time.monotonic()`` reaches ``deadline_s``
-        (or, with ``return_on_sync``, until a SYNC was handled)."""
-
-    def commanded_torque_nm(self) -> np.ndarray:
-        """(N,) torque each drive is commanded to deliver now (0 when not Operation Enabled)."""
-
-    def operation_enabled(self) -> np.ndarray:
-        """(N,) bool: drive in Operation Enabled (any other joint is braked)."""
-
-    def publish_feedback(self, state: JointState) -> None:
-        """Send the TPDOs for ``state`` (the drives apply their own scaling)."""
-
-    def apply_fault(self, fault: FrameFault | DriveFault) -> None: ...
-
-    def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
-        """Stop (or resume) one drive's heartbeat producer; its PDOs go on."""
-
-    def safe_stop(self) -> None:
-        """Every drive to a safe state (brakes on, torque off)."""
-
-    def close(self) -> None: ...
 
 
 @dataclass

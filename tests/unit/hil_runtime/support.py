@@ -11,10 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.testing import PlantStep
+from drivers.testing import FakeJointBus, PlantStep
 from hil_runtime.bundle import PolicyBundle
 from hil_runtime.bundle_schema import Emulator, Graph, GraphLayout, InitialState, Law, Limits, Manifest, Port, Robot
-from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_joints
+from hil_runtime.config import RuntimeConfig, parse_runtime_config
+from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, bus_joints
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -23,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[3]
 # shared machine: a stall of a few tens of ms would end them in FAULT overrun_budget (the budget's
 # own tests: test_overruns.py), so they set it past any stall.
 NO_OVERRUN_BUDGET = {"overrun_budget": 100_000}
+INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)  # the fake bus's joint inertias (kg m^2)
 
 
 def config_dict(**overrides: Any) -> dict[str, Any]:
@@ -139,3 +141,25 @@ def model_plant(period_s: float = 0.001) -> PlantStep:
 
     plant = ModelPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(period_s=period_s, substeps=2))
     return plant.integrate
+
+
+def c1_on_model(torque_rate_limit: str, ramp_s: float) -> tuple[RuntimeConfig, FakeJointBus]:
+    """A runtime config tracking C1 (a ramp of ``ramp_s``) with ``bundle.torque_rate_limit``, and a fake
+    bus on the PD bundle's own model (:func:`model_plant`) that keeps no commands."""
+    config = parse_runtime_config(
+        config_dict(
+            bundle={"torque_rate_limit": torque_rate_limit},
+            reference={"kind": "condition", "condition": "C1", "ramp_s": ramp_s},
+        ),
+        "rt.yaml",
+    )
+    bus = FakeJointBus(
+        6,
+        period_s=0.001,
+        inertia_kgm2=INERTIA,
+        max_torque_nm=MAX_TORQUE_NM,
+        initial_position_rad=Q0_RAD,
+        keep_commands=False,
+        plant=model_plant(),
+    )
+    return config, bus

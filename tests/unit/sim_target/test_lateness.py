@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from unittest import mock
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from sim_target.config import parse_target_config
 from sim_target.lateness import Lateness, invalid_reason
 from sim_target.plant import PybulletPlant
+from sim_target.plant_protocol import JointState
 from sim_target.rt_settings import split_cpus
 from sim_target.server import TargetServer, make_plant
 
@@ -72,10 +74,10 @@ class _Drives:
     """A drive layer with no bus: serve_until waits out the time; a SYNC is a direct call."""
 
     def __init__(self) -> None:
-        self.handler: object = None
+        self.handler: Callable[[], None] | None = None
         self.published = 0
 
-    def set_sync_handler(self, handler: object) -> None:
+    def set_sync_handler(self, handler: Callable[[], None]) -> None:
         self.handler = handler
 
     def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
@@ -151,7 +153,8 @@ class _SyncingDrives(_Drives):
             sent_s = self.syncs_s.pop(0)
             self.clock.now_s = max(self.clock.now_s, sent_s)  # a step still running delays the answer
             self.answered.append((sent_s, self.clock.now_s))
-            self.handler()  # type: ignore[operator]
+            assert self.handler is not None, "the server set its SYNC handler"
+            self.handler()
             if return_on_sync:
                 return
         self.clock.now_s = max(self.clock.now_s, deadline_s)
@@ -172,9 +175,9 @@ def test_a_sync_is_answered_before_the_physics_of_its_period_steps(jitter: float
     drives.set_sync_handler(server._on_sync)
     plant_step = server.plant.step
 
-    def slow_step(*args: object) -> object:
+    def slow_step(torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState:
         clock.now_s += step_periods * PERIOD_S
-        return plant_step(*args)  # type: ignore[arg-type]
+        return plant_step(torque_nm, brake_engaged)
 
     with (
         mock.patch("sim_target.server.time", clock),
