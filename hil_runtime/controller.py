@@ -71,6 +71,12 @@ class Controller:
             tau = self.rate_limiter.limit(tau)
         return tau, tau_fb, float(self._trust[0])
 
+    @property
+    def next_state(self) -> np.ndarray:
+        """The law's state after this cycle's step, before :meth:`commit` records the applied torque
+        (what the supervisor checks: a law whose state went non-finite cannot go on)."""
+        return self._next
+
     def commit(self, applied_torque_nm: np.ndarray) -> None:
         """Advance the law's state, recording the torque actually commanded."""
         if self._applied is not None:

@@ -105,7 +105,12 @@ class Runtime:
         self.lifecycle.subscribe(self._on_lifecycle)
         self._clock = clock
         self.pacer = Pacer(
-            config.period_s, config.loop.pacing, clock=clock, sleep=sleep, stats_window=config.loop.stats_window
+            config.period_s,
+            config.loop.pacing,
+            clock=clock,
+            sleep=sleep,
+            stats_window=config.loop.stats_window,
+            spin_s=config.loop_spin_s,
         )
         n = self.bundle.n_joints
         self.record = RunRecord(record_cycles, n)
@@ -443,7 +448,6 @@ class Runtime:
         out.update(counters)
         for name, value in counters_dict(self.bus.counters).items():
             out[f"bus_{name}"] = value
-        out["nonfinite_fallbacks"] = self.bundle.nonfinite_fallbacks
         out["activations"] = self._activations
         out["faults"] = self._faults
         out["record_overflow"] = self.record.overflow

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, cast
 
 import typer
 
-from models.cli.options import GainsOption, RobotOption, gain_set_for, one_of, positive, split_names
+from models.cli.options import GainsOption, RealismOption, RobotOption, gain_set_for, one_of, positive, split_names
 
 if TYPE_CHECKING:  # imported where used: the CLI starts without the HIL experiment's imports
     from models.hil_experiment import HilOptions
@@ -70,13 +70,7 @@ def experiment(
         int | None,
         typer.Option(help="--plant hil: pybullet steps per control period (default: 32 lock-step, 8 real time)."),
     ] = None,
-    realism: Annotated[
-        str,
-        typer.Option(
-            help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
-            metavar="PROFILE|FILE",
-        ),
-    ] = "ideal",
+    realism: RealismOption = "ideal",
     clock: Annotated[
         str,
         typer.Option(

@@ -14,13 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from drivers.testing import FakeJointBus
-from hil_runtime.config import parse_runtime_config
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.config import TelemetryConfig
 from hil_runtime.telemetry.publisher import ZenohTelemetry
-from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import config_dict, model_plant
-from tests.unit.hil_runtime.test_runtime_loop import INERTIA
+from sim_target.testing.ur5 import JOINT_NAMES
+from tests.unit.hil_runtime.support import c1_on_model
 
 ROOT = Path(__file__).resolve().parents[3]
 CYCLES = 1000
@@ -43,22 +41,7 @@ class EncodingSink(ZenohTelemetry):
 
 
 def _runtime(torque_rate_limit: str) -> tuple[Runtime, FakeJointBus]:
-    config = parse_runtime_config(
-        config_dict(
-            bundle={"torque_rate_limit": torque_rate_limit},
-            reference={"kind": "condition", "condition": "C1", "ramp_s": 0.5},
-        ),
-        "rt.yaml",
-    )
-    bus = FakeJointBus(
-        6,
-        period_s=0.001,
-        inertia_kgm2=INERTIA,
-        max_torque_nm=MAX_TORQUE_NM,
-        initial_position_rad=Q0_RAD,
-        keep_commands=False,
-        plant=model_plant(),
-    )
+    config, bus = c1_on_model(torque_rate_limit, ramp_s=0.5)
     return Runtime(config, bus, record_cycles=4 * CYCLES, telemetry=EncodingSink()), bus
 
 

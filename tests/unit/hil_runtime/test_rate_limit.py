@@ -11,8 +11,7 @@ from hil_runtime.config import RuntimeConfigError, parse_runtime_config
 from hil_runtime.rate_limit import TorqueRateLimiter, max_torque_step_nm
 from hil_runtime.runtime import Runtime
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import config_dict, model_plant
-from tests.unit.hil_runtime.test_runtime_loop import INERTIA
+from tests.unit.hil_runtime.support import c1_on_model, config_dict
 
 
 def test_the_bound_is_libfrankas_rate_scaled_by_the_joint_limit() -> None:
@@ -65,22 +64,7 @@ def test_the_config_field_defaults_to_none_and_refuses_unknown_names() -> None:
 
 
 def _run(limit: str, cycles: int = 600) -> tuple[np.ndarray, Runtime]:
-    config = parse_runtime_config(
-        config_dict(
-            bundle={"torque_rate_limit": limit},
-            reference={"kind": "condition", "condition": "C1", "ramp_s": 0.2},
-        ),
-        "rt.yaml",
-    )
-    bus = FakeJointBus(
-        6,
-        period_s=0.001,
-        inertia_kgm2=INERTIA,
-        max_torque_nm=MAX_TORQUE_NM,
-        initial_position_rad=Q0_RAD,
-        keep_commands=False,
-        plant=model_plant(),
-    )
+    config, bus = c1_on_model(limit, ramp_s=0.2)
     rt = Runtime(config, bus, record_cycles=cycles + 1)
     rt.configure()
     assert rt.activate()
