@@ -2,9 +2,11 @@
 loop cycle does after its wait for the bus or the clock), per shipped bundle, beside the same for a
 bare one-node onnxruntime graph. On a 2-core VM shared with other jobs, what ran on the CPU during
 the sleep evicts the caches, and the cold call is what the loop pays (docs/runtime.md, "The
-lock-step demo's rate").
+lock-step demo's rate"). Beside them, "hybrid": the same period waited as the pacer's hybrid wait
+does (sleep to ``--spin-us`` before the call, then spin; ``loop.spin_s``), cold and hybrid blocks
+interleaved so the machine's load moves both alike.
 
-    python benchmarks/bench_policy_cold.py [--laws pd,mrac] [--calls 2000] [--fifo 50 --cpu 1]
+    python benchmarks/bench_policy_cold.py [--laws pd,mrac] [--calls 2000] [--fifo 50 --cpu 1] [--spin-us 200]
 
 Prints one JSON document (µs median / p99 per law and state, cold/warm ratios, machine, load).
 """
@@ -27,15 +29,24 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _times_us(call: Callable[[], object], calls: int, sleep_s: float) -> dict[str, float]:
+def _times_s(call: Callable[[], object], calls: int, sleep_s: float, spin_s: float = 0.0) -> list[float]:
+    """Each call's time after sleeping ``sleep_s - spin_s`` and spinning ``spin_s``."""
     times = []
+    clock = time.perf_counter
     for _ in range(calls):
         if sleep_s:
-            time.sleep(sleep_s)
-        t0 = time.perf_counter()
+            time.sleep(sleep_s - spin_s)
+            spun = clock() + spin_s
+            while clock() < spun:
+                pass
+        t0 = clock()
         call()
-        times.append(time.perf_counter() - t0)
-    return benchinfo.spread(np.array(times[calls // 10 :]) * 1e6)
+        times.append(clock() - t0)
+    return times[calls // 10 :]
+
+
+def _times_us(call: Callable[[], object], calls: int, sleep_s: float) -> dict[str, float]:
+    return benchinfo.spread(np.array(_times_s(call, calls, sleep_s)) * 1e6)
 
 
 def _policy_call(law: str) -> Callable[[], object]:
@@ -54,6 +65,7 @@ def main() -> None:
     parser.add_argument("--period", type=float, default=0.001, help="the sleep before a cold call (s)")
     parser.add_argument("--fifo", type=int, default=None, help="SCHED_FIFO priority of this thread")
     parser.add_argument("--cpu", type=int, default=None, help="pin this thread to one CPU")
+    parser.add_argument("--spin-us", type=float, default=200.0, help="the hybrid wait's spin before a call")
     args = parser.parse_args()
     applied = []
     if args.cpu is not None:
@@ -75,11 +87,19 @@ def main() -> None:
         results: dict[str, dict[str, Any]] = {}
         for name, call in calls.items():
             warm = _times_us(call, args.calls, 0.0)
-            cold = _times_us(call, args.calls // 4, args.period)
+            cold_s: list[float] = []
+            hybrid_s: list[float] = []
+            for _ in range(4):  # interleaved blocks
+                cold_s += _times_s(call, args.calls // 16, args.period)
+                hybrid_s += _times_s(call, args.calls // 16, args.period, args.spin_us * 1e-6)
+            cold = benchinfo.spread(np.array(cold_s) * 1e6)
+            hybrid = benchinfo.spread(np.array(hybrid_s) * 1e6)
             results[name] = {
                 "warm_us": warm,
                 "cold_us": cold,
+                "hybrid_us": hybrid,
                 "cold_over_warm": round(cold["median"] / warm["median"], 2),
+                "hybrid_over_warm": round(hybrid["median"] / warm["median"], 2),
             }
     floor = results["onnx_1node"]
     for row in results.values():
@@ -91,6 +111,7 @@ def main() -> None:
                 "command": " ".join(["python", "benchmarks/bench_policy_cold.py", *sys.argv[1:]]),
                 "realtime": applied,
                 "sleep_before_cold_call_s": args.period,
+                "hybrid_spin_s": args.spin_us * 1e-6,
                 "results": results,
                 "machine": benchinfo.machine(),
                 "load_average_before": load_before,

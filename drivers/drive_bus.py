@@ -53,7 +53,7 @@ from drivers.eds_check import check_bus, raise_first_error
 from drivers.emcy import EmcyConsumer
 from drivers.errors import FATAL_ERRORS, DriveError, DriveStateError, TransportError
 from drivers.feedback import BusCounters, DriveFeedback
-from drivers.joint_bus import JointBusBase
+from drivers.joint_bus import JointBusBase, clip_torque
 from drivers.network import DriveNetwork
 from drivers.nmt import HeartbeatConsumer, HeartbeatProducer, send_command, wait_for
 from drivers.node import DriveNode
@@ -266,7 +266,9 @@ class DriveBus(JointBusBase):
         """
         wanted = wanted_nm
         if carry:
-            wanted = np.clip(wanted + self._residual_nm[1], self._min_torque_nm, self._max_torque_nm)
+            wanted = wanted + self._residual_nm[1]  # the carried error never takes it past the limit:
+            limit = self._max_torque_list  # the stack's one clip (drivers.joint_bus.clip_torque)
+            clip_torque(wanted, wanted.tolist(), limit, limit, wanted)
         permille = np.rint(wanted * self._permille_per_nm)
         sent = permille / self._permille_per_nm
         if carry:

@@ -34,6 +34,38 @@ from drivers.errors import (
 from drivers.feedback import DriveFeedback
 
 
+def all_finite(values: list[float]) -> bool:
+    """True when every float is finite: one scalar test (a NaN or an infinity makes the sum
+    non-finite; so would a finite sum past 1e308: callers confirm before they refuse). On a
+    handful of Python floats it is faster than one numpy call (docs/runtime.md, "One cycle")."""
+    return math.isfinite(sum(values))
+
+
+def clip_torque(
+    torque_nm: np.ndarray, values: list[float], limit_nm: list[float], level_nm: list[float], out: np.ndarray
+) -> bool:
+    """``torque_nm`` (``values``: its floats, finite) clipped to ±``limit_nm`` into ``out``; True when
+    some joint is at or beyond ±``level_nm`` (saturated).
+
+    The one torque clip of the stack, used at two depths on purpose (docs/runtime.md, "One cycle"):
+    the runtime's supervisor clips to its safety limit (what the law records as applied), and
+    :meth:`JointBusBase.exchange` to the drives' ``max_torque_nm`` for every caller of a JointBus (the
+    jog command among them), the last line of defence. A loop on Python floats: for a handful of
+    joints faster than ``np.clip`` (no allocation either)."""
+    out[:] = torque_nm
+    saturated = False
+    for i, (x, limit, level) in enumerate(zip(values, limit_nm, level_nm, strict=True)):
+        if x >= level:
+            saturated = True
+            if x > limit:
+                out[i] = limit
+        elif x <= -level:
+            saturated = True
+            if x < -limit:
+                out[i] = -limit
+    return saturated
+
+
 @runtime_checkable
 class JointReadings(Protocol):
     """What a drive measures per joint (a plant's ``JointState`` and ``DriveFeedback`` satisfy it)."""
@@ -100,7 +132,10 @@ class JointBusBase(abc.ABC):
     are its two backends, so the promise of the module docstring is written once:
 
     - a set-point of the wrong shape or not finite raises :class:`DriveCommandError`, nothing sent;
-      a finite one is clipped to each joint's ``max_torque_nm`` (once, here);
+      a finite one is clipped to each joint's ``max_torque_nm`` (:func:`clip_torque`). Defence in
+      depth, on purpose: the runtime's supervisor has already replaced a non-finite policy torque
+      and clipped to its safety limit (never above the drives'), so under the runtime neither
+      fires; they keep the promise for every other caller (the jog command, commissioning, tests);
     - an error queued by a receiving thread or handler (:meth:`_raise_pending`) is raised by the
       exchange that follows it, checked once, after the cycle;
     - a joint without fresh feedback for more than ``max_missed_cycles`` consecutive exchanges raises
@@ -122,7 +157,7 @@ class JointBusBase(abc.ABC):
         self._n = n
         self.max_missed_cycles = max_missed_cycles
         self._max_torque_nm = np.broadcast_to(np.asarray(max_torque_nm, dtype=np.float64), (n,)).copy()
-        self._min_torque_nm = -self._max_torque_nm
+        self._max_torque_list = self._max_torque_nm.tolist()  # clip_torque's limits, as floats
         self._setpoint_nm = np.zeros(n)  # the clipped set-point handed to _cycle_internal
         self._missed_cycles = [0] * n  # consecutive exchanges without fresh feedback, per joint
         self._enabled = False
@@ -176,12 +211,14 @@ class JointBusBase(abc.ABC):
         torque = torque_nm if type(torque_nm) is np.ndarray else np.asarray(torque_nm, dtype=np.float64)
         if torque.shape != (self._n,):
             raise DriveCommandError(f"{name} has shape {torque.shape}, expected ({self._n},)")
-        # One scalar test for the healthy case (a NaN or an infinity makes the sum non-finite).
-        if not math.isfinite(torque.sum()):
+        values = torque.tolist()
+        if not all_finite(values):  # a finite sum past 1e308 is no refusal: clipped below
             bad = [self.node_ids[i] for i in np.flatnonzero(~np.isfinite(torque))]
             if bad:
                 raise DriveCommandError(f"non-finite torque set-point for drive(s) {bad}")
-        return np.clip(torque, self._min_torque_nm, self._max_torque_nm, out=self._setpoint_nm)
+        limit = self._max_torque_list
+        clip_torque(torque, values, limit, limit, self._setpoint_nm)
+        return self._setpoint_nm
 
     def _supervise(self, feedback: DriveFeedback) -> None:
         """The missed-cycle budget and the drives' states (see class doc)."""

@@ -33,10 +33,11 @@ outputs (a graph of another law under a fixed-up sha256 fails here), saturate at
 probes exercise them (:mod:`hil_runtime.bundle_probes`, which also makes the probe rows the
 writer records). Nothing is written. The trust-region rule in numpy is :mod:`hil_runtime.trust_region`.
 
-``step`` never returns a non-finite torque: a non-finite graph output with a finite law torque
-and state gives the law's torque, saturated (counted in ``nonfinite_fallbacks``); otherwise the
-call raises ``NonFiniteOutputError`` (counted in ``nonfinite_refusals``) and the caller stops
-safely, its law state untouched.
+``step`` only produces: a non-finite graph output is the runtime's safety supervisor's to handle
+(:func:`hil_runtime.supervisor.policy_torque`, the one rule: the law's torque instead, or FAULT
+``policy_nonfinite``). ``step_batch`` (offline runs, no supervisor) applies the same rule per arm:
+the law's torque, saturated, as a full fallback (``nonfinite_fallbacks``); an arm with nothing
+usable stays non-finite (``nonfinite_refusals``), so the run records its divergence.
 
 Only numpy, onnxruntime and the standard library here (the runtime never imports models/torch).
 
@@ -57,6 +58,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from drivers.joint_bus import clip_torque
 from drivers.strict_input import loads_json_unique
 from hil_runtime.bundle_probes import GraphCheckError, check_graph, probe_section
 from hil_runtime.bundle_schema import MANIFEST, SUPPORTED_SCHEMAS, Manifest, format_manifest_error
@@ -71,20 +73,15 @@ from hil_runtime.bundle_security import (
     member_file,
     read_bounded,
 )
+from hil_runtime.supervisor import policy_torque
 
-__all__ = ["BundleError", "NonFiniteOutputError", "PolicyBundle", "record_probes", "sha256_file"]
+__all__ = ["BundleError", "PolicyBundle", "record_probes", "sha256_file"]
 
 
 class BundleError(ValueError):
     """A bundle the runtime refuses; the message is one line naming the file."""
 
     exit_code = 2
-
-
-class NonFiniteOutputError(ArithmeticError):
-    """The graph gave a non-finite torque and no finite law torque to fall back on: stop safely."""
-
-    exit_code = 3
 
 
 def sha256_file(path: Path) -> str:
@@ -111,8 +108,11 @@ class PolicyBundle:
         bound = None if trust is None else trust.residual_bound_nm
         self.residual_bound_nm = None if bound is None else np.asarray(bound, float)
         self.saturation_checked = np.zeros(self.n_joints, bool)  # joints whose graph saturation was observed
-        self.nonfinite_fallbacks = 0  # cycles whose graph torque was non-finite: the law's torque instead
-        self.nonfinite_refusals = 0  # cycles with nothing finite to apply: NonFiniteOutputError
+        self._torque_limit_list = self.torque_limit_nm.tolist()
+        # step_batch's arms (offline) whose graph torque was non-finite: the law's torque instead /
+        # nothing usable (the runtime's supervisor counts its own: law_substitutions)
+        self.nonfinite_fallbacks = 0
+        self.nonfinite_refusals = 0
         init = manifest.law.initial_state
         self._init_constant = np.asarray(init.constant, float).reshape(self.state_size)
         self._init_gain = np.asarray(init.position_gain, float).reshape(self.state_size, self.n_joints)
@@ -312,6 +312,7 @@ class PolicyBundle:
         """One arm, one period: (tau (N,), tau_fb (N,), next_law_state (S,)), views of a reused buffer.
 
         The same view objects every call: copy the results if you keep them past the next call.
+        Unchecked: a non-finite output is the caller's (the runtime's supervisor, module docstring).
         """
         x, n = self._x_row, self.n_joints
         x[0:n] = q
@@ -321,29 +322,7 @@ class PolicyBundle:
         x[4 * n : 5 * n] = qdd_d
         x[5 * n :] = law_state
         self._run_bound(self._binding_native, None)
-        y = self._y_row
-        # y . y is non-finite iff an entry is (or it overflows past 1e154: then the exact check below
-        # finds nothing and the row stands); 0.3 us against 0.9 for np.isfinite(y).all()
-        if not math.isfinite(y.dot(y)) and not np.isfinite(y).all():
-            self._nonfinite(y, x)
         return self._step_out
-
-    def _nonfinite(self, y: np.ndarray, x: np.ndarray, refuse: bool = True) -> None:
-        """Replace a non-finite torque by the law's (saturated) one in place, or refuse the cycle."""
-        tau, tau_fb, state, trust = self.layout.split(y)
-        if np.isfinite(tau_fb).all() and np.isfinite(state).all():
-            np.clip(tau_fb, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
-            trust[:] = (1.0, 0.0)  # a full fallback to the law, as the trust region reports it
-            self.nonfinite_fallbacks += 1
-            return
-        self.nonfinite_refusals += 1
-        if not refuse:
-            return
-        bad_input = not np.isfinite(x).all()
-        raise NonFiniteOutputError(
-            f"bundle {self.path}: non-finite law torque or state "
-            f"({'non-finite input' if bad_input else 'from finite inputs'}); stop the arm"
-        )
 
     @property
     def last_trust(self) -> np.ndarray:
@@ -361,11 +340,24 @@ class PolicyBundle:
             [np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1
         )
         y = self.session.run([self._output_name], {self._input_name: x})[0]
-        if not np.isfinite(y).all():  # step's fallback per arm; an arm with nothing finite stays
-            for row in np.flatnonzero(~np.isfinite(y).all(axis=1)):  # non-finite: offline runs record a divergence
-                self._nonfinite(y[row], x[row], refuse=False)
         tau, tau_fb, next_state, self.last_trust_batch = self.layout.split(y)
+        if not np.isfinite(y).all():
+            for row in np.flatnonzero(~np.isfinite(y).all(axis=1)):
+                self._law_fallback(tau[row], tau_fb[row], next_state[row], self.last_trust_batch[row])
         return tau, tau_fb, next_state
+
+    def _law_fallback(self, tau: np.ndarray, tau_fb: np.ndarray, next_state: np.ndarray, trust: np.ndarray) -> None:
+        """The supervisor's non-finite rule on one arm of an offline batch (no supervisor there):
+        the law's torque, saturated, reported as a full fallback; an arm with nothing usable stays
+        non-finite, so offline runs record its divergence."""
+        usable = policy_torque(tau, tau_fb, next_state)
+        if usable is None:
+            self.nonfinite_refusals += 1
+        elif usable[0] is not tau:
+            limit = self._torque_limit_list
+            clip_torque(tau_fb, usable[1], limit, limit, tau)
+            trust[:] = (1.0, 0.0)  # a full fallback to the law, as the trust region reports it
+            self.nonfinite_fallbacks += 1
 
     def describe(self) -> dict[str, Any]:
         """What telemetry's bundle-info queryable publishes."""

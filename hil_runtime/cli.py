@@ -55,7 +55,7 @@ def _flags_show_no_type() -> None:
     except ImportError:  # another typer layout: keep its help as it is
         return
     original = getattr(TyperOption, "display_type_rich", None)
-    if original is None or getattr(original, "_hil_flag_patch", False):
+    if original is None or getattr(original, "__module__", None) == __name__:  # None, or patched already
         return
 
     def display_type_rich(self: TyperOption, ctx: object) -> str | None:
@@ -64,9 +64,9 @@ def _flags_show_no_type() -> None:
         shown: str | None = original(self, ctx)
         return shown
 
-    # A marker attribute on a function and a patched method: what this monkeypatch is, by design.
-    display_type_rich._hil_flag_patch = True  # type: ignore[attr-defined]
-    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
+    # A patched method, by design: assigned through Any (mypy refuses a method assignment).
+    patched: Any = TyperOption
+    patched.display_type_rich = display_type_rich
 
 
 def _load_plugins() -> None:

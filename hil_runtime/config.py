@@ -8,6 +8,7 @@
       mode: lmpc                         # lmpc: the fused law + emulator; fb: the law alone
       urdf_sha256: null                  # the arm's URDF hash: the bundle's must match; null: unchecked
       trusted_keys: []                   # Ed25519 public keys (PEM): the bundle must be signed by one
+      torque_rate_limit: none            # none | libfranka: the LMPC torque's change per cycle clamped
     bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
       transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
                   fd: true, data_bitrate: 5000000}
@@ -27,6 +28,8 @@
       cpu_affinity: null                 # e.g. [1]: the loop thread only
       fifo_priority: null                # e.g. 50: SCHED_FIFO on the loop thread only
       lock_memory: false                 # mlockall(MCL_CURRENT | MCL_FUTURE)
+      spin_s: null                       # hybrid wait: spin this long before each deadline (null:
+                                         # 100 µs with cpu_affinity, else 0; docs/runtime.md)
       duration_s: null                   # stop (exit 0) after this long in ACTIVE; null: run on
     safety:                              # null: the bundle manifest's limits
       position_lower_rad: null
@@ -80,6 +83,9 @@ class BundleSection(_Frozen):
     # Ed25519 public keys (PEM files, `hil bundle keygen`): when any is listed, the bundle must be
     # signed by one of them (`hil bundle sign`); an unsigned or re-signed bundle is refused.
     trusted_keys: tuple[Path, ...] = ()
+    # libfranka: the lmpc torque's change per cycle clamped per joint to libfranka's rate bound
+    # (hil_runtime.rate_limit, docs/lmpc.md section 10), against the torque last commanded; none: off.
+    torque_rate_limit: Literal["none", "libfranka"] = "none"
 
 
 class ReferenceSection(_Frozen):
@@ -103,6 +109,9 @@ class ReferenceSection(_Frozen):
         return self
 
 
+DEFAULT_SPIN_S = 100e-6  # the hybrid wait's spin with a CPU of its own (docs/runtime.md, measured)
+
+
 class LoopSection(_Frozen):
     # clock: absolute deadlines on the monotonic clock at bus.period_s (overruns counted, skipped).
     # bus: no sleeping; a lock-stepped target's answer paces the loop (simulated time still
@@ -115,6 +124,10 @@ class LoopSection(_Frozen):
     cpu_affinity: tuple[int, ...] | None = None  # CPUs for the loop thread only
     fifo_priority: int | None = Field(None, ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     lock_memory: bool = False  # mlockall; needs LimitMEMLOCK (systemd) or CAP_IPC_LOCK
+    # Clock pacing's hybrid wait: sleep until spin_s before each deadline, then spin on the clock
+    # (no late wake-up at the cycle's start). None: DEFAULT_SPIN_S when the loop has
+    # CPUs of its own (cpu_affinity), else 0 (spinning on a shared CPU takes it from others).
+    spin_s: float | None = Field(None, ge=0.0, le=0.5e-3)
     warmup_cycles: int = Field(200, ge=0, le=100_000)  # policy/supervisor calls before ACTIVE
     stats_window: int = Field(4096, ge=16, le=1 << 20)  # cycles kept for median/p99/max
     stats_interval_s: float = Field(1.0, gt=0.0, le=3600.0)  # stats to telemetry / STATUS= this often
@@ -169,6 +182,9 @@ class RuntimeConfig(_Frozen):
             value = getattr(self.safety, name)
             if value is not None and len(value) != n:
                 raise ValueError(f"safety.{name}: {len(value)} values for {n} joints")
+        spin_s = self.loop.spin_s
+        if spin_s is not None and spin_s >= self.bus.period_s / 2:
+            raise ValueError(f"loop.spin_s: {spin_s:g} s is not under half the period ({self.bus.period_s:g} s)")
         # One stale-feedback budget: the supervisor's (FAULT stale_feedback); the runtime's drive bus
         # does not count its own (hil_runtime.factory). A config naming both must agree.
         missed, stale = self.bus.max_missed_cycles, self.safety.max_stale_cycles
@@ -182,6 +198,17 @@ class RuntimeConfig(_Frozen):
     @property
     def period_s(self) -> float:
         return self.bus.period_s
+
+    @property
+    def loop_spin_s(self) -> float:
+        """The hybrid wait's spin the pacer uses: ``loop.spin_s``, or DEFAULT_SPIN_S (at most a
+        quarter period) when the clock-paced loop has CPUs of its own, else 0."""
+        loop = self.loop
+        if loop.spin_s is not None:
+            return loop.spin_s
+        if not (loop.cpu_affinity and loop.pacing == "clock"):
+            return 0.0
+        return min(DEFAULT_SPIN_S, self.period_s / 4)
 
     @property
     def joint_names(self) -> tuple[str, ...]:

@@ -9,6 +9,11 @@
 Either way the law's next state records the torque the supervisor actually commanded
 (:meth:`Controller.commit`), not the graph's guess: for ADRC the applied torque feeds its
 observer (the manifest's ``law.applied_torque_slice``).
+
+``torque_rate_limit="libfranka"`` (config ``bundle.torque_rate_limit``; lmpc mode only, the law's
+own torque in fb mode is the paper's baseline, untouched): the LMPC torque's change per cycle is
+clamped per joint to libfranka's rate bound (:mod:`hil_runtime.rate_limit`) against the torque
+last committed, reset on activation to the torque the drives hold (:meth:`Controller.reset`).
 """
 
 from __future__ import annotations
@@ -18,14 +23,17 @@ from typing import Literal
 import numpy as np
 
 from hil_runtime.bundle import PolicyBundle
+from hil_runtime.rate_limit import TORQUE_RATE_LIMITS, TorqueRateLimiter
 
 Mode = Literal["lmpc", "fb"]
 
 
 class Controller:
-    def __init__(self, bundle: PolicyBundle, mode: Mode = "lmpc") -> None:
+    def __init__(self, bundle: PolicyBundle, mode: Mode = "lmpc", torque_rate_limit: str = "none") -> None:
         if mode not in ("lmpc", "fb"):
             raise ValueError(f"mode must be 'lmpc' or 'fb', not {mode!r}")
+        if torque_rate_limit not in TORQUE_RATE_LIMITS:
+            raise ValueError(f"torque_rate_limit must be one of {TORQUE_RATE_LIMITS}, not {torque_rate_limit!r}")
         self.bundle = bundle
         self.mode = mode
         self.n_joints = bundle.n_joints
@@ -34,10 +42,18 @@ class Controller:
         self.state = np.zeros(bundle.state_size)
         self._next = np.zeros(bundle.state_size)
         self._trust = bundle.last_trust  # a view of the graph's output row
+        self.rate_limiter = (
+            TorqueRateLimiter(bundle.torque_limit_nm, bundle.period_s)
+            if torque_rate_limit == "libfranka" and mode == "lmpc"
+            else None
+        )
 
-    def reset(self, q0: np.ndarray) -> None:
-        """The law's state at the start of a run from the measured positions."""
+    def reset(self, q0: np.ndarray, held_torque_nm: np.ndarray | None = None) -> None:
+        """The law's state at the start of a run from the measured positions; the rate limit (if
+        any) starts from ``held_torque_nm``, the torque the drives hold now (None: zero)."""
         self.state[:] = self.bundle.initial_state(np.asarray(q0, float))
+        if self.rate_limiter is not None:
+            self.rate_limiter.reset(held_torque_nm)
 
     def step(
         self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
@@ -51,10 +67,20 @@ class Controller:
         self._next[:] = nxt
         if self.mode == "fb":  # the supervisor saturates it, as it does every candidate
             return tau_fb, tau_fb, 0.0
+        if self.rate_limiter is not None:
+            tau = self.rate_limiter.limit(tau)
         return tau, tau_fb, float(self._trust[0])
+
+    @property
+    def next_state(self) -> np.ndarray:
+        """The law's state after this cycle's step, before :meth:`commit` records the applied torque
+        (what the supervisor checks: a law whose state went non-finite cannot go on)."""
+        return self._next
 
     def commit(self, applied_torque_nm: np.ndarray) -> None:
         """Advance the law's state, recording the torque actually commanded."""
         if self._applied is not None:
             self._next[self._applied] = applied_torque_nm
         self.state, self._next = self._next, self.state
+        if self.rate_limiter is not None:
+            self.rate_limiter.commit(applied_torque_nm)

@@ -39,7 +39,6 @@ import numpy as np
 
 from drivers.errors import DriveError
 from drivers.joint_bus import JointBus
-from hil_runtime.bundle import NonFiniteOutputError
 from hil_runtime.controller import Controller
 from hil_runtime.pacer import Pacer
 from hil_runtime.realtime import GcQuiet
@@ -122,12 +121,9 @@ class CyclePipeline:
             )
         q_d, qd_d, qdd_d = self.reference.at(k)
         controller = self.controller
-        try:
-            tau, tau_fb, fallback = controller.step(q, qd, q_d, qd_d, qdd_d)
-        except NonFiniteOutputError as exc:  # nothing finite to command: its own FAULT, not a bug
-            return Fault(FaultKind.POLICY_NONFINITE, str(exc))
+        tau, tau_fb, fallback = controller.step(q, qd, q_d, qd_d, qdd_d)
         command = self.command
-        fault = supervisor.select_torque(tau, tau_fb, fallback, command)
+        fault = supervisor.select_torque(tau, tau_fb, fallback, command, controller.next_state)
         if fault is not None:
             return fault
         controller.commit(command)

@@ -5,6 +5,14 @@ sender): it never drifts, and when a cycle overruns its deadline the missed peri
 and skipped, never run in a burst to catch up. ``tick`` counts periods since :meth:`Pacer.start`,
 skipped ones included, so a reference indexed by it stays on the wall clock.
 
+Hybrid wait (``spin_s`` > 0): the pacer sleeps until ``spin_s`` before the deadline, then spins on
+the clock onto it. A sleep to the deadline wakes late (on this VM a halted vCPU waits for the
+host: 17-34 µs median, p99 50-57 µs of the period lost at every cycle's start); the spin starts
+the cycle on its deadline (0.1 / 0.2 µs, ``benchmarks/bench_pacer_wake.py``). It does not warm the
+policy call: that is cold from what ran on the CPU during the sleep (``bench_policy_cold.py``).
+Only for a loop that has a CPU of its own, and only when the slack leaves a sleep of at least
+``MIN_SLEEP_S`` first.
+
 With ``pacing="bus"`` the pacer never sleeps: a lock-stepped target answers each SYNC after one
 simulated period, so the bus itself paces the loop and ``tick`` advances one per cycle.
 
@@ -25,6 +33,11 @@ from typing import Literal
 import numpy as np
 
 Pacing = Literal["clock", "bus"]
+
+# The hybrid wait spins only after a sleep of at least this long: a SCHED_FIFO loop that never
+# sleeps starves the other tasks of its CPU, and the kernel then takes the CPU from it (RT
+# throttling, the fair server: up to 50 ms a second), a stall far past any overrun budget.
+MIN_SLEEP_S = 100e-6
 
 
 class RollingStats:
@@ -90,10 +103,14 @@ class Pacer:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         stats_window: int = 4096,
+        spin_s: float = 0.0,
     ) -> None:
         if not period_s > 0:
             raise ValueError("period_s must be positive")
+        if not 0.0 <= spin_s < period_s:
+            raise ValueError("spin_s must be in [0, period_s)")
         self.period_s = period_s
+        self.spin_s = spin_s  # hybrid wait: the last stretch before a deadline spun, not slept
         self.pacing = pacing
         self._clock = clock
         self._sleep = sleep
@@ -143,8 +160,16 @@ class Pacer:
             deadline = self._next_s + self.period_s
             now = clock()
             if now < deadline:
-                self._sleep(deadline - now)
-                now = clock()
+                spin_s = self.spin_s
+                if spin_s > 0.0 and deadline - now > spin_s + MIN_SLEEP_S:
+                    # Hybrid wait: sleep, then spin onto the deadline (no late wake-up).
+                    self._sleep(deadline - now - spin_s)
+                    now = clock()
+                    while now < deadline:
+                        now = clock()
+                else:  # no spin, or too little slack to sleep before spinning: sleep it all
+                    self._sleep(deadline - now)
+                    now = clock()
                 self.tick += 1
                 self._next_s = deadline
                 self.late_run = 0

@@ -16,7 +16,6 @@ WARNING_COUNTERS = (
     "overruns",
     "skipped_periods",
     "law_substitutions",
-    "nonfinite_fallbacks",
     "saturations",
     "stale_cycles",
     "bus_dropped",
@@ -79,7 +78,6 @@ def status_snapshot(runtime: Runtime, stats: Mapping[str, Any]) -> dict[str, Any
         "compute_median_s": finite(stats.get("compute_median_s")),
         "compute_p99_s": finite(stats.get("compute_p99_s")),
         "supervisor": runtime.supervisor.counters(),
-        "nonfinite_fallbacks": runtime.bundle.nonfinite_fallbacks,
         "bus": counters_dict(runtime.bus.counters),
         "realtime": {"applied": runtime.realtime.applied, "refused": runtime.realtime.refused},
     }

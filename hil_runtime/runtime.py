@@ -98,14 +98,19 @@ class Runtime:
         self.bundle = bundle if bundle is not None else load_bundle_for(config)
         self.limits = safety_limits_for(config, self.bundle)
         self.condition = condition_for(config, self.limits)
-        self.controller = Controller(self.bundle, config.bundle.mode)
+        self.controller = Controller(self.bundle, config.bundle.mode, config.bundle.torque_rate_limit)
         self.supervisor = Supervisor(self.limits, config.joint_names)
         self.notifier = notifier if notifier is not None else Notifier(None)
         self.lifecycle = Lifecycle()
         self.lifecycle.subscribe(self._on_lifecycle)
         self._clock = clock
         self.pacer = Pacer(
-            config.period_s, config.loop.pacing, clock=clock, sleep=sleep, stats_window=config.loop.stats_window
+            config.period_s,
+            config.loop.pacing,
+            clock=clock,
+            sleep=sleep,
+            stats_window=config.loop.stats_window,
+            spin_s=config.loop_spin_s,
         )
         n = self.bundle.n_joints
         self.record = RunRecord(record_cycles, n)
@@ -228,7 +233,8 @@ class Runtime:
             return False
         pipeline = self.pipeline
         pipeline.reference = self._build_reference(q0)
-        self.controller.reset(q0)
+        # the rate limit (if any) starts from the set-point the drives hold now (enable's: zero)
+        self.controller.reset(q0, feedback.commanded_torque_nm)
         self.loop.ref_base = 1
         pipeline.t0_s = now = self._clock()
         fault = pipeline.run(feedback, 0, now, now)
@@ -442,7 +448,6 @@ class Runtime:
         out.update(counters)
         for name, value in counters_dict(self.bus.counters).items():
             out[f"bus_{name}"] = value
-        out["nonfinite_fallbacks"] = self.bundle.nonfinite_fallbacks
         out["activations"] = self._activations
         out["faults"] = self._faults
         out["record_overflow"] = self.record.overflow

@@ -15,11 +15,13 @@ Timing (:meth:`Supervisor.check_overruns`), before the exchange of a cycle that 
     more than overrun_budget late periods in a row     -> FAULT overrun_budget
     (an overrun and the periods it skipped; the drives hold the last set-point meanwhile)
 
-Policy output (:meth:`Supervisor.select_torque`), after it:
+Policy output (:meth:`Supervisor.select_torque`), after it; the one owner of the non-finite rule
+(:func:`policy_torque`; the bundle's ``step`` only produces):
 
     tau finite                       -> tau (clipped to the torque limit)
     tau non-finite, tau_fb finite    -> the law's tau_fb, clipped; counted (law_substitutions)
     both non-finite                  -> FAULT policy_nonfinite
+    the law's next state non-finite  -> FAULT policy_nonfinite (the law cannot go on)
     |torque| at the limit            -> counted (saturated_cycles)
     trust fallback > 0 (alpha < 1)   -> counted (fallback_cycles; full_fallback_cycles at 1)
 
@@ -32,12 +34,14 @@ The checks use preallocated buffers: a healthy cycle allocates nothing.
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from drivers.errors import DriveError
+from drivers.joint_bus import all_finite, clip_torque
+
+_NO_STATE = np.zeros(0)  # a law without state (``next_law_state`` not given)
 
 
 class FaultKind(str, enum.Enum):
@@ -185,33 +189,50 @@ class Supervisor:
         )
 
     # --- policy output --------------------------------------------------------------------------
-    def select_torque(self, tau: np.ndarray, tau_fb: np.ndarray, fallback: float, out: np.ndarray) -> Fault | None:
-        """Write the torque to command into ``out``; None, or the FAULT when nothing is usable."""
-        source = tau
-        values = tau.tolist()  # read as Python floats: six of them test faster than numpy calls
-        # A NaN or an infinity anywhere makes the sum non-finite (so would a sum past 1e308: no
-        # torque of an arm is that large, and falling back to the law is then right too).
-        if not math.isfinite(sum(values)):
-            source = tau_fb
-            values = tau_fb.tolist()
-            if not math.isfinite(sum(values)):
+    def select_torque(
+        self,
+        tau: np.ndarray,
+        tau_fb: np.ndarray,
+        fallback: float,
+        out: np.ndarray,
+        next_law_state: np.ndarray = _NO_STATE,
+    ) -> Fault | None:
+        """Write the torque to command into ``out``; None, or the FAULT when nothing is usable.
+
+        ``next_law_state``: the law's state after this cycle (the controller commits it next)."""
+        usable = policy_torque(tau, tau_fb, next_law_state)
+        if usable is None:
+            if all_finite(next_law_state.tolist()):
                 return Fault(FaultKind.POLICY_NONFINITE, "policy and feedback-law torques are both non-finite")
+            return Fault(FaultKind.POLICY_NONFINITE, "the feedback law's next state is non-finite: it cannot go on")
+        source, values = usable
+        if source is not tau:
             self.law_substitutions += 1
-        out[:] = source  # the set-point stays an array (no list back into it); clipped joints below
-        saturated = False
-        for i, (x, limit, level) in enumerate(zip(values, self._tmax_list, self._sat_list, strict=True)):
-            if x >= level:
-                saturated = True
-                if x > limit:
-                    out[i] = limit
-            elif x <= -level:
-                saturated = True
-                if x < -limit:
-                    out[i] = -limit
-        if saturated:
+        if clip_torque(source, values, self._tmax_list, self._sat_list, out):
             self.saturated_cycles += 1
         if fallback > 0.0:  # NaN trust is no fallback evidence either way: not counted
             self.fallback_cycles += 1
             if fallback >= 1.0:
                 self.full_fallback_cycles += 1
         return None
+
+
+def policy_torque(
+    tau: np.ndarray, tau_fb: np.ndarray, next_law_state: np.ndarray = _NO_STATE
+) -> tuple[np.ndarray, list[float]] | None:
+    """The one rule for a non-finite policy output, one arm: (the torque to command, its floats).
+
+    ``tau`` when it and the law's next state are finite; the law's own ``tau_fb`` when only ``tau``
+    is not (the emulator broke, the law did not); None when the law's torque or next state is
+    non-finite (nothing usable: the caller stops the arm). Unclipped: the caller clips
+    (:func:`drivers.joint_bus.clip_torque`). The supervisor applies it every cycle; the bundle's
+    ``step_batch`` per arm for offline runs, which have no supervisor (they score what the runtime
+    commands). The bundle's ``step`` only produces.
+    """
+    if next_law_state.size and not all_finite(next_law_state.tolist()):
+        return None
+    values = tau.tolist()  # Python floats: six of them test faster than numpy calls
+    if all_finite(values):
+        return tau, values
+    values = tau_fb.tolist()
+    return (tau_fb, values) if all_finite(values) else None

@@ -29,24 +29,17 @@ from typing import Any
 
 import numpy as np
 
+from hil_runtime.rate_limit import FRANKA_MAX_TORQUE_RATE_NM_S, max_torque_step_nm
 from models.scoring import METRICS, WEIGHTS
 
 HIGH_FREQUENCY_HZ = 50.0  # above every reference's content (< 5 Hz) and a cobot's first structural modes
 CHATTER_RATIO_OF_LIMIT = 0.02  # chatter allowed whatever the law does: 2 % of the torque limit
 CHATTER_RATIO_OF_FEEDBACK = 2.0  # or twice the feedback law's chatter on the same run
-FRANKA_MAX_TORQUE_RATE_NM_S = 1000.0  # franka::kMaxTorqueRate, include/franka/rate_limiting.h
-FRANKA_TORQUE_LIMIT_NM = 87.0  # the Panda's joints 1-4 (the rate limit is read relative to this)
 
 #: The six tracking metrics at half their paper weights, then the effort metrics; the sum is 1.
 EFFORT_METRICS = ("torque_rms_ratio", "chatter_ratio", "torque_hf_ratio", "energy_j")
 EFFORT_WEIGHTS = (0.1, 0.2, 0.1, 0.1)
 TRACKING_SHARE = 0.5
-
-
-def max_torque_step_nm(torque_limit_nm: np.ndarray, period_s: float) -> np.ndarray:
-    """The largest commanded torque change per cycle a real arm accepts, per joint."""
-    rate_nm_s = FRANKA_MAX_TORQUE_RATE_NM_S * np.asarray(torque_limit_nm, float) / FRANKA_TORQUE_LIMIT_NM
-    return rate_nm_s * period_s
 
 
 def effort_metrics(
@@ -122,7 +115,8 @@ def deployable(
         reasons.append(f"chatter {chatter[worst]:.3g} N·m > {allowed[worst]:.3g} on joint {worst + 1}")
     step_limit = max_torque_step_nm(limit, period_s)
     steps = np.asarray(effort["max_torque_step_nm"])
-    if np.any(steps > step_limit):
+    # A command clamped at the bound (hil_runtime.rate_limit) reads back within rounding of it
+    if np.any(steps > step_limit * (1.0 + 1e-9)):
         worst = int(np.argmax(steps / step_limit))
         reasons.append(
             f"torque rate {steps[worst] / period_s:.3g} N·m/s > {step_limit[worst] / period_s:.3g} on joint {worst + 1}"

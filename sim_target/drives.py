@@ -343,6 +343,11 @@ class EmulatedDrives:
                     self._next_check_s = now + _CHECK_PERIOD_S
                     if self._drain():
                         self._watch.check(monotonic())
+                    if return_on_sync and self._sync_seen:
+                        # A SYNC among the drained frames: return now, not after the next frame
+                        # (a free-running target would otherwise step its physics a period late,
+                        # into the next cycle's frames; measured: one exchange in 5 delayed 300 µs).
+                        return
                 msg = bus.recv(max(0.0, min(_POLL_S, due - now, deadline_s - now)))
             except Exception:  # the bus went away: nothing left to emulate
                 if not stop.is_set():

@@ -7,7 +7,8 @@ over Unix SOCK_SEQPACKET sockets, frames in SocketCAN's layout (docs/ipc_bus.md)
   sender each received frame carries.
 """
 
-from drivers.ipc.bus import IpcBus, IpcBusStats
+from drivers.ipc.bus import IpcBus
 from drivers.ipc.directory import IpcMessage, Sender, bus_directory
+from drivers.ipc.peer import IpcBusStats
 
 __all__ = ["IpcBus", "IpcBusStats", "IpcMessage", "Sender", "bus_directory"]

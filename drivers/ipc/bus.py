@@ -24,6 +24,9 @@ Semantics, as close to python-can's ``virtual`` and SocketCAN as sockets allow:
   ``receive_own_messages`` it also sees its own (through the kernel, so :meth:`fileno` wakes).
 - Frames from one sender arrive in the order sent. Frames of different senders have no global
   order (each pair of peers has its own queue).
+- ``send_batch(msgs)`` (a control cycle's frames) sends them as one datagram to each peer, which
+  its ``recv`` hands out one frame at a time in order: one wake-up and one system call for the
+  cycle instead of one per frame (:func:`drivers.ipc.frame.split_batch`).
 - ``send`` never blocks: a peer whose queue is full (``queue_bytes``, it is not reading) loses the
   frame; the loss is counted in :attr:`IpcBus.stats` and the peer gets SocketCAN's RX-overflow
   error frame once its queue drains. A peer that exits or dies is dropped from the bus.
@@ -37,6 +40,7 @@ Linux only (SOCK_SEQPACKET on AF_UNIX).
 
 from __future__ import annotations
 
+import collections
 import errno
 import fcntl
 import logging
@@ -47,14 +51,24 @@ import socket
 import stat
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
 
 from drivers.ipc.directory import IpcMessage, IpcPathError, Sender, bus_directory
-from drivers.ipc.frame import CANFD_MTU, FrameError, decode, encode, rx_overflow_frame
+from drivers.ipc.frame import (
+    CAN_MTU,
+    CANFD_MTU,
+    MAX_BATCH_FRAMES,
+    MAX_DATAGRAM,
+    FrameError,
+    decode,
+    encode,
+    rx_overflow_frame,
+    split_batch,
+)
+from drivers.ipc.peer import IpcBusStats, _Peer
 from drivers.ownership import OwnershipError, group_id, peer_allowed, peer_credentials, private_directory
 
 if TYPE_CHECKING:
@@ -67,34 +81,6 @@ MAX_PATH_BYTES = 107  # sun_path is 108 bytes with the terminating NUL
 DEFAULT_QUEUE_BYTES = 1 << 20  # per peer pair: ~2700 FD frames queued before a slow reader loses some
 _CONNECT_TIMEOUT_S = 1.0
 _WAKE = b"\x00"  # one byte on the loopback pair: shutdown wakes a blocked reader
-
-
-@dataclass
-class IpcBusStats:
-    """Counters of one bus instance (frames, not datagrams to each peer, unless noted)."""
-
-    frames_sent: int = 0
-    frames_received: int = 0
-    frames_dropped: int = 0  # (frame, peer) pairs lost because that peer's queue was full
-    fd_frames_ignored: int = 0  # CAN FD frames received on a classical bus
-    malformed: int = 0  # datagrams that were not SocketCAN frames
-    peers_joined: int = 0  # connections made or accepted, this bus's lifetime
-    peers_left: int = 0
-    stale_sockets_removed: int = 0
-    peers_refused: int = 0  # connections from or to another user's process (SO_PEERCRED)
-
-
-class _Peer:
-    """One connection to another bus instance (or the loopback pair to ourselves)."""
-
-    __slots__ = ("dropped", "fd", "overflowed", "sender", "sock")
-
-    def __init__(self, sock: socket.socket, sender: Sender | None = None) -> None:
-        self.sock = sock
-        self.fd = sock.fileno()
-        self.dropped = 0
-        self.overflowed = False  # frames were lost: the RX-overflow error frame goes first next time
-        self.sender = sender
 
 
 class IpcBus(can.BusABC):
@@ -134,6 +120,8 @@ class IpcBus(can.BusABC):
         self._peers: dict[int, _Peer] = {}  # fd -> peer, the other bus instances
         self._targets: tuple[_Peer, ...] = ()  # who a frame goes to: a snapshot, swapped under _lock
         self._ready: list[_Peer] = []  # readable after the last epoll; only the receiving thread
+        # Frames of a received batch not handed out yet (only the receiving thread).
+        self._batched: collections.deque[tuple[_Peer, bytes]] = collections.deque()
         self._epoll = select.epoll()
         self._loop_tx, self._loop_rx = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._loop_tx.setblocking(False)
@@ -307,28 +295,32 @@ class IpcBus(can.BusABC):
         self.stats.frames_sent += 1
 
     def send_batch(self, msgs: list[can.Message] | tuple[can.Message, ...]) -> None:
-        """Send several frames in order, checking for newcomers once (what DriveBus uses per cycle)."""
+        """Send several frames in order as one datagram to each peer (a control cycle's frames:
+        what DriveBus and the emulated drives use), checking for newcomers once. A peer whose queue
+        is full loses the whole batch (each frame counted in ``stats.frames_dropped``)."""
         if self._closed:
             raise can.CanOperationError("ipc bus: the bus is shut down")
         frames = [self._encode(msg) for msg in msgs]
         if self._pending_joins.poll(0):
             self._accept_pending()
-        for frame in frames:
-            self._fan_out(frame)
+        for first in range(0, len(frames), MAX_BATCH_FRAMES):
+            chunk = frames[first : first + MAX_BATCH_FRAMES]
+            self._fan_out(b"".join(chunk), len(chunk))
         self.stats.frames_sent += len(frames)
 
-    def _fan_out(self, frame: bytes) -> None:
+    def _fan_out(self, frame: bytes, count: int = 1) -> None:
+        """``frame``: one frame's datagram, or a batch of ``count`` frames."""
         for peer in self._targets:
             if peer.overflowed and not self._notify_overflow(peer):
-                peer.dropped += 1
-                self.stats.frames_dropped += 1
+                peer.dropped += count
+                self.stats.frames_dropped += count
                 continue
             try:
                 peer.sock.send(frame, socket.MSG_NOSIGNAL)
             except BlockingIOError:
-                peer.dropped += 1
+                peer.dropped += count
                 peer.overflowed = True
-                self.stats.frames_dropped += 1
+                self.stats.frames_dropped += count
             except OSError as exc:  # EPIPE, ECONNRESET: the peer exited; EBADF: dropped meanwhile
                 if exc.errno not in (errno.EPIPE, errno.ECONNRESET, errno.EBADF, errno.ENOTCONN):
                     raise can.CanOperationError(f"ipc bus: send failed: {exc}") from exc
@@ -359,11 +351,17 @@ class IpcBus(can.BusABC):
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else time.monotonic() + timeout
         ready = self._ready
+        batched = self._batched
         while True:
+            while batched:  # a batch's frames first, in order: frames of one sender stay in order
+                peer, data = batched.popleft()
+                msg = self._message(peer, data)
+                if msg is not None:
+                    return msg, False
             while ready:
                 peer = ready[0]
                 try:
-                    data = peer.sock.recv(CANFD_MTU)
+                    data = peer.sock.recv(MAX_DATAGRAM)
                 except (BlockingIOError, InterruptedError):
                     ready.pop(0)
                     continue
@@ -377,18 +375,18 @@ class IpcBus(can.BusABC):
                     ready.pop(0)
                     self._drop_peer(peer)
                     continue
-                if len(data) == CANFD_MTU and not self._fd:
-                    self.stats.fd_frames_ignored += 1
-                    continue
-                try:
-                    msg = decode(data, self.channel, time.time(), peer is not self._loop, IpcMessage)
-                except FrameError:
-                    self.stats.malformed += 1
-                    continue
-                if isinstance(msg, IpcMessage):
-                    msg.sender = peer.sender
-                self.stats.frames_received += 1
-                return msg, False
+                if len(data) != CAN_MTU and len(data) != CANFD_MTU:  # a batch: handed out from above
+                    try:
+                        batched.extend((peer, frame) for frame in split_batch(data))
+                    except FrameError:
+                        self.stats.malformed += 1
+                        continue
+                    break
+                msg = self._message(peer, data)
+                if msg is not None:
+                    return msg, False
+            if batched:
+                continue
             if self._closed:
                 raise can.CanOperationError("ipc bus: the bus is shut down")
             if deadline is None:
@@ -412,6 +410,21 @@ class IpcBus(can.BusABC):
                     ready.append(found)
             if not ready and deadline is not None and time.monotonic() >= deadline:
                 return None, False
+
+    def _message(self, peer: _Peer, data: bytes) -> can.Message | None:
+        """One frame's bytes as a message from ``peer``; None (counted) when it is not one to hand out."""
+        if len(data) == CANFD_MTU and not self._fd:
+            self.stats.fd_frames_ignored += 1
+            return None
+        try:
+            msg = decode(data, self.channel, time.time(), peer is not self._loop, IpcMessage)
+        except FrameError:
+            self.stats.malformed += 1
+            return None
+        if isinstance(msg, IpcMessage):
+            msg.sender = peer.sender
+        self.stats.frames_received += 1
+        return msg
 
     def fileno(self) -> int:
         """An epoll descriptor, readable when a frame (or a newcomer) is waiting: for select/asyncio."""

@@ -9,7 +9,9 @@ canfd_frame`` (72 bytes), both in host byte order as a CAN_RAW socket reads them
 ``can_id`` carries the identifier (11 or 29 bits) and three flags: CAN_EFF_FLAG (extended id),
 CAN_RTR_FLAG (remote request), CAN_ERR_FLAG (error frame; the identifier is then the error class,
 linux/can/error.h). The datagram's length tells the two layouts apart, as CAN_MTU and CANFD_MTU do
-on a SocketCAN socket. See docs/ipc_bus.md.
+on a SocketCAN socket. A datagram of any other length is a batch (:func:`split_batch`): frames back
+to back, each 72 bytes when its byte 5 carries CANFD_FDF (always set on FD frames here), else 16;
+no batch has the length of one frame. See docs/ipc_bus.md.
 """
 
 from __future__ import annotations
@@ -33,6 +35,10 @@ CANFD_MTU = 72
 CAN_MAX_DLEN = 8
 CANFD_MAX_DLEN = 64
 CANFD_LENGTHS = frozenset({0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64})
+
+# A batch (send_batch: one control cycle's frames) is one datagram of at most this many frames.
+MAX_BATCH_FRAMES = 64
+MAX_DATAGRAM = MAX_BATCH_FRAMES * 72
 
 # linux/can/error.h: a controller problem, byte 1 says which; RX overflow is what a slow reader sees.
 CAN_ERR_CRTL = 0x00000004
@@ -125,3 +131,20 @@ def rx_overflow_frame() -> bytes:
     """The error frame a SocketCAN controller reports after losing received frames."""
     data = bytes([0, CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0])
     return _CAN_FRAME.pack(CAN_ERR_FLAG | CAN_ERR_CRTL, CAN_ERR_DLC, 0, 0, 0, data)
+
+
+def split_batch(datagram: bytes) -> list[bytes]:
+    """The frames of a batch datagram, in order (each then goes to :func:`decode`).
+    :class:`FrameError` when the bytes do not split into whole frames."""
+    frames = []
+    size = len(datagram)
+    offset = 0
+    while offset < size:
+        if size - offset < CAN_MTU:
+            raise FrameError(f"batch of {size} bytes: {size - offset} trailing bytes are not a frame")
+        length = CANFD_MTU if datagram[offset + 5] & CANFD_FDF else CAN_MTU
+        if offset + length > size:
+            raise FrameError(f"batch of {size} bytes: the frame at byte {offset} is cut short")
+        frames.append(datagram[offset : offset + length])
+        offset += length
+    return frames

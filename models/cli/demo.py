@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from models.cli.options import RealismOption
 from models.demo.session import BEST_LMPC_LAW, DEFAULT_CONDITION, DemoOptions
 
 
@@ -41,13 +42,7 @@ def demo(
         str,
         typer.Option(help="--realtime: CPUs of the runtime's loop and the target's physics: auto, none or R,T."),
     ] = "auto",
-    realism: Annotated[
-        str,
-        typer.Option(
-            help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
-            metavar="PROFILE|FILE",
-        ),
-    ] = "ideal",
+    realism: RealismOption = "ideal",
     robot: Annotated[
         str,
         typer.Option(

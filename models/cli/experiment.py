@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, cast
 
 import typer
 
-from models.cli.options import GainsOption, RobotOption, gain_set_for, one_of, positive, split_names
+from models.cli.options import GainsOption, RealismOption, RobotOption, gain_set_for, one_of, positive, split_names
 
 if TYPE_CHECKING:  # imported where used: the CLI starts without the HIL experiment's imports
     from models.hil_experiment import HilOptions
@@ -70,13 +70,7 @@ def experiment(
         int | None,
         typer.Option(help="--plant hil: pybullet steps per control period (default: 32 lock-step, 8 real time)."),
     ] = None,
-    realism: Annotated[
-        str,
-        typer.Option(
-            help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
-            metavar="PROFILE|FILE",
-        ),
-    ] = "ideal",
+    realism: RealismOption = "ideal",
     clock: Annotated[
         str,
         typer.Option(
@@ -92,6 +86,13 @@ def experiment(
         bool,
         typer.Option("--no-parity", help="--plant hil: skip the simulation twin and the HIL-vs-simulation comparison."),
     ] = False,
+    torque_rate_limit: Annotated[
+        str,
+        typer.Option(
+            help="LMPC output rate limit, sim and hil alike: none, or libfranka (each joint's torque change per "
+            "cycle clamped to 1000 N·m/s per 87 N·m of limit, as franka::limitRate; docs/lmpc.md section 10)."
+        ),
+    ] = "none",
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
@@ -100,6 +101,9 @@ def experiment(
 
     law_list = split_names(laws, LAW_NAMES, "laws")
     one_of(plant, ("sim", "hil"), "--plant")
+    from hil_runtime.rate_limit import TORQUE_RATE_LIMITS
+
+    one_of(torque_rate_limit, TORQUE_RATE_LIMITS, "--torque-rate-limit")
     default_modes = "fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"
     mode_list = split_names(modes if modes is not None else default_modes, MODES, "modes")
     hil: HilOptions | None = None
@@ -117,6 +121,7 @@ def experiment(
             clock=clock,
             cpus=cpus,
             bundle_dir=lmpc_bundles,
+            torque_rate_limit=torque_rate_limit,
         )
     one_of(mismatch, ("none", "paper"), "--mismatch")
     positive(period_s, "--period-s")
@@ -155,6 +160,7 @@ def experiment(
             hmpc_anchor_scale,
             hil,
             realism,
+            torque_rate_limit,
         )
     except BaseException:
         if created:
@@ -182,6 +188,7 @@ def _experiment(
     hmpc_anchor_scale: float,
     hil: HilOptions | None = None,
     realism: str = "ideal",
+    torque_rate_limit: str = "none",
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -227,6 +234,8 @@ def _experiment(
             return lambda n: bar.advance(task, n)
 
         options: dict = {"lmpc": {"bundle_dir": lmpc_bundles}} if lmpc_bundles is not None else {}
+        if torque_rate_limit != "none":  # default left out: results.json's controller_options as before
+            options.setdefault("lmpc", {})["torque_rate_limit"] = torque_rate_limit
         hmpc_options: dict = {}
         from models.hmpc.config import FORMULATIONS
 

@@ -30,6 +30,14 @@ GainsOption = Annotated[
         "every other robot's default) (docs/feedback_laws.md)."
     ),
 ]
+#: ``--realism`` of the commands that run the HIL plant (sim_target.realism's profiles).
+RealismOption = Annotated[
+    str,
+    typer.Option(
+        help="Realism profile: ideal, realistic, harsh, or a profile YAML (docs/realism.md).",
+        metavar="PROFILE|FILE",
+    ),
+]
 #: The gain set of a robot other than ur5_paper: designed from its URDF (models/feedback/design.py).
 DESIGNED_GAIN_SET = "designed"
 

@@ -33,6 +33,9 @@ class HilOptions:
     # clock, the target in its own process, each on its own CPU (docs/hil.md, docs/runtime.md)
     clock: str = "lockstep"
     cpus: str = "auto"  # realtime: the runtime loop's and the target's CPUs (sim_target.rt_settings.split_cpus)
+    # the LMPC torque's output rate limit in the runtime (bundle.torque_rate_limit) and its simulation
+    # twin alike: none | libfranka (hil_runtime.rate_limit)
+    torque_rate_limit: str = "none"
 
 
 def conditions_yaml(conditions: list[Condition]) -> str:
@@ -88,6 +91,12 @@ def check_hil_inputs(
         raise ModelInputError(f"--transport: unknown '{options.transport}' (known: {', '.join(TRANSPORTS)})")
     if options.target_substeps < 1:
         raise ModelInputError(f"--target-substeps: must be >= 1, got {options.target_substeps}")
+    from hil_runtime.rate_limit import TORQUE_RATE_LIMITS
+
+    if options.torque_rate_limit not in TORQUE_RATE_LIMITS:
+        raise ModelInputError(
+            f"--torque-rate-limit: unknown '{options.torque_rate_limit}' (known: {', '.join(TORQUE_RATE_LIMITS)})"
+        )
     if options.clock not in ("lockstep", "realtime"):
         raise ModelInputError(f"--clock: unknown '{options.clock}' (known: lockstep, realtime)")
     if options.clock == "realtime" and options.transport == "virtual":

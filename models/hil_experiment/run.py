@@ -45,12 +45,20 @@ def snapshot_bundles(robot: RobotModel, laws: tuple[str, ...], bundle_dir: Path 
 
 
 def _simulate(
-    robot_name: str, conditions: list[Condition], config: ExperimentConfig, out_dir: Path, bundle_dir: Path | None
+    robot_name: str,
+    conditions: list[Condition],
+    config: ExperimentConfig,
+    out_dir: Path,
+    bundle_dir: Path | None,
+    torque_rate_limit: str = "none",
 ) -> None:
     """The simulation twin (``hil experiment --modes fb,lmpc``) in a second process: writes out_dir."""
     from models.robots import load_robot
 
-    options = {"lmpc": {"bundle_dir": bundle_dir}} if bundle_dir is not None else None
+    lmpc: dict[str, Any] = {"bundle_dir": bundle_dir} if bundle_dir is not None else {}
+    if torque_rate_limit != "none":
+        lmpc["torque_rate_limit"] = torque_rate_limit
+    options = {"lmpc": lmpc} if lmpc else None
     run_experiment(load_robot(robot_name), conditions, config, out_dir, controller_options=options)
 
 
@@ -87,7 +95,7 @@ def run_hil_experiment(
         sim_config = replace(config, timing_cycles=min(config.timing_cycles, 200), save_trajectories=True)
         sim_process = get_context("spawn").Process(
             target=_simulate,
-            args=(robot_spec(robot), conditions, sim_config, sim_dir, options.bundle_dir),
+            args=(robot_spec(robot), conditions, sim_config, sim_dir, options.bundle_dir, options.torque_rate_limit),
             name="hil-experiment-sim",
             daemon=True,
         )
@@ -147,6 +155,7 @@ def run_hil_experiment(
     results["hil"] = {
         "transport": options.transport,
         "clock": options.clock,
+        "torque_rate_limit": options.torque_rate_limit,
         "invalid_runs": [
             {k: r[k] for k in ("law", "mode", "condition", "invalid_reason")} for r in runs if not r.get("valid", True)
         ],

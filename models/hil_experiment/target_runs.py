@@ -63,6 +63,7 @@ def run_on_target(
         conditions_file,
         condition,
         realtime_cpus=options.cpus if options.clock == "realtime" else None,
+        torque_rate_limit=options.torque_rate_limit,
     )
     source = f"hil experiment {law}/{mode}/{condition.name}"
     retries = 0

@@ -32,6 +32,7 @@ import numpy as np
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.hmpc.config import HMPCConfig, per_joint
+from models.hmpc.features import feature_jacobian, law_features, torque_changes
 from models.hmpc.inner_loops import make_inner_loops
 from models.hmpc.prediction import make_predictor
 from models.hmpc.result import (
@@ -48,7 +49,6 @@ from models.robots import RobotModel
 ARMIJO = 1e-4
 LEVENBERG_GROWTH = 1e4  # damping factor after a step the line search rejected
 PENALTY_ROUNDS = 4  # semismooth rounds on the state-bound penalty's active set per step
-FEATURE_FD_STEP = 1e-6  # central differences of a law's own error features (linear in practice)
 
 
 class HMPCSolver:
@@ -394,18 +394,9 @@ class HMPCSolver:
             self._rho,
         )
         if self.smooth and rows.previous is not None and rows.rate_weight is not None:
-            change = self._torque_changes(rows, u)
+            change = torque_changes(rows, u)
             cost = cost + np.einsum("ktn,knm,ktm,t->k", change, rows.rate_weight, change, self.temporal)
         return Rollout(q_path, qd_path, features, law_states, cost)
-
-    @staticmethod
-    def _torque_changes(rows: Rows, u: np.ndarray) -> np.ndarray:
-        """tau_j - tau_{j-1} (K, T, N), tau_0 = rows.previous."""
-        assert rows.previous is not None
-        change = np.empty_like(u)
-        np.subtract(u[:, 0], rows.previous, out=change[:, 0])
-        np.subtract(u[:, 1:], u[:, :-1], out=change[:, 1:])
-        return change
 
     def _features(
         self, rows: Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
@@ -414,51 +405,7 @@ class HMPCSolver:
         features; None for the base E = [e, e_dot], which does not depend on it)."""
         if not self.law_features:
             return np.concatenate([rows.ref_q - q_path, rows.ref_qd - qd_path], -1), None
-        return self._law_features(rows, u, q_path, qd_path)
-
-    def _law_features(
-        self, rows: Rows, u: np.ndarray, q_path: np.ndarray, qd_path: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The law's own E along the preview, its state stepped with the predicted measurements."""
-        law, horizon = self.law, self.horizon
-        state = law.with_applied_torque(rows.law_state, u[:, 0])
-        features, states = [], []
-        for j in range(horizon):
-            states.append(state)
-            args = (q_path[:, j], qd_path[:, j], rows.ref_q[:, j], rows.ref_qd[:, j])
-            features.append(np.asarray(law.error_features(np, state, *args), float))
-            if j + 1 < horizon:
-                state = law.with_applied_torque(
-                    np.asarray(law.step(np, state, *args, rows.qdd_d)[1], float), u[:, j + 1]
-                )
-        return np.stack(features, 1), np.stack(states, 1)
-
-    def _feature_jacobian(self, rows: Rows, state: Rollout) -> np.ndarray:
-        """dE/dx (K, T, nE, 2N) of a law's own features at fixed law state, by central differences."""
-        k, horizon, n = state.q.shape
-        x = np.concatenate([state.q, state.qd], -1).reshape(k * horizon, 2 * n)
-        if state.law_states is None:
-            raise ValueError("hmpc: feature Jacobian of a rollout without the law's states (base features)")
-        law_state = state.law_states.reshape(k * horizon, -1)
-        ref_q, ref_qd = rows.ref_q.reshape(-1, n), rows.ref_qd.reshape(-1, n)
-        h = FEATURE_FD_STEP * np.maximum(1.0, np.abs(x))
-        delta = np.eye(2 * n)[None] * h[:, None, :]  # (KT, 2N perturbations, 2N)
-        xs = np.concatenate([x[:, None] + delta, x[:, None] - delta], 1).reshape(-1, 2 * n)
-        rep = 4 * n
-        values = np.asarray(
-            self.law.error_features(
-                np,
-                np.repeat(law_state, rep, 0),
-                xs[:, :n],
-                xs[:, n:],
-                np.repeat(ref_q, rep, 0),
-                np.repeat(ref_qd, rep, 0),
-            ),
-            float,
-        )
-        values = values.reshape(k * horizon, 2, 2 * n, -1)
-        jac: np.ndarray = (values[:, 0] - values[:, 1]) / (2.0 * h[:, :, None])  # (KT, 2N, nE)
-        return np.swapaxes(jac, 1, 2).reshape(k, horizon, -1, 2 * n)
+        return law_features(self.law, self.horizon, rows, u, q_path, qd_path)
 
     def _model_step(
         self, rows: Rows, u: np.ndarray, state: Rollout, levenberg: np.ndarray
@@ -502,7 +449,7 @@ class HMPCSolver:
         d_q, d_qd, d_tau = (a.reshape(k, horizon, n, n) for a in (d_q, d_qd, d_tau))
         sens = self.inner_loops.sensitivities(d_q, d_qd, d_tau, dt)  # (K, T 2N, TN)
         if self.law_features:  # E(U + d) = E + (dE/dx) S d
-            jac = self._feature_jacobian(rows, state)  # (K, T, nE, 2N)
+            jac = feature_jacobian(self.law, rows, state)  # (K, T, nE, 2N)
             feature_sens = (jac @ sens.reshape(k, horizon, 2 * n, -1)).reshape(k, -1, horizon * n)
             residual = state.features
         else:  # E = ref - x: E(U + d) = E - S d, i.e. the residual -E with sensitivity S
@@ -518,7 +465,7 @@ class HMPCSolver:
         )
         if self.smooth and rows.previous is not None and rows.rate_weight is not None:
             # 1/2 (D U - d0)' W (D U - d0): Hessian D' W D, gradient D' W (D U - d0), (D' y)_j = y_j - y_{j+1}
-            weighted = np.einsum("knm,ktm,t->ktn", rows.rate_weight, self._torque_changes(rows, u), self.temporal)
+            weighted = np.einsum("knm,ktm,t->ktn", rows.rate_weight, torque_changes(rows, u), self.temporal)
             shifted = np.concatenate([weighted[:, 1:], np.zeros_like(weighted[:, :1])], 1)
             blocks = np.einsum("ab,kij->kaibj", self._rate_steps, rows.rate_weight).reshape(k, horizon * n, horizon * n)
             hessian = hessian + blocks

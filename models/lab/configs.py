@@ -82,14 +82,16 @@ def runtime_config(
     loop: Mapping[str, Any] | None = None,
     telemetry: Mapping[str, Any] | None = None,
     control_socket: Path | None = None,
+    torque_rate_limit: str = "none",
     **sections: Any,
 ) -> dict[str, Any]:
     """``hil run``'s config (hil_runtime/config.py) for a lab rig: ``bundle`` in ``mode`` on the
     drives of ``joints`` over ``transport`` (CAN FD unless it says otherwise); ``driver``: the
-    driver's timeouts (bus section); ``loop``: :func:`lockstep_loop` by default."""
+    driver's timeouts (bus section); ``loop``: :func:`lockstep_loop` by default; ``torque_rate_limit``:
+    the bundle section's (none | libfranka, hil_runtime.rate_limit)."""
     data: dict[str, Any] = {
         "robot": robot,
-        "bundle": {"path": str(bundle), "mode": mode},
+        "bundle": {"path": str(bundle), "mode": mode, "torque_rate_limit": torque_rate_limit},
         "bus": {"transport": {**CAN_FD, **transport}, "period_s": period_s, "joints": joints, **driver},
         "reference": dict(reference),
         "loop": dict(loop) if loop is not None else lockstep_loop(),

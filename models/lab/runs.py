@@ -69,9 +69,11 @@ def placed_run_config(
     conditions_file: Path,
     condition: Any,
     realtime_cpus: str | None = None,
+    torque_rate_limit: str = "none",
 ) -> dict[str, Any]:
     """The runtime's config for one placed run: lock-step (bus pacing, no ramp: the arm is placed),
-    or free-running on the wall clock for the condition's duration (``realtime_cpus``)."""
+    or free-running on the wall clock for the condition's duration (``realtime_cpus``);
+    ``torque_rate_limit``: the bundle's output limit (none | libfranka)."""
     loop = (
         lab.realtime_loop(condition.duration_s, realtime_cpus, int(round(condition.duration_s / period_s)) + 1000)
         if realtime_cpus is not None
@@ -87,6 +89,7 @@ def placed_run_config(
         driver=DRIVER_TIMEOUTS,
         reference=lab.condition_reference(conditions_file, condition.name),
         loop=loop,
+        torque_rate_limit=torque_rate_limit,
     )
 
 

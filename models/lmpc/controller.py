@@ -6,6 +6,12 @@ single-row path, whose wall time (Python around it included) is the t_L column.
 
     controller = make_lmpc_controller(law, robot)                      # models/bundles/<robot>/<law>
     controller = make_lmpc_controller(law, robot, bundle_dir="path/to/bundles")
+    controller = make_lmpc_controller(law, robot, torque_rate_limit="libfranka")
+
+``torque_rate_limit="libfranka"``: the runtime's output limit (``hil_runtime.rate_limit``, the same
+object the runtime's policy stage uses), against the torque the simulator actually commanded last
+period (:meth:`LMPCController.commit`, called after its saturation), reset to zero at the start of a
+run (the drives hold a zero set-point when the runtime activates).
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from hil_runtime.bundle import BundleError, PolicyBundle, sha256_file
+from hil_runtime.rate_limit import TORQUE_RATE_LIMITS, TorqueRateLimiter
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
@@ -69,9 +76,14 @@ def bundle_path(robot_name: str, law_name: str, bundle_dir: str | Path | None = 
 class LMPCController:
     """The bundle's fused law + emulator for a batch of B independent arms."""
 
-    def __init__(self, bundle: PolicyBundle, law_name: str) -> None:
+    def __init__(self, bundle: PolicyBundle, law_name: str, torque_rate_limit: str = "none") -> None:
         self.bundle = bundle
         self.name = f"{law_name}/lmpc"
+        applied = bundle.manifest.law.applied_torque_slice  # the law keeps the applied torque (ADRC)
+        self._applied = slice(int(applied[0]), int(applied[1])) if applied else None
+        self.rate_limiter = (
+            TorqueRateLimiter(bundle.torque_limit_nm, bundle.period_s) if torque_rate_limit == "libfranka" else None
+        )
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None
         self.state = np.zeros((1, bundle.state_size))
@@ -87,6 +99,8 @@ class LMPCController:
         self.blended = np.zeros(self.state.shape[0], np.int64)
         self.clamped = np.zeros(self.state.shape[0], np.int64)
         self.cycles = 0
+        if self.rate_limiter is not None:
+            self.rate_limiter.reset(None, arms=self.state.shape[0])
 
     def trust_counters(self) -> dict[str, object]:
         """Trust-region counters since the last reset (per arm): what the runtime's supervisor counts."""
@@ -121,18 +135,35 @@ class LMPCController:
             self.fallbacks += trust[:, 0] >= 1.0
             self.blended += (trust[:, 0] > 0.0) & (trust[:, 0] < 1.0)
             self.clamped += trust[:, 1] > 0.5
+        if self.rate_limiter is not None:
+            tau = self.rate_limiter.limit(tau).copy()
         self.cycles += 1
         self.cycle_times_s.append(time.perf_counter() - start)
         self.last_tau_fb = tau_fb
         return tau
+
+    def commit(self, applied_torque_nm: np.ndarray) -> None:
+        """The torque the simulator commanded (B, N), after its saturation: the law's state records
+        it where the law keeps it (as the runtime's ``Controller.commit``), the rate limit starts from it."""
+        if self._applied is not None:
+            self.state[:, self._applied] = applied_torque_nm
+        if self.rate_limiter is not None:
+            self.rate_limiter.commit(applied_torque_nm)
 
 
 def make_lmpc_controller(
     law: FeedbackLaw, robot: RobotModel, bundle_dir: str | Path | None = None, **options: Any
 ) -> LMPCController:
     """The LMPC controller for ``law`` on ``robot`` from its bundle (default: the shipped ones)."""
+    torque_rate_limit = str(options.pop("torque_rate_limit", "none"))
     if options:
-        raise ModelInputError(f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir)")
+        raise ModelInputError(
+            f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir, torque_rate_limit)"
+        )
+    if torque_rate_limit not in TORQUE_RATE_LIMITS:
+        raise ModelInputError(
+            f"--torque-rate-limit: unknown '{torque_rate_limit}' (known: {', '.join(TORQUE_RATE_LIMITS)})"
+        )
     path = bundle_path(robot.name, law.name, bundle_dir)
     if bundle_dir is not None and not (path / "manifest.json").is_file():  # name what the user typed
         root = Path(bundle_dir)
@@ -156,4 +187,4 @@ def make_lmpc_controller(
             f"(gain set {bundle.manifest.law.gain_set!r}; bundle vs law {difference}); "
             "re-export with `hil pipeline`"
         )
-    return LMPCController(bundle, law.name)
+    return LMPCController(bundle, law.name, torque_rate_limit)

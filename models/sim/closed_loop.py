@@ -181,6 +181,7 @@ def simulate(
         world.reset(q, qd)
     q_seen, qd_seen = world.sense(q, qd) if world is not None else (q, qd)
     controller.reset(q_seen.copy())
+    commit = getattr(controller, "commit", None)
     with np.errstate(all="ignore"):
         for k in range(steps):
             log_q[:, k], log_qd[:, k] = q, qd
@@ -190,6 +191,8 @@ def simulate(
                 q_seen, qd_seen = q, qd
             tau = np.asarray(controller(t[k], q_seen, qd_seen, q_ref[:, k], qd_ref[:, k], qdd_ref[:, k]), float)
             tau = np.clip(np.nan_to_num(tau, nan=0.0), -limit, limit)
+            if commit is not None:  # the controller learns what was commanded (the runtime's commit)
+                commit(tau)
             log_tau[:, k] = tau
             fb = getattr(controller, "last_tau_fb", None)
             if fb is not None:

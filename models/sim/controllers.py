@@ -92,6 +92,13 @@ class ControllerStack:
         self.last_tau_fb = fb
         return out
 
+    def commit(self, applied_torque_nm: np.ndarray) -> None:
+        """The commanded torques (B, N) after the simulator's saturation, to each part that takes them."""
+        for controller, part in zip(self.controllers, self.slices, strict=True):
+            commit = getattr(controller, "commit", None)
+            if commit is not None:
+                commit(applied_torque_nm[part])
+
 
 #: (law, robot, **options) -> Controller
 ControllerFactory = Callable[..., Controller]

@@ -1,13 +1,11 @@
 """The ``ipc`` interface back to back, as python-can tests its own transports: buses in one process,
-in several processes, peers joining late, leaving, dying and not reading."""
+peers joining late, leaving and not reading. Across processes: tests/integration/test_ipc_bus_processes.py."""
 
 from __future__ import annotations
 
 import os
 import select
-import signal
-import stat
-import subprocess
+import socket
 import sys
 import threading
 import time
@@ -18,7 +16,7 @@ import can
 import pytest
 
 from drivers.config import TransportConfig
-from drivers.ipc import IpcBus, bus_directory
+from drivers.ipc import IpcBus, IpcMessage, bus_directory
 from drivers.ipc.frame import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
 from drivers.transport import open_bus
 
@@ -155,6 +153,41 @@ def test_classical_bus_refuses_to_send_fd_and_ignores_fd_it_receives(bus_dir: Pa
     finally:
         fd_bus.shutdown()
         classic.shutdown()
+
+
+def test_a_batch_is_one_datagram_handed_out_frame_by_frame_in_order(bus_dir: Path) -> None:
+    """send_batch: one datagram per peer (one wake-up and one system call for a cycle's frames);
+    the receiver's recv hands its frames out one by one, in order, classical and FD mixed, with
+    the sender; a classical receiver ignores the FD frames of a batch."""
+    raw_path = bus_dir / "0-raw.sock"
+    bus_dir.mkdir(mode=0o700, exist_ok=True)
+    raw = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    raw.bind(os.fspath(raw_path))
+    raw.listen(1)
+    sender, fd_rx, classic_rx = IpcBus(bus_dir, fd=True), IpcBus(bus_dir, fd=True), IpcBus(bus_dir)
+    conn, _ = raw.accept()  # the sender joined the raw listener as a peer
+    try:
+        batch = [_msg(0x181 + i, bytes([i]) * 12, is_fd=True) for i in range(6)] + [_msg(0x80, b"\x07")]
+        sender.send_batch(batch)
+        conn.settimeout(2.0)
+        datagram = conn.recv(65536)
+        assert len(datagram) == 6 * 72 + 16  # the whole batch, one datagram
+        got = [_recv(fd_rx, 2.0) for _ in batch]
+        assert [(m.arbitration_id, bytes(m.data), m.is_fd) for m in got] == [
+            (m.arbitration_id, bytes(m.data), m.is_fd) for m in batch
+        ]
+        senders = [m.sender for m in got if isinstance(m, IpcMessage)]  # every received frame carries its sender
+        assert len(senders) == len(got) and all(s is senders[0] for s in senders) and fd_rx.recv(0) is None
+        only = _recv(classic_rx, 2.0)
+        assert only.arbitration_id == 0x80 and classic_rx.stats.fd_frames_ignored == 6
+        assert sender.stats.frames_sent == 7 and fd_rx.stats.frames_received == 7
+        conn.send(datagram[:-3])  # to the sender, a batch cut short: counted, nothing handed out
+        assert sender.recv(0.5) is None and sender.stats.malformed == 1
+    finally:
+        conn.close()
+        raw.close()
+        for bus in (sender, fd_rx, classic_rx):
+            bus.shutdown()
 
 
 def test_invalid_message_is_a_can_operation_error(pair: tuple[IpcBus, IpcBus]) -> None:
@@ -393,87 +426,3 @@ def test_a_slow_reader_loses_frames_without_blocking_the_sender_and_is_told(bus_
     finally:
         for bus in (sender, slow, fast):
             bus.shutdown()
-
-
-# --- across processes ----------------------------------------------------------------------------
-
-ECHO = r"""
-import sys, can
-bus = can.Bus(interface="ipc", channel=sys.argv[1], fd=True)
-print("ready", flush=True)
-while True:
-    msg = bus.recv(10.0)
-    if msg is None or msg.arbitration_id == 0x7FF:
-        break
-    bus.send(can.Message(arbitration_id=msg.arbitration_id + 1, data=msg.data, is_fd=msg.is_fd,
-                         is_extended_id=False, bitrate_switch=msg.bitrate_switch))
-bus.shutdown()
-"""
-
-SLEEPER = r"""
-import sys, time, can
-bus = can.Bus(interface="ipc", channel=sys.argv[1])
-print("ready", flush=True)
-time.sleep(60)
-"""
-
-
-def _start(script: str, bus_dir: Path) -> subprocess.Popen[str]:
-    process = subprocess.Popen(
-        [sys.executable, "-c", script, str(bus_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    assert process.stdout is not None
-    line = process.stdout.readline()
-    if line.strip() != "ready":
-        process.kill()
-        raise AssertionError(f"peer did not start: {line} {process.stderr.read() if process.stderr else ''}")
-    return process
-
-
-def test_frames_cross_two_real_processes_both_ways_in_order(bus_dir: Path) -> None:
-    bus_dir.mkdir()
-    echo = _start(ECHO, bus_dir)
-    bus = IpcBus(bus_dir, fd=True)
-    try:
-        for i in range(500):
-            fd = i % 2 == 0
-            bus.send(_msg(0x100, i.to_bytes(2, "little") + bytes(10 if fd else 0), is_fd=fd, bitrate_switch=fd))
-            reply = bus.recv(5.0)
-            assert reply is not None and reply.arbitration_id == 0x101 and reply.is_fd == fd
-            assert int.from_bytes(reply.data[:2], "little") == i
-        bus.send(_msg(0x7FF))
-        assert echo.wait(10) == 0, echo.stderr.read() if echo.stderr else ""
-        assert bus.recv(0.5) is None  # the echo peer left: EOF handled, nothing raised
-        assert bus.peer_count == 0 and bus.stats.peers_left == 1
-    finally:
-        if echo.poll() is None:
-            echo.kill()
-        bus.shutdown()
-
-
-def test_a_killed_peer_is_dropped_and_its_stale_socket_removed_by_the_next_joiner(bus_dir: Path) -> None:
-    bus_dir.mkdir()
-    victim = _start(SLEEPER, bus_dir)
-    a = IpcBus(bus_dir)
-    b = IpcBus(bus_dir)
-    try:
-        assert len(_sockets(bus_dir)) == 3
-        victim.send_signal(signal.SIGKILL)
-        victim.wait(10)
-        for i in range(3):  # sending to a dead peer neither raises nor blocks
-            a.send(_msg(0x10 + i))
-        assert [_recv(b, 2.0).arbitration_id for _ in range(3)] == [0x10, 0x11, 0x12]
-        assert a.peer_count == 1 and a.stats.peers_left == 1
-        assert len(_sockets(bus_dir)) == 3  # a SIGKILLed process cannot remove its socket file...
-        c = IpcBus(bus_dir)  # ...the next joiner finds it refused and removes it
-        try:
-            assert c.stats.stale_sockets_removed == 1 and c.peer_count == 2
-            assert len(_sockets(bus_dir)) == 3
-            assert all(stat.S_ISSOCK((bus_dir / s).lstat().st_mode) for s in _sockets(bus_dir))
-        finally:
-            c.shutdown()
-    finally:
-        if victim.poll() is None:
-            victim.kill()
-        a.shutdown()
-        b.shutdown()

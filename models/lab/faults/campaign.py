@@ -253,14 +253,14 @@ FAULTS: tuple[FaultSpec, ...] = (
         "emulator output NaN (crafted bundle)",
         "substituted in the cycle; reported at the next stats",
         True,
-        _crafted("nan", Expect(counters=("nonfinite_fallbacks",), max_cycles=None)),
+        _crafted("nan", Expect(counters=("supervisor.law_substitutions",), max_cycles=None)),
     ),
     FaultSpec(
         "emulator_inf",
         "emulator output +inf (crafted bundle)",
         "substituted in the cycle; reported at the next stats",
         False,
-        _crafted("inf", Expect(counters=("nonfinite_fallbacks",), max_cycles=None)),
+        _crafted("inf", Expect(counters=("supervisor.law_substitutions",), max_cycles=None)),
     ),
     FaultSpec(
         "policy_nan_both",

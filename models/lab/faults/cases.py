@@ -37,7 +37,6 @@ ANOMALIES = frozenset(
         "unknown_cob_id",
         "emcy",
         "overruns",
-        "nonfinite_fallbacks",
         "law_substitutions",
         "saturated_cycles",
     }
@@ -94,7 +93,6 @@ def _counters(runtime: Any) -> dict[str, int]:
     out = {f"supervisor.{k}": int(v) for k, v in status.get("supervisor", {}).items()}
     out.update({f"bus.{k}": int(v) for k, v in (status.get("bus") or {}).items()})
     out["overruns"] = int(status.get("overruns") or 0)
-    out["nonfinite_fallbacks"] = int(status.get("nonfinite_fallbacks") or 0)
     return out
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from models.errors import ModelInputError
 from models.executors import Executor
 from models.feedback import make_law
+from models.feedback.base import FeedbackLaw
 from models.lmpc.structured.config import StructuredConfig, jsonable_config
 from models.robots import RobotModel, load_robot
 from models.sim import ControllerStack, SimConfig, simulate
@@ -22,6 +23,7 @@ from models.sim import ControllerStack, SimConfig, simulate
 def _logged_rollouts(
     robot: RobotModel,
     controllers: list[Any],
+    laws: list[FeedbackLaw],
     conditions: list[Any],
     sim: SimConfig,
     stride: int,
@@ -34,11 +36,8 @@ def _logged_rollouts(
 
     steps = int(round(conditions[0].duration_s / sim.period_s))
     loggers = []
-    for c in controllers:
-        # the law's sizes: FB and HMPC controllers hold the law, the LMPC (DAgger rounds) its bundle
-        sizes = c.bundle if hasattr(c, "bundle") else c.law
-        n, size = sizes.n_joints, sizes.state_size
-        loggers.append(StateLogger(c, len(conditions), steps, stride, n, size, log_applied=True))
+    for c, law in zip(controllers, laws, strict=True):  # each controller runs (the export of) its law
+        loggers.append(StateLogger(c, len(conditions), steps, stride, law.n_joints, law.state_size, log_applied=True))
     runners: list[Any] = loggers
     if excite is not None:
         runners = [_Excited(lg, excite[0], hold, excite[1], seed + 1000 * k) for k, lg in enumerate(loggers)]
@@ -120,7 +119,7 @@ def collect(
         rows_on = (np.arange(len(conditions)) < round(config.noise_fraction * len(conditions))).astype(float)
         excite = (config.accel_noise_rad_s2 * inertia0, rows_on)
     logs = _logged_rollouts(
-        robot, controllers, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed
+        robot, controllers, made, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed
     )
     # Runs that left the limits are dropped from the data; a law with none left has nothing to learn from
     # (and its relabeling would be handed zero states): say so in one line, not a traceback downstream.

@@ -11,10 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.testing import PlantStep
+from drivers.testing import FakeJointBus, PlantStep
 from hil_runtime.bundle import PolicyBundle
 from hil_runtime.bundle_schema import Emulator, Graph, GraphLayout, InitialState, Law, Limits, Manifest, Port, Robot
-from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, bus_joints
+from hil_runtime.config import RuntimeConfig, parse_runtime_config
+from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, PD_BUNDLE, Q0_RAD, bus_joints
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -23,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[3]
 # shared machine: a stall of a few tens of ms would end them in FAULT overrun_budget (the budget's
 # own tests: test_overruns.py), so they set it past any stall.
 NO_OVERRUN_BUDGET = {"overrun_budget": 100_000}
+INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)  # the fake bus's joint inertias (kg m^2)
 
 
 def config_dict(**overrides: Any) -> dict[str, Any]:
@@ -58,7 +60,6 @@ class StubBundle(PolicyBundle):
     ) -> None:
         self.n_joints, self.period_s, self.state_size = n, period_s, state_size
         self.law_name = "stub"
-        self.nonfinite_fallbacks = 0  # PolicyBundle's counter: this stub never falls back
         self.joint_names = JOINT_NAMES[:n]
         self.torque_limit_nm = np.array(MAX_TORQUE_NM[:n])
         # The typed manifest the runtime reads, built without the fields a stub has no use for.
@@ -95,6 +96,7 @@ class StubBundle(PolicyBundle):
         self.tau_value: np.ndarray | None = None
         self.tau_fb_value: np.ndarray | None = None
         self.trust_value = 0.0
+        self.next_state_value: float | None = None  # when set, every entry of the law's next state
         self.states_seen: list[np.ndarray] = []
         self.calls = 0
         self.before_step: Callable[[], None] | None = None
@@ -120,7 +122,7 @@ class StubBundle(PolicyBundle):
         tau[:] = (
             np.clip(tau_fb, -self.torque_limit_nm, self.torque_limit_nm) if self.tau_value is None else self.tau_value
         )
-        next_state[:] = state + 1.0
+        next_state[:] = state + 1.0 if self.next_state_value is None else self.next_state_value
         trust[0] = self.trust_value
         return tau, tau_fb, next_state
 
@@ -139,3 +141,25 @@ def model_plant(period_s: float = 0.001) -> PlantStep:
 
     plant = ModelPlant(load_robot("ur5_paper"), Mismatch(), SimConfig(period_s=period_s, substeps=2))
     return plant.integrate
+
+
+def c1_on_model(torque_rate_limit: str, ramp_s: float) -> tuple[RuntimeConfig, FakeJointBus]:
+    """A runtime config tracking C1 (a ramp of ``ramp_s``) with ``bundle.torque_rate_limit``, and a fake
+    bus on the PD bundle's own model (:func:`model_plant`) that keeps no commands."""
+    config = parse_runtime_config(
+        config_dict(
+            bundle={"torque_rate_limit": torque_rate_limit},
+            reference={"kind": "condition", "condition": "C1", "ramp_s": ramp_s},
+        ),
+        "rt.yaml",
+    )
+    bus = FakeJointBus(
+        6,
+        period_s=0.001,
+        inertia_kgm2=INERTIA,
+        max_torque_nm=MAX_TORQUE_NM,
+        initial_position_rad=Q0_RAD,
+        keep_commands=False,
+        plant=model_plant(),
+    )
+    return config, bus

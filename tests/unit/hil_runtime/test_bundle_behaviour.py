@@ -1,6 +1,6 @@
 """The bundle's behavioural check (probes, saturation, residual bound), the shared schema, and a
-step that never returns a non-finite torque (issue 9, item 5). Runs on the shipped bundles with
-the runtime's own dependencies only (no torch)."""
+shipped bundle's non-finite output under the supervisor's one rule (issue 9, item 5; issue 22,
+item 5). Runs on the shipped bundles with the runtime's own dependencies only (no torch)."""
 
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ import pytest
 
 from hil_runtime.bundle import (
     BundleError,
-    NonFiniteOutputError,
     PolicyBundle,
     sha256_file,
 )
+from hil_runtime.supervisor import FaultKind, SafetyLimits, Supervisor
 
 SHIPPED = Path(__file__).resolve().parents[3] / "models" / "bundles" / "ur5_paper"
 LAWS = ("pd", "pid", "adrc", "hinf", "smc", "mrac")
@@ -44,10 +44,9 @@ def test_every_shipped_bundle_passes_its_behavioural_check(law: str) -> None:
     assert bundle.saturation_checked.all()  # every joint's saturation was observed and matched
     # and every joint's residual clamp: some recorded probe puts that joint at its bound (the loader's
     # check of residual_bound_nm), whatever the bound's size (issue 13: 10x the labels' largest residual)
-    n, s = bundle.n_joints, bundle.state_size
     assert bundle.manifest.probes is not None
-    y = np.asarray(bundle.manifest.probes.outputs)
-    tau, tau_fb, alpha, clamped = y[:, :n], y[:, n : 2 * n], 1.0 - y[:, 2 * n + s], y[:, 2 * n + s + 1]
+    tau, tau_fb, _, trust = bundle.layout.split(np.asarray(bundle.manifest.probes.outputs))
+    alpha, clamped = 1.0 - trust[:, 0], trust[:, 1]
     acting = (alpha > 0) & (clamped >= 1) & (np.abs(tau) < bundle.torque_limit_nm).all(axis=1)
     residual = np.abs(tau - tau_fb)[acting] / alpha[acting, None]
     bound = bundle.residual_bound_nm
@@ -125,22 +124,31 @@ def test_a_directory_without_a_manifest_names_the_typed_path(tmp_path: Path) -> 
         PolicyBundle.load(tmp_path / "nowhere")
 
 
-def test_step_never_returns_a_non_finite_torque() -> None:
+def test_a_non_finite_output_is_never_commanded() -> None:
     bundle = PolicyBundle.load(SHIPPED / "pd")
+    limits = np.asarray(bundle.manifest.limits.position_rad, float)
+    velocity = np.asarray(bundle.manifest.limits.velocity_rad_s, float)
+    supervisor = Supervisor(SafetyLimits(-limits, limits, velocity, bundle.torque_limit_nm))
+    command = np.zeros(6)
     zeros = np.zeros(6)
     q_d = np.full(6, 0.1)
+
+    def select(tau: np.ndarray, tau_fb: np.ndarray, state: np.ndarray) -> FaultKind | None:
+        fault = supervisor.select_torque(tau, tau_fb, 0.0, command, state)
+        return None if fault is None else fault.kind
+
     # qdd_d feeds only the emulator and the trust guard: the law's torque stays finite -> used instead
-    tau, tau_fb, _ = bundle.step(zeros, zeros, q_d, zeros, np.full(6, np.nan), np.zeros(0))
-    assert np.isfinite(tau).all() and np.array_equal(
-        tau, np.clip(tau_fb, -bundle.torque_limit_nm, bundle.torque_limit_nm)
+    tau, tau_fb, state = bundle.step(zeros, zeros, q_d, zeros, np.full(6, np.nan), np.zeros(0))
+    assert not np.isfinite(tau).all() and select(tau, tau_fb, state) is None
+    assert np.isfinite(command).all() and np.array_equal(
+        command, np.clip(tau_fb, -bundle.torque_limit_nm, bundle.torque_limit_nm)
     )
-    assert bundle.nonfinite_fallbacks == 1 and bundle.last_trust[0] == 1.0
-    # a NaN position leaves nothing finite: refused, counted, the caller stops the arm
-    with pytest.raises(NonFiniteOutputError, match="non-finite input"):
-        bundle.step(np.full(6, np.nan), zeros, q_d, zeros, zeros, np.zeros(0))
-    assert bundle.nonfinite_refusals == 1
-    tau, _, _ = bundle.step(zeros, zeros, q_d, zeros, zeros, np.zeros(0))  # and it goes on
-    assert np.isfinite(tau).all() and bundle.nonfinite_fallbacks == 1
+    assert supervisor.law_substitutions == 1
+    # a NaN position leaves nothing finite: FAULT policy_nonfinite, the caller stops the arm
+    assert select(*bundle.step(np.full(6, np.nan), zeros, q_d, zeros, zeros, np.zeros(0))) is FaultKind.POLICY_NONFINITE
+    tau, tau_fb, state = bundle.step(zeros, zeros, q_d, zeros, zeros, np.zeros(0))  # and it goes on
+    assert select(tau, tau_fb, state) is None
+    assert np.isfinite(command).all() and supervisor.law_substitutions == 1
 
 
 def test_writer_and_loader_share_one_schema() -> None:
@@ -165,3 +173,4 @@ def test_step_batch_falls_back_per_arm_and_keeps_a_diverged_arm_visible() -> Non
     assert np.isfinite(tau[:2]).all() and not np.isfinite(tau[2]).all()
     assert np.array_equal(tau[1], np.clip(tau_fb[1], -bundle.torque_limit_nm, bundle.torque_limit_nm))
     assert (bundle.nonfinite_fallbacks, bundle.nonfinite_refusals) == (1, 1)
+    assert bundle.last_trust_batch[1].tolist() == [1.0, 0.0]  # reported as a full fallback to the law

@@ -1,6 +1,7 @@
 """The hot path keeps nothing per cycle (tracemalloc over 1,000 cycles of the runtime with the PD
-bundle on the fake bus, record and telemetry hand-off on): what one cycle allocates is short-lived
-and bounded, and the runtime's own code holds no more memory after 1,000 cycles than before."""
+bundle on the fake bus, its torque-rate limit, record and telemetry hand-off on): what one cycle
+allocates is short-lived and bounded, and the runtime's own code holds no more memory after 1,000
+cycles than before."""
 
 from __future__ import annotations
 
@@ -13,13 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from drivers.testing import FakeJointBus
-from hil_runtime.config import parse_runtime_config
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.config import TelemetryConfig
 from hil_runtime.telemetry.publisher import ZenohTelemetry
-from sim_target.testing.ur5 import JOINT_NAMES, MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import config_dict, model_plant
-from tests.unit.hil_runtime.test_runtime_loop import INERTIA
+from sim_target.testing.ur5 import JOINT_NAMES
+from tests.unit.hil_runtime.support import c1_on_model
 
 ROOT = Path(__file__).resolve().parents[3]
 CYCLES = 1000
@@ -41,19 +40,8 @@ class EncodingSink(ZenohTelemetry):
         pass
 
 
-def _runtime() -> tuple[Runtime, FakeJointBus]:
-    config = parse_runtime_config(
-        config_dict(reference={"kind": "condition", "condition": "C1", "ramp_s": 0.5}), "rt.yaml"
-    )
-    bus = FakeJointBus(
-        6,
-        period_s=0.001,
-        inertia_kgm2=INERTIA,
-        max_torque_nm=MAX_TORQUE_NM,
-        initial_position_rad=Q0_RAD,
-        keep_commands=False,
-        plant=model_plant(),
-    )
+def _runtime(torque_rate_limit: str) -> tuple[Runtime, FakeJointBus]:
+    config, bus = c1_on_model(torque_rate_limit, ramp_s=0.5)
     return Runtime(config, bus, record_cycles=4 * CYCLES, telemetry=EncodingSink()), bus
 
 
@@ -72,7 +60,7 @@ def _own_lines(snapshot: tracemalloc.Snapshot) -> tracemalloc.Snapshot:
 
 
 def test_a_thousand_cycles_keep_nothing_and_each_allocates_little() -> None:
-    rt, bus = _runtime()
+    rt, bus = _runtime("libfranka")  # every stage on: the rate limit's path is the default's plus its clamp
     rt.configure()
     assert rt.activate()
     tracemalloc.start(1)  # before the warm run: what it makes and later replaces is traced too

@@ -123,3 +123,40 @@ def test_percentiles_are_numpys_nearest_rank(n: int) -> None:
     assert s["median"] == np.percentile(data, 50, method="nearest")
     assert s["p99"] == np.percentile(data, 99, method="nearest")
     assert s["max"] == data.max()
+
+
+class SpinningClock(FakeClock):
+    """Each reading of the clock costs 10 µs of it (the spin's polls); sleeps overshoot by 60 µs,
+    as a wake-up on a loaded VM does."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.polls = 0
+
+    def __call__(self) -> float:
+        self.polls += 1
+        self.now += 10e-6
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        super().sleep(seconds)
+        self.now += 60e-6
+
+
+def test_the_hybrid_wait_sleeps_to_spin_s_before_the_deadline_then_spins_onto_it() -> None:
+    clock = SpinningClock()
+    pacer = Pacer(0.001, "clock", clock=clock, sleep=clock.sleep, spin_s=200e-6)
+    pacer.start()
+    pacer.wait()
+    clock.now += 300e-6  # work: 0.7 ms of slack
+    polls = clock.polls
+    start = pacer.wait()
+    assert clock.sleeps[-1] == pytest.approx(1e-3 - 300e-6 - 200e-6 - 20e-6, abs=1e-9)  # woke 60 µs late...
+    assert 0 <= start - (pacer.started_s + 1e-3) < 10e-6 + 1e-9  # ...and spun onto the deadline
+    assert clock.polls - polls > 10
+    clock.now += 850e-6  # 0.15 ms of slack: too little to sleep, then spin; slept whole (overshoot)
+    sleeps = len(clock.sleeps)
+    pacer.wait()
+    assert len(clock.sleeps) == sleeps + 1 and clock.sleeps[-1] < 150e-6
+    with pytest.raises(ValueError, match="spin_s"):
+        Pacer(0.001, spin_s=0.001)

@@ -279,3 +279,20 @@ def test_the_runtime_has_one_stale_feedback_budget(tmp_path: Path) -> None:
         RuntimeConfigError, match=r"^r\.yaml: .*bus\.max_missed_cycles 25 differs from safety\.max_stale_cycles 1"
     ):
         parse_runtime_config(with_budgets(25, 1), "r.yaml")
+
+
+def test_the_hybrid_wait_spins_by_default_only_on_a_cpu_of_its_own(tmp_path: Path) -> None:
+    def spin_of(**loop: object) -> float:
+        data = config_dict()
+        data["loop"] = {**data["loop"], "pacing": "clock", **loop}
+        config = parse_runtime_config(data, "r.yaml")
+        runtime = Runtime(config, FakeJointBus(6), bundle=None)
+        assert runtime.pacer.spin_s == config.loop_spin_s
+        return config.loop_spin_s
+
+    assert spin_of() == 0.0  # a shared CPU: spinning would take it from the others
+    assert spin_of(cpu_affinity=[0]) == pytest.approx(100e-6)
+    assert spin_of(cpu_affinity=[0], pacing="bus") == 0.0  # nothing to wait for
+    assert spin_of(cpu_affinity=[0], spin_s=0.0) == 0.0
+    assert spin_of(spin_s=50e-6) == pytest.approx(50e-6)
+    _refused(tmp_path, config_dict(loop={"spin_s": 0.0005}), "loop.spin_s", "half the period")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from drivers.testing import FakeJointBus
-from hil_runtime.bundle import NonFiniteOutputError, PolicyBundle
+from hil_runtime.bundle import PolicyBundle
 from hil_runtime.config import parse_runtime_config
 from hil_runtime.lifecycle import LifecycleState
 from hil_runtime.runtime import RunRecord, Runtime
@@ -73,26 +73,24 @@ def test_no_warning_when_nothing_rose() -> None:
     assert [e for e in sink.events if e[0] in ("warning", "stale_feedback")] == []
 
 
-def test_a_policy_with_nothing_finite_to_command_is_policy_nonfinite_not_internal() -> None:
-    bundle = StubBundle()
-
-    def refuse() -> None:
-        raise NonFiniteOutputError("bundle x: non-finite law torque or state (from finite inputs); stop the arm")
-
+def test_a_law_whose_state_went_non_finite_is_policy_nonfinite_not_internal() -> None:
+    bundle = StubBundle(state_size=2)
     runtime, bus, sink = _runtime(bundle=bundle)
     runtime.run(max_cycles=3)
-    bundle.before_step = refuse
+    bundle.next_state_value = float("nan")  # the torques stay finite: the law cannot go on all the same
     result = runtime.run(max_cycles=3, stop_on_fault=True)
-    assert result.fault is not None and result.fault.startswith("policy_nonfinite: bundle x"), result.fault
+    assert result.fault is not None, result
+    assert result.fault.startswith("policy_nonfinite: the feedback law's next state"), result.fault
     assert bus.quick_stop_calls == 1
     assert sink.events[-1][0] == "fault"
 
 
-def test_nonfinite_fallbacks_of_the_bundle_are_in_stats_and_status() -> None:
+def test_law_substitutions_are_in_stats_and_status() -> None:
     bundle = PolicyBundle.load(PD_BUNDLE)
     runtime, _, _ = _runtime(bundle=bundle)
-    bundle.nonfinite_fallbacks = 7
-    assert runtime.stats()["nonfinite_fallbacks"] == 7 and runtime.status()["nonfinite_fallbacks"] == 7
+    runtime.supervisor.law_substitutions = 7
+    assert runtime.stats()["law_substitutions"] == 7 and runtime.status()["supervisor"]["law_substitutions"] == 7
+    assert "nonfinite_fallbacks" not in runtime.stats()  # one name for one quantity (the supervisor's)
 
 
 def test_the_record_is_written_whole_or_not_at_all(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

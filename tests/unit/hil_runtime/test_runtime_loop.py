@@ -22,9 +22,7 @@ from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.codec import STATS_FIELDS
 from hil_runtime.telemetry.sink import CycleState, NullTelemetry
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-from tests.unit.hil_runtime.support import NO_OVERRUN_BUDGET, StubBundle, config_dict, model_plant
-
-INERTIA = (2.0, 2.0, 1.0, 0.2, 0.2, 0.1)
+from tests.unit.hil_runtime.support import INERTIA, NO_OVERRUN_BUDGET, StubBundle, config_dict, model_plant
 
 
 def _bus(**kwargs: Any) -> FakeJointBus:

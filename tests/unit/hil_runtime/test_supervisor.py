@@ -115,6 +115,26 @@ def test_torque_rules(
 
 
 @pytest.mark.parametrize(
+    ("tau", "tau_fb", "state", "command", "fault"),
+    [
+        ((1.0, 1.0), (0.0, 0.0), (0.5, 2.0), (1.0, 1.0), None),
+        ((1.0, 1.0), (0.0, 0.0), (0.5, NAN), None, FaultKind.POLICY_NONFINITE),  # torques fine, law broken
+        ((NAN, 1.0), (3.0, -4.0), (INF, 0.0), None, FaultKind.POLICY_NONFINITE),  # no law to fall back on
+        ((NAN, 1.0), (3.0, -4.0), (0.5, 2.0), (3.0, -4.0), None),
+    ],
+)
+def test_the_laws_next_state_must_be_finite(
+    tau: tuple, tau_fb: tuple, state: tuple, command: tuple | None, fault: FaultKind | None
+) -> None:
+    sup = _sup()
+    out = np.full(2, 99.0)
+    got = sup.select_torque(np.array(tau), np.array(tau_fb), 0.0, out, np.array(state))
+    assert (None if got is None else got.kind) == fault
+    if command is not None:
+        np.testing.assert_array_equal(out, command)
+
+
+@pytest.mark.parametrize(
     ("error", "kind"),
     [
         (FeedbackTimeoutError((3,), 2), FaultKind.FEEDBACK_TIMEOUT),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from unittest import mock
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from sim_target.config import parse_target_config
 from sim_target.lateness import Lateness, invalid_reason
 from sim_target.plant import PybulletPlant
+from sim_target.plant_protocol import JointState
 from sim_target.rt_settings import split_cpus
 from sim_target.server import TargetServer, make_plant
 
@@ -72,10 +74,10 @@ class _Drives:
     """A drive layer with no bus: serve_until waits out the time; a SYNC is a direct call."""
 
     def __init__(self) -> None:
-        self.handler: object = None
+        self.handler: Callable[[], None] | None = None
         self.published = 0
 
-    def set_sync_handler(self, handler: object) -> None:
+    def set_sync_handler(self, handler: Callable[[], None]) -> None:
         self.handler = handler
 
     def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
@@ -111,18 +113,82 @@ def _server(**overrides: object) -> TargetServer:
     return TargetServer(config, make_plant(config), _Drives())  # a stand-in: satisfies the DriveBank protocol
 
 
-def test_the_physics_tick_locks_to_a_quarter_period_after_sync() -> None:
+def test_the_physics_tick_locks_its_phase_to_the_sync() -> None:
     server = _server()
-    server._deadline_s = 0.0006  # the next tick 0.6 ms after a SYNC at 0: 0.35 ms off the lock
+    server._deadline_s = 0.0004  # the next tick 0.4 ms after a SYNC at 0: 0.4 ms off the lock
     for k in range(40):
         sync_s = k * PERIOD_S
-        while server._deadline_s < sync_s:  # the ticks the loop would run meanwhile
+        while server._deadline_s < sync_s - PERIOD_S / 2:  # the ticks the loop would run meanwhile
             server._deadline_s += PERIOD_S
         server._lock_phase_to_sync(sync_s)
         if k == 0:  # a quarter of the error per SYNC, never a jump
-            assert 0.0006 - server._deadline_s == pytest.approx(0.25 * 0.35 * PERIOD_S)
-    assert server._deadline_s - 39 * PERIOD_S == pytest.approx(0.25 * PERIOD_S, abs=1e-6)
+            assert 0.0004 - server._deadline_s == pytest.approx(0.25 * 0.4 * PERIOD_S)
+    assert server._deadline_s - 39 * PERIOD_S == pytest.approx(0.0, abs=1e-6)
     server.shutdown()
+
+
+class _FakeClock:
+    def __init__(self) -> None:
+        self.now_s = 100.0
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+
+class _SyncingDrives(_Drives):
+    """SYNCs at given times on a fake clock; a physics step costs ``step_s`` of it."""
+
+    def __init__(self, clock: _FakeClock, syncs_s: list[float], server_stop: list[TargetServer]) -> None:
+        super().__init__()
+        self.clock = clock
+        self.syncs_s = syncs_s
+        self.stop = server_stop
+        self.answered: list[tuple[float, float]] = []  # (SYNC sent, answered)
+
+    def serve_until(self, deadline_s: float, return_on_sync: bool = False) -> None:
+        if not self.syncs_s:
+            self.stop[0].stop()
+            return
+        if self.syncs_s[0] <= deadline_s:
+            sent_s = self.syncs_s.pop(0)
+            self.clock.now_s = max(self.clock.now_s, sent_s)  # a step still running delays the answer
+            self.answered.append((sent_s, self.clock.now_s))
+            assert self.handler is not None, "the server set its SYNC handler"
+            self.handler()
+            if return_on_sync:
+                return
+        self.clock.now_s = max(self.clock.now_s, deadline_s)
+
+
+@pytest.mark.parametrize(("jitter", "step_periods"), [(0.0, 0.8), (0.2, 0.5)])
+def test_a_sync_is_answered_before_the_physics_of_its_period_steps(jitter: float, step_periods: float) -> None:
+    """A physics step of 0.8 period, or 0.5 with the master's SYNCs jittering by up to 0.2 period:
+    run right after each SYNC's answer, it never delays the next SYNC (a tick a quarter period
+    after the SYNC delayed them); one tick per period, on the wall clock."""
+    clock = _FakeClock()
+    rng = np.random.default_rng(1)
+    syncs_s = [clock.now_s + 0.37e-3 + k * PERIOD_S + jitter * PERIOD_S * rng.uniform(-1, 1) for k in range(300)]
+    server = _server()
+    holder = [server]
+    drives = _SyncingDrives(clock, syncs_s, holder)
+    server.drives = drives
+    drives.set_sync_handler(server._on_sync)
+    plant_step = server.plant.step
+
+    def slow_step(torque_nm: np.ndarray, brake_engaged: np.ndarray) -> JointState:
+        clock.now_s += step_periods * PERIOD_S
+        return plant_step(torque_nm, brake_engaged)
+
+    with (
+        mock.patch("sim_target.server.time", clock),
+        mock.patch.object(server, "_apply_realtime_settings"),
+        mock.patch.object(server.plant, "step", slow_step),
+    ):
+        server.run()
+    delays_s = np.array([answered - sent for sent, answered in drives.answered])
+    assert len(delays_s) == 300 and np.all(delays_s[20:] == 0.0)  # after the phase lock settles
+    assert server.stats.steps == pytest.approx(300, abs=2)  # one tick per period, never a burst
+    assert server.lateness.skipped_periods == 0 and server.lateness.worst_lag_s < 0.6 * PERIOD_S
 
 
 def test_a_target_that_cannot_keep_real_time_says_so_and_its_run_is_invalid(caplog: pytest.LogCaptureFixture) -> None:
@@ -180,3 +246,36 @@ def test_lockstep_applies_the_realtime_settings_only_when_asked(in_lockstep: boo
         assert server.status()["realtime"]["refused"] == []
     else:
         assert server.realtime_settings == {}
+
+
+def test_serve_until_returns_on_a_sync_found_while_draining_not_after_the_next_frame() -> None:
+    """The drives drain the bus every few ms (the master watch); a SYNC handled there must end a
+    ``return_on_sync`` wait at once: waiting on for the next frame made the free-running target
+    step its physics a period late, into the next cycle's frames."""
+    import can
+
+    from sim_target.drives import EmulatedDrives, EmulatedDrivesConfig
+
+    with (
+        can.Bus(interface="virtual", channel="drain-sync") as bus,
+        can.Bus(interface="virtual", channel="drain-sync") as master,
+    ):
+        drives = EmulatedDrives(bus, EmulatedDrivesConfig(node_ids=(1,)))
+        drives.start(own_thread=False)
+        syncs: list[float] = []
+        drives.set_sync_handler(lambda: syncs.append(time.monotonic()))
+        drives.serve_until(time.monotonic() + 0.05)  # boot-up sent, the first drain done
+        master.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        drives._next_check_s = 0.0  # the next wait begins with a drain, which finds the SYNC
+        waits: list[tuple[float | None, int]] = []  # (recv timeout, SYNCs handled before the call)
+        real_recv = bus.recv
+
+        def recv(timeout: float | None = None) -> can.Message | None:
+            waits.append((timeout, len(syncs)))
+            return real_recv(timeout)
+
+        bus.recv = recv  # type: ignore[method-assign]  # counts the waits of this one bus
+        drives.serve_until(time.monotonic() + 5.0, return_on_sync=True)
+        assert len(syncs) == 1
+        assert [timeout for timeout, seen in waits if seen] == [0.0]  # the drain's last look, no wait
+        drives.close()

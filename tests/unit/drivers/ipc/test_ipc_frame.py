@@ -16,6 +16,7 @@ from drivers.ipc.frame import (
     decode,
     encode,
     rx_overflow_frame,
+    split_batch,
 )
 
 little_endian = pytest.mark.skipif(sys.byteorder != "little", reason="the byte vectors are in little-endian host order")
@@ -137,3 +138,17 @@ def test_refuses_what_is_not_a_frame(msg: can.Message) -> None:
 def test_refuses_datagrams_that_are_not_frames(datagram: bytes) -> None:
     with pytest.raises(FrameError):
         decode(datagram)
+
+
+def test_a_batch_splits_into_its_frames_by_each_frames_fd_flag() -> None:
+    frames = [
+        encode(can.Message(arbitration_id=0x181, data=bytes(12), is_extended_id=False, is_fd=True)),
+        encode(can.Message(arbitration_id=0x80, data=b"\x05", is_extended_id=False)),
+        encode(can.Message(arbitration_id=0x182, data=bytes(range(64)), is_extended_id=False, is_fd=True)),
+    ]
+    assert split_batch(b"".join(frames)) == frames
+    assert [decode(f).arbitration_id for f in split_batch(b"".join(frames))] == [0x181, 0x80, 0x182]
+    with pytest.raises(FrameError, match="cut short"):
+        split_batch(b"".join(frames)[:-1])
+    with pytest.raises(FrameError, match="trailing bytes"):
+        split_batch(frames[1] + bytes(5))
