@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from models.errors import ModelInputError
 from models.executors import Executor
 from models.feedback import make_law
 from models.feedback.base import FeedbackLaw
@@ -120,6 +121,15 @@ def collect(
     logs = _logged_rollouts(
         robot, controllers, made, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed
     )
+    # Runs that left the limits are dropped from the data; a law with none left has nothing to learn from
+    # (and its relabeling would be handed zero states): say so in one line, not a traceback downstream.
+    empty = [name for name, log in zip(laws, logs, strict=True) if len(log["q"]) == 0]
+    if empty:
+        who = "LMPC" if policy_dir is not None else ("FB" if config.target == "law" else "HMPC")
+        raise ModelInputError(
+            f"structured LMPC data on {robot.name}: every {who} rollout of {', '.join(empty)} left the joint limits "
+            f"or went non-finite on the {len(conditions)} training conditions; nothing to learn from"
+        )
     data = {}
     for name, law, log in zip(laws, made, logs, strict=True):
         if policy_dir is not None and config.target == "hmpc":

@@ -26,9 +26,9 @@ def hil(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]
             "gain set 'stabilized' holds the gains of 'ur5_paper', not of robot 'ur5'",
         ),
         (
-                ["stability", "pd", "--robot", "ur5", "--gains", "stabilized"],
-                "not of robot 'ur5' (6 joints); pass kp, kd for it, or use gain set 'designed'",
-            ),
+            ["stability", "pd", "--robot", "ur5", "--gains", "stabilized"],
+            "not of robot 'ur5' (6 joints); pass kp, kd for it, or use gain set 'designed'",
+        ),
         (["experiment", "--conditions", "missing.yaml"], "missing.yaml: file not found"),
         (["experiment", "--modes", "xyz"], "--modes: unknown 'xyz'"),
     ],
