@@ -30,6 +30,7 @@ import yaml
 from models.conditions import load_conditions
 from models.experiment import ExperimentConfig, run_experiment
 from models.feedback import LAW_TITLES
+from models.hmpc.config import FORMULATIONS
 from models.robots import load_robot
 from sim_target.realism_profiles import profile_path
 
@@ -61,7 +62,12 @@ def sweep(args: argparse.Namespace) -> dict[str, Any]:
                 laws=laws, modes=modes, timing_cycles=20, save_trajectories=False, plots=False, realism=str(path)
             )
             t0 = time.monotonic()
-            results = run_experiment(robot, conditions, config, Path(tmp) / f"out_{noise:g}")
+            # the HMPC as `hil experiment` runs it (its default formulation, docs/hmpc.md), not the bare
+            # ExperimentConfig's absolute-cost one
+            options = {"hmpc": dict(FORMULATIONS[args.hmpc_formulation])}
+            results = run_experiment(
+                robot, conditions, config, Path(tmp) / f"out_{noise:g}", controller_options=options
+            )
             print(f"noise {noise:g} rad: {time.monotonic() - t0:.0f} s", file=sys.stderr)
             for law in laws:
                 for mode in modes:
@@ -204,6 +210,9 @@ def main() -> None:
     parser.add_argument("--base", default="ideal", choices=["ideal", "realistic", "harsh"])
     parser.add_argument("--laws", default="pd,pid,adrc,hinf,smc,mrac")
     parser.add_argument("--modes", default="fb,hmpc,lmpc")
+    parser.add_argument(
+        "--hmpc-formulation", default="deployable", choices=sorted(FORMULATIONS), help="as `hil experiment`'s"
+    )
     parser.add_argument("--conditions", default="C1")
     parser.add_argument("--duration-s", type=float, default=3.0)  # through the disturbance at 2 s
     parser.add_argument("--plot", type=Path, default=None)
