@@ -161,7 +161,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=3.0, help="the demo's --duration (s)")
     parser.add_argument("--fifo", type=int, default=30, help="SCHED_FIFO priority of the demo (0: none)")
     args = parser.parse_args()
-    load_before = list(os.getloadavg())
+    load_before = benchinfo.load_average()
     runs = []
     for round_index in range(args.rounds):
         for tree in args.tree:
@@ -179,17 +179,13 @@ def main() -> None:
         keys = [k for k in (mine[0] if mine else {}) if k not in ("tree", "round", "load")]
         summary[str(tree)] = {k: round(float(np.median([r[k] for r in mine if k in r])), 1) for k in keys}
     print(
-        json.dumps(
+        benchinfo.report(
+            "demo_ab",
+            load_before,
             {
-                "benchmark": "demo_ab",
-                "command": " ".join(["python", "benchmarks/bench_demo_ab.py", *sys.argv[1:]]),
                 "runs": runs,
                 "median_by_tree": summary,
-                "machine": benchinfo.machine(),
-                "load_average_before": load_before,
-                "load_average_after": list(os.getloadavg()),
             },
-            indent=2,
         )
     )
 

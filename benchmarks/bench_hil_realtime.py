@@ -182,7 +182,7 @@ def main() -> None:
     parser.add_argument("--master", action="store_true", help="--target-only: under a 1 kHz master")
     parser.add_argument("--substeps", type=int, default=None, help="--target-only: pybullet substeps")
     args = parser.parse_args()
-    load_before = [round(x, 2) for x in os.getloadavg()]
+    load_before = benchinfo.load_average()
     if args.target_only is not None:
         result = target_only(args.target_only, args.master, args.substeps)
         result.update(
@@ -213,18 +213,14 @@ def main() -> None:
         print(json.dumps(row), file=sys.stderr, flush=True)  # progress: one line per run
         runs.append(row)
     print(
-        json.dumps(
+        benchinfo.report(
+            "hil_realtime",
+            load_before,
             {
-                "benchmark": "hil_realtime",
-                "command": "python " + " ".join(sys.argv),
                 "period_s": 1e-3,
                 "runs": runs,
                 "all_valid_without_fault": all(r.get("valid") and not r.get("fault") for r in runs),
-                "machine": benchinfo.machine(),
-                "load_average_before": load_before,
-                "load_average_after": [round(x, 2) for x in os.getloadavg()],
             },
-            indent=1,
         )
     )
 

@@ -10,9 +10,7 @@ Prints JSON: per spin, the cycle start after its deadline (µs median / p99 / ma
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import time
 
 import benchinfo
@@ -29,7 +27,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--cycles", type=int, default=1500)
     args = parser.parse_args()
-    load_before = [round(x, 2) for x in os.getloadavg()]
+    load_before = benchinfo.load_average()
     os.sched_setaffinity(0, {args.cpu})
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
     spins = [float(x) * 1e-6 for x in args.spins_us.split(",")]
@@ -47,18 +45,14 @@ def main() -> None:
                     pass
     os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     print(
-        json.dumps(
+        benchinfo.report(
+            "pacer_wake",
+            load_before,
             {
-                "benchmark": "pacer_wake",
-                "command": "python " + " ".join(sys.argv),
                 "cycle_start_after_deadline_us": {
                     f"spin_{spin * 1e6:g}us": benchinfo.spread(np.array(v) * 1e6) for spin, v in late.items()
                 },
-                "machine": benchinfo.machine(),
-                "load_average_before": load_before,
-                "load_average_after": [round(x, 2) for x in os.getloadavg()],
             },
-            indent=1,
         )
     )
 

@@ -14,9 +14,7 @@ Prints one JSON document (µs median / p99 per law and state, cold/warm ratios, 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -76,7 +74,7 @@ def main() -> None:
         applied.append(f"SCHED_FIFO {args.fifo}")
     from lmpc_graphs import bound_runner, make_session, one_node_graph
 
-    load_before = list(os.getloadavg())
+    load_before = benchinfo.load_average()
     calls: dict[str, Callable[[], object]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "one.onnx"
@@ -105,19 +103,15 @@ def main() -> None:
     for row in results.values():
         row["warm_over_onnx_1node_warm"] = round(row["warm_us"]["median"] / floor["warm_us"]["median"], 1)
     print(
-        json.dumps(
+        benchinfo.report(
+            "policy_cold",
+            load_before,
             {
-                "benchmark": "policy_cold",
-                "command": " ".join(["python", "benchmarks/bench_policy_cold.py", *sys.argv[1:]]),
                 "realtime": applied,
                 "sleep_before_cold_call_s": args.period,
                 "hybrid_spin_s": args.spin_us * 1e-6,
                 "results": results,
-                "machine": benchinfo.machine(),
-                "load_average_before": load_before,
-                "load_average_after": list(os.getloadavg()),
             },
-            indent=2,
         )
     )
 

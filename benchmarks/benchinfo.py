@@ -5,7 +5,10 @@ results and the fault campaign."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import sys
 from typing import Any
 
 import numpy as np
@@ -25,4 +28,17 @@ def spread(values: Any, digits: int = 1) -> dict[str, float]:
     }
 
 
-__all__ = ["machine", "spread"]
+def load_average() -> list[float]:
+    """The 1, 5 and 15 minute load averages, rounded: taken before a run, passed to :func:`report`."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def report(benchmark: str, load_before: list[float], fields: dict[str, Any]) -> str:
+    """A benchmark's JSON: its name, the command that ran it, ``fields``, the machine and the load
+    average before and after the run (one envelope for every benchmark that prints one)."""
+    out = {"benchmark": benchmark, "command": "python " + " ".join(sys.argv), **fields}
+    out.update(machine=machine(), load_average_before=load_before, load_average_after=load_average())
+    return json.dumps(out, indent=1)
+
+
+__all__ = ["load_average", "machine", "report", "spread"]
