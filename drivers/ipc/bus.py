@@ -10,30 +10,17 @@ competes for the CPUs, so there is none (docs/ipc_bus.md gives the figures).
     bus = can.Bus(interface="ipc", channel="/run/hil/can", fd=True)   # a directory, created if missing
     bus = can.Bus(interface="ipc", channel="hil")        # a name: $XDG_RUNTIME_DIR/hil-can/hil or /run/hil/can/hil
 
-Only its owner joins (docs/security.md): the directory must be the current user's (or, with
-``group``, that group's), writable by no one else, under parents nobody else can write to; it is
-created 0700 (0770 with a group), each socket 0600 (0660), and every peer's ``SO_PEERCRED`` is
-checked on connect and accept (another uid, unless root or in the group: refused, counted in
-``stats.peers_refused``). Each received frame carries its sender (:class:`IpcMessage`,
-``msg.sender``: which connection, pid and uid), so a receiver can tell two senders of one
-identifier apart (drivers/bus_guard.py).
+Only its owner joins: the directory must be the current user's (or, with ``group``, that
+group's) and writable by no one else; every peer's ``SO_PEERCRED`` is checked on connect and
+accept (refused: ``stats.peers_refused``). Each received frame carries its sender
+(:class:`IpcMessage`, ``msg.sender``), so a receiver can tell two senders of one identifier
+apart (drivers/bus_guard.py). docs/security.md, docs/ipc_bus.md ("Design", "Semantics").
 
-Semantics, as close to python-can's ``virtual`` and SocketCAN as sockets allow:
-
-- A bus sees every frame sent by the others after its constructor returned; with
-  ``receive_own_messages`` it also sees its own (through the kernel, so :meth:`fileno` wakes).
-- Frames from one sender arrive in the order sent. Frames of different senders have no global
-  order (each pair of peers has its own queue).
-- ``send_batch(msgs)`` (a control cycle's frames) sends them as one datagram to each peer, which
-  its ``recv`` hands out one frame at a time in order: one wake-up and one system call for the
-  cycle instead of one per frame (:func:`drivers.ipc.frame.split_batch`).
-- ``send`` never blocks: a peer whose queue is full (``queue_bytes``, it is not reading) loses the
-  frame; the loss is counted in :attr:`IpcBus.stats` and the peer gets SocketCAN's RX-overflow
-  error frame once its queue drains. A peer that exits or dies is dropped from the bus.
-- Joining is serialised with ``flock`` on the directory; a socket left by a killed process
-  (connection refused) is removed by the next peer that joins. A bus removes only its own socket.
-- ``fd=True`` sends and receives CAN FD frames; a classical bus refuses to send them and ignores
-  those it receives, as a SocketCAN socket without CAN_RAW_FD_FRAMES does.
+Semantics as python-can's ``virtual`` and SocketCAN (one sender's frames in order; ``send`` never
+blocks: a full peer loses the frame, counted, and gets SocketCAN's RX-overflow error frame).
+The cycle's hot path: ``send_batch(msgs)`` sends a cycle's frames as one datagram per peer;
+``send_frames(batch)`` a :class:`~drivers.ipc.frame.FrameBatch` encoded once into a preallocated
+datagram; ``recv_frames()`` returns a datagram's frames undecoded (no ``can.Message`` each).
 
 Linux only (SOCK_SEQPACKET on AF_UNIX).
 """
@@ -56,15 +43,17 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
-from drivers.ipc.directory import IpcMessage, IpcPathError, Sender, bus_directory
+from drivers.ipc.directory import IpcMessage, IpcPathError, Sender, bus_directory, remove_socket_if_ours
 from drivers.ipc.frame import (
     CAN_MTU,
     CANFD_MTU,
     MAX_BATCH_FRAMES,
     MAX_DATAGRAM,
+    FrameBatch,
     FrameError,
     decode,
     encode,
+    raw_frames,
     rx_overflow_frame,
     split_batch,
 )
@@ -96,10 +85,9 @@ class IpcBus(can.BusABC):
         group: str | int | None = None,
         **kwargs: Any,
     ) -> None:
-        """``channel``: the bus directory (or a name, see :func:`bus_directory`); ``fd``: CAN FD;
-        ``queue_bytes``: kernel buffer per peer pair (SO_SNDBUF, capped by net.core.wmem_max);
-        ``group``: a group whose members may share the bus (None: this user only).
-        Other python-can arguments (``bitrate``, ``data_bitrate``...) are accepted and ignored."""
+        """``channel``: the bus directory or a name (:func:`bus_directory`); ``queue_bytes``: kernel
+        buffer per peer pair (SO_SNDBUF); ``group``: who else may join (None: this user only).
+        Other python-can arguments (``bitrate``...) are accepted and ignored."""
         if not hasattr(socket, "SOCK_SEQPACKET") or not hasattr(select, "epoll"):
             raise can.CanInterfaceNotImplementedError("the ipc bus needs Linux (AF_UNIX SOCK_SEQPACKET, epoll)")
         self.channel = os.fspath(channel)
@@ -286,29 +274,29 @@ class IpcBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Put ``msg`` on the bus; never blocks (``timeout`` is accepted and unused, see module doc)."""
-        if self._closed:
-            raise can.CanOperationError("ipc bus: the bus is shut down")
-        frame = self._encode(msg)
-        if self._pending_joins.poll(0):
-            self._accept_pending()
-        self._fan_out(frame)
-        self.stats.frames_sent += 1
+        self.send_batch([msg])
 
     def send_batch(self, msgs: list[can.Message] | tuple[can.Message, ...]) -> None:
-        """Send several frames in order as one datagram to each peer (a control cycle's frames:
-        what DriveBus and the emulated drives use), checking for newcomers once. A peer whose queue
-        is full loses the whole batch (each frame counted in ``stats.frames_dropped``)."""
+        """Send several frames in order as one datagram to each peer (:meth:`send_frames`), in
+        chunks of ``MAX_BATCH_FRAMES``. A peer whose queue is full loses the whole batch."""
+        for msg in msgs:
+            self._encode(msg)  # python-can's errors for a frame that cannot go on this bus
+        for first in range(0, len(msgs), MAX_BATCH_FRAMES):
+            self.send_frames(FrameBatch(msgs[first : first + MAX_BATCH_FRAMES]))
+
+    def send_frames(self, batch: FrameBatch) -> None:
+        """Send a :class:`~drivers.ipc.frame.FrameBatch` as it is: one datagram to each peer, no
+        encoding (the hot path's send; otherwise as :meth:`send_batch`)."""
         if self._closed:
             raise can.CanOperationError("ipc bus: the bus is shut down")
-        frames = [self._encode(msg) for msg in msgs]
+        if batch.fd and not self._fd:
+            raise can.CanOperationError("ipc bus: CAN FD frame on a classical bus (open it with fd=True)")
         if self._pending_joins.poll(0):
             self._accept_pending()
-        for first in range(0, len(frames), MAX_BATCH_FRAMES):
-            chunk = frames[first : first + MAX_BATCH_FRAMES]
-            self._fan_out(b"".join(chunk), len(chunk))
-        self.stats.frames_sent += len(frames)
+        self._fan_out(batch.datagram, batch.count)
+        self.stats.frames_sent += batch.count
 
-    def _fan_out(self, frame: bytes, count: int = 1) -> None:
+    def _fan_out(self, frame: bytes | bytearray, count: int = 1) -> None:
         """``frame``: one frame's datagram, or a batch of ``count`` frames."""
         for peer in self._targets:
             if peer.overflowed and not self._notify_overflow(peer):
@@ -337,20 +325,8 @@ class IpcBus(can.BusABC):
 
     # --- receiving -------------------------------------------------------------------------------
 
-    def _wait(self, wait_s: float) -> list[tuple[int, int]]:
-        """epoll's events within ``wait_s`` (-1: forever). epoll's timeout has millisecond
-        resolution, rounded up (a 0.3 ms wait sleeps 1 ms, so a 1 kHz loop waiting for its next
-        deadline slipped a period every other tick): a finite wait goes through select() on the
-        epoll descriptor, whose timeout has microseconds, then collects the events at once."""
-        fd = self._epoll.fileno()
-        if wait_s > 0 and fd < 1024:  # select's FD_SETSIZE
-            select.select([fd], [], [], wait_s)
-            return self._epoll.poll(0)
-        return self._epoll.poll(wait_s)
-
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else time.monotonic() + timeout
-        ready = self._ready
         batched = self._batched
         while True:
             while batched:  # a batch's frames first, in order: frames of one sender stay in order
@@ -358,6 +334,55 @@ class IpcBus(can.BusABC):
                 msg = self._message(peer, data)
                 if msg is not None:
                     return msg, False
+            got = self._next_datagram(deadline)
+            if got is None:
+                return None, False
+            peer, data = got
+            if len(data) != CAN_MTU and len(data) != CANFD_MTU:  # a batch: handed out from above
+                try:
+                    batched.extend((peer, frame) for frame in split_batch(data))
+                except FrameError:
+                    self.stats.malformed += 1
+                continue
+            msg = self._message(peer, data)
+            if msg is not None:
+                return msg, False
+
+    def recv_frames(self, timeout: float | None = None) -> tuple[Sender | None, list[tuple[int, bytes, bool]]] | None:
+        """The next datagram's frames, undecoded: ``(sender, [(can_id, data, is_fd), ...])``
+        (:func:`drivers.ipc.frame.raw_frames`), or None when ``timeout`` passes first.
+
+        The hot path's receive (a cycle's batch in one call, no :class:`can.Message` per frame):
+        what :meth:`recv` hands out one by one, in order, without ``can_filters`` or timestamps.
+        Frames a :meth:`recv` split from a batch and did not hand out yet come first."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            if self._batched:
+                peer, data = self._batched.popleft()
+            else:
+                got = self._next_datagram(deadline)
+                if got is None:
+                    return None
+                peer, data = got
+            try:
+                frames = raw_frames(data)
+            except FrameError:
+                self.stats.malformed += 1
+                continue
+            if not self._fd and any(is_fd for _, _, is_fd in frames):
+                kept = [frame for frame in frames if not frame[2]]
+                self.stats.fd_frames_ignored += len(frames) - len(kept)
+                frames = kept
+                if not frames:
+                    continue
+            self.stats.frames_received += len(frames)
+            return peer.sender, frames
+
+    def _next_datagram(self, deadline: float | None) -> tuple[_Peer, bytes] | None:
+        """The next datagram (a frame or a batch) from any peer, waiting until ``deadline``
+        (monotonic; None: forever); None when it passed."""
+        ready = self._ready
+        while True:
             while ready:
                 peer = ready[0]
                 try:
@@ -375,18 +400,7 @@ class IpcBus(can.BusABC):
                     ready.pop(0)
                     self._drop_peer(peer)
                     continue
-                if len(data) != CAN_MTU and len(data) != CANFD_MTU:  # a batch: handed out from above
-                    try:
-                        batched.extend((peer, frame) for frame in split_batch(data))
-                    except FrameError:
-                        self.stats.malformed += 1
-                        continue
-                    break
-                msg = self._message(peer, data)
-                if msg is not None:
-                    return msg, False
-            if batched:
-                continue
+                return peer, data
             if self._closed:
                 raise can.CanOperationError("ipc bus: the bus is shut down")
             if deadline is None:
@@ -395,8 +409,13 @@ class IpcBus(can.BusABC):
                 wait_s = deadline - time.monotonic()
                 if wait_s < 0:
                     wait_s = 0.0
-            try:
-                events = self._wait(wait_s)
+            try:  # epoll's timeout is in whole ms, rounded up (a 1 kHz loop slipped periods): a
+                # finite wait goes through select() on the epoll descriptor (µs), then epoll.
+                fd = self._epoll.fileno()
+                if wait_s > 0 and fd < 1024:  # select's FD_SETSIZE
+                    select.select([fd], [], [], wait_s)
+                    wait_s = 0.0
+                events = self._epoll.poll(wait_s)
             except InterruptedError:
                 events = []
             except (OSError, ValueError) as exc:  # the epoll was closed by shutdown()
@@ -409,7 +428,7 @@ class IpcBus(can.BusABC):
                 if found is not None and found not in ready:
                     ready.append(found)
             if not ready and deadline is not None and time.monotonic() >= deadline:
-                return None, False
+                return None
 
     def _message(self, peer: _Peer, data: bytes) -> can.Message | None:
         """One frame's bytes as a message from ``peer``; None (counted) when it is not one to hand out."""
@@ -459,17 +478,8 @@ class IpcBus(can.BusABC):
         # between epoll and recv right now; closing its fds under it could hand them to new sockets.
 
     def _remove_own_socket(self) -> None:
-        if self._path is None or self._inode is None:
-            return
-        try:
-            st = os.lstat(self._path)
-        except FileNotFoundError:
-            return
-        if stat.S_ISSOCK(st.st_mode) and (st.st_dev, st.st_ino) == self._inode:
-            try:
-                os.unlink(self._path)
-            except FileNotFoundError:
-                pass
+        if self._path is not None and self._inode is not None:
+            remove_socket_if_ours(self._path, self._inode)
         self._path = None
 
     def __del__(self) -> None:
@@ -481,13 +491,10 @@ class IpcBus(can.BusABC):
 
 
 def open_bus(config: TransportConfig) -> IpcBus:
-    """The row of ``drivers.transport.BACKENDS``: ``transport: {interface: ipc, channel: DIR}``.
-    A directory that cannot be used (a file, another user's) is bad input: DriveConfigError, exit 2."""
+    """``drivers.transport.BACKENDS``'s row; a directory that cannot be used is bad input (exit 2)."""
     from drivers.errors import DriveConfigError
 
     try:
         return IpcBus(config.channel, fd=config.fd, group=config.group)
-    except IpcPathError as exc:
-        raise DriveConfigError(f"channel {config.channel!r}: {exc}") from None
-    except ValueError as exc:  # bus_directory: an empty channel
+    except (IpcPathError, ValueError) as exc:  # a file, another user's; ValueError: an empty channel
         raise DriveConfigError(f"channel {config.channel!r}: {exc}") from None

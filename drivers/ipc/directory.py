@@ -5,6 +5,7 @@ joined, and the sender each received frame carries."""
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,6 +69,20 @@ def channel_problem(channel: str, group: str | None = None) -> str | None:
     except OSError as exc:
         return str(exc) if isinstance(exc, OwnershipError) else f"{directory}: {exc.strerror or exc}"
     return None
+
+
+def remove_socket_if_ours(path: Path, inode: tuple[int, int]) -> None:
+    """Remove the socket file at ``path`` only if it is still the one bound there, (st_dev,
+    st_ino) ``inode``: a later bus may have replaced it; files that are not sockets stay."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if stat.S_ISSOCK(st.st_mode) and (st.st_dev, st.st_ino) == inode:
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
 
 
 __all__ = ["IpcMessage", "IpcPathError", "Sender", "bus_directory", "channel_problem"]

@@ -133,6 +133,57 @@ def rx_overflow_frame() -> bytes:
     return _CAN_FRAME.pack(CAN_ERR_FLAG | CAN_ERR_CRTL, CAN_ERR_DLC, 0, 0, 0, data)
 
 
+_HEADER = struct.Struct("=IBB")  # can_id, len, flags (the FD layout's; classical frames: the pad byte)
+_DATA_OFFSET = 8
+
+
+def raw_frames(datagram: bytes) -> list[tuple[int, bytes, bool]]:
+    """Each frame of a datagram (one frame or a batch) as ``(can_id, data, is_fd)``, undecoded:
+    ``can_id`` with SocketCAN's flags (CAN_EFF_FLAG...), ``data`` its ``len`` bytes. The hot
+    path's parse (no :class:`can.Message`); :class:`FrameError` as :func:`decode` and
+    :func:`split_batch` raise it."""
+    size = len(datagram)
+    frames = []
+    offset = 0
+    while offset < size:
+        if size - offset < CAN_MTU:
+            raise FrameError(f"datagram of {size} bytes: {size - offset} trailing bytes are not a frame")
+        can_id, length, flags = _HEADER.unpack_from(datagram, offset)
+        # One frame: its size says which layout; in a batch, the FD flag does (split_batch).
+        is_fd = size == CANFD_MTU if size in (CAN_MTU, CANFD_MTU) else bool(flags & CANFD_FDF)
+        mtu = CANFD_MTU if is_fd else CAN_MTU
+        if offset + mtu > size:
+            raise FrameError(f"batch of {size} bytes: the frame at byte {offset} is cut short")
+        if length not in CANFD_LENGTHS if is_fd else length > CAN_MAX_DLEN:
+            raise FrameError(f"{'CAN FD' if is_fd else 'classical'} frame with length {length}")
+        start = offset + _DATA_OFFSET
+        frames.append((can_id, datagram[start : start + length], is_fd))
+        offset += mtu
+    return frames
+
+
+class FrameBatch:
+    """A fixed list of frames encoded once into one preallocated datagram (a control cycle's
+    frames): each cycle rewrites the payloads in place (:attr:`payloads`, writable views into
+    the datagram, e.g. for ``struct.pack_into``) and sends :attr:`datagram` as it is, so nothing
+    is allocated or encoded twice. The identifiers and lengths are fixed at construction."""
+
+    def __init__(self, msgs: list[can.Message] | tuple[can.Message, ...]) -> None:
+        if not 1 <= len(msgs) <= MAX_BATCH_FRAMES:
+            raise FrameError(f"a batch holds 1 to {MAX_BATCH_FRAMES} frames, not {len(msgs)}")
+        frames = [encode(msg) for msg in msgs]
+        self.datagram = bytearray(b"".join(frames))
+        self.count = len(frames)
+        self.fd = any(msg.is_fd for msg in msgs)
+        view = memoryview(self.datagram)
+        self.payloads: list[memoryview] = []
+        offset = 0
+        for msg, frame in zip(msgs, frames, strict=True):
+            start = offset + _DATA_OFFSET
+            self.payloads.append(view[start : start + len(msg.data)])
+            offset += len(frame)
+
+
 def split_batch(datagram: bytes) -> list[bytes]:
     """The frames of a batch datagram, in order (each then goes to :func:`decode`).
     :class:`FrameError` when the bytes do not split into whole frames."""

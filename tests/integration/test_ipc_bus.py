@@ -17,7 +17,7 @@ import pytest
 
 from drivers.config import TransportConfig
 from drivers.ipc import IpcBus, IpcMessage, bus_directory
-from drivers.ipc.frame import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
+from drivers.ipc.frame import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW, FrameBatch
 from drivers.transport import open_bus
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the ipc bus is Linux only")
@@ -426,3 +426,47 @@ def test_a_slow_reader_loses_frames_without_blocking_the_sender_and_is_told(bus_
     finally:
         for bus in (sender, slow, fast):
             bus.shutdown()
+
+
+def test_a_frame_batch_goes_out_as_encoded_and_recv_frames_returns_it_undecoded(bus_dir: Path) -> None:
+    """The hot path: a FrameBatch encoded once, its payloads rewritten in place between sends (the
+    datagram is never re-encoded); recv_frames returns what recv would hand out frame by frame
+    (identifier, data, FD flag, the sender), in order; a classical bus drops the FD frames."""
+    sender, fd_rx, classic_rx = IpcBus(bus_dir, fd=True), IpcBus(bus_dir, fd=True), IpcBus(bus_dir)
+    try:
+        batch = FrameBatch([_msg(0x201 + i, bytes(12), is_fd=True) for i in range(3)] + [_msg(0x80, b"\x01")])
+        for cycle in (1, 2):
+            for i, payload in enumerate(batch.payloads[:3]):
+                payload[:] = bytes([cycle * 10 + i]) * 12
+            batch.payloads[3][0] = cycle
+            sender.send_frames(batch)
+            got = fd_rx.recv_frames(2.0)
+            assert got is not None
+            who, frames = got
+            assert who is not None and who.pid == os.getpid()
+            assert frames == [(0x201 + i, bytes([cycle * 10 + i]) * 12, True) for i in range(3)] + [
+                (0x80, bytes([cycle]), False)
+            ]
+            classic = classic_rx.recv_frames(2.0)
+            assert classic is not None and classic[1] == [(0x80, bytes([cycle]), False)]
+        assert fd_rx.recv_frames(0.05) is None
+        assert fd_rx.stats.frames_received == 8 and classic_rx.stats.fd_frames_ignored == 6
+        assert sender.stats.frames_sent == 8
+        with pytest.raises(can.CanOperationError):
+            IpcBus(bus_dir).send_frames(batch)  # FD frames on a classical bus
+    finally:
+        for bus in (sender, fd_rx, classic_rx):
+            bus.shutdown()
+
+
+def test_recv_frames_first_hands_out_what_recv_left_of_a_batch(pair: tuple[IpcBus, IpcBus]) -> None:
+    a, b = pair
+    a.send_batch([_msg(0x181, b"\x01"), _msg(0x182, b"\x02"), _msg(0x183, b"\x03")])
+    a.send(_msg(0x184, b"\x04"))
+    assert _recv(b, 2.0).arbitration_id == 0x181
+    rest = [b.recv_frames(1.0), b.recv_frames(1.0), b.recv_frames(1.0)]
+    assert [frames for _, frames in filter(None, rest)] == [
+        [(0x182, b"\x02", False)],
+        [(0x183, b"\x03", False)],
+        [(0x184, b"\x04", False)],
+    ]

@@ -12,9 +12,11 @@ from can.interfaces.socketcan.socketcan import build_can_frame, dissect_can_fram
 from drivers.ipc.frame import (
     CAN_ERR_CRTL,
     CAN_ERR_CRTL_RX_OVERFLOW,
+    FrameBatch,
     FrameError,
     decode,
     encode,
+    raw_frames,
     rx_overflow_frame,
     split_batch,
 )
@@ -152,3 +154,39 @@ def test_a_batch_splits_into_its_frames_by_each_frames_fd_flag() -> None:
         split_batch(b"".join(frames)[:-1])
     with pytest.raises(FrameError, match="trailing bytes"):
         split_batch(frames[1] + bytes(5))
+
+
+def test_raw_frames_agree_with_decode_and_refuse_what_it_refuses() -> None:
+    msgs = [
+        can.Message(arbitration_id=0x181, data=bytes(range(12)), is_fd=True),
+        can.Message(arbitration_id=0x80, data=b"\x05", is_extended_id=False),
+        can.Message(arbitration_id=0x1234567, data=b"\x01\x02", is_extended_id=True),
+    ]
+    frames = [encode(m) for m in msgs]
+    for frame in frames:  # one frame: its size tells the layout
+        ((can_id, data, is_fd),) = raw_frames(frame)
+        msg = decode(frame)
+        assert (can_id & 0x1FFFFFFF, data, is_fd) == (msg.arbitration_id, bytes(msg.data), msg.is_fd)
+    assert [(c & 0x1FFFFFFF, d, f) for c, d, f in raw_frames(b"".join(frames))] == [
+        (m.arbitration_id, bytes(m.data), m.is_fd) for m in msgs
+    ]
+    assert raw_frames(frames[2])[0][0] & 0x80000000  # CAN_EFF_FLAG kept
+    with pytest.raises(FrameError):
+        raw_frames(b"".join(frames)[:-1])
+    with pytest.raises(FrameError):
+        raw_frames(frames[1][:4] + bytes([9]) + frames[1][5:])  # a classical frame of 9 bytes
+
+
+def test_a_frame_batch_rewrites_payloads_in_place() -> None:
+    msgs = [
+        can.Message(arbitration_id=0x201, data=bytes(8), is_fd=True, is_extended_id=False),
+        can.Message(arbitration_id=0x80, data=b"\x00", is_extended_id=False),
+    ]
+    batch = FrameBatch(msgs)
+    datagram = batch.datagram
+    batch.payloads[0][:] = b"ABCDEFGH"
+    batch.payloads[1][0] = 7
+    assert batch.datagram is datagram and batch.count == 2 and batch.fd
+    assert [(c, d) for c, d, _ in raw_frames(bytes(datagram))] == [(0x201, b"ABCDEFGH"), (0x80, b"\x07")]
+    with pytest.raises(FrameError):
+        FrameBatch([])
