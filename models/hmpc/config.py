@@ -16,8 +16,8 @@ BUDGET_POLICIES = ("fallback", "best_iterate")
 #: "feedforward" ((tau - tau_ff)' W2a (tau - tau_ff), tau_ff = ID(q, qd, qdd_d): the feedback effort)
 TORQUE_COSTS = ("absolute", "anchored", "feedforward")
 KERNELS = ("auto", "numba", "numpy")
-#: the applied torque's rate bound: "none", or "franka": libfranka's kMaxTorqueRate (1000 N m/s on its
-#: 87 N m joints) scaled by each joint's torque limit (hil_runtime.rate_limit.max_torque_step_nm, docs/scoring.md)
+#: the applied torque's rate bound: "none", or "franka": the robot's torque-rate bound, libfranka's rule
+#: (RobotModel.torque_rate_nm_s, hil_runtime.rate_limit.max_torque_step_nm, docs/scoring.md)
 RATE_LIMITS = ("none", "franka")
 #: Named HMPC formulations (``hil experiment --hmpc-formulation``, ``hil pipeline --hmpc-formulation``):
 #: HMPCConfig options. "deployable" is the one a real arm can run (docs/hmpc.md, "Effort and smoothness"):
