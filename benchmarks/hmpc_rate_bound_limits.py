@@ -1,7 +1,8 @@
 """Does the deployable HMPC (the structured pipeline's expert) stay inside a robot's limits? Per law,
 on the pipeline's first training condition (paper-range draw, seed 7101, the robot's default
-disturbance), the largest position and velocity ratio to the limits, with the formulation's torque-rate
-bound and without it (docs/any_arm.md, "Status"). Prints JSON.
+disturbance), the largest position and velocity ratio to the limits: the formulation as the robot runs
+it (its torque-rate bound, models.hmpc.config.formulation_options), without the rate bound, and with
+the bound but predicting in control-period steps (docs/any_arm.md, "Torque-rate bound"). Prints JSON.
 
     python benchmarks/hmpc_rate_bound_limits.py --robot ur5 [--conditions 1] [--duration-s 2.4]
 """
@@ -19,7 +20,7 @@ import numpy as np
 
 from models.feedback import LAW_NAMES, make_law
 from models.hmpc import make_hmpc_controller
-from models.hmpc.config import FORMULATIONS
+from models.hmpc.config import formulation_options
 from models.lmpc.paper_range import paper_range_conditions
 from models.lmpc.structured import StructuredConfig
 from models.robots import load_robot
@@ -61,13 +62,16 @@ def main() -> None:
     seed = StructuredConfig().train_seed
     conditions = paper_range_conditions(robot, args.conditions, seed, prefix="T")
     conditions = [replace(c, duration_s=args.duration_s) for c in conditions]
-    deployable = dict(FORMULATIONS["deployable"])
+    deployable = formulation_options("deployable", robot.name)
     out = {
         "robot": robot.name,
+        "torque_rate_nm_s": robot.torque_rate_nm_s.tolist(),
+        "prediction_step_s": deployable.get("prediction_step_s", 1e-3),
         "conditions": [c.name for c in conditions],
         "duration_s": args.duration_s,
         "deployable": variant(robot, conditions, deployable),
         "deployable_without_rate_bound": variant(robot, conditions, {**deployable, "torque_rate_limit": "none"}),
+        "deployable_1ms_prediction_step": variant(robot, conditions, {**deployable, "prediction_step_s": 1e-3}),
         "machine": benchinfo.machine(),
     }
     print(json.dumps(out, indent=1))

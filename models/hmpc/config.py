@@ -34,6 +34,25 @@ FORMULATIONS: dict[str, dict[str, Any]] = {
     },
 }
 
+#: The deployable formulation's prediction step on every arm but ur5_paper (s): 5 steps of 10 ms, a 50 ms
+#: preview. Under the robot's torque-rate bound (hil_runtime.rate_limit: 1 N·m per 1 ms cycle on the real
+#: UR5 and the Panda) a 5 ms preview cannot see that a torque ramped at the bound takes tens of ms to
+#: reverse: the optimum slews from bound to bound and the arm limit-cycles out of its velocity limits
+#: after the disturbance; with a 50 ms preview it stays inside (docs/any_arm.md, "Torque-rate bound",
+#: benchmarks/hmpc_rate_bound_limits.py). ur5_paper keeps the control period, the step its shipped
+#: bundles and published tables were measured with.
+DEPLOYABLE_PREDICTION_STEP_S = 0.01
+PAPER_ROBOT = "ur5_paper"
+
+
+def formulation_options(name: str, robot_name: str) -> dict[str, Any]:
+    """The HMPCConfig options of formulation ``name`` (``FORMULATIONS``) on robot ``robot_name``."""
+    options = dict(FORMULATIONS[name])
+    if name == "deployable" and robot_name != PAPER_ROBOT:
+        options["prediction_step_s"] = DEPLOYABLE_PREDICTION_STEP_S
+    return options
+
+
 Weight = float | tuple[float, ...]
 
 
