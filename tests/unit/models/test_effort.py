@@ -34,7 +34,7 @@ def test_metrics_of_sinusoids_match_closed_forms() -> None:
     slow, fast = _signal(5.0, 10.0, n), _signal(200.0, 1.0, n)
     tau = np.stack([slow, fast], axis=1)
     qd = np.ones_like(tau)
-    e = effort_metrics(tau, qd, LIMIT, T_S, RATE)
+    e = effort_metrics(tau, qd, LIMIT, T_S)
     assert e["torque_rms_nm"] == pytest.approx([10 / math.sqrt(2), 1 / math.sqrt(2)], rel=1e-3)
     # high-frequency part: none of the 5 Hz wave, all of the 200 Hz one
     assert e["torque_hf_rms_nm"][0] < 1e-9

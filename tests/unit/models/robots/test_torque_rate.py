@@ -87,3 +87,42 @@ def test_a_bad_bound_in_a_manifest_is_refused(tmp_path: Path, rates: list[float]
     with pytest.raises(BundleError, match="torque_rate_nm_s") as info:
         PolicyBundle.load(path)
     assert "\n" not in str(info.value)
+
+
+def test_the_deployable_formulation_per_robot() -> None:
+    from models.hmpc.config import DEPLOYABLE_PREDICTION_STEP_S, formulation_options
+
+    # ur5_paper: the control period, as its bundles and tables were measured; any other arm: 10 ms steps
+    assert "prediction_step_s" not in formulation_options("deployable", "ur5_paper")
+    for name in ("ur5", "panda", "my_arm"):
+        assert formulation_options("deployable", name)["prediction_step_s"] == DEPLOYABLE_PREDICTION_STEP_S
+        assert formulation_options("deployable", name)["torque_rate_limit"] == "franka"
+    assert formulation_options("absolute", "panda") == {}
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("robot_name", ["ur5", "panda"])
+def test_the_deployable_hmpc_stays_inside_the_limits_under_the_real_bound(robot_name: str) -> None:
+    """The pipeline's first training condition through the disturbance (benchmarks/hmpc_rate_bound_limits.py
+    for every law): PD's deployable HMPC under the robot's rate bound stays inside its velocity limits with
+    the formulation's 10 ms prediction step, and limit-cycles out of them with 1 ms steps."""
+    from dataclasses import replace
+
+    from models.hmpc import make_hmpc_controller
+    from models.hmpc.config import formulation_options
+    from models.lmpc.paper_range import paper_range_conditions
+    from models.lmpc.structured import StructuredConfig
+    from models.sim import SimConfig, simulate
+
+    robot = load_robot(robot_name)
+    conditions = [replace(c, duration_s=2.4) for c in paper_range_conditions(robot, 1, StructuredConfig().train_seed)]
+    law = make_law("pd", robot, 1e-3, "designed")
+    options = formulation_options("deployable", robot.name)
+    ratio = {}
+    for step_s in (options["prediction_step_s"], 1e-3):
+        controller = make_hmpc_controller(law, robot, **{**options, "prediction_step_s": step_s})
+        traj = simulate(robot, controller, conditions, SimConfig(period_s=1e-3, substeps=2))
+        ratio[step_s] = float(traj.velocity_ratio[0].max())
+        steps = np.abs(np.diff(traj.tau[0], axis=0))
+        assert (steps <= max_torque_step_nm(robot.torque_rate_nm_s, 1e-3) * (1 + 1e-9)).all()
+    assert ratio[options["prediction_step_s"]] < 1.0 < ratio[1e-3], ratio
