@@ -236,8 +236,9 @@ def encode_rpdo(controlword: int, target_torque_permille: int) -> bytes:
         raise ValueError(f"RPDO field out of range: {exc}") from None
 
 
-def encode_rpdo_into(buffer: bytearray, controlword: int, target_torque_permille: int) -> None:
-    """RPDO1 written into a reused frame buffer (the master's cycle: nothing allocated)."""
+def encode_rpdo_into(buffer: bytearray | memoryview, controlword: int, target_torque_permille: int) -> None:
+    """RPDO1 written into a reused frame buffer (the master's cycle: nothing allocated), or into
+    a payload of a preallocated ipc datagram (:class:`drivers.ipc.frame.FrameBatch`)."""
     try:
         _pack_rpdo_into(buffer, 0, controlword, target_torque_permille)
     except struct.error as exc:
