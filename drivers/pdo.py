@@ -280,10 +280,10 @@ class CyclicExchange:
         self._store_tpdo1(node, statusword, torque, position, velocity if velocity is not None else 0, now)
 
     def on_tpdo_fd(self, node: DriveNode, data: bytes, now: float) -> None:
-        (statusword, torque, position, velocity), counter = fr.decode_tpdo_fd_sync(data)
+        statusword, torque, position, velocity, counter = fr.unpack_tpdo_fd_sync(data)
         if counter != self.sync.counter:  # answers an older SYNC: stale whenever it arrives
             if decode_statusword_fast(statusword) is State.UNKNOWN:
                 raise fr.MalformedFrameError("statusword")
             self.late += 1
             return
-        self._store_tpdo1(node, statusword, torque, position, velocity if velocity is not None else 0, now)
+        self._store_tpdo1(node, statusword, torque, position, velocity, now)

@@ -318,6 +318,15 @@ def decode_tpdo_fd_sync(data: bytes | bytearray) -> tuple[TpdoData, int]:
     return _new_tuple(TpdoData, fields[:4]), fields[4]
 
 
+def unpack_tpdo_fd_sync(data: bytes | bytearray) -> tuple[int, int, int, int, int]:
+    """(statusword, torque ‰, position, velocity, SYNC counter) of a tagged FD TPDO: the master's
+    cycle reads the fields at once, so no :class:`TpdoData` is built (half the cost per frame)."""
+    if len(data) != TPDO_FD_SYNC_LENGTH:
+        raise MalformedFrameError(f"tagged FD TPDO has {len(data)} bytes, expected {TPDO_FD_SYNC_LENGTH}")
+    fields: tuple[int, int, int, int, int] = _unpack_tpdo_fd_sync(data)
+    return fields
+
+
 def next_sync_counter(counter: int) -> int:
     """The SYNC counter after ``counter``: 1..240, wrapping (CiA 301 with 0x1019 = 240)."""
     return 1 if counter >= 240 else counter + 1
