@@ -331,7 +331,11 @@ class EmulatedDrives:
                 return
             due = self._next_due()
             if now >= due:
-                self._nmt.produce_heartbeats(now)
+                self._link.begin_batch()  # the drives' heartbeats, due together: one send
+                try:
+                    self._nmt.produce_heartbeats(now)
+                finally:
+                    self._link.flush()
                 self._link.release_due(now)
                 due = self._next_due()
             msg: can.Message | None = None
@@ -405,7 +409,14 @@ class EmulatedDrives:
                 log.exception("emulated drives: handling 0x%03X failed", can_id & CAN_EFF_MASK)
 
     def _dispatch(self, cob_id: int, data: bytes | bytearray) -> None:
-        """A standard-identifier data frame."""
+        """A standard-identifier data frame. The drives' own COB-IDs (RPDOs, SDO requests: six of
+        the seven frames of a cycle) are looked up first; SYNC and NMT are not among them."""
+        entry = self._by_cob.get(cob_id)
+        if entry is not None:
+            handler, drive = entry
+            if handler(drive, data) is False:
+                self._malformed += 1
+            return
         if cob_id == fr.SYNC_COB_ID:
             if len(data) > 1 or (len(data) == 1 and not 1 <= data[0] <= 240):
                 self._malformed += 1
@@ -423,14 +434,8 @@ class EmulatedDrives:
                 if target in (0, drive.node_id):
                     self._nmt.on_command(drive, command, now)
             return
-        entry = self._by_cob.get(cob_id)
-        if entry is None:
-            if not self._watch.on_master_heartbeat(cob_id, time.monotonic()):
-                self._unknown += 1  # other nodes' frames (TPDOs, heartbeats) land here too
-            return
-        handler, drive = entry
-        if handler(drive, data) is False:
-            self._malformed += 1
+        if not self._watch.on_master_heartbeat(cob_id, time.monotonic()):
+            self._unknown += 1  # other nodes' frames (TPDOs, heartbeats) land here too
 
     def _on_sdo(self, drive: EmulatedDrive, data: bytes | bytearray) -> None:
         if drive.nmt is fr.NmtState.STOPPED:
