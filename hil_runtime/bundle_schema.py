@@ -115,6 +115,9 @@ class Limits(_Strict):
     # here; the runtime's soft limits are then [lower, upper] instead of [-position, position].
     position_lower_rad: list[float] | None = None
     position_upper_rad: list[float] | None = None
+    # The commanded torque's rate bound per joint (N·m/s; hil_runtime.rate_limit), the robot's at export.
+    # Absent in a bundle written before it existed: the "scaled" rule it was made under.
+    torque_rate_nm_s: list[float] | None = None
 
 
 class InitialState(_Strict):
@@ -190,7 +193,14 @@ class Manifest(_Strict):
         n, s = self.robot.n_joints, self.law.state_size
         if len(self.robot.joint_names) != n:
             raise ValueError(f"robot.joint_names has {len(self.robot.joint_names)} names for n_joints {n}")
-        for name in ("position_rad", "velocity_rad_s", "torque_nm", "position_lower_rad", "position_upper_rad"):
+        for name in (
+            "position_rad",
+            "velocity_rad_s",
+            "torque_nm",
+            "position_lower_rad",
+            "position_upper_rad",
+            "torque_rate_nm_s",
+        ):
             values = getattr(self.limits, name)
             if values is not None and len(values) != n:
                 raise ValueError(f"limits.{name} needs {n} values")
@@ -201,6 +211,8 @@ class Manifest(_Strict):
             raise ValueError("limits.position_lower_rad must be below position_upper_rad on every joint")
         if any(not t > 0 for t in self.limits.torque_nm):
             raise ValueError("limits.torque_nm must be positive")
+        if any(not t > 0 for t in self.limits.torque_rate_nm_s or ()):
+            raise ValueError("limits.torque_rate_nm_s must be positive")
         init = self.law.initial_state
         if len(init.constant) != s or len(init.position_gain) != s or any(len(row) != n for row in init.position_gain):
             raise ValueError(f"law.initial_state needs constant ({s}) and position_gain ({s} x {n})")

@@ -43,7 +43,7 @@ class Controller:
         self._next = np.zeros(bundle.state_size)
         self._trust = bundle.last_trust  # a view of the graph's output row
         self.rate_limiter = (
-            TorqueRateLimiter(bundle.torque_limit_nm, bundle.period_s)
+            TorqueRateLimiter(bundle.torque_rate_nm_s, bundle.period_s)
             if torque_rate_limit == "libfranka" and mode == "lmpc"
             else None
         )

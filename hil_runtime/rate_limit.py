@@ -1,11 +1,22 @@
-"""The commanded torque's rate limit, as libfranka applies it client-side (docs/scoring.md, docs/lmpc.md §10).
+"""The commanded torque's rate bound, per robot, as libfranka applies it client-side (docs/scoring.md,
+docs/lmpc.md §10, docs/any_arm.md "Torque-rate bound").
 
-libfranka rate-limits every commanded joint torque to ``franka::kMaxTorqueRate`` = 1000 N·m/s
-(include/franka/rate_limiting.h; ``franka::limitRate`` in its torque-control examples): 1 N·m per
-1 ms cycle on the Panda's 87 N·m joints. Scaled by the joint's torque limit, the rule carries to
-arms of other sizes (1.17 N·m per ms on ur5_paper's 102 N·m shoulder). This module is the one
-definition of that bound: the deployable verdict (``models.effort``), the HMPC's hard rate box
-(``models.hmpc``) and the LMPC's output limit below all read it.
+libfranka rate-limits every commanded joint torque to ``franka::kMaxTorqueRate`` = 1000 N·m/s on all
+seven Panda joints (include/franka/rate_limiting.h; ``franka::limitRate`` in its torque-control
+examples): 1 N·m per 1 ms cycle. This module is the one definition of the bound: the deployable
+verdict (``models.effort``), the HMPC's hard rate box (``models.hmpc``) and the LMPC's output limit
+below all read :func:`max_torque_step_nm` of the same per-joint rate.
+
+Where a robot's rate comes from (:func:`torque_rate_limit_nm_s`, one rule per robot):
+
+- the robot registry (``models/robots/data/robots.yaml``, ``torque_rate``): ``panda`` 1000 N·m/s
+  (libfranka's kMaxTorqueRate, unscaled); ``ur5`` 1000 N·m/s (Universal Robots publish no torque-rate
+  limit for ``direct_torque``: libfranka's figure, docs/any_arm.md); ``ur5_paper`` ``scaled``
+  (1000 N·m/s per 87 N·m of the joint's torque limit, 1.17 N·m per ms on its 102 N·m shoulder: the
+  rule its bundles and published tables were measured with);
+- any other URDF: ``DEFAULT_TORQUE_RATE_NM_S`` (1000 N·m/s on every joint);
+- a bundle: its manifest's ``limits.torque_rate_nm_s`` (written from the robot at export); a manifest
+  written before that field existed was made under the ``scaled`` rule, which it keeps.
 
 The limit itself (:class:`TorqueRateLimiter`), applied to the policy's torque before the supervisor::
 
@@ -29,17 +40,44 @@ from typing import Literal
 
 import numpy as np
 
-FRANKA_MAX_TORQUE_RATE_NM_S = 1000.0  # franka::kMaxTorqueRate, include/franka/rate_limiting.h
-FRANKA_TORQUE_LIMIT_NM = 87.0  # the Panda's joints 1-4 (the rate limit is read relative to this)
+FRANKA_MAX_TORQUE_RATE_NM_S = 1000.0  # franka::kMaxTorqueRate, include/franka/rate_limiting.h (every joint)
+FRANKA_TORQUE_LIMIT_NM = 87.0  # the Panda's joints 1-4 (the "scaled" rule reads the rate relative to this)
+DEFAULT_TORQUE_RATE_NM_S = FRANKA_MAX_TORQUE_RATE_NM_S  # a URDF with no registry entry
+#: the rule name for 1000 N·m/s per 87 N·m of each joint's torque limit (ur5_paper's bundles and tables)
+SCALED_RULE = "scaled"
+
+#: a robot's rate as given: N·m/s for every joint, one per joint, or ``SCALED_RULE``
+TorqueRate = float | list[float] | tuple[float, ...] | str
 
 TorqueRateLimit = Literal["none", "libfranka"]
 TORQUE_RATE_LIMITS: tuple[str, ...] = ("none", "libfranka")
 
 
-def max_torque_step_nm(torque_limit_nm: np.ndarray, period_s: float) -> np.ndarray:
-    """The largest commanded torque change per cycle a real arm accepts, per joint (N·m)."""
-    rate_nm_s = FRANKA_MAX_TORQUE_RATE_NM_S * np.asarray(torque_limit_nm, float) / FRANKA_TORQUE_LIMIT_NM
-    return rate_nm_s * period_s
+def torque_rate_limit_nm_s(rate: TorqueRate | None, torque_limit_nm: np.ndarray) -> np.ndarray:
+    """Each joint's torque-rate bound (N·m/s) from a robot's rule (module docstring); ``None``: the
+    default. Raises ValueError on a rule that is not a positive finite rate, a list of N or ``scaled``."""
+    limit = np.asarray(torque_limit_nm, float)
+    if rate is None:
+        rate = DEFAULT_TORQUE_RATE_NM_S
+    if isinstance(rate, str):
+        if rate != SCALED_RULE:
+            raise ValueError(
+                f"torque rate: unknown rule '{rate}' (a rate in N·m/s, a list per joint or '{SCALED_RULE}')"
+            )
+        return FRANKA_MAX_TORQUE_RATE_NM_S * limit / FRANKA_TORQUE_LIMIT_NM
+    try:
+        values = np.broadcast_to(np.asarray(rate, float), limit.shape).copy()
+    except (TypeError, ValueError):
+        raise ValueError(f"torque rate: expected one rate or {limit.size} (N·m/s), got {rate!r}") from None
+    if not np.all(np.isfinite(values) & (values > 0)):
+        raise ValueError(f"torque rate: every rate must be positive and finite, got {rate!r}")
+    return values
+
+
+def max_torque_step_nm(torque_rate_nm_s: np.ndarray, period_s: float) -> np.ndarray:
+    """The largest commanded torque change per cycle a real arm accepts, per joint (N·m): the robot's
+    torque-rate bound (:func:`torque_rate_limit_nm_s`) times the period."""
+    return np.asarray(torque_rate_nm_s, float) * period_s
 
 
 class TorqueRateLimiter:
@@ -48,8 +86,8 @@ class TorqueRateLimiter:
     ``limited_cycles``: calls in which at least one joint (of any arm) was clamped, since the last reset.
     """
 
-    def __init__(self, torque_limit_nm: np.ndarray, period_s: float) -> None:
-        self.step_nm = max_torque_step_nm(torque_limit_nm, period_s)
+    def __init__(self, torque_rate_nm_s: np.ndarray, period_s: float) -> None:
+        self.step_nm = max_torque_step_nm(torque_rate_nm_s, period_s)
         self._neg_step_nm = -self.step_nm
         self.previous_nm = np.zeros_like(self.step_nm)
         self._delta = np.zeros_like(self.step_nm)
@@ -88,10 +126,14 @@ class TorqueRateLimiter:
 
 
 __all__ = [
+    "DEFAULT_TORQUE_RATE_NM_S",
     "FRANKA_MAX_TORQUE_RATE_NM_S",
     "FRANKA_TORQUE_LIMIT_NM",
+    "SCALED_RULE",
     "TORQUE_RATE_LIMITS",
     "TorqueRateLimit",
+    "TorqueRate",
     "TorqueRateLimiter",
     "max_torque_step_nm",
+    "torque_rate_limit_nm_s",
 ]

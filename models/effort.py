@@ -13,8 +13,9 @@ the commanded torque tau (T, N) after saturation, sampled every control period:
 Deployable (per run): no limit trip (the run stayed finite, inside the position and velocity limits,
 did not fault, and never commanded the full torque limit); on every joint chatter <= max(2 % of the
 joint's torque limit, 2x the feedback law's chatter on the same condition); and every commanded
-torque step <= the libfranka rate limit (``franka::kMaxTorqueRate`` = 1000 N·m/s on 87 N·m joints)
-scaled by the joint's torque limit, times the period.
+torque step <= the robot's torque-rate bound times the period (``hil_runtime.rate_limit``: libfranka's
+``franka::kMaxTorqueRate`` = 1000 N·m/s for the Panda and the real UR5; ur5_paper keeps 1000 N·m/s per
+87 N·m of the joint's torque limit).
 
 Effort-aware composite: the paper's normalization (each metric divided by its largest value among
 the configurations compared on a condition), the six tracking metrics at half their paper weights
@@ -94,9 +95,14 @@ def effort_metrics(
 
 
 def deployable(
-    run: dict[str, Any], fb_run: dict[str, Any] | None, torque_limit_nm: np.ndarray, period_s: float
+    run: dict[str, Any],
+    fb_run: dict[str, Any] | None,
+    torque_limit_nm: np.ndarray,
+    period_s: float,
+    torque_rate_nm_s: np.ndarray,
 ) -> dict[str, Any]:
-    """The verdict of one run record (with ``effort``), and every reason it fails."""
+    """The verdict of one run record (with ``effort``), and every reason it fails; ``torque_rate_nm_s``:
+    the robot's torque-rate bound per joint (``RobotModel.torque_rate_nm_s``)."""
     limit = np.asarray(torque_limit_nm, float)
     effort = run["effort"]
     reasons: list[str] = []
@@ -113,7 +119,7 @@ def deployable(
     if np.any(chatter > allowed):
         worst = int(np.argmax(chatter / allowed))
         reasons.append(f"chatter {chatter[worst]:.3g} N·m > {allowed[worst]:.3g} on joint {worst + 1}")
-    step_limit = max_torque_step_nm(limit, period_s)
+    step_limit = max_torque_step_nm(torque_rate_nm_s, period_s)
     steps = np.asarray(effort["max_torque_step_nm"])
     # A command clamped at the bound (hil_runtime.rate_limit) reads back within rounding of it
     if np.any(steps > step_limit * (1.0 + 1e-9)):

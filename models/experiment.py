@@ -206,7 +206,9 @@ def verdicts(runs: list[dict[str, Any]], robot: RobotModel, period_s: float) -> 
     condition when the table has one; stored in the run record as ``verdict``."""
     fb = {(r["law"], r["condition"]): r for r in runs if r["mode"] == "fb"}
     for r in runs:
-        r["verdict"] = deployable(r, fb.get((r["law"], r["condition"])), robot.torque_limit_nm, period_s)
+        r["verdict"] = deployable(
+            r, fb.get((r["law"], r["condition"])), robot.torque_limit_nm, period_s, robot.torque_rate_nm_s
+        )
 
 
 def summarize(

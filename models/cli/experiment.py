@@ -237,9 +237,9 @@ def _experiment(
         if torque_rate_limit != "none":  # default left out: results.json's controller_options as before
             options.setdefault("lmpc", {})["torque_rate_limit"] = torque_rate_limit
         hmpc_options: dict = {}
-        from models.hmpc.config import FORMULATIONS
+        from models.hmpc.config import formulation_options
 
-        hmpc_options.update(FORMULATIONS[hmpc_formulation])
+        hmpc_options.update(formulation_options(hmpc_formulation, arm.name))
         if hmpc_formulation == "anchored":
             hmpc_options["anchor_weight_scale"] = hmpc_anchor_scale
         if hmpc_prediction_step_s is not None:

@@ -209,9 +209,10 @@ def _structured(
     from models.lmpc.structured import C_FIXED, PERTURBATION, StructuredConfig, run_structured
 
     torch.set_num_threads(1)
-    from models.hmpc.config import FORMULATIONS
+    from models.hmpc.config import formulation_options
+    from models.robots import load_robot
 
-    options = dict(FORMULATIONS[formulation])
+    options = formulation_options(formulation, load_robot(robot).name)
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(
         robot=robot,

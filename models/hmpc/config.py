@@ -16,8 +16,8 @@ BUDGET_POLICIES = ("fallback", "best_iterate")
 #: "feedforward" ((tau - tau_ff)' W2a (tau - tau_ff), tau_ff = ID(q, qd, qdd_d): the feedback effort)
 TORQUE_COSTS = ("absolute", "anchored", "feedforward")
 KERNELS = ("auto", "numba", "numpy")
-#: the applied torque's rate bound: "none", or "franka": libfranka's kMaxTorqueRate (1000 N m/s on its
-#: 87 N m joints) scaled by each joint's torque limit (hil_runtime.rate_limit.max_torque_step_nm, docs/scoring.md)
+#: the applied torque's rate bound: "none", or "franka": the robot's torque-rate bound, libfranka's rule
+#: (RobotModel.torque_rate_nm_s, hil_runtime.rate_limit.max_torque_step_nm, docs/scoring.md)
 RATE_LIMITS = ("none", "franka")
 #: Named HMPC formulations (``hil experiment --hmpc-formulation``, ``hil pipeline --hmpc-formulation``):
 #: HMPCConfig options. "deployable" is the one a real arm can run (docs/hmpc.md, "Effort and smoothness"):
@@ -33,6 +33,25 @@ FORMULATIONS: dict[str, dict[str, Any]] = {
         "torque_rate_limit": "franka",
     },
 }
+
+#: The deployable formulation's prediction step on every arm but ur5_paper (s): 5 steps of 10 ms, a 50 ms
+#: preview. Under the robot's torque-rate bound (hil_runtime.rate_limit: 1 N·m per 1 ms cycle on the real
+#: UR5 and the Panda) a 5 ms preview cannot see that a torque ramped at the bound takes tens of ms to
+#: reverse: the optimum slews from bound to bound and the arm limit-cycles out of its velocity limits
+#: after the disturbance; with a 50 ms preview it stays inside (docs/any_arm.md, "Torque-rate bound",
+#: benchmarks/hmpc_rate_bound_limits.py). ur5_paper keeps the control period, the step its shipped
+#: bundles and published tables were measured with.
+DEPLOYABLE_PREDICTION_STEP_S = 0.01
+PAPER_ROBOT = "ur5_paper"
+
+
+def formulation_options(name: str, robot_name: str) -> dict[str, Any]:
+    """The HMPCConfig options of formulation ``name`` (``FORMULATIONS``) on robot ``robot_name``."""
+    options = dict(FORMULATIONS[name])
+    if name == "deployable" and robot_name != PAPER_ROBOT:
+        options["prediction_step_s"] = DEPLOYABLE_PREDICTION_STEP_S
+    return options
+
 
 Weight = float | tuple[float, ...]
 

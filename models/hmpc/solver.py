@@ -120,7 +120,7 @@ class HMPCSolver:
             from models.effort import max_torque_step_nm
 
             # a hair inside the bound: the verdict compares tau_k - tau_{k-1} recomputed in floating point
-            self.rate_step_nm = max_torque_step_nm(self.torque_limit_nm, law.period_s) * (1.0 - 1e-6)
+            self.rate_step_nm = max_torque_step_nm(robot.torque_rate_nm_s, law.period_s) * (1.0 - 1e-6)
         # A law that overrides error_features gets its own E (and its state propagated along the
         # preview); the base E = [e, e_dot] does not depend on the law's state, which saves the work.
         self.law_features = type(law).error_features is not FeedbackLaw.error_features

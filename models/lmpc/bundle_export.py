@@ -215,6 +215,7 @@ def export_bundle(
                 "position_rad": robot.position_limit_rad.tolist(),
                 "velocity_rad_s": robot.velocity_limit_rad_s.tolist(),
                 "torque_nm": law.torque_limit_nm.tolist(),
+                "torque_rate_nm_s": robot.torque_rate_nm_s.tolist(),  # hil_runtime.rate_limit
                 # an asymmetric range (the Panda's): the runtime's soft limits are [lower, upper]
                 **(
                     {}

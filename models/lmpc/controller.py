@@ -82,7 +82,7 @@ class LMPCController:
         applied = bundle.manifest.law.applied_torque_slice  # the law keeps the applied torque (ADRC)
         self._applied = slice(int(applied[0]), int(applied[1])) if applied else None
         self.rate_limiter = (
-            TorqueRateLimiter(bundle.torque_limit_nm, bundle.period_s) if torque_rate_limit == "libfranka" else None
+            TorqueRateLimiter(bundle.torque_rate_nm_s, bundle.period_s) if torque_rate_limit == "libfranka" else None
         )
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from hil_runtime.rate_limit import TorqueRate, torque_rate_limit_nm_s
 from models.errors import ModelInputError
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
@@ -33,10 +34,10 @@ def _example_robot_data_dir() -> Path:
     raise ModelInputError("robot data: example-robot-data is not installed (pip install example-robot-data)")
 
 
-# name -> (URDF location, end-effector link), from data/robots.yaml: the one table, which the
-# simulated target reads too without importing this package (sim_target/robots.py).
-_BUILTIN: dict[str, tuple[str, str]] = {
-    str(name): (str(entry["urdf"]), str(entry["end_effector"]))
+# name -> (URDF location, end-effector link, torque-rate rule), from data/robots.yaml: the one table,
+# which the simulated target reads too without importing this package (sim_target/robots.py).
+_BUILTIN: dict[str, tuple[str, str, TorqueRate | None]] = {
+    str(name): (str(entry["urdf"]), str(entry["end_effector"]), entry.get("torque_rate"))
     for name, entry in yaml.safe_load((DATA_DIR / "robots.yaml").read_text()).items()
 }
 
@@ -49,7 +50,7 @@ def urdf_path(name: str) -> Path:
     """Path of a built-in robot's URDF (``ur5_paper``, ``ur5``, ``panda``)."""
     if name not in _BUILTIN:
         raise ModelInputError(f"robot: unknown name '{name}' (known: {', '.join(robot_names())}, or a .urdf path)")
-    where, _ = _BUILTIN[name]
+    where = _BUILTIN[name][0]
     kind, rel = where.split(":", 1)
     return DATA_DIR / rel if kind == "local" else _example_robot_data_dir() / rel
 
@@ -79,6 +80,15 @@ class RobotModel:
     torque_limit_nm: np.ndarray  # (N,)
     gravity_m_s2: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
     position_range_rad: np.ndarray | None = None  # (N, 2) [lower, upper] when not symmetric (e.g. Panda)
+    # (N,) N·m/s: the commanded torque's rate bound (robots.yaml torque_rate; hil_runtime.rate_limit)
+    torque_rate_limit_nm_s: np.ndarray | None = None
+
+    @property
+    def torque_rate_nm_s(self) -> np.ndarray:
+        """Each joint's torque-rate bound (N·m/s): the registry's rule, else the documented default."""
+        if self.torque_rate_limit_nm_s is not None:
+            return self.torque_rate_limit_nm_s
+        return torque_rate_limit_nm_s(None, self.torque_limit_nm)
 
     @property
     def n_joints(self) -> int:
@@ -265,8 +275,9 @@ def _joint_link(path: Path, joint: ET.Element, tag: str) -> str:
 def load_robot(name_or_path: str | Path, ee_link: str | None = None) -> RobotModel:
     """Load a built-in robot by name or any serial revolute chain from a URDF file."""
     text = str(name_or_path)
+    rate: TorqueRate | None = None  # a URDF path: the default (hil_runtime.rate_limit)
     if text in _BUILTIN:
-        path, default_ee = urdf_path(text), _BUILTIN[text][1]
+        path, default_ee, rate = urdf_path(text), _BUILTIN[text][1], _BUILTIN[text][2]
     elif text.endswith(".urdf") or Path(text).is_file():
         path, default_ee = Path(text), None
     else:
@@ -283,7 +294,10 @@ def load_robot(name_or_path: str | Path, ee_link: str | None = None) -> RobotMod
             torque_limit_nm=np.array(params["torque_limit_nm"], float),
             gravity_m_s2=np.array([0.0, 0.0, -float(params["gravity_m_s2"])]),
         )
-    return robot
+    try:
+        return replace(robot, torque_rate_limit_nm_s=torque_rate_limit_nm_s(rate, robot.torque_limit_nm))
+    except ValueError as exc:
+        raise ModelInputError(f"robots.yaml: {text}: torque_rate: {exc}") from None
 
 
 def _chain_from_urdf(

@@ -8,15 +8,28 @@ import pytest
 
 from drivers.testing import FakeJointBus
 from hil_runtime.config import RuntimeConfigError, parse_runtime_config
-from hil_runtime.rate_limit import TorqueRateLimiter, max_torque_step_nm
+from hil_runtime.rate_limit import TorqueRateLimiter, max_torque_step_nm, torque_rate_limit_nm_s
 from hil_runtime.runtime import Runtime
 from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
 from tests.unit.hil_runtime.support import c1_on_model, config_dict
 
 
-def test_the_bound_is_libfrankas_rate_scaled_by_the_joint_limit() -> None:
-    np.testing.assert_allclose(max_torque_step_nm(np.array([87.0, 102.0, 34.0]), 1e-3), [1.0, 102 / 87, 34 / 87])
-    np.testing.assert_allclose(max_torque_step_nm(np.array([87.0]), 2e-3), [2.0])
+def test_the_step_is_the_rate_times_the_period() -> None:
+    np.testing.assert_allclose(max_torque_step_nm(np.array([1000.0, 500.0]), 1e-3), [1.0, 0.5])
+    np.testing.assert_allclose(max_torque_step_nm(np.array([1000.0]), 2e-3), [2.0])
+
+
+def test_the_rate_rules() -> None:
+    limit = np.array([87.0, 102.0, 34.0])
+    # "scaled" (ur5_paper's): libfranka's 1000 N·m/s per 87 N·m of the joint's limit
+    np.testing.assert_allclose(torque_rate_limit_nm_s("scaled", limit), [1000.0, 1000 * 102 / 87, 1000 * 34 / 87])
+    # a number: every joint, unscaled (libfranka's kMaxTorqueRate); None: the documented default, the same
+    np.testing.assert_allclose(torque_rate_limit_nm_s(1000.0, limit), [1000.0] * 3)
+    np.testing.assert_allclose(torque_rate_limit_nm_s(None, limit), [1000.0] * 3)
+    np.testing.assert_allclose(torque_rate_limit_nm_s([500.0, 600.0, 700.0], limit), [500.0, 600.0, 700.0])
+    for bad in ("fast", 0.0, -1.0, float("nan"), [1.0, 2.0], [1.0, 2.0, -3.0], {"a": 1}):
+        with pytest.raises(ValueError, match="torque rate"):
+            torque_rate_limit_nm_s(bad, limit)  # type: ignore[arg-type]  # the bad values are the test
 
 
 def test_one_definition_serves_the_verdict_and_the_hmpc() -> None:
@@ -28,10 +41,10 @@ def test_one_definition_serves_the_verdict_and_the_hmpc() -> None:
 
 
 def test_the_clamp_per_joint_from_the_held_torque() -> None:
-    limiter = TorqueRateLimiter(np.array([87.0, 87.0, 174.0]), 1e-3)
+    limiter = TorqueRateLimiter(np.array([1000.0, 1000.0, 2000.0]), 1e-3)
     limiter.reset(np.array([10.0, 0.0, 0.0]))
     out = limiter.limit(np.array([15.0, 0.5, -5.0]))
-    np.testing.assert_allclose(out, [11.0, 0.5, -2.0])  # +1 clamped, 0.5 passes, -2 (174 N·m joint) clamped
+    np.testing.assert_allclose(out, [11.0, 0.5, -2.0])  # +1 clamped, 0.5 passes, -2 (2000 N·m/s joint) clamped
     assert limiter.limited_cycles == 1
     limiter.commit(np.array([11.0, 0.5, -2.0]))
     np.testing.assert_allclose(limiter.limit(np.array([11.5, 0.0, -2.0])), [11.5, 0.0, -2.0])
@@ -44,7 +57,7 @@ def test_the_clamp_per_joint_from_the_held_torque() -> None:
 
 
 def test_a_batch_and_a_non_finite_torque() -> None:
-    limiter = TorqueRateLimiter(np.array([87.0, 87.0]), 1e-3)
+    limiter = TorqueRateLimiter(np.array([1000.0, 1000.0]), 1e-3)
     limiter.reset(np.array([[0.0, 0.0], [5.0, 5.0]]), arms=2)
     out = limiter.limit(np.array([[3.0, 0.2], [5.0, np.nan]]))
     np.testing.assert_allclose(out[0], [1.0, 0.2])
@@ -75,7 +88,8 @@ def _run(limit: str, cycles: int = 600) -> tuple[np.ndarray, Runtime]:
 
 
 def test_the_runtime_limits_every_commanded_step_from_the_held_zero() -> None:
-    bound = max_torque_step_nm(np.asarray(MAX_TORQUE_NM, float), 0.001) * (1 + 1e-9)
+    # the test bundle's manifest predates limits.torque_rate_nm_s: the "scaled" rule it was made under
+    bound = max_torque_step_nm(torque_rate_limit_nm_s("scaled", np.asarray(MAX_TORQUE_NM, float)), 0.001) * (1 + 1e-9)
     tau_free, _ = _run("none")
     steps_free = np.abs(np.diff(np.vstack([np.zeros(6), tau_free]), axis=0))
     assert (steps_free > bound).any()  # the PD bundle's first command holds gravity at once

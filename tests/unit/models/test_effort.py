@@ -21,6 +21,7 @@ from models.scoring import WEIGHTS
 
 T_S = 1e-3
 LIMIT = np.array([100.0, 50.0])
+RATE = 1000.0 * LIMIT / 87.0  # the "scaled" rule (hil_runtime.rate_limit): 1.149 N·m per ms on joint 1
 
 
 def _signal(freq_hz: float, amplitude: float, n: int = 2000) -> np.ndarray:
@@ -53,8 +54,8 @@ def test_rows_cut_a_faulted_run() -> None:
     assert e["chatter_nm"] == [0.0, 0.0]
 
 
-def test_torque_step_limit_is_libfranka_rate_scaled_by_the_limit() -> None:
-    np.testing.assert_allclose(max_torque_step_nm(np.array([87.0, 174.0]), 1e-3), [1.0, 2.0])
+def test_torque_step_limit_is_the_rate_times_the_period() -> None:
+    np.testing.assert_allclose(max_torque_step_nm(np.array([1000.0, 2000.0]), 1e-3), [1.0, 2.0])
 
 
 def _run(chatter: list[float], step: list[float], peak: tuple[float, ...] = (0.5, 0.5), **extra: Any) -> dict[str, Any]:
@@ -68,21 +69,21 @@ def _run(chatter: list[float], step: list[float], peak: tuple[float, ...] = (0.5
 
 def test_deployable_rules() -> None:
     ok = _run([0.1, 0.1], [0.5, 0.2])
-    assert deployable(ok, None, LIMIT, T_S)["deployable"]
+    assert deployable(ok, None, LIMIT, T_S, RATE)["deployable"]
     # chatter above 2 % of the limit (2 N·m on joint 1) without an FB reference: refused
     loud = _run([3.0, 0.1], [0.5, 0.2])
-    verdict = deployable(loud, None, LIMIT, T_S)
+    verdict = deployable(loud, None, LIMIT, T_S, RATE)
     assert not verdict["deployable"] and "chatter" in verdict["reasons"][0]
     # ... but allowed when the FB law chatters 2 N·m on the same run (2 x 2 = 4 N·m allowed)
-    assert deployable(loud, _run([2.0, 0.1], [0.5, 0.2]), LIMIT, T_S)["deployable"]
+    assert deployable(loud, _run([2.0, 0.1], [0.5, 0.2]), LIMIT, T_S, RATE)["deployable"]
     # the torque rate: 100 N·m limit -> 1.149 N·m per 1 ms cycle
     fast = _run([0.1, 0.1], [1.2, 0.2])
-    assert "torque rate" in deployable(fast, None, LIMIT, T_S)["reasons"][0]
-    assert deployable(_run([0.1, 0.1], [1.14, 0.2]), None, LIMIT, T_S)["deployable"]
+    assert "torque rate" in deployable(fast, None, LIMIT, T_S, RATE)["reasons"][0]
+    assert deployable(_run([0.1, 0.1], [1.14, 0.2]), None, LIMIT, T_S, RATE)["deployable"]
     # a limit trip and a command at the torque limit
-    assert "limit trip" in deployable({**ok, "within_limits": False}, None, LIMIT, T_S)["reasons"][0]
-    assert not deployable({**ok, "hil": {"fault": "velocity_limit: x"}}, None, LIMIT, T_S)["deployable"]
-    assert not deployable(_run([0.1, 0.1], [0.5, 0.2], peak=(1.0, 0.2)), None, LIMIT, T_S)["deployable"]
+    assert "limit trip" in deployable({**ok, "within_limits": False}, None, LIMIT, T_S, RATE)["reasons"][0]
+    assert not deployable({**ok, "hil": {"fault": "velocity_limit: x"}}, None, LIMIT, T_S, RATE)["deployable"]
+    assert not deployable(_run([0.1, 0.1], [0.5, 0.2], peak=(1.0, 0.2)), None, LIMIT, T_S, RATE)["deployable"]
 
 
 def test_effort_composite_weights_and_ranking() -> None:

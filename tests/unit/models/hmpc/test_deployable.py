@@ -29,7 +29,7 @@ def test_the_rate_bound_holds_on_the_applied_torque(make_states: MakeStates, rob
     previous = free.tau_nm + 5.0  # 5 N m away on every joint: the free optimum is outside the bound
     bounded = HMPCSolver(law, robot, HMPCConfig(**FORMULATIONS["deployable"])).solve(*x, previous_torque_nm=previous)
     step = np.abs(bounded.tau_nm - previous)
-    limit = max_torque_step_nm(robot.torque_limit_nm, 1e-3)
+    limit = max_torque_step_nm(robot.torque_rate_nm_s, 1e-3)
     assert np.all(step <= limit + 1e-12)
     assert np.all(step >= 0.99 * limit)  # the bound acts: the optimum lies outside it on every joint
     assert np.all(bounded.status == 0)  # converged, not a fallback

@@ -31,7 +31,7 @@ def test_the_simulated_lmpc_is_limited_and_the_runtime_commands_the_same_torques
     robot = load_robot("ur5_paper")
     law = make_law("adrc", robot, 1e-3)  # ADRC: its state keeps the applied torque, a second check
     condition = _c1_through_the_impulse()
-    bound = max_torque_step_nm(robot.torque_limit_nm, 1e-3)
+    bound = max_torque_step_nm(robot.torque_rate_nm_s, 1e-3)
     free = simulate(robot, make_lmpc_controller(law, robot), [condition], SimConfig())
     assert np.abs(np.diff(free.tau[0], axis=0)).max() > 2 * bound.max()  # the step after the impulse
     lmpc = make_lmpc_controller(law, robot, torque_rate_limit="libfranka")
@@ -41,7 +41,13 @@ def test_the_simulated_lmpc_is_limited_and_the_runtime_commands_the_same_torques
     assert (steps <= bound * (1 + 1e-9)).all()
     assert traj.within_limits.all()
     effort = effort_metrics(tau, traj.qd[0], robot.torque_limit_nm, 1e-3)
-    verdict = deployable({"effort": effort, "finite": True, "within_limits": True}, None, robot.torque_limit_nm, 1e-3)
+    verdict = deployable(
+        {"effort": effort, "finite": True, "within_limits": True},
+        None,
+        robot.torque_limit_nm,
+        1e-3,
+        robot.torque_rate_nm_s,
+    )
     assert not any("torque rate" in r for r in verdict["reasons"]), verdict
 
     # The runtime's policy stage on the simulator's measurements, committing what the simulator commanded
