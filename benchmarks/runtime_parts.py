@@ -9,9 +9,13 @@ Parts, each as one cycle runs it (6 joints, CAN FD):
 - ``supervisor``: ``check_feedback`` + ``select_torque`` (the one clip, the one substitution);
 - ``reference``: one row of the condition's reference;
 - ``frame_encode``: six RPDOs packed into their reused buffers (``encode_rpdo_into``);
-- ``frame_decode``: six CAN FD TPDOs decoded (``decode_tpdo_fd_sync``);
-- ``ipc_send_receive``: python-can through the project's ipc plugin: 6 RPDOs + SYNC sent in one
-  batch, 6 TPDOs received (another bus instance in this process stands in for the drives);
+- ``frame_decode``: six CAN FD TPDOs decoded (``unpack_tpdo_fd_sync``, the master's cycle's);
+- ``ipc_send_receive``: the master's cycle on the project's ipc bus, its raw path (drivers/pdo.py):
+  6 RPDOs + SYNC packed into a preallocated ``FrameBatch`` and sent with ``send_frames``, the
+  6 TPDOs' datagram received undecoded with ``recv_frames`` (another bus instance in this process
+  stands in for the drives and answers with one datagram, as the target does);
+- ``ipc_send_receive_messages``: the same through python-can's message API (``send_batch``, one
+  ``recv`` and one ``can.Message`` per frame: every other bus's path), not in the parts' sum;
 - ``telemetry_handoff``: ``ZenohTelemetry.offer_state`` (the state payload encoded, queued);
 - ``record``: ``RunRecord.add``;
 - ``onnx_1node``: ``run_with_iobinding`` of y = x + x on one (1, 6) row.
@@ -30,6 +34,7 @@ import can
 import numpy as np
 
 from drivers.cia402 import frames as fr
+from drivers.ipc.frame import FrameBatch
 from hil_runtime.record import RunRecord
 from hil_runtime.runtime import Runtime
 from hil_runtime.telemetry.config import TelemetryConfig
@@ -58,7 +63,7 @@ def ipc_pair(tmp: Path) -> Iterator[tuple[can.BusABC, can.BusABC]]:
         drives.shutdown()
 
 
-def _ipc_runner(master: can.BusABC, drives: can.BusABC, n: int) -> Callable[[], object]:
+def _ipc_runner(master: can.BusABC, drives: can.BusABC, n: int, raw: bool) -> Callable[[], object]:
     rpdos = [
         can.Message(arbitration_id=0x200 + i + 1, data=bytearray(fr.RPDO_LENGTH), is_extended_id=False, is_fd=True)
         for i in range(n)
@@ -66,20 +71,36 @@ def _ipc_runner(master: can.BusABC, drives: can.BusABC, n: int) -> Callable[[], 
     frames = [*rpdos, can.Message(arbitration_id=0x80, data=b"\x01", is_extended_id=False, is_fd=True)]
     tpdo = fr.encode_tpdo_fd_sync(0x0237, 10, 1000, -20, 1)
     answers = [can.Message(arbitration_id=0x180 + i + 1, data=tpdo, is_extended_id=False, is_fd=True) for i in range(n)]
+    answer_batch = FrameBatch(answers)
+    batch = FrameBatch(frames)
+    send_frames = master.send_frames  # type: ignore[attr-defined]  # the ipc bus's raw path
+    recv_frames = master.recv_frames  # type: ignore[attr-defined]
     send_batch = master.send_batch  # type: ignore[attr-defined]  # the ipc bus's batch send
 
     def drives_answer() -> None:  # not timed: what the drives do meanwhile
-        while drives.recv(0.0) is not None:
+        while drives.recv_frames(0.0) is not None:  # type: ignore[attr-defined]
             pass
-        for msg in answers:
-            drives.send(msg)
+        drives.send_frames(answer_batch)  # type: ignore[attr-defined]  # one datagram, as the target
 
-    def cycle() -> object:
+    def raw_cycle() -> object:
+        for payload in batch.payloads[:n]:
+            fr.encode_rpdo_into(payload, 0x000F, 123)
+        send_frames(batch)
+        received = 0
+        while received < n:
+            got = recv_frames(0.05)
+            if got is None:
+                break
+            received += len(got[1])
+        return None
+
+    def message_cycle() -> object:
         send_batch(frames)
         for _ in range(n):
             master.recv(0.05)
         return None
 
+    cycle = raw_cycle if raw else message_cycle
     cycle.before = drives_answer  # type: ignore[attr-defined]  # run untimed before each timed call
     return cycle
 
@@ -117,7 +138,7 @@ def time_parts(runtime: Runtime, rounds: int) -> dict[str, Any]:
 
     def decode() -> None:
         for _ in range(n):
-            fr.decode_tpdo_fd_sync(tpdo)
+            fr.unpack_tpdo_fd_sync(tpdo)
 
     def add_record() -> None:
         record.n = 0
@@ -131,7 +152,8 @@ def time_parts(runtime: Runtime, rounds: int) -> dict[str, Any]:
             "reference": lambda: reference.at(k0),
             "frame_encode": encode,
             "frame_decode": decode,
-            "ipc_send_receive": _ipc_runner(master, drives, n),
+            "ipc_send_receive": _ipc_runner(master, drives, n, raw=True),
+            "ipc_send_receive_messages": _ipc_runner(master, drives, n, raw=False),
             "telemetry_handoff": lambda: publisher.offer_state(sample),
             "record": add_record,
             "onnx_1node": one_node_runner(tmp),

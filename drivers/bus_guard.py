@@ -109,22 +109,29 @@ class BusGuard:
 
     def watch(self, msg: can.Message, now: float) -> None:
         """Under the receive lock, for every received frame, before dispatch."""
-        cob_id = msg.arbitration_id
         if msg.is_extended_id or msg.is_error_frame or not msg.is_rx:
             return
+        self._check(msg.arbitration_id, msg.data, getattr(msg, "sender", None), msg.timestamp)
+
+    def watch_frame(self, cob_id: int, data: bytes, sender: object, now: float) -> None:
+        """:meth:`watch` on the raw path (drivers/network.py): a standard data frame received from
+        ``sender`` (no message made for it); the same rules."""
+        self._check(cob_id, data, sender, 0.0)
+
+    def _check(self, cob_id: int, data: bytes | bytearray | None, sender: object, timestamp: float) -> None:
+        """``timestamp``: the transport's wall-clock stamp of the frame (0: none, now is used)."""
         what = self._master_only.get(cob_id)
         if what is not None:
-            text = f"second master on the bus: received {what} (0x{cob_id:03X}){_from(msg)}"
+            text = f"second master on the bus: received {what} (0x{cob_id:03X}){_from(sender)}"
             if self.foreign_master is None:
                 self.foreign_master = text
             self._trip(text)
             return
         if cob_id not in self._drive_cob_ids:
             return
-        sender = getattr(msg, "sender", None)
         if sender is not None:
             node_id = cob_id & 0x7F  # every frame of one drive comes from one sender
-            if cob_id in self._heartbeats and bytes(msg.data) == _BOOT_UP:
+            if cob_id in self._heartbeats and data is not None and bytes(data) == _BOOT_UP:
                 # A drive (re)booting is its sender from now on; once running, the heartbeat
                 # consumer reports the reboot itself (DriveStateError), so a forged boot-up faults too.
                 self._senders[node_id] = sender
@@ -150,7 +157,7 @@ class BusGuard:
         if beats is not None:
             # When it was on the bus (the transport's wall-clock stamp), not when we got round to
             # it: beats queued during a stall of ours are not a burst of theirs.
-            seen = msg.timestamp if msg.timestamp > 0 else time.time()
+            seen = timestamp if timestamp > 0 else time.time()
             beats.append(seen)
             while beats and seen - beats[0] > self._heartbeat_window_s:
                 beats.popleft()
@@ -186,8 +193,7 @@ def _describe(sender: object) -> str:
     return f"pid {pid} (uid {uid})" if pid is not None else str(sender)
 
 
-def _from(msg: can.Message) -> str:
-    sender = getattr(msg, "sender", None)
+def _from(sender: object) -> str:
     return f" from {_describe(sender)}" if sender is not None else ""
 
 

@@ -95,6 +95,7 @@ class _Services:
             lambda: self.exchange.cycle,
         )
         network.watch = self.guard.watch
+        network.watch_frame = self.guard.watch_frame
 
 
 class DriveBus(JointBusBase):

@@ -15,6 +15,15 @@ check, after draining; ``produce``: the master's heartbeat, at every wake-up) at
 
 Every send holds :attr:`DriveNetwork.tx_lock` (the master's heartbeat goes out from the
 background thread while a cycle may be sending).
+
+The raw path (:attr:`DriveNetwork.raw`, a bus with the ipc bus's ``send_frames`` /
+``recv_frames``): the cycle sends one preallocated :class:`~drivers.ipc.frame.FrameBatch` and
+receives whole datagrams undecoded; a frame whose COB-ID has a data handler
+(:meth:`DriveNetwork.subscribe_data`: the TPDOs) goes to it on its raw bytes, with the bus guard's
+check (``watch_frame``) on its sender, and no :class:`can.Message` is made. Every other frame (a
+heartbeat, an EMCY, an SDO answer, anything flagged) becomes a message and takes
+:meth:`DriveNetwork.dispatch` as before. Other buses (python-can's, the bridge, a capture
+wrapper) keep the message path; the handlers and the guard's rule are the same on both.
 """
 
 from __future__ import annotations
@@ -31,6 +40,8 @@ import can
 
 from drivers.cia402 import frames as fr
 from drivers.errors import DriveError, TransportError
+from drivers.ipc.directory import IpcMessage
+from drivers.ipc.frame import CAN_EFF_FLAG, CAN_EFF_MASK, CAN_ERR_FLAG, CAN_RTR_FLAG, FrameBatch
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +50,10 @@ IDLE_POLL_S = 0.01  # cyclic mode: the background thread looks this often whethe
 IDLE_TAKEOVER_S = 0.02  # no cycle for this long: the background thread drains the bus
 
 Handler = Callable[[Any, can.Message, float], None]  # (node record, frame, time.monotonic())
+DataHandler = Callable[[Any, bytes, float], None]  # (node record, the frame's data, time.monotonic())
+# (COB-ID, data, sender or None, time.monotonic()): the guard's check of a standard data frame
+FrameWatch = Callable[[int, bytes, Any, float], None]
+RawFrame = tuple[int, bytes, bool]  # the ipc bus's undecoded frame: (can_id with flags, data, is_fd)
 
 
 class DriveNetwork:
@@ -50,12 +65,14 @@ class DriveNetwork:
         self.tx_lock = threading.Lock()
         self.errors: collections.deque[DriveError] = collections.deque()
         self.handlers: dict[int, tuple[Handler, Any]] = {}
+        self.data_handlers: dict[int, tuple[DataHandler, Any]] = {}  # services that read data alone
         # Periodic work, given time.monotonic(): ``supervise`` runs holding rx_lock after the
         # queue was drained (heartbeat consumer check); ``produce`` any time (the master's heartbeat).
         self.supervise: Callable[[float], None] | None = None
         self.produce: Callable[[float], None] | None = None
         # Sees every received frame first (drivers.bus_guard: a second sender or master).
         self.watch: Callable[[can.Message, float], None] | None = None
+        self.watch_frame: FrameWatch | None = None  # the same check on the raw path (no message)
         self.caller_receives = False  # True once cycles run: they receive on the caller's thread
         self.last_cycle_end_s = 0.0
         self.frames_sent = 0
@@ -96,10 +113,31 @@ class DriveNetwork:
             raise TransportError(f"sending the cycle's frames failed: {exc}") from exc
         self.frames_sent += len(msgs)
 
+    def send_frames(self, batch: FrameBatch) -> None:
+        """A preallocated batch as it is (the raw path, :attr:`raw`): one datagram, no encoding."""
+        try:
+            with self.tx_lock:
+                self.bus.send_frames(batch)  # type: ignore[attr-defined]  # raw buses only (self.raw)
+        except TransportError:
+            raise
+        except (can.CanError, OSError) as exc:
+            raise TransportError(f"sending the cycle's frames failed: {exc}") from exc
+        self.frames_sent += batch.count
+
+    @property
+    def raw(self) -> bool:
+        """Does the bus take preallocated batches and hand out undecoded datagrams (the ipc bus)?"""
+        bus = self.bus
+        return hasattr(bus, "send_frames") and hasattr(bus, "recv_frames")
+
     # --- receiving -------------------------------------------------------------------------------
 
     def subscribe(self, cob_id: int, handler: Handler, node: Any) -> None:
         self.handlers[cob_id] = (handler, node)
+
+    def subscribe_data(self, cob_id: int, handler: DataHandler, node: Any) -> None:
+        """A handler that reads only the frame's data: on the raw path no message is made for it."""
+        self.data_handlers[cob_id] = (handler, node)
 
     def dispatch(self, msg: can.Message, now: float) -> None:
         """Under rx_lock: hand one frame to its service."""
@@ -110,18 +148,50 @@ class DriveNetwork:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self.malformed += 1
             return
-        entry = self.handlers.get(msg.arbitration_id)
+        cob_id = msg.arbitration_id
+        data_entry = self.data_handlers.get(cob_id)
+        if data_entry is not None:
+            self._handle(data_entry[0], data_entry[1], msg.data, now)
+            return
+        entry = self.handlers.get(cob_id)
         if entry is None:
             self.unknown_cob_id += 1
             return
-        handler, node = entry
+        self._handle(entry[0], entry[1], msg, now)
+
+    def dispatch_frames(self, sender: Any, frames: list[RawFrame], now: float) -> None:
+        """Under rx_lock: one datagram's frames (the raw path). A standard data frame with a data
+        handler goes to it on its bytes after the guard's check; any other frame as a message."""
+        data_handlers = self.data_handlers
+        watch_frame = self.watch_frame
+        for can_id, data, is_fd in frames:
+            entry = data_handlers.get(can_id)  # any flag set (extended, remote, error): no entry
+            if entry is None:
+                self.dispatch(_message(can_id, data, is_fd, sender), now)
+                continue
+            self.frames_received += 1
+            if watch_frame is not None:
+                watch_frame(can_id, data, sender, now)
+            self._handle(entry[0], entry[1], data, now)
+
+    def _handle(self, handler: Callable[[Any, Any, float], None], node: Any, frame: Any, now: float) -> None:
         try:
-            handler(node, msg, now)
+            handler(node, frame, now)
         except (fr.MalformedFrameError, ValueError):
             self.malformed += 1
         except Exception as exc:  # keep receiving, report once
             log.exception("frame handler failed")
             self.errors.append(TransportError(f"frame handler failed: {exc!r}"))
+
+    def recv_frames(self, timeout_s: float) -> tuple[Any, list[RawFrame]] | None:
+        """The raw path's receive: the next datagram's (sender, frames) or None after ``timeout_s``."""
+        try:
+            got: tuple[Any, list[RawFrame]] | None = self.bus.recv_frames(timeout_s)  # type: ignore[attr-defined]  # raw buses only
+            return got
+        except TransportError:
+            raise
+        except Exception as exc:  # any backend failure is a transport error
+            raise TransportError(f"receiving failed: {exc}") from exc
 
     def recv(self, timeout_s: float) -> can.Message | None:
         """One frame or None after ``timeout_s``; any failure of the backend is a TransportError."""
@@ -135,6 +205,14 @@ class DriveNetwork:
     def drain(self) -> None:
         """Under rx_lock: handle every frame already queued, without waiting."""
         monotonic = time.monotonic
+        if self.raw:
+            recv_frames = self.recv_frames
+            dispatch_frames = self.dispatch_frames
+            while True:
+                got = recv_frames(0.0)
+                if got is None:
+                    return
+                dispatch_frames(got[0], got[1], monotonic())
         recv = self.recv
         dispatch = self.dispatch
         while True:
@@ -225,3 +303,21 @@ class DriveNetwork:
         except DriveError as exc:
             if not self._stop.is_set():
                 self.errors.append(exc)
+
+
+def _message(can_id: int, data: bytes, is_fd: bool, sender: Any) -> can.Message:
+    """A raw frame as the message the ipc bus's ``recv`` would have handed out (its sender, the
+    wall-clock stamp of its arrival: the guard dates heartbeats by it)."""
+    remote = bool(can_id & CAN_RTR_FLAG)
+    msg = IpcMessage(
+        timestamp=time.time(),
+        arbitration_id=can_id & CAN_EFF_MASK,
+        is_extended_id=bool(can_id & CAN_EFF_FLAG),
+        is_remote_frame=remote,
+        is_error_frame=bool(can_id & CAN_ERR_FLAG),
+        dlc=len(data),
+        data=None if remote else data,
+        is_fd=is_fd,
+    )
+    msg.sender = sender
+    return msg

@@ -13,6 +13,12 @@ until every TPDO of this cycle is in or ``feedback_timeout_s`` has passed since 
 CAN FD a TPDO echoing an older SYNC counter is late whenever it arrives; with classical CAN (no
 room for the echo in 8 bytes) only the drain applies. Frames are encoded and decoded with the
 codec of :mod:`drivers.cia402.frames`.
+
+On a bus with the raw path (:attr:`drivers.network.DriveNetwork.raw`, the ipc bus) the RPDOs and
+the SYNC are one :class:`~drivers.ipc.frame.FrameBatch` built at the first cycle: each cycle packs
+the controlwords, torques and the SYNC counter into its payloads (one encode per frame, nothing
+allocated) and sends it as it is; the TPDOs come back as undecoded datagrams and their handlers
+read the bytes (no ``can.Message`` per frame). Other buses send the reused messages.
 """
 
 from __future__ import annotations
@@ -20,13 +26,13 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 
-import can
 import numpy as np
 
 from drivers.cia402 import frames as fr
 from drivers.cia402 import od as odx
 from drivers.cia402.state_machine import State, decode_statusword_fast
 from drivers.feedback import DriveFeedback
+from drivers.ipc.frame import MAX_BATCH_FRAMES, FrameBatch
 from drivers.network import DriveNetwork
 from drivers.node import DriveNode
 from drivers.sdo import SdoClient
@@ -83,17 +89,20 @@ class CyclicExchange:
         self._open = False
         self._pending = 0
         self._frames = [*(node.rpdo for node in self.nodes), sync.msg]
+        self._batch: FrameBatch | None = None  # the raw path's cycle datagram, built at the first cycle
+        self._batch_dlc = -1  # the SYNC length it was built with (carry_counter may change it)
+        self._rpdo_payloads: tuple[memoryview, ...] = ()  # the batch's RPDO payloads, in node order
         self._counts_per_rad = np.ones(len(self.nodes))
         self._permille_per_nm = np.array([node.permille_per_nm for node in self.nodes])
         self._zero_offset_rad: np.ndarray | None = None
         for node in self.nodes:
             if fd and not node.fd_sync_echo:
-                network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd_plain, node)
+                network.subscribe_data(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd_plain, node)
             elif fd:
-                network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd, node)
+                network.subscribe_data(fr.TPDO1_BASE + node.node_id, self.on_tpdo_fd, node)
             else:
-                network.subscribe(fr.TPDO1_BASE + node.node_id, self.on_tpdo1, node)
-                network.subscribe(fr.TPDO2_BASE + node.node_id, self.on_tpdo2, node)
+                network.subscribe_data(fr.TPDO1_BASE + node.node_id, self.on_tpdo1, node)
+                network.subscribe_data(fr.TPDO2_BASE + node.node_id, self.on_tpdo2, node)
 
     def layout_for(self, node: DriveNode) -> odx.PdoLayout:
         """The emulated drive's layout, or with CAN FD the untagged one for a vendor's drive."""
@@ -111,31 +120,34 @@ class CyclicExchange:
     def run(self, controlwords: Sequence[int], permille: Sequence[int], commanded_nm: np.ndarray) -> DriveFeedback:
         network = self.network
         nodes = self.nodes
-        encode = fr.encode_rpdo_into
         with network.rx_lock:
             network.drain()  # queued before this SYNC: an older cycle's TPDOs are late, not fresh
-            for node, controlword, torque in zip(nodes, controlwords, permille, strict=True):
-                encode(node.rpdo.data, controlword, torque)
+            raw = network.raw
+            encode = fr.encode_rpdo_into
+            if raw:
+                batch = self._cycle_batch()
+                for payload, controlword, torque in zip(self._rpdo_payloads, controlwords, permille, strict=True):
+                    encode(payload, controlword, torque)
+            else:
+                for node, controlword, torque in zip(nodes, controlwords, permille, strict=True):
+                    encode(node.rpdo.data, controlword, torque)
             self.cycle += 1
             cycle = self.cycle
-            self.sync.advance()
+            counter = self.sync.advance()
+            if raw and self._batch_dlc:
+                batch.payloads[-1][0] = counter  # the SYNC's counter byte, in place
             self._pending = len(nodes) * self.tpdos_per_drive
             self._open = True
             monotonic = time.monotonic
             sync_time = monotonic()
             try:
-                network.send_batch(self._frames)
                 deadline = sync_time + self.feedback_timeout_s
-                dispatch = network.dispatch
-                recv = network.recv
-                while self._pending > 0:
-                    remaining = deadline - monotonic()
-                    if remaining <= 0:
-                        break
-                    msg = recv(remaining)
-                    if msg is None:
-                        break
-                    dispatch(msg, monotonic())
+                if raw:
+                    network.send_frames(batch)
+                    self._receive_frames(deadline)
+                else:
+                    network.send_batch(self._frames)
+                    self._receive(deadline)
             finally:
                 self._open = False
             now = monotonic()
@@ -180,6 +192,47 @@ class CyclicExchange:
         network.last_cycle_end_s = now
         return feedback
 
+    def _cycle_batch(self) -> FrameBatch:
+        """The RPDOs and the SYNC as one preallocated datagram (the raw path), built once."""
+        dlc = self.sync.msg.dlc
+        if self._batch is None or dlc != self._batch_dlc:
+            if len(self.nodes) + 1 > MAX_BATCH_FRAMES:
+                raise ValueError(f"{len(self.nodes)} drives: more RPDOs than one datagram holds")
+            self._batch = FrameBatch(self._frames)
+            self._batch_dlc = dlc
+            self._rpdo_payloads = tuple(self._batch.payloads[: len(self.nodes)])
+        return self._batch
+
+    def _receive(self, deadline: float) -> None:
+        """Every TPDO of the open cycle, or until ``deadline``: one message at a time."""
+        network = self.network
+        monotonic = time.monotonic
+        dispatch = network.dispatch
+        recv = network.recv
+        while self._pending > 0:
+            remaining = deadline - monotonic()
+            if remaining <= 0:
+                break
+            msg = recv(remaining)
+            if msg is None:
+                break
+            dispatch(msg, monotonic())
+
+    def _receive_frames(self, deadline: float) -> None:
+        """The same on the raw path: whole datagrams, undecoded."""
+        network = self.network
+        monotonic = time.monotonic
+        dispatch_frames = network.dispatch_frames
+        recv_frames = network.recv_frames
+        while self._pending > 0:
+            remaining = deadline - monotonic()
+            if remaining <= 0:
+                break
+            got = recv_frames(remaining)
+            if got is None:
+                break
+            dispatch_frames(got[0], got[1], monotonic())
+
     # --- TPDO handlers (under the receive lock) --------------------------------------------------
 
     def _accept_tpdo1(self, node: DriveNode) -> bool:
@@ -206,12 +259,12 @@ class CyclicExchange:
                 node.velocity_counts_s = velocity
             node.rx_time_s = now
 
-    def on_tpdo1(self, node: DriveNode, msg: can.Message, now: float) -> None:
-        statusword, torque, position, _ = fr.decode_tpdo1(msg.data)
+    def on_tpdo1(self, node: DriveNode, data: bytes, now: float) -> None:
+        statusword, torque, position, _ = fr.decode_tpdo1(data)
         self._store_tpdo1(node, statusword, torque, position, None, now)
 
-    def on_tpdo2(self, node: DriveNode, msg: can.Message, now: float) -> None:
-        velocity = fr.decode_tpdo2(msg.data)
+    def on_tpdo2(self, node: DriveNode, data: bytes, now: float) -> None:
+        velocity = fr.decode_tpdo2(data)
         if not self._open or node.tpdo2_cycle == self.cycle:
             self.late += 1
             return
@@ -220,17 +273,17 @@ class CyclicExchange:
         node.velocity_counts_s = velocity
         node.rx_time_s = now
 
-    def on_tpdo_fd_plain(self, node: DriveNode, msg: can.Message, now: float) -> None:
+    def on_tpdo_fd_plain(self, node: DriveNode, data: bytes, now: float) -> None:
         """A vendor's drive on CAN FD: the 12-byte TPDO without the SYNC counter echo (stale
         feedback is recognised by the drain only, as with classical CAN)."""
-        statusword, torque, position, velocity = fr.decode_tpdo_fd(msg.data)
+        statusword, torque, position, velocity = fr.decode_tpdo_fd(data)
         self._store_tpdo1(node, statusword, torque, position, velocity if velocity is not None else 0, now)
 
-    def on_tpdo_fd(self, node: DriveNode, msg: can.Message, now: float) -> None:
-        (statusword, torque, position, velocity), counter = fr.decode_tpdo_fd_sync(msg.data)
+    def on_tpdo_fd(self, node: DriveNode, data: bytes, now: float) -> None:
+        statusword, torque, position, velocity, counter = fr.unpack_tpdo_fd_sync(data)
         if counter != self.sync.counter:  # answers an older SYNC: stale whenever it arrives
             if decode_statusword_fast(statusword) is State.UNKNOWN:
                 raise fr.MalformedFrameError("statusword")
             self.late += 1
             return
-        self._store_tpdo1(node, statusword, torque, position, velocity if velocity is not None else 0, now)
+        self._store_tpdo1(node, statusword, torque, position, velocity, now)

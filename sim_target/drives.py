@@ -58,8 +58,10 @@ from drivers.cia402 import od as odx
 from drivers.cia402.scaling import counts_per_rad_from_resolution
 from drivers.cia402.state_machine import State
 from drivers.eds_check import load_dictionary
+from drivers.ipc.frame import CAN_EFF_FLAG, CAN_EFF_MASK, CAN_ERR_FLAG, CAN_RTR_FLAG
 from drivers.joint_bus import JointReadings
 from sim_target.emulated import p402, pdo
+from sim_target.emulated.answer import SyncAnswer
 from sim_target.emulated.link import FrameLink
 from sim_target.emulated.nmt import NmtSlave
 from sim_target.emulated.node import (
@@ -71,6 +73,7 @@ from sim_target.emulated.node import (
     MasterLoss,
 )
 from sim_target.emulated.objects import ObjectServer
+from sim_target.emulated.rawbus import RawFrames, frame_receiver
 from sim_target.emulated.supervision import MasterWatch
 
 __all__ = ["DriveCounters", "EmulatedDrives", "EmulatedDrivesConfig", "FrameFaults", "MasterLoss", "make_drive_bank"]
@@ -80,20 +83,8 @@ log = logging.getLogger(__name__)
 _POLL_S = 0.01  # longest receive wait: heartbeats and delayed frames are serviced at least this often
 _CHECK_PERIOD_S = 0.005  # the master watches are checked at least this often while frames flow
 _DRAIN_MAX = 1000  # frames handled before a check gives up waiting for an empty queue
-
-
-_INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
-
-
-def _clip_int(value: float, low: int, high: int) -> int:
-    """``value`` rounded half to even and clipped to [low, high]; a non-finite value clips too."""
-    if value != value:  # NaN: no count to report; 0 rather than a crash on the bus thread
-        return 0
-    if value >= high:
-        return high
-    if value <= low:
-        return low
-    return round(value)
+_ENABLED = State.OPERATION_ENABLED  # a module global: the enum's class attribute costs more per period
+_NOT_A_DATA_FRAME = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
 
 
 class _EmuNetwork(canopen.Network):
@@ -158,10 +149,14 @@ class EmulatedDrives:
             self._drives.append(drive)
             self._objects.reset(drive, communication_only=False)
         # cob-id -> (handler, drive); a handler returns False for a malformed frame.
-        self._by_cob: dict[int, tuple[Callable[[EmulatedDrive, bytearray], bool | None], EmulatedDrive]] = {}
+        self._by_cob: dict[int, tuple[Callable[[EmulatedDrive, bytes | bytearray], bool | None], EmulatedDrive]] = {}
         for drive in self._drives:
             self._by_cob[fr.RPDO1_BASE + drive.node_id] = (pdo.on_rpdo, drive)
             self._by_cob[fr.SDO_RX_BASE + drive.node_id] = (self._on_sdo, drive)
+        self._answer = SyncAnswer(self._link, self._drives, bus)
+        # The ipc bus itself: whole datagrams, undecoded (no can.Message per frame); any other bus
+        # (virtual, the bridge, a capture wrapper) and a filtered one: python-can's recv.
+        self._recv_frames = frame_receiver(bus)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._booted = False
@@ -195,17 +190,17 @@ class EmulatedDrives:
         self._sync_handler = handler
 
     def commanded_torque_nm(self) -> np.ndarray:
+        enabled = _ENABLED
         return np.array(
             [
-                d.applied_permille * d.rated_torque_mnm * d.torque_unit_nm
-                if d.state is State.OPERATION_ENABLED
-                else 0.0
+                d.applied_permille * d.rated_torque_mnm * d.torque_unit_nm if d.state is enabled else 0.0
                 for d in self._drives
             ]
         )
 
     def operation_enabled(self) -> np.ndarray:
-        return np.array([d.state is State.OPERATION_ENABLED for d in self._drives], dtype=bool)
+        enabled = _ENABLED
+        return np.array([d.state is enabled for d in self._drives], dtype=bool)
 
     def brake_engaged(self) -> np.ndarray:
         return ~self.operation_enabled()
@@ -317,8 +312,11 @@ class EmulatedDrives:
         """Receive and handle frames (SYNC answered at once) until ``time.monotonic()`` reaches
         ``deadline_s``, on the calling thread; heartbeats, delayed frames and the master watch are
         serviced on the way. Returns at the deadline (or at once when stopped), or, with
-        ``return_on_sync``, after the first SYNC handled (its handler may have moved the deadline)."""
+        ``return_on_sync``, after the first SYNC handled (its handler may have moved the deadline).
+        On the ipc bus a datagram (a cycle's frames) is handled whole: frames after a SYNC in it
+        are handled before returning (they are latched for the next SYNC either way)."""
         bus = self._bus
+        recv_frames = self._recv_frames
         monotonic = time.monotonic
         stop = self._stop
         self._sync_seen = False
@@ -333,9 +331,15 @@ class EmulatedDrives:
                 return
             due = self._next_due()
             if now >= due:
-                self._nmt.produce_heartbeats(now)
+                self._link.begin_batch()  # the drives' heartbeats, due together: one send
+                try:
+                    self._nmt.produce_heartbeats(now)
+                finally:
+                    self._link.flush()
                 self._link.release_due(now)
                 due = self._next_due()
+            msg: can.Message | None = None
+            got: tuple[object, RawFrames] | None = None
             try:
                 if now >= self._next_check_s:
                     # Judge the master's silence only with nothing of it still queued: a stall of
@@ -348,20 +352,33 @@ class EmulatedDrives:
                         # (a free-running target would otherwise step its physics a period late,
                         # into the next cycle's frames; measured: one exchange in 5 delayed 300 µs).
                         return
-                msg = bus.recv(max(0.0, min(_POLL_S, due - now, deadline_s - now)))
+                timeout_s = max(0.0, min(_POLL_S, due - now, deadline_s - now))
+                if recv_frames is not None:
+                    got = recv_frames(timeout_s)
+                else:
+                    msg = bus.recv(timeout_s)
             except Exception:  # the bus went away: nothing left to emulate
                 if not stop.is_set():
                     log.exception("emulated drives: receive failed")
                 self._failed = True
                 return
-            if msg is None:
+            if got is not None:
+                self._handle_frames(got[1])
+            elif msg is not None:
+                self._handle(msg)
+            else:
                 self._watch.check(monotonic())  # nothing queued: the silence is real
-                continue
-            self._handle(msg)
 
     def _drain(self) -> bool:
         """Handle every frame already queued; False if they kept coming (no empty queue seen)."""
-        for _ in range(_DRAIN_MAX):
+        recv_frames = self._recv_frames
+        for _ in range(_DRAIN_MAX):  # frames, or datagrams on the ipc bus
+            if recv_frames is not None:
+                got = recv_frames(0.0)
+                if got is None:
+                    return True
+                self._handle_frames(got[1])
+                continue
             msg = self._bus.recv(0.0)
             if msg is None:
                 return True
@@ -369,18 +386,37 @@ class EmulatedDrives:
         return False
 
     def _handle(self, msg: can.Message) -> None:
+        """One frame from python-can's recv."""
         self._received += 1
         try:
-            self._dispatch(msg)
+            if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                self._malformed += 1
+                return
+            self._dispatch(msg.arbitration_id, msg.data)
         except Exception:  # an emulator bug must not silence the drives
             log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
 
-    def _dispatch(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-            self._malformed += 1
+    def _handle_frames(self, frames: RawFrames) -> None:
+        """A datagram's frames from the ipc bus, undecoded: the same checks as :meth:`_handle`."""
+        for can_id, data, _is_fd in frames:
+            self._received += 1
+            try:
+                if can_id & _NOT_A_DATA_FRAME:  # error, remote or extended: none is the drives'
+                    self._malformed += 1
+                    continue
+                self._dispatch(can_id, data)
+            except Exception:  # an emulator bug must not silence the drives
+                log.exception("emulated drives: handling 0x%03X failed", can_id & CAN_EFF_MASK)
+
+    def _dispatch(self, cob_id: int, data: bytes | bytearray) -> None:
+        """A standard-identifier data frame. The drives' own COB-IDs (RPDOs, SDO requests: six of
+        the seven frames of a cycle) are looked up first; SYNC and NMT are not among them."""
+        entry = self._by_cob.get(cob_id)
+        if entry is not None:
+            handler, drive = entry
+            if handler(drive, data) is False:
+                self._malformed += 1
             return
-        cob_id = msg.arbitration_id
-        data = msg.data
         if cob_id == fr.SYNC_COB_ID:
             if len(data) > 1 or (len(data) == 1 and not 1 <= data[0] <= 240):
                 self._malformed += 1
@@ -398,16 +434,10 @@ class EmulatedDrives:
                 if target in (0, drive.node_id):
                     self._nmt.on_command(drive, command, now)
             return
-        entry = self._by_cob.get(cob_id)
-        if entry is None:
-            if not self._watch.on_master_heartbeat(cob_id, time.monotonic()):
-                self._unknown += 1  # other nodes' frames (TPDOs, heartbeats) land here too
-            return
-        handler, drive = entry
-        if handler(drive, data) is False:
-            self._malformed += 1
+        if not self._watch.on_master_heartbeat(cob_id, time.monotonic()):
+            self._unknown += 1  # other nodes' frames (TPDOs, heartbeats) land here too
 
-    def _on_sdo(self, drive: EmulatedDrive, data: bytearray) -> None:
+    def _on_sdo(self, drive: EmulatedDrive, data: bytes | bytearray) -> None:
         if drive.nmt is fr.NmtState.STOPPED:
             return
         if len(data) != 8:
@@ -434,34 +464,7 @@ class EmulatedDrives:
                 handler()
             except Exception:  # keep the bus alive; the plant owner logs its own
                 log.exception("SYNC handler failed")
-        position, velocity, torque = self._scaled_feedback()
-        link.begin_batch()
-        try:
-            for drive in drives:
-                if drive.nmt is fr.NmtState.OPERATIONAL:
-                    i = drive.index
-                    pdo.send_tpdos(link, drive, position[i], velocity[i], torque[i], counter)
-        finally:
-            link.flush()
-
-    def _scaled_feedback(self) -> tuple[list[int], list[int], list[int]]:
-        """The published state in each drive's units (counts, counts/s, ‰), all joints at once.
-        round() rounds half to even like np.rint: plain floats for six joints are several times
-        cheaper than numpy's per-call overhead."""
-        feedback = self._feedback
-        n = self.n_joints
-        if feedback is None:
-            return [0] * n, [0] * n, [0] * n
-        position, velocity, torque = (a.tolist() for a in feedback)
-        drives = self._drives
-        return (
-            [_clip_int(q * d.counts_per_rad, _INT32_MIN, _INT32_MAX) for d, q in zip(drives, position, strict=True)],
-            [_clip_int(v * d.counts_per_rad, _INT32_MIN, _INT32_MAX) for d, v in zip(drives, velocity, strict=True)],
-            [
-                _clip_int(t * d.units_per_nm / d.rated_torque_mnm, -32768, 32767)
-                for d, t in zip(drives, torque, strict=True)
-            ],
-        )
+        self._answer.send(self._feedback, counter)
 
     # --- sending ---------------------------------------------------------------------------------
 

@@ -24,17 +24,28 @@ torque impulse (the paper's disturbance).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pybullet
 
 from sim_target.arm_loading import MOVABLE_JOINT_TYPES, PlantError, default_urdf_path, load_arm
+from sim_target.impulse import PAPER_DISTURBANCE, TorqueImpulse, external_profile_nm
 from sim_target.plant_protocol import JointState
 from sim_target.realism import RealismModel, RealismSpec
+
+__all__ = [
+    "PAPER_DISTURBANCE",
+    "JointState",
+    "PlantError",
+    "PybulletPlant",
+    "TorqueImpulse",
+    "default_urdf_path",
+    "load_arm",
+]
 
 GRAVITY_M_S2 = 9.81
 # 32 steps of 31 µs per 1 ms period: semi-implicit Euler's first-order error then stays under
@@ -48,31 +59,6 @@ _BRAKE_POSITION_GAIN = 0.5  # fraction of the position error the brake motor rem
 # cost pybullet 2-3 times a free period (its position motors), most of an idle target's CPU. A
 # brake that slips (load over its holding torque) accelerates far past this and is integrated.
 _HELD_MOTION_RAD = 1e-8
-
-
-@dataclass(frozen=True)
-class TorqueImpulse:
-    """An external joint torque applied over [start_s, start_s + duration_s).
-
-    The plant resolves it to its physics substeps: a pulse shorter than a substep (or not aligned
-    with one) is applied as its average over each substep it overlaps, so the impulse (N·m·s) is
-    preserved exactly and its timing to one substep (period / substeps).
-    """
-
-    torque_nm: tuple[float, ...]  # one per controlled joint
-    start_s: float
-    duration_s: float
-
-    def mean_torque_nm(self, t0_s: float, period_s: float) -> np.ndarray:
-        overlap_s = min(t0_s + period_s, self.start_s + self.duration_s) - max(t0_s, self.start_s)
-        fraction = max(overlap_s, 0.0) / period_s
-        return np.asarray(self.torque_nm, dtype=float) * fraction
-
-
-# The paper's disturbance (Sec. IV): [1, 1, 5, 5, 10, 10] N·m at t = 2 s. Duration not given by
-# the paper; 20 µs, the same pulse as the models simulator (docs/conditions.md: a whole 1 ms of
-# 10 N·m would spin the 1.25e-4 kg·m² wrist 3 to ~80 rad/s, thirty times its velocity limit).
-PAPER_DISTURBANCE = TorqueImpulse(torque_nm=(1.0, 1.0, 5.0, 5.0, 10.0, 10.0), start_s=2.0, duration_s=2e-5)
 
 
 class PybulletPlant:
@@ -167,6 +153,7 @@ class PybulletPlant:
         self._held_indices = [index for name, index in movable.items() if name not in names]
         self.position_limit_rad = np.array([[lower[n], upper[n]] for n in names])
         self.torque_limit_nm = np.array([effort[n] for n in names], dtype=float)
+        self._torque_limit: list[float] = self.torque_limit_nm.tolist()  # the hot path's copy
         # pybullet's mass matrix is over every movable joint, in index order
         self._movable_indices = sorted(movable.values())
         self._mass_matrix_index = [self._movable_indices.index(movable[name]) for name in names]
@@ -202,11 +189,11 @@ class PybulletPlant:
         self._time_s = 0.0
         self._steps = 0
         self._applied_nm = np.zeros(self.n_joints)
-        self._braked = np.zeros(self.n_joints, dtype=bool)
+        self._braked = [False] * self.n_joints
         self._brake_position_rad = np.array(q0, dtype=float)
         self._rng = np.random.default_rng(self._seed)
         self._held: JointState | None = None  # the true state while every brake holds a still arm
-        self._motor_mask: np.ndarray | None = None  # the brakes pybullet's motors were last set to
+        self._motor_mask: list[bool] | None = None  # the brakes pybullet's motors were last set to
         if self._world is not None:
             self._world.reset(np.asarray(q0, dtype=float), v0)
         self._measured = self._measure()
@@ -221,50 +208,73 @@ class PybulletPlant:
 
         The motor torque is clipped to the URDF effort limit and is zero on a braked joint (its
         drive is not enabled). External impulses are added on top; the brake resists them up to
-        its holding torque.
+        its holding torque. (Six joints in plain floats: numpy's per-call overhead on 6-element
+        arrays cost more than pybullet's step itself at a few substeps.)
         """
-        command = self._vector(torque_nm, "torque_nm")
-        braked = np.asarray(brake_engaged, dtype=bool)
-        if braked.shape != (self.n_joints,):
-            raise PlantError(f"brake_engaged: expected {self.n_joints} values, got shape {braked.shape}")
-        motor_nm = np.where(braked, 0.0, np.clip(command, -self.torque_limit_nm, self.torque_limit_nm))
+        command = self._floats(torque_nm, "torque_nm")
+        braked = self._flags(brake_engaged)
+        motor = [
+            0.0 if held else (limit if c > limit else (-limit if c < -limit else c))
+            for c, held, limit in zip(command, braked, self._torque_limit, strict=True)
+        ]
+        all_braked = all(braked)
         external_nm = self._external_profile_nm()
-        if self._held is not None and external_nm is None and braked.all():
+        if self._held is not None and external_nm is None and all_braked:
             return self._advance_held()
         self._held = None
-        before_rad = self._last_true.position_rad
+        before = self._last_q
         # A brake locks the joint where it engaged, up to its holding torque. A stiff position
         # motor rather than a velocity lock: the latter creeps by ~1e-4 rad/s under gravity.
         if self._world is not None:  # the drive's torque loop, then friction (docs/realism.md)
-            motor_nm = np.where(braked, 0.0, self._realism_torque(motor_nm, before_rad))
-        newly_braked = braked & ~self._braked
-        self._brake_position_rad[newly_braked] = before_rad[newly_braked]
-        self._braked = braked
-        if self._motor_mask is None or not np.array_equal(braked, self._motor_mask):
+            applied = self._realism_torque(np.array(motor), np.array(before))
+            motor = np.where(braked, 0.0, applied).tolist()
+        if braked != self._braked:
+            for i, (now_held, was_held) in enumerate(zip(braked, self._braked, strict=True)):
+                if now_held and not was_held:
+                    self._brake_position_rad[i] = before[i]
+            self._braked = braked
+        if braked != self._motor_mask:
             # pybullet keeps motor settings between steps: sent again only when a brake changes
             self._set_brake_motors(braked)
         if external_nm is None:  # the common case: one call, pybullet runs the substeps
             pybullet.setJointMotorControlArray(
-                self._body,
-                self._joint_indices,
-                pybullet.TORQUE_CONTROL,
-                forces=motor_nm.tolist(),
-                physicsClientId=self._client,
+                self._body, self._joint_indices, pybullet.TORQUE_CONTROL, forces=motor, physicsClientId=self._client
             )
             pybullet.stepSimulation(physicsClientId=self._client)
         else:  # an impulse touches this period: substep by substep, each with its share of it
-            self._step_substeps(motor_nm, external_nm)
+            self._step_substeps(np.array(motor), external_nm)
         self._steps += 1
         # Counted in periods so long runs do not accumulate floating-point drift.
         self._time_s = self._steps * self.period_s
-        self._applied_nm = motor_nm
+        self._applied_nm = np.array(motor)
         self._measured = self._measure()
-        moved_rad = np.abs(self._last_true.position_rad - before_rad).max()
-        if braked.all() and external_nm is None and moved_rad < _HELD_MOTION_RAD:
-            self._held = JointState(self._last_true.position_rad, np.zeros(self.n_joints), motor_nm, 0.0)
+        if all_braked and external_nm is None:
+            after = self._last_q
+            if all(abs(a - b) < _HELD_MOTION_RAD for a, b in zip(after, before, strict=True)):  # NaN: not held
+                self._held = JointState(np.array(after), np.zeros(self.n_joints), self._applied_nm, 0.0)
         return self._measured
 
-    def _set_brake_motors(self, braked: np.ndarray) -> None:
+    def _floats(self, values: np.ndarray | Sequence[float], name: str) -> list[float]:
+        """``values`` as n_joints finite floats (:meth:`_vector`'s checks and errors)."""
+        if type(values) is np.ndarray and values.shape == (self.n_joints,) and values.dtype == np.float64:
+            floats: list[float] = values.tolist()
+            if math.isfinite(sum(floats)):  # NaN or an infinity anywhere makes the sum non-finite
+                return floats
+        return self._vector(values, name).tolist()
+
+    def _flags(self, brake_engaged: np.ndarray | Sequence[bool]) -> list[bool]:
+        if (
+            type(brake_engaged) is np.ndarray
+            and brake_engaged.shape == (self.n_joints,)
+            and brake_engaged.dtype == bool
+        ):
+            return brake_engaged.tolist()
+        braked = np.asarray(brake_engaged, dtype=bool)
+        if braked.shape != (self.n_joints,):
+            raise PlantError(f"brake_engaged: expected {self.n_joints} values, got shape {braked.shape}")
+        return braked.tolist()
+
+    def _set_brake_motors(self, braked: list[bool]) -> None:
         held = self._held_indices
         pybullet.setJointMotorControlArray(
             self._body,
@@ -277,7 +287,7 @@ class PybulletPlant:
             velocityGains=[1.0] * (self.n_joints + len(held)),
             physicsClientId=self._client,
         )
-        self._motor_mask = braked.copy()
+        self._motor_mask = braked
 
     def _realism_torque(self, motor_nm: np.ndarray, true_q: np.ndarray) -> np.ndarray:
         """What the drive applies for ``motor_nm`` minus the profile's friction, held over the period
@@ -359,32 +369,10 @@ class PybulletPlant:
 
     def _external_profile_nm(self) -> np.ndarray | None:
         """(substeps, N) external torque per physics substep of this period; None when no impulse
-        touches it. Each substep carries the impulse's mean over that substep: a 20 µs pulse at the
-        start of a period acts in its first 31 µs substep (32 substeps), as in the models simulator
-        (which integrates the pulse exactly), not spread over the whole period."""
-        t0_s, period_s = self._time_s, self.period_s
-        active = [i for i in self._impulses if i.start_s < t0_s + period_s and i.start_s + i.duration_s > t0_s]
-        if not active:
+        touches it (sim_target/impulse.py)."""
+        if not self._impulses:
             return None
-        h_s = period_s / self.substeps
-        profile = np.zeros((self.substeps, self.n_joints))
-        for impulse in active:
-            if impulse.duration_s < h_s and t0_s <= impulse.start_s + 0.5 * impulse.duration_s < t0_s + period_s:
-                # Shorter than a substep: semi-implicit Euler moves a substep's whole length at the
-                # velocity its force produced, so the impulse is shared between the two substeps
-                # around its centroid (linear weights): the arm's displacement over the period is
-                # then the exact integration's (the models simulator's) to first order.
-                x = (impulse.start_s + 0.5 * impulse.duration_s - t0_s) / h_s
-                k = min(int(x), self.substeps - 1)
-                w = x - k if k + 1 < self.substeps else 0.0
-                torque_nm = np.asarray(impulse.torque_nm, dtype=float) * impulse.duration_s / h_s
-                profile[k] += (1.0 - w) * torque_nm
-                if w > 0.0:
-                    profile[k + 1] += w * torque_nm
-                continue
-            for k in range(self.substeps):
-                profile[k] += impulse.mean_torque_nm(t0_s + k * h_s, h_s)
-        return profile
+        return external_profile_nm(self._impulses, self._time_s, self.period_s, self.substeps, self.n_joints)
 
     def _step_substeps(self, motor_nm: np.ndarray, external_nm: np.ndarray) -> None:
         """One period as ``substeps`` single pybullet steps (the same step size as one call with
@@ -464,8 +452,10 @@ class PybulletPlant:
         return JointState(q, qd, self._applied_nm.copy(), self._time_s)
 
     def _measure(self) -> JointState:
-        self._last_true = true = self.true_state()
-        return self._noisy(true.position_rad, true.velocity_rad_s)
+        """The state the drives report; the true positions kept (``_last_q``) for the next step."""
+        states = pybullet.getJointStates(self._body, self._joint_indices, physicsClientId=self._client)
+        self._last_q = [s[0] for s in states]
+        return self._noisy(np.array(self._last_q, dtype=float), np.array([s[1] for s in states], dtype=float))
 
     def _noisy(self, q: np.ndarray, qd: np.ndarray) -> JointState:
         if self._world is not None:  # what the drives report (docs/realism.md)

@@ -178,8 +178,8 @@ class TargetServer:
         self._take_pending()
         self._apply_due_faults()
         enabled = np.asarray(self.drives.operation_enabled(), dtype=bool)
-        torque_nm = np.where(enabled, self.drives.commanded_torque_nm(), 0.0)
-        state = self.plant.step(torque_nm, ~enabled)
+        # A joint whose drive is not enabled is braked: the plant applies no motor torque to it.
+        state = self.plant.step(self.drives.commanded_torque_nm(), ~enabled)
         self.stats.steps += 1
         if self._start is not None and enabled.all():
             state = self._place(self._start)
@@ -270,6 +270,8 @@ class TargetServer:
                 self._publish_snapshot()
 
     def _take_pending(self) -> None:
+        if self._starts.empty():  # the common case, without raising queue.Empty every period
+            return
         while True:
             try:
                 self._start = self._starts.get_nowait()
@@ -316,6 +318,8 @@ class TargetServer:
             self._apply(self._scheduled.pop(0), at_s=self.plant.time_s)
 
     def _apply_pending(self) -> None:
+        if self._pending.empty():
+            return
         while True:
             try:
                 fault = self._pending.get_nowait()

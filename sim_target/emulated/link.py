@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 class FrameLink:
     def __init__(self, bus: can.BusABC) -> None:
         self.bus = bus
-        self._send_lock = threading.Lock()
+        self.send_lock = threading.Lock()
         self._delayed: list[tuple[float, int, can.Message]] = []
         self._delay_seq = itertools.count()
         self._batch: list[can.Message] | None = None  # collecting a SYNC's answer (begin_batch)
@@ -77,7 +77,7 @@ class FrameLink:
                 self.send(msg)
             return
         try:
-            with self._send_lock:
+            with self.send_lock:
                 self._send_batch(batch)
         except (can.CanError, OSError) as exc:
             log.warning("emulated drives: sending %d frames failed: %s", len(batch), exc)
@@ -89,7 +89,7 @@ class FrameLink:
             self._batch.append(msg)
             return
         try:
-            with self._send_lock:
+            with self.send_lock:
                 self.bus.send(msg)
         except (can.CanError, OSError) as exc:
             log.warning("emulated drives: send 0x%03X failed: %s", msg.arbitration_id, exc)

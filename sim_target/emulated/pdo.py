@@ -30,7 +30,7 @@ LAYOUTS = {
 }
 
 
-def on_rpdo(drive: EmulatedDrive, data: bytearray) -> bool:
+def on_rpdo(drive: EmulatedDrive, data: bytes | bytearray) -> bool:
     """Latch controlword and target torque (applied at the next SYNC); False when malformed.
     PDOs are ignored outside NMT operational (CiA 301). Feeds the RPDO watch (supervision)."""
     if drive.nmt is not fr.NmtState.OPERATIONAL or not drive.rpdo_valid:

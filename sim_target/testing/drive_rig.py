@@ -3,10 +3,13 @@ tests and benchmarks/bench_can_exchange.py)."""
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import can
@@ -48,11 +51,14 @@ class Rig:
     drives: EmulatedDrives
     plant: FakePlant
     drive_side_bus: can.BusABC
+    directory: Path | None = None  # the ipc bus's directory (removed on close)
 
     def close(self) -> None:
         self.driver.close()
         self.drives.close()
         self.drive_side_bus.shutdown()
+        if self.directory is not None:
+            shutil.rmtree(self.directory, ignore_errors=True)
 
 
 def make_rig(
@@ -61,11 +67,21 @@ def make_rig(
     drive_ids: tuple[int, ...] | None = None,
     emulated: dict[str, Any] | None = None,
     connect: bool = True,
+    interface: str = "virtual",
     **overrides: Any,
 ) -> Rig:
-    channel = f"drv-{uuid.uuid4().hex[:10]}"
+    """``interface``: "virtual" (python-can's, in-process) or "ipc" (the project's bus, in a
+    temporary directory: the drives then take its raw datagram path)."""
+    directory = None
+    if interface == "ipc":
+        directory = Path(tempfile.mkdtemp(prefix="rig-"))
+        channel = str(directory / "bus")
+        overrides["transport"] = {"interface": "ipc", "channel": channel, **overrides.get("transport", {})}
+        side = can.Bus(interface="ipc", channel=channel, fd=fd)
+    else:
+        channel = f"drv-{uuid.uuid4().hex[:10]}"
+        side = can.Bus(interface="virtual", channel=channel, ignore_config=True)
     config = drive_bus_config(channel, n, fd, **overrides)
-    side = can.Bus(interface="virtual", channel=channel, ignore_config=True)
     drives = EmulatedDrives(
         side, EmulatedDrivesConfig(node_ids=drive_ids or tuple(range(1, n + 1)), **(emulated or {}))
     )
@@ -73,7 +89,7 @@ def make_rig(
     lockstep(drives, plant)
     drives.start()
     driver = DriveBus(config)
-    rig = Rig(config, driver, drives, plant, side)
+    rig = Rig(config, driver, drives, plant, side, directory)
     if connect:
         try:
             driver.connect()

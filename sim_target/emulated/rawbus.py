@@ -1,0 +1,31 @@
+"""The ipc bus's raw datagram API (drivers/ipc: ``send_frames``, ``recv_frames``), when the drives'
+bus offers it as is: the emulated drives' hot path (no :class:`can.Message` per frame).
+
+Only the :class:`~drivers.ipc.bus.IpcBus` itself qualifies: a wrapper (the capture bus, which must
+see every frame through ``send``/``recv``), python-can's ``virtual`` bus, the bridge, and an ipc
+bus with python-can receive filters keep python-can's ``send``/``recv`` (filters are applied only
+there).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import can
+
+from drivers.ipc.bus import IpcBus
+from drivers.ipc.directory import Sender
+from drivers.ipc.frame import FrameBatch
+
+RawFrames = list[tuple[int, bytes, bool]]  # (can_id with SocketCAN's flags, data, is_fd)
+FrameReceiver = Callable[[float | None], tuple[Sender | None, RawFrames] | None]
+
+
+def frame_sender(bus: can.BusABC) -> Callable[[FrameBatch], None] | None:
+    """``bus.send_frames`` when ``bus`` is the ipc bus itself, else None."""
+    return bus.send_frames if type(bus) is IpcBus else None
+
+
+def frame_receiver(bus: can.BusABC) -> FrameReceiver | None:
+    """``bus.recv_frames`` when ``bus`` is the ipc bus itself with no receive filter, else None."""
+    return bus.recv_frames if type(bus) is IpcBus and not bus.filters else None
