@@ -5,6 +5,7 @@ master's allocations are traced."""
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import tracemalloc
 from collections.abc import Iterator
@@ -24,11 +25,11 @@ CYCLES = 1000
 N = 6
 
 
-@pytest.fixture
-def driver(tmp_path: Path) -> Iterator[DriveBus]:
-    bus_dir = tmp_path / "bus"
-    with drive_process("--drives", str(N), "--ipc-dir", str(bus_dir)):
-        config = drive_bus_config("unused", N, True, transport={"interface": "ipc", "channel": str(bus_dir)})
+@contextlib.contextmanager
+def _driver(bus_dir: Path, fd: bool) -> Iterator[DriveBus]:
+    """A DriveBus on the ipc bus, enabled, against N emulated drives in a process of their own."""
+    with drive_process("--drives", str(N), "--ipc-dir", str(bus_dir), *([] if fd else ["--classical"])):
+        config = drive_bus_config("unused", N, fd, transport={"interface": "ipc", "channel": str(bus_dir)})
         bus = DriveBus(config)
         bus.connect()
         try:
@@ -36,6 +37,12 @@ def driver(tmp_path: Path) -> Iterator[DriveBus]:
             yield bus
         finally:
             bus.close()
+
+
+@pytest.fixture
+def driver(tmp_path: Path) -> Iterator[DriveBus]:
+    with _driver(tmp_path / "bus", fd=True) as bus:
+        yield bus
 
 
 class _MessageCount:
@@ -72,6 +79,22 @@ def test_a_cycle_makes_no_message_per_frame_and_sends_what_it_packed(
     permille = [fr.decode_rpdo(bytes(payload)).target_torque_permille for payload in batch.payloads[:N]]
     assert permille == np.rint(feedback.commanded_torque_nm * driver._permille_per_nm).astype(int).tolist()
     assert bytes(batch.payloads[N]) == bytes((driver.sync_counter,))
+
+
+def test_classical_can_takes_the_raw_path_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """TPDO1 + TPDO2 per drive (no SYNC echo): both on their bytes, every cycle fresh."""
+    with _driver(tmp_path / "bus", fd=False) as driver:
+        torque = np.linspace(-2.0, 2.0, N)
+        driver.exchange(torque)
+        heartbeats = driver.counters.heartbeats
+        count = _MessageCount(monkeypatch)
+        for _ in range(100):
+            feedback = driver.exchange(torque)
+            assert feedback.fresh.all()
+        monkeypatch.undo()
+        counters = driver.counters
+    assert count.made <= counters.heartbeats - heartbeats + 10, count.made  # 12 TPDOs a cycle, no message
+    assert counters.dropped == 0 and counters.late == 0 and counters.malformed == 0
 
 
 def test_a_thousand_cycles_keep_nothing_on_the_raw_path(driver: DriveBus, monkeypatch: pytest.MonkeyPatch) -> None:
