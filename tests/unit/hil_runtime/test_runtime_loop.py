@@ -305,10 +305,10 @@ def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: s
     class SlowBus(FakeJointBus):
         calls = 0
 
-        def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
+        def _cycle_internal(self, setpoint_nm: np.ndarray) -> DriveFeedback:  # both cycle kinds
             self.calls += 1
             now[0] += 0.0025 if self.calls % 10 == 0 else 0.0002
-            return super().exchange(torque_nm)
+            return super()._cycle_internal(setpoint_nm)
 
     bus = SlowBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
     config = parse_runtime_config(
