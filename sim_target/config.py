@@ -196,9 +196,10 @@ class DrivesConfig(_Frozen):
 
 # pybullet steps per control period when the config gives none: lock-step keeps parity with the
 # models simulator (4.3e-4 rad over 2 s); real time must fit a period on a small machine, at a
-# parity cost stated in docs/target.md (benchmarks/bench_plant_parity.py).
+# parity cost stated in docs/target.md (benchmarks/bench_plant_parity.py): 4 substeps, 3.4e-3 /
+# 7.0e-3 rad over 2 s, half the physics of 8 (1.7e-3 / 3.5e-3 rad).
 LOCKSTEP_SUBSTEPS = 32
-REALTIME_SUBSTEPS = 8
+REALTIME_SUBSTEPS = 4
 
 
 class PlantConfig(_Frozen):

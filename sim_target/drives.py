@@ -4,21 +4,12 @@ They speak exactly the protocol of :mod:`drivers.cia402` (same codec, same EDS, 
 table) so the runtime's driver cannot tell them from real drives. No pybullet, no hil_runtime: the
 plant is reached only through the calls below, made by ``sim_target/server.py``.
 
-API (the server's ``DriveBank``)::
-
-    drives = EmulatedDrives(bus, EmulatedDrivesConfig(node_ids=(1, 2, 3, 4, 5, 6)))
-    drives.start()                       # boot-up messages, receive thread (make_drive_bank starts)
-    drives.start(own_thread=False)       # or no thread: the owner calls drives.serve_until(deadline_s)
-    drives.set_sync_handler(fn)          # fn() runs on every SYNC, on the receive thread, after the
-                                         # RPDO set-points are latched and the state machine stepped,
-                                         # before the TPDOs go out
-    drives.commanded_torque_nm()         # (N,) torque each drive applies now, 0 unless enabled
-    drives.operation_enabled()           # (N,) bool; a joint whose drive is not enabled is braked
-    drives.publish_feedback(state)       # JointState-like (position_rad, velocity_rad_s, torque_nm):
-                                         # the values the TPDOs of the current/next SYNC carry
-    drives.apply_fault(fault)            # kind "frames" (drop/delay/corrupt) or "drive_fault"
-    drives.master_losses                 # each drive's reaction to losing the master (0x6007)
-    drives.safe_stop(); drives.close()
+API: the server's ``DriveBank`` (sim_target/drive_bank.py), served on the owner's thread
+(``start(own_thread=False)`` then ``serve_until(deadline_s)``) or on a thread of their own
+(``start()``); ``set_sync_handler(fn)``: ``fn()`` runs on every SYNC after the RPDO set-points are
+latched and the state machines stepped, before the TPDOs go out. On the ipc bus itself the hot
+path takes whole datagrams undecoded and answers each SYNC with one preallocated batch
+(sim_target/emulated/rawbus.py, answer.py); any other bus, python-can's ``recv``/``send``.
 
 Lock-step: the SYNC handler steps the plant one period and publishes its state, so each SYNC
 advances physics by exactly one period and the TPDOs answering that SYNC carry the new state.
@@ -62,6 +53,7 @@ from drivers.ipc.frame import CAN_EFF_FLAG, CAN_EFF_MASK, CAN_ERR_FLAG, CAN_RTR_
 from drivers.joint_bus import JointReadings
 from sim_target.emulated import p402, pdo
 from sim_target.emulated.answer import SyncAnswer
+from sim_target.emulated.inject import OneShotFaults
 from sim_target.emulated.link import FrameLink
 from sim_target.emulated.nmt import NmtSlave
 from sim_target.emulated.node import (
@@ -98,7 +90,7 @@ class _EmuNetwork(canopen.Network):
         self._bank._emit_from_cob(can_id, bytes(data))
 
 
-class EmulatedDrives:
+class EmulatedDrives(OneShotFaults):
     """The drive bank. Thread model: one thread does everything (SYNC, SDO, NMT, heartbeats,
     delayed frames, the master watch): the bank's own receive thread (``start()``), or the owner's
     thread calling :meth:`serve_until` (``start(own_thread=False)``: the target server, whose
@@ -198,6 +190,21 @@ class EmulatedDrives:
             ]
         )
 
+    def plant_inputs(self) -> tuple[list[float], list[bool]]:
+        """:meth:`commanded_torque_nm` and :meth:`brake_engaged` as plain lists, in one pass: the
+        physics step's inputs, every period (two numpy arrays of six cost more than the pass)."""
+        enabled = _ENABLED
+        torque_nm: list[float] = []
+        braked: list[bool] = []
+        for d in self._drives:
+            if d.state is enabled:
+                torque_nm.append(d.applied_permille * d.rated_torque_mnm * d.torque_unit_nm)
+                braked.append(False)
+            else:
+                torque_nm.append(0.0)
+                braked.append(True)
+        return torque_nm, braked
+
     def operation_enabled(self) -> np.ndarray:
         enabled = _ENABLED
         return np.array([d.state is enabled for d in self._drives], dtype=bool)
@@ -253,36 +260,6 @@ class EmulatedDrives:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._thread = None
-
-    # --- fault injection (run time) --------------------------------------------------------------
-
-    def inject_drive_fault(self, node_id: int, error_code: int = fr.EMCY_OVERCURRENT) -> None:
-        """The drive goes to Fault at its next SYNC and sends EMCY ``error_code``."""
-        self._drive(node_id).pending_fault = error_code
-
-    def drop_tpdos(self, node_id: int, cycles: int = 1) -> None:
-        self._drive(node_id).policy.drop_next += cycles
-
-    def corrupt_tpdos(self, node_id: int, cycles: int = 1) -> None:
-        self._drive(node_id).policy.corrupt_next += cycles
-
-    def delay_tpdos(self, node_id: int, delay_s: float, cycles: int = 1) -> None:
-        policy = self._drive(node_id).policy
-        policy.delay_next += cycles
-        policy.delay_next_s = delay_s
-
-    def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
-        self._drive(node_id).policy.silent_heartbeat = silent
-
-    def abort_sdo_writes(self, node_id: int, index: int, abort_code: int = 0x06090030) -> None:
-        """The drive answers every SDO write to ``index`` with an abort (CiA 301 ``abort_code``;
-        default 0x06090030, value range exceeded), as a real drive refuses a value it cannot take."""
-
-        def refuse(index: int, subindex: int, od: object, data: bytes, _target: int = index) -> None:
-            if index == _target:
-                raise canopen.sdo.SdoAbortedError(abort_code)
-
-        self._drive(node_id).node.add_write_callback(refuse)
 
     @property
     def counters(self) -> DriveCounters:

@@ -256,10 +256,13 @@ class PybulletPlant:
 
     def _floats(self, values: np.ndarray | Sequence[float], name: str) -> list[float]:
         """``values`` as n_joints finite floats (:meth:`_vector`'s checks and errors)."""
+        floats: list[float] | None = None
         if type(values) is np.ndarray and values.shape == (self.n_joints,) and values.dtype == np.float64:
-            floats: list[float] = values.tolist()
-            if math.isfinite(sum(floats)):  # NaN or an infinity anywhere makes the sum non-finite
-                return floats
+            floats = values.tolist()
+        elif type(values) is list and len(values) == self.n_joints and all(type(x) is float for x in values):
+            floats = list(values)
+        if floats is not None and math.isfinite(sum(floats)):  # NaN or an infinity makes the sum non-finite
+            return floats
         return self._vector(values, name).tolist()
 
     def _flags(self, brake_engaged: np.ndarray | Sequence[bool]) -> list[bool]:
@@ -269,6 +272,12 @@ class PybulletPlant:
             and brake_engaged.dtype == bool
         ):
             return brake_engaged.tolist()
+        if (
+            type(brake_engaged) is list
+            and len(brake_engaged) == self.n_joints
+            and all(type(b) is bool for b in brake_engaged)
+        ):
+            return list(brake_engaged)
         braked = np.asarray(brake_engaged, dtype=bool)
         if braked.shape != (self.n_joints,):
             raise PlantError(f"brake_engaged: expected {self.n_joints} values, got shape {braked.shape}")

@@ -177,11 +177,18 @@ class TargetServer:
     def _step(self) -> JointState:
         self._take_pending()
         self._apply_due_faults()
-        enabled = np.asarray(self.drives.operation_enabled(), dtype=bool)
         # A joint whose drive is not enabled is braked: the plant applies no motor torque to it.
-        state = self.plant.step(self.drives.commanded_torque_nm(), ~enabled)
+        plant_inputs = getattr(self.drives, "plant_inputs", None)  # the emulated drives' one pass
+        if plant_inputs is not None:
+            torque_nm, braked = plant_inputs()
+            state = self.plant.step(torque_nm, braked)
+            all_enabled = not any(braked)
+        else:
+            enabled = np.asarray(self.drives.operation_enabled(), dtype=bool)
+            state = self.plant.step(self.drives.commanded_torque_nm(), ~enabled)
+            all_enabled = bool(enabled.all())
         self.stats.steps += 1
-        if self._start is not None and enabled.all():
+        if self._start is not None and all_enabled:
             state = self._place(self._start)
         return state
 
