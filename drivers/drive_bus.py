@@ -70,7 +70,7 @@ log = logging.getLogger(__name__)
 
 # The overlapped cycle's collect waits at most this share of a period for TPDOs not in yet: an
 # answer later than that is treated as missing for this cycle (stale), never waited for.
-COLLECT_GRACE = 0.25
+COLLECT_GRACE = 0.5
 
 
 class _Services:
