@@ -214,8 +214,8 @@ def format_effort_table(results: dict[str, Any]) -> list[str]:
         f"Realism profile: {realism} (docs/realism.md). η: 1 − score / score_FB on the paper's composite; η effort: "
         "the same on the effort-aware composite (docs/scoring.md). Deployable: conditions on which the run "
         "tripped no limit, kept chatter within max(2 % of the torque limit, 2× FB's) and its torque rate within "
-        "libfranka's (1000 N·m/s per 87 N·m of limit); ✗: at least one run is not deployable (results.json "
-        "runs[].verdict.reasons says why).",
+        "the robot's bound (libfranka's rule; docs/any_arm.md, Torque-rate bound); ✗: at least one run is not "
+        "deployable (results.json runs[].verdict.reasons says why).",
     ]
     for mode, values in averages.items():
         m = mode.upper()

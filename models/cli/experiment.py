@@ -90,7 +90,7 @@ def experiment(
         str,
         typer.Option(
             help="LMPC output rate limit, sim and hil alike: none, or libfranka (each joint's torque change per "
-            "cycle clamped to 1000 N·m/s per 87 N·m of limit, as franka::limitRate; docs/lmpc.md section 10)."
+            "cycle clamped to the bundle's torque-rate bound, as franka::limitRate; docs/lmpc.md section 10)."
         ),
     ] = "none",
 ) -> None:
