@@ -68,6 +68,10 @@ __all__ = ["BusCounters", "DriveBus", "DriveFeedback"]
 
 log = logging.getLogger(__name__)
 
+# The overlapped cycle's collect waits at most this share of a period for TPDOs not in yet: an
+# answer later than that is treated as missing for this cycle (stale), never waited for.
+COLLECT_GRACE = 0.5
+
 
 class _Services:
     """The protocol services of one DriveBus, built at its first connect (they load the EDS)."""
@@ -218,10 +222,7 @@ class DriveBus(JointBusBase):
     # --- the cycle -------------------------------------------------------------------------------
 
     def _cycle(self, controlwords: Sequence[int], permille: Sequence[int], commanded_nm: np.ndarray) -> DriveFeedback:
-        services = self._services
-        if services is None or self._network.bus is None:
-            raise TransportError("bus is closed")
-        return services.exchange.run(controlwords, permille, commanded_nm)
+        return self._exchange_service().run(controlwords, permille, commanded_nm)
 
     def enable(self, hold_torque_nm: np.ndarray | None = None) -> DriveFeedback:
         """Walk every drive to Operation Enabled; returns the last cycle's feedback. Faulted drives
@@ -251,6 +252,24 @@ class DriveBus(JointBusBase):
         """One control cycle on the bus (see :meth:`_quantised` for what is sent)."""
         permille, commanded = self._quantised(setpoint_nm, carry=True)
         return self._cycle(self._cw_enable, permille, commanded)
+
+    def _send_internal(self, setpoint_nm: np.ndarray) -> None:
+        permille, commanded = self._quantised(setpoint_nm, carry=True)
+        self._exchange_service().begin(self._cw_enable, permille, commanded)
+
+    def _collect_internal(self) -> DriveFeedback:
+        """This SYNC's TPDOs: what came in meanwhile, then at most ``COLLECT_GRACE`` of a period
+        for the rest (not later than the feedback timeout); a TPDO after that is late."""
+        exchange = self._exchange_service()
+        grace_s = COLLECT_GRACE * self.config.period_s
+        deadline = min(exchange.sync_time_s + self.config.feedback_timeout_s, time.monotonic() + grace_s)
+        return exchange.finish(deadline)
+
+    def _exchange_service(self) -> CyclicExchange:
+        services = self._services
+        if services is None or self._network.bus is None:
+            raise TransportError("bus is closed")
+        return services.exchange
 
     def _quantised(self, wanted_nm: np.ndarray, carry: bool = False) -> tuple[list[int], np.ndarray]:
         """(‰ of rated torque per drive, the torque in N·m those stand for) of a clipped set-point.

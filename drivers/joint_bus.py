@@ -116,6 +116,10 @@ class JointBus(Protocol):
 
     def exchange(self, torque_nm: np.ndarray) -> JointFeedback: ...
 
+    def send(self, torque_nm: np.ndarray) -> None: ...
+
+    def collect(self) -> JointFeedback: ...
+
     def quick_stop(self) -> tuple[State, ...]: ...
 
     def disable(self) -> tuple[State, ...]: ...
@@ -161,6 +165,8 @@ class JointBusBase(abc.ABC):
         self._setpoint_nm = np.zeros(n)  # the clipped set-point handed to _cycle_internal
         self._missed_cycles = [0] * n  # consecutive exchanges without fresh feedback, per joint
         self._enabled = False
+        self._sent = False  # an overlapped cycle's send() waits for its collect()
+        self._overlapped_feedback: DriveFeedback | None = None
 
     # --- the backend's hooks --------------------------------------------------------------------------
 
@@ -173,6 +179,18 @@ class JointBusBase(abc.ABC):
     @abc.abstractmethod
     def _fail_safe(self) -> None:
         """Quick-stop every drive that still answers; never raises."""
+
+    def _send_internal(self, setpoint_nm: np.ndarray) -> None:
+        """The overlapped cycle's first half: send the set-points and the SYNC, return at once.
+        By default a whole cycle now, its feedback kept for :meth:`_collect_internal` (a backend
+        whose cycle does not wait on the drives, as the fake bus's)."""
+        self._overlapped_feedback = self._cycle_internal(setpoint_nm)
+
+    def _collect_internal(self) -> DriveFeedback:
+        """The second half: the feedback of the SYNC :meth:`_send_internal` sent."""
+        feedback = self._overlapped_feedback
+        assert feedback is not None  # collect() checks that a send came first
+        return feedback
 
     def _raise_pending(self) -> None:  # noqa: B027 - optional hook: a backend without threads has none
         """Raise an error a background thread found since the last call (none by default)."""
@@ -192,12 +210,49 @@ class JointBusBase(abc.ABC):
         if not self._enabled:
             self._raise_pending()
             raise DriveStateError("drives are not enabled: call enable() first")
+        if self._sent:
+            raise DriveStateError("exchange() while an overlapped cycle waits for collect()")
         try:
             setpoint = self._checked_setpoint(torque_nm, "torque_nm")  # DriveCommandError: nothing sent
             feedback = self._cycle_internal(setpoint)
             # Once per exchange, after the cycle: what the cycle's own frames brought (an EMCY, a
             # heartbeat timeout found by the receive) is raised with that cycle, as is anything
             # queued while the caller was idle.
+            self._raise_pending()
+            self._supervise(feedback)
+        except FATAL_ERRORS:
+            self._enabled = False
+            self._fail_safe()
+            raise
+        return feedback
+
+    def send(self, torque_nm: np.ndarray) -> None:
+        """The overlapped cycle, first half: the torque set-points and the SYNC out, returning at
+        once; :meth:`collect` returns that SYNC's feedback. The checks and the fail-safe of
+        :meth:`exchange` apply to both halves. A real master's sequence (read the inputs, compute,
+        write the outputs), so the drives' answer time is not in the caller's cycle."""
+        if not self._enabled:
+            self._raise_pending()
+            raise DriveStateError("drives are not enabled: call enable() first")
+        if self._sent:
+            raise DriveStateError("send() twice without collect(): one SYNC at a time")
+        try:
+            setpoint = self._checked_setpoint(torque_nm, "torque_nm")  # DriveCommandError: nothing sent
+            self._send_internal(setpoint)
+            self._sent = True
+        except FATAL_ERRORS:
+            self._enabled = False
+            self._fail_safe()
+            raise
+
+    def collect(self) -> DriveFeedback:
+        """The overlapped cycle, second half: the feedback of the SYNC the last :meth:`send` sent
+        (what is not in by now, after a short grace, is not fresh); checked as :meth:`exchange`'s."""
+        if not self._sent:
+            raise DriveStateError("collect() without a send()")
+        self._sent = False
+        try:
+            feedback = self._collect_internal()
             self._raise_pending()
             self._supervise(feedback)
         except FATAL_ERRORS:
@@ -249,5 +304,6 @@ class JointBusBase(abc.ABC):
         return 0
 
     def _reset_supervision(self) -> None:
-        """On enable: the miss counts start again."""
+        """On enable: the miss counts start again, no overlapped cycle open."""
         self._missed_cycles[:] = [0] * self._n
+        self._sent = False

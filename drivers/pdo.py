@@ -88,6 +88,8 @@ class CyclicExchange:
         self.dropped = 0  # TPDOs expected and not in by the deadline
         self._open = False
         self._pending = 0
+        self.sync_time_s = 0.0  # the open (or last) cycle's SYNC, time.monotonic()
+        self._commanded_nm = np.zeros(len(nodes))
         self._frames = [*(node.rpdo for node in self.nodes), sync.msg]
         self._batch: FrameBatch | None = None  # the raw path's cycle datagram, built at the first cycle
         self._batch_dlc = -1  # the SYNC length it was built with (carry_counter may change it)
@@ -118,6 +120,15 @@ class CyclicExchange:
     # --- one cycle -------------------------------------------------------------------------------
 
     def run(self, controlwords: Sequence[int], permille: Sequence[int], commanded_nm: np.ndarray) -> DriveFeedback:
+        """One blocking cycle: the set-points and the SYNC out, then this SYNC's TPDOs (until every
+        one is in or ``feedback_timeout_s`` has passed since the SYNC)."""
+        self.begin(controlwords, permille, commanded_nm)
+        return self.finish(self.sync_time_s + self.feedback_timeout_s)
+
+    def begin(self, controlwords: Sequence[int], permille: Sequence[int], commanded_nm: np.ndarray) -> None:
+        """The first half of a cycle: drain what is queued (late), pack and send the RPDOs and the
+        SYNC; the cycle stays open for this SYNC's TPDOs until :meth:`finish` (the overlapped
+        cycle: the caller computes meanwhile, docs/runtime.md)."""
         network = self.network
         nodes = self.nodes
         with network.rx_lock:
@@ -132,21 +143,37 @@ class CyclicExchange:
                 for node, controlword, torque in zip(nodes, controlwords, permille, strict=True):
                     encode(node.rpdo.data, controlword, torque)
             self.cycle += 1
-            cycle = self.cycle
             counter = self.sync.advance()
             if raw and self._batch_dlc:
                 batch.payloads[-1][0] = counter  # the SYNC's counter byte, in place
             self._pending = len(nodes) * self.tpdos_per_drive
             self._open = True
-            monotonic = time.monotonic
-            sync_time = monotonic()
+            self._commanded_nm = commanded_nm
+            self.sync_time_s = time.monotonic()
             try:
-                deadline = sync_time + self.feedback_timeout_s
                 if raw:
                     network.send_frames(batch)
-                    self._receive_frames(deadline)
                 else:
                     network.send_batch(self._frames)
+            except BaseException:
+                self._open = False
+                raise
+            network.last_cycle_end_s = self.sync_time_s  # the background thread stays out meanwhile
+
+    def finish(self, deadline: float) -> DriveFeedback:
+        """The second half: this SYNC's TPDOs until every one is in or ``deadline`` (monotonic)
+        passes; the cycle closes, a TPDO after it is late. The cycle's feedback."""
+        network = self.network
+        nodes = self.nodes
+        cycle = self.cycle
+        sync_time = self.sync_time_s
+        commanded_nm = self._commanded_nm
+        monotonic = time.monotonic
+        with network.rx_lock:
+            try:
+                if network.raw:
+                    self._receive_frames(deadline)
+                else:
                     self._receive(deadline)
             finally:
                 self._open = False

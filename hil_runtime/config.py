@@ -25,6 +25,7 @@
     loop:
       pacing: clock                      # clock: absolute deadlines; bus: as fast as the bus answers
       time_base: auto                    # reference index: wall (clock) or cycles (lock-step, bus)
+      exchange: auto                     # overlap (clock pacing) or wait (bus pacing); docs/runtime.md
       cpu_affinity: null                 # e.g. [1]: the loop thread only
       fifo_priority: null                # e.g. 50: SCHED_FIFO on the loop thread only
       lock_memory: false                 # mlockall(MCL_CURRENT | MCL_FUTURE)
@@ -121,6 +122,12 @@ class LoopSection(_Frozen):
     # while the loop overruns) or cycles (one row per exchange: a lock-stepped target advances one
     # period per SYNC whatever the wall clock does). auto: wall with clock pacing, cycles with bus.
     time_base: Literal["auto", "wall", "cycles"] = "auto"
+    # How a cycle meets the drives: wait (set-points and SYNC out, then wait for this SYNC's
+    # feedback: a lock-stepped target answers after its simulated period) or overlap (the feedback
+    # of the SYNC sent last cycle, compute, set-points and SYNC out: a real master's sequence, the
+    # drives' answer time outside the cycle; the same one period from sample to torque). auto:
+    # overlap with clock pacing, wait with bus pacing (docs/runtime.md, "The cycle").
+    exchange: Literal["auto", "wait", "overlap"] = "auto"
     cpu_affinity: tuple[int, ...] | None = None  # CPUs for the loop thread only
     fifo_priority: int | None = Field(None, ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     lock_memory: bool = False  # mlockall; needs LimitMEMLOCK (systemd) or CAP_IPC_LOCK
@@ -198,6 +205,12 @@ class RuntimeConfig(_Frozen):
     @property
     def period_s(self) -> float:
         return self.bus.period_s
+
+    @property
+    def loop_overlaps(self) -> bool:
+        """Whether cycles overlap (``loop.exchange``; auto: with clock pacing)."""
+        exchange = self.loop.exchange
+        return self.loop.pacing == "clock" if exchange == "auto" else exchange == "overlap"
 
     @property
     def loop_spin_s(self) -> float:

@@ -176,6 +176,7 @@ class ActiveLoop:
         notifier: Notifier,
         *,
         wall_time: bool,
+        overlap: bool = False,
         stats_interval_s: float,
         publish_stats: Callable[[], None],
         stop_requested: Callable[[], bool],
@@ -185,6 +186,7 @@ class ActiveLoop:
         self.pipeline = pipeline
         self.notifier = notifier
         self.wall_time = wall_time  # reference index: period slots (skips included) or exchanges
+        self.overlap = overlap  # bus.collect -> pipeline -> bus.send, not bus.exchange -> pipeline
         self.stats_interval_s = stats_interval_s
         self.publish_stats = publish_stats
         self.stop_requested = stop_requested
@@ -207,7 +209,14 @@ class ActiveLoop:
         command = pipeline.command
         base = self.ref_base
         wall_time = self.wall_time
-        k = base
+        overlap = self.overlap
+        # Overlapped cycles: the first cycle only sends the set-point computed before it (at
+        # activation, or the last run's); each later cycle collects the feedback of the SYNC the
+        # cycle before sent, computes, and sends. Its torque acts from this period, so its
+        # reference row is the one a waiting cycle computes a period earlier: one row less.
+        row_shift = 1 if overlap else 0
+        sent = False  # overlap: a SYNC out whose feedback is not collected yet
+        k = base - row_shift
         reason = "stop"
         self.fault = None
         with GcQuiet():
@@ -225,7 +234,15 @@ class ActiveLoop:
                         break
                 pipeline.cycle += 1  # an exchange that raises still happened (frames went out)
                 try:
-                    feedback = bus.exchange(command)
+                    if not overlap:
+                        feedback = bus.exchange(command)
+                    elif sent:
+                        sent = False
+                        feedback = bus.collect()
+                    else:  # the first overlapped cycle: the set-point computed before this run
+                        bus.send(command)
+                        sent = True
+                        continue
                 except DriveError as exc:  # the driver has quick-stopped the drives already
                     self.fault = classify_bus_error(exc)
                     reason = "fault"
@@ -236,7 +253,7 @@ class ActiveLoop:
                     break
                 received = clock()
                 try:
-                    k = base + (pacer.tick if wall_time else pacer.cycles - 1)
+                    k = base - row_shift + (pacer.tick if wall_time else pacer.cycles - 1)
                     fault = compute(feedback, k, start, received)
                 except Exception as exc:  # a bug must still stop the arm safely
                     log.exception("loop computation failed")
@@ -245,7 +262,22 @@ class ActiveLoop:
                     self.fault = fault
                     reason = "fault"
                     break
-                exchange_stats.add(received - start)
+                exchange_s = received - start
+                if overlap:
+                    send_start = clock()
+                    try:
+                        bus.send(command)
+                        sent = True
+                    except DriveError as exc:
+                        self.fault = classify_bus_error(exc)
+                        reason = "fault"
+                        break
+                    except Exception as exc:  # noqa: BLE001 - nothing may crash the loop
+                        self.fault = Fault(FaultKind.INTERNAL, f"send: {exc!r}")
+                        reason = "fault"
+                        break
+                    exchange_s += clock() - send_start  # collect + send: the bus's share of the cycle
+                exchange_stats.add(exchange_s)
                 compute_stats.add(sample.compute_s)
                 done = clock()
                 notifier.watchdog_if_due(done)
@@ -258,6 +290,11 @@ class ActiveLoop:
                 if duration_ticks is not None and k >= duration_ticks:
                     reason = "duration"
                     break
+        if sent and reason != "fault":
+            try:  # close the open SYNC: its feedback is not late at the next exchange
+                bus.collect()
+            except Exception as exc:  # noqa: BLE001 - the run ended; the next exchange reports it
+                log.warning("closing the last overlapped cycle: %s", exc)
         if pacer.cycles:
             self.ref_base = k + 1  # a later run() goes on along the reference
         return reason

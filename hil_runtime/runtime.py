@@ -128,6 +128,7 @@ class Runtime:
             self.pipeline,
             self.notifier,
             wall_time=(config.loop.pacing == "clock") if base == "auto" else (base == "wall"),
+            overlap=config.loop_overlaps,
             stats_interval_s=config.loop.stats_interval_s,
             publish_stats=self._publish_stats,
             stop_requested=lambda: self._stop,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import time
 import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
@@ -136,3 +137,34 @@ def test_a_thousand_cycles_keep_nothing_on_the_raw_path(driver: DriveBus, monkey
     assert float(np.median(peaks)) <= 16384, np.median(peaks)
     assert driver.counters.dropped == 0
     assert count.made <= driver.counters.heartbeats - heartbeats + 10, count.made  # none per cycle frame
+
+
+def test_an_overlapped_cycle_returns_the_feedback_of_the_sync_sent_before(driver: DriveBus) -> None:
+    """send() returns once the SYNC is out; collect() (the next cycle) returns that SYNC's feedback:
+    fresh, the set-point it carried, nothing late or dropped over 300 cycles; the blocking exchange
+    is refused while a SYNC waits for its collect, and collect without a send is refused."""
+    from drivers.errors import DriveStateError
+
+    torque = np.linspace(-2.0, 2.0, N)
+    driver.send(torque)
+    with pytest.raises(DriveStateError, match="collect"):
+        driver.exchange(torque)
+    with pytest.raises(DriveStateError, match="twice"):
+        driver.send(torque)
+    stale = 0
+    for i in range(300):
+        time.sleep(0.002)  # the caller's cycle: the drives answer meanwhile
+        sent_counter = driver.sync_counter
+        feedback = driver.collect()
+        stale += not feedback.fresh.all()  # an answer later than the grace: stale, then late
+        assert feedback.cycle == driver._services.exchange.cycle  # type: ignore[union-attr]  # connected
+        assert sent_counter == driver.sync_counter  # collect sent nothing
+        driver.send(torque * (i % 3))
+    time.sleep(0.002)
+    feedback = driver.collect()
+    assert np.allclose(feedback.commanded_torque_nm, torque * (299 % 3), atol=0.2)
+    with pytest.raises(DriveStateError, match="without a send"):
+        driver.collect()
+    assert stale <= 6, stale  # 2 % (a loaded machine's drive process may answer past the grace)
+    assert driver.counters.late <= stale * N
+    driver.exchange(torque)  # the blocking cycle again, once the overlapped one is closed

@@ -305,10 +305,10 @@ def test_overruns_move_the_reference_on_wall_time_but_not_on_cycles(time_base: s
     class SlowBus(FakeJointBus):
         calls = 0
 
-        def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
+        def _cycle_internal(self, setpoint_nm: np.ndarray) -> DriveFeedback:  # both cycle kinds
             self.calls += 1
             now[0] += 0.0025 if self.calls % 10 == 0 else 0.0002
-            return super().exchange(torque_nm)
+            return super()._cycle_internal(setpoint_nm)
 
     bus = SlowBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
     config = parse_runtime_config(
@@ -384,3 +384,41 @@ def test_the_condition_table_is_built_before_the_drives_are_enabled(monkeypatch:
     rt.run(max_cycles=10)
     assert tables == [False]  # the run reads rows; it builds none
     rt.shutdown()
+
+
+@pytest.mark.parametrize("exchange", ["auto", "overlap", "wait"])
+def test_clock_pacing_overlaps_cycles_unless_told_to_wait(exchange: str) -> None:
+    """Clock pacing (auto, overlap): each cycle collects the feedback of the SYNC the cycle before
+    sent, computes, sends; the first only sends the set-point computed at activation. Waiting
+    cycles call exchange(). Either way the reference rows run on, one per period, from row 1."""
+    now = [0.0]
+    calls: list[str] = []
+
+    class CountingBus(FakeJointBus):
+        def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
+            calls.append("exchange")
+            return super().exchange(torque_nm)
+
+        def send(self, torque_nm: np.ndarray) -> None:
+            calls.append("send")
+            super().send(torque_nm)
+
+        def collect(self) -> DriveFeedback:
+            calls.append("collect")
+            return super().collect()
+
+    bus = CountingBus(6, period_s=0.001, inertia_kgm2=INERTIA, max_torque_nm=MAX_TORQUE_NM, initial_position_rad=Q0_RAD)
+    config = parse_runtime_config(config_dict(loop={"pacing": "clock", "exchange": exchange}), "rt.yaml")
+    rt = Runtime(config, bus, record_cycles=200, clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
+    rt.configure()
+    rt.activate()
+    calls.clear()
+    rt.run(max_cycles=50)
+    rows = np.round(rt.record.t_s[: rt.record.n] / 0.001).astype(int)
+    if exchange == "wait":
+        assert calls == ["exchange"] * 50
+        assert rows.tolist() == list(range(51))
+    else:
+        assert calls == ["send"] + ["collect", "send"] * 49 + ["collect"]  # the last SYNC closed at the end
+        assert rows.tolist() == list(range(50))  # row 0 at activation, then one per computing cycle
+    assert rt.lifecycle.state is LifecycleState.ACTIVE and bus.enabled
