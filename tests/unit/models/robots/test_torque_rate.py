@@ -126,3 +126,14 @@ def test_the_deployable_hmpc_stays_inside_the_limits_under_the_real_bound(robot_
         steps = np.abs(np.diff(traj.tau[0], axis=0))
         assert (steps <= max_torque_step_nm(robot.torque_rate_nm_s, 1e-3) * (1 + 1e-9)).all()
     assert ratio[options["prediction_step_s"]] < 1.0 < ratio[1e-3], ratio
+
+
+def test_a_bad_rule_in_the_registry_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    from models.errors import ModelInputError
+    from models.robots import description
+
+    where, ee, _ = description._BUILTIN["panda"]
+    monkeypatch.setitem(description._BUILTIN, "panda", (where, ee, "fast"))
+    with pytest.raises(ModelInputError, match=r"robots.yaml: panda: torque_rate: .*unknown rule 'fast'") as info:
+        load_robot("panda")
+    assert "\n" not in str(info.value)
