@@ -30,7 +30,18 @@ N = 6
 def _driver(bus_dir: Path, fd: bool) -> Iterator[DriveBus]:
     """A DriveBus on the ipc bus, enabled, against N emulated drives in a process of their own."""
     with drive_process("--drives", str(N), "--ipc-dir", str(bus_dir), *([] if fd else ["--classical"])):
-        config = drive_bus_config("unused", N, fd, transport={"interface": "ipc", "channel": str(bus_dir)})
+        # Heartbeats every 100 ms (the guard judges their rate over 20 periods: 2 s): tracemalloc's
+        # snapshots stall this process for hundreds of ms on a loaded machine, and the heartbeats
+        # queued meanwhile are dated by their arrival here (the ipc bus stamps the receive), so a
+        # 0.4 s window saw a burst, a second sender (CI, 2026-11-26 23:50).
+        config = drive_bus_config(
+            "unused",
+            N,
+            fd,
+            transport={"interface": "ipc", "channel": str(bus_dir)},
+            heartbeat_producer_ms=100,
+            heartbeat_timeout_s=1.0,
+        )
         bus = DriveBus(config)
         bus.connect()
         try:
