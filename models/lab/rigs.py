@@ -292,9 +292,15 @@ class DaemonRig:
 
 @contextlib.contextmanager
 def daemon_rig(
-    work: Path, *, watchdog_usec: int = 200_000, bus: dict[str, Any] | None = None, telemetry: bool = True
+    work: Path,
+    *,
+    watchdog_usec: int = 200_000,
+    bus: dict[str, Any] | None = None,
+    telemetry: bool = True,
+    telemetry_lease_s: float | None = None,
 ) -> Iterator[DaemonRig]:
-    """``hil target serve`` (ipc bus) and ``hil run`` as two processes, sd_notify to a socket of ours."""
+    """``hil target serve`` (ipc bus) and ``hil run`` as two processes, sd_notify to a socket of ours.
+    ``telemetry_lease_s``: how long subscribers keep a silent runtime's link (a case that stops it)."""
     from sim_target.launch import launch_target
     from sim_target.testing.hil_target import start_hil_run
 
@@ -305,6 +311,8 @@ def daemon_rig(
         data = runtime_config_dict(
             dict(target.transport), PD_BUNDLE, port if telemetry else None, bus=bus, control_socket=str(sock)
         )
+        if telemetry and telemetry_lease_s is not None:
+            data["telemetry"]["lease_s"] = telemetry_lease_s
         config_path = work / "runtime.yaml"
         config_path.write_text(yaml.safe_dump(data))
         notify = NotifyListener(work / "notify.sock")

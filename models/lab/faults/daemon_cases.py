@@ -111,7 +111,10 @@ def loop_stall(name: str, repeat: int, seed: int, work: Path) -> CaseResult:
     comm_loss_s = 0.3
     stall_s = comm_loss_s + 0.7 + float(rng.uniform(0.0, 0.3))
     bus = {**DAEMON_BUS, "comm_loss_timeout_s": comm_loss_s}
-    with rigs.daemon_rig(work, watchdog_usec=watchdog_usec, bus=bus) as rig:
+    # The telemetry link must outlive the stop (Zenoh's lease, 1 s by default, is shorter than the
+    # 1.0-1.3 s stall): the case checks the runtime's fault event, not Zenoh's reconnection (a CI
+    # run lost the event once, 2026-11-26).
+    with rigs.daemon_rig(work, watchdog_usec=watchdog_usec, bus=bus, telemetry_lease_s=stall_s + 2.0) as rig:
         status = rig.wait_status(
             lambda s: s.get("state") == "FAULT" or (s.get("state") == "ACTIVE" and s.get("cycles", 0) > 300), 120
         )
