@@ -207,9 +207,7 @@ class JointBusBase(abc.ABC):
 
     def exchange(self, torque_nm: np.ndarray) -> DriveFeedback:
         """One control cycle: send the torque set-points, return this cycle's feedback (see class doc)."""
-        if not self._enabled:
-            self._raise_pending()
-            raise DriveStateError("drives are not enabled: call enable() first")
+        self._require_enabled()
         if self._sent:
             raise DriveStateError("exchange() while an overlapped cycle waits for collect()")
         try:
@@ -221,8 +219,7 @@ class JointBusBase(abc.ABC):
             self._raise_pending()
             self._supervise(feedback)
         except FATAL_ERRORS:
-            self._enabled = False
-            self._fail_safe()
+            self._stop_for_fatal()
             raise
         return feedback
 
@@ -231,9 +228,7 @@ class JointBusBase(abc.ABC):
         once; :meth:`collect` returns that SYNC's feedback. The checks and the fail-safe of
         :meth:`exchange` apply to both halves. A real master's sequence (read the inputs, compute,
         write the outputs), so the drives' answer time is not in the caller's cycle."""
-        if not self._enabled:
-            self._raise_pending()
-            raise DriveStateError("drives are not enabled: call enable() first")
+        self._require_enabled()
         if self._sent:
             raise DriveStateError("send() twice without collect(): one SYNC at a time")
         try:
@@ -241,8 +236,7 @@ class JointBusBase(abc.ABC):
             self._send_internal(setpoint)
             self._sent = True
         except FATAL_ERRORS:
-            self._enabled = False
-            self._fail_safe()
+            self._stop_for_fatal()
             raise
 
     def collect(self) -> DriveFeedback:
@@ -256,10 +250,20 @@ class JointBusBase(abc.ABC):
             self._raise_pending()
             self._supervise(feedback)
         except FATAL_ERRORS:
-            self._enabled = False
-            self._fail_safe()
+            self._stop_for_fatal()
             raise
         return feedback
+
+    def _require_enabled(self) -> None:
+        """DriveStateError unless enabled (a pending error from a receiving thread first)."""
+        if not self._enabled:
+            self._raise_pending()
+            raise DriveStateError("drives are not enabled: call enable() first")
+
+    def _stop_for_fatal(self) -> None:
+        """A fatal error in a cycle (:data:`drivers.errors.FATAL_ERRORS`): quick stop, not enabled."""
+        self._enabled = False
+        self._fail_safe()
 
     def _checked_setpoint(self, torque_nm: np.ndarray, name: str) -> np.ndarray:
         """``torque_nm`` clipped to the joints' limits, in the set-point buffer; refuses bad input."""

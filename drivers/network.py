@@ -202,24 +202,25 @@ class DriveNetwork:
         except Exception as exc:  # any backend failure is a transport error
             raise TransportError(f"receiving failed: {exc}") from exc
 
+    def receive_one(self, timeout_s: float) -> bool:
+        """Under rx_lock: wait up to ``timeout_s`` for the next datagram (the raw path) or frame and
+        hand it to its service; False when none came."""
+        if self.raw:
+            got = self.recv_frames(timeout_s)
+            if got is None:
+                return False
+            self.dispatch_frames(got[0], got[1], time.monotonic())
+            return True
+        msg = self.recv(timeout_s)
+        if msg is None:
+            return False
+        self.dispatch(msg, time.monotonic())
+        return True
+
     def drain(self) -> None:
         """Under rx_lock: handle every frame already queued, without waiting."""
-        monotonic = time.monotonic
-        if self.raw:
-            recv_frames = self.recv_frames
-            dispatch_frames = self.dispatch_frames
-            while True:
-                got = recv_frames(0.0)
-                if got is None:
-                    return
-                dispatch_frames(got[0], got[1], monotonic())
-        recv = self.recv
-        dispatch = self.dispatch
-        while True:
-            msg = recv(0.0)
-            if msg is None:
-                return
-            dispatch(msg, monotonic())
+        while self.receive_one(0.0):
+            pass
 
     # --- background thread -----------------------------------------------------------------------
 

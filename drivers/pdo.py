@@ -171,10 +171,7 @@ class CyclicExchange:
         monotonic = time.monotonic
         with network.rx_lock:
             try:
-                if network.raw:
-                    self._receive_frames(deadline)
-                else:
-                    self._receive(deadline)
+                self._receive(deadline)
             finally:
                 self._open = False
             now = monotonic()
@@ -231,34 +228,13 @@ class CyclicExchange:
         return self._batch
 
     def _receive(self, deadline: float) -> None:
-        """Every TPDO of the open cycle, or until ``deadline``: one message at a time."""
-        network = self.network
+        """Every TPDO of the open cycle, or until ``deadline`` (monotonic)."""
+        receive_one = self.network.receive_one
         monotonic = time.monotonic
-        dispatch = network.dispatch
-        recv = network.recv
         while self._pending > 0:
             remaining = deadline - monotonic()
-            if remaining <= 0:
+            if remaining <= 0 or not receive_one(remaining):
                 break
-            msg = recv(remaining)
-            if msg is None:
-                break
-            dispatch(msg, monotonic())
-
-    def _receive_frames(self, deadline: float) -> None:
-        """The same on the raw path: whole datagrams, undecoded."""
-        network = self.network
-        monotonic = time.monotonic
-        dispatch_frames = network.dispatch_frames
-        recv_frames = network.recv_frames
-        while self._pending > 0:
-            remaining = deadline - monotonic()
-            if remaining <= 0:
-                break
-            got = recv_frames(remaining)
-            if got is None:
-                break
-            dispatch_frames(got[0], got[1], monotonic())
 
     # --- TPDO handlers (under the receive lock) --------------------------------------------------
 

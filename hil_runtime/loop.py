@@ -51,6 +51,14 @@ from hil_runtime.telemetry.sink import CycleState, NullTelemetry, TelemetrySink
 log = logging.getLogger(__name__)
 
 
+def bus_fault(exc: Exception, what: str) -> Fault:
+    """The FAULT a failed bus call ends the loop with: a DriveError's kind (the driver has
+    quick-stopped the drives already), anything else INTERNAL (``what``: which call)."""
+    if isinstance(exc, DriveError):
+        return classify_bus_error(exc)
+    return Fault(FaultKind.INTERNAL, f"{what}: {exc!r}")
+
+
 class CycleReadings(Protocol):
     """What the pipeline reads of a cycle's feedback (a JointFeedback has it)."""
 
@@ -243,12 +251,8 @@ class ActiveLoop:
                         bus.send(command)
                         sent = True
                         continue
-                except DriveError as exc:  # the driver has quick-stopped the drives already
-                    self.fault = classify_bus_error(exc)
-                    reason = "fault"
-                    break
                 except Exception as exc:  # noqa: BLE001 - nothing may crash the loop
-                    self.fault = Fault(FaultKind.INTERNAL, f"exchange: {exc!r}")
+                    self.fault = bus_fault(exc, "exchange")
                     reason = "fault"
                     break
                 received = clock()
@@ -268,12 +272,8 @@ class ActiveLoop:
                     try:
                         bus.send(command)
                         sent = True
-                    except DriveError as exc:
-                        self.fault = classify_bus_error(exc)
-                        reason = "fault"
-                        break
                     except Exception as exc:  # noqa: BLE001 - nothing may crash the loop
-                        self.fault = Fault(FaultKind.INTERNAL, f"send: {exc!r}")
+                        self.fault = bus_fault(exc, "send")
                         reason = "fault"
                         break
                     exchange_s += clock() - send_start  # collect + send: the bus's share of the cycle

@@ -25,18 +25,13 @@ import numpy as np
 
 from drivers.cia402 import frames as fr
 from drivers.cia402.state_machine import (
-    STATUS_BITS,
-    SW_FOLLOWS_COMMAND,
-    SW_INTERNAL_LIMIT,
-    SW_REMOTE,
-    SW_VOLTAGE_ENABLED,
     State,
 )
 from drivers.ipc.frame import FrameBatch
 from sim_target.emulated import pdo
 from sim_target.emulated.link import FrameLink
 from sim_target.emulated.node import EmulatedDrive
-from sim_target.emulated.p402 import statusword
+from sim_target.emulated.p402 import WORD_ENABLED, WORD_LIMITED, statusword
 from sim_target.emulated.rawbus import frame_sender
 
 log = logging.getLogger(__name__)
@@ -44,9 +39,6 @@ log = logging.getLogger(__name__)
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 INT16_MIN, INT16_MAX = -32768, 32767
 
-# The statusword of an enabled drive (the cyclic case), without and with the internal-limit bit.
-_WORD_ENABLED = STATUS_BITS[State.OPERATION_ENABLED] | SW_REMOTE | SW_VOLTAGE_ENABLED | SW_FOLLOWS_COMMAND
-_WORD_LIMITED = _WORD_ENABLED | SW_INTERNAL_LIMIT
 
 Feedback = tuple[np.ndarray, np.ndarray, np.ndarray]  # position_rad, velocity_rad_s, torque_nm
 
@@ -158,7 +150,7 @@ class SyncAnswer:
             ):
                 return False
             if drive.state is enabled:
-                word = _WORD_LIMITED if drive.limited else _WORD_ENABLED
+                word = WORD_LIMITED if drive.limited else WORD_ENABLED
             else:
                 word = statusword(drive)
             cpr = drive.counts_per_rad

@@ -27,14 +27,17 @@ _VOLTAGE_STATES = frozenset(
 ABORT_REACTIONS = {0: "none", 1: "fault", 2: "disable voltage", 3: "quick stop"}
 
 
+# The statusword of an enabled drive (the cyclic case), without and with the internal-limit bit.
+WORD_ENABLED = STATUS_BITS[State.OPERATION_ENABLED] | SW_REMOTE | SW_VOLTAGE_ENABLED | SW_FOLLOWS_COMMAND
+WORD_LIMITED = WORD_ENABLED | SW_INTERNAL_LIMIT
+
+
 def statusword(drive: EmulatedDrive) -> int:
+    if drive.state is State.OPERATION_ENABLED:
+        return WORD_LIMITED if drive.limited else WORD_ENABLED
     word = STATUS_BITS.get(drive.state, 0) | SW_REMOTE
     if drive.state in _VOLTAGE_STATES:
         word |= SW_VOLTAGE_ENABLED
-    if drive.state is State.OPERATION_ENABLED:
-        word |= SW_FOLLOWS_COMMAND
-        if drive.limited:
-            word |= SW_INTERNAL_LIMIT
     return word
 
 
