@@ -2,9 +2,11 @@
 
 Runs the shipped bundles' controller (models.lmpc.LMPCController, which is hil_runtime.bundle's
 single-row path) in a closed loop on the paper's condition C1 and reports the per-call time, plus
-the bare ``PolicyBundle.step`` time. Prints JSON.
+the bare ``PolicyBundle.step`` time, each also as a ratio to onnxruntime's floor for the graph's node
+count (a chain of as many Adds as the bundle has compute nodes, timed alternately with the bare step in
+the same run: issue 24's t_L target is controller call median <= 2x that floor). Prints JSON.
 
-    python benchmarks/bench_lmpc.py [--cycles 3000] [--bundles models/bundles]
+    python benchmarks/bench_lmpc.py [--cycles 3000] [--bundles models/bundles] [--robot ur5_paper|ur5|panda]
     python benchmarks/bench_lmpc.py --fallbacks      # + trust-region counters on the paper's 5 conditions
     python benchmarks/bench_lmpc.py --session-sweep  # + each graph under onnxruntime's optimization levels
     python benchmarks/bench_lmpc.py --compact        # shipped graph vs today's graph code, interleaved
@@ -36,6 +38,7 @@ import argparse
 import json
 import os
 import platform
+import tempfile
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -53,6 +56,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--cycles", type=int, default=3000)
     parser.add_argument("--bundles", type=Path, default=None)
+    parser.add_argument("--robot", default="ur5_paper", help="the robot whose shipped bundles are timed")
     parser.add_argument("--laws", default="pd,pid,adrc,hinf,smc,mrac")
     parser.add_argument(
         "--fallbacks", action="store_true", help="also count trust-region fallbacks on the paper's conditions"
@@ -101,38 +105,40 @@ def main() -> None:
         return
 
     from hil_runtime.bundle import PolicyBundle
-    from models.conditions import load_conditions
+    from models.cli.options import gain_set_for
+    from models.default_conditions import default_conditions
     from models.feedback import make_law
     from models.lmpc import make_lmpc_controller
     from models.lmpc.controller import bundle_path
     from models.robots import load_robot
     from models.sim import SimConfig, simulate
 
-    robot = load_robot("ur5_paper")
-    condition = load_conditions()[0]
+    robot = load_robot(args.robot)
+    condition = default_conditions(robot)[0]
     sim = SimConfig()
     short = replace(condition, duration_s=args.cycles * sim.period_s)
     out: dict = {
-        "what": "t_L per control cycle, one arm, onnxruntime 1 intra-op thread",
+        "what": "t_L per control cycle, one arm, onnxruntime 1 intra-op thread; floor_ratio: t_L median over the "
+        "median run of a graph of as many chained Adds as the bundle has compute nodes (the onnxruntime floor for "
+        "that node count), timed in the same run",
+        "robot": robot.name,
         "cycles": args.cycles,
         "laws": {},
     }
     for law_name in args.laws.split(","):
-        law = make_law(law_name, robot, sim.period_s)
-        controller = make_lmpc_controller(law, robot, bundle_dir=args.bundles)
-        simulate(robot, controller, [short], sim)
-        closed = np.asarray(controller.cycle_times_s[100:]) * 1e6
+        law = make_law(law_name, robot, sim.period_s, gain_set_for(robot.name, None))
         bundle = PolicyBundle.load(bundle_path(robot.name, law_name, args.bundles))
-        state = bundle.initial_state(np.zeros(6))
-        q = np.full(6, 0.1)
-        import time
-
-        bare = []
-        for _ in range(args.cycles):
-            start = time.perf_counter()
-            bundle.step(q, q, q, q, q, state)
-            bare.append(time.perf_counter() - start)
-        bare_us = np.asarray(bare[100:]) * 1e6
+        graph = bundle.path / bundle.manifest.graph.file
+        with tempfile.TemporaryDirectory() as tmp:
+            floor_graph = Path(tmp) / "adds.onnx"
+            one_node_graph(floor_graph, width=robot.n_joints, nodes=max(_nodes(graph, compute_only=True), 1))
+            floor_run = bound_runner(make_session(str(floor_graph)), robot.n_joints)
+            controller = _FloorAfterEachCall(make_lmpc_controller(law, robot, bundle_dir=args.bundles), floor_run)
+            simulate(robot, controller, [short], sim)
+            bare_us, floor_us = _bare_step_and_floor_us(bundle, robot.n_joints, floor_run, args.cycles)
+        closed = np.asarray(controller.cycle_times_s[100:]) * 1e6
+        closed_floor = np.asarray(controller.floor_times_s[100:]) * 1e6
+        floor_median = float(np.median(floor_us))
         out["laws"][law_name] = {
             "controller_call_us": {
                 "median": float(np.median(closed)),
@@ -140,8 +146,18 @@ def main() -> None:
                 "max": float(closed.max()),
             },
             "bundle_step_us": {"median": float(np.median(bare_us)), "p99": float(np.percentile(bare_us, 99))},
-            "graph_nodes": _nodes(bundle.path / bundle.manifest.graph.file),
-            "compute_nodes": _nodes(bundle.path / bundle.manifest.graph.file, compute_only=True),
+            # the floor graph run right after each call (closed loop) and after each bare step
+            "node_floor_us": {
+                "closed_loop_median": float(np.median(closed_floor)),
+                "bare_median": floor_median,
+                "bare_p99": float(np.percentile(floor_us, 99)),
+            },
+            "floor_ratio": {
+                "controller_call": float(np.median(closed)) / float(np.median(closed_floor)),
+                "bundle_step": float(np.median(bare_us)) / floor_median,
+            },
+            "graph_nodes": _nodes(graph),
+            "compute_nodes": _nodes(graph, compute_only=True),
             "design": bundle.manifest.training.get("design", "mlp"),
         }
         if args.session_sweep:
@@ -188,6 +204,47 @@ def trust_counts(laws: list[str], bundles: Path | None) -> dict:
             "within_limits": [bool(v) for v in traj.within_limits],
         }
     return out
+
+
+class _FloorAfterEachCall:
+    """The experiment's controller, with the node-count floor graph run (and timed) right after each call:
+    both see the same closed loop's caches."""
+
+    def __init__(self, inner: Any, floor_run: Callable[[], object]) -> None:
+        self.inner, self.floor_run = inner, floor_run
+        self.floor_times_s: list[float] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def __call__(self, *args: Any) -> Any:
+        import time
+
+        tau = self.inner(*args)
+        start = time.perf_counter()
+        self.floor_run()
+        self.floor_times_s.append(time.perf_counter() - start)
+        return tau
+
+
+def _bare_step_and_floor_us(
+    bundle: PolicyBundle, n_joints: int, floor_run: Callable[[], object], cycles: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``bundle.step`` (the runtime's single-row call) and the floor graph timed alternately, ``cycles`` each
+    (the first 100 dropped), in us."""
+    import time
+
+    state = bundle.initial_state(np.zeros(n_joints))
+    q = np.full(n_joints, 0.1)
+    bare, floor = [], []
+    for _ in range(cycles):
+        start = time.perf_counter()
+        bundle.step(q, q, q, q, q, state)
+        middle = time.perf_counter()
+        floor_run()
+        floor.append(time.perf_counter() - middle)
+        bare.append(middle - start)
+    return np.asarray(bare[100:]) * 1e6, np.asarray(floor[100:]) * 1e6
 
 
 def _nodes(path: Path, compute_only: bool = False) -> int:
