@@ -37,14 +37,26 @@ def _physics_terms(robot: RobotModel, s: np.ndarray, ff_point: str) -> tuple[np.
 
 
 def train_structured(
-    robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig, log: Callable[[str], None] = print
+    robot: RobotModel,
+    s: np.ndarray,
+    y: np.ndarray,
+    config: StructuredConfig,
+    log: Callable[[str], None] = print,
+    tau_prev: np.ndarray | None = None,
 ) -> tuple[StructuredEmulator, dict[str, Any]]:
-    """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb."""
+    """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb.
+
+    ``config.previous_torque`` (``tau_prev`` (B, N): each row's tau_0): the prediction is the rate-aware
+    step tau_prev + clip(beta (tau_fb + r - tau_prev), +-step) (StructuredEmulator.rate_step_from, alpha =
+    1), beta fitted with the physics coefficients, the residual MLP through the same step; the loss is then
+    relative to the label's own step from tau_prev (1: predicting no change)."""
     torch.manual_seed(config.seed)
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
     bound = config.residual_bound_fraction * limit
-    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)
+    model = StructuredEmulator(
+        robot, config.hidden, bound, config.ff_point, config.c_max, config.previous_torque, config.period_s
+    )
     if config.c_fixed is not None:
         with torch.no_grad():
             model.c.fill_(config.c_fixed)
@@ -58,16 +70,31 @@ def train_structured(
     st, yt = torch.as_tensor(s), torch.as_tensor(y)
     mt, ht = torch.as_tensor(mass), torch.as_tensor(bias)
     q, e, qd, e_dot, qdd_d, tau_fb = (st[:, i * n : (i + 1) * n] for i in range(6))
+    rate = model.previous_torque
+    if rate and tau_prev is None:
+        raise ValueError("train_structured: a rate-aware emulator (config.previous_torque) needs tau_prev")
+    prev_t = torch.as_tensor(tau_prev) if rate and tau_prev is not None else tau_fb
+    one = torch.ones(1, dtype=torch.float64)
+
+    def through(r: torch.Tensor, rows: Any = slice(None)) -> torch.Tensor:
+        """The prediction of y for residual r: r itself, or the rate-aware step from tau_prev."""
+        if not rate:
+            return r
+        return model.rate_step_from(tau_fb[rows] + r, prev_t[rows], one) - tau_fb[rows]
 
     def physics_fast() -> torch.Tensor:
         c, g, kp, kd = model.coefficients()
         accel = qdd_d + e @ kp.T + e_dot @ kd.T
         tau_id = (mt @ accel.unsqueeze(-1)).squeeze(-1) + ht
-        return c * tau_fb + g * tau_id
+        return through(c * tau_fb + g * tau_id)
 
     params = [p for p in (model.c, model.g, model.theta_kp, model.theta_kd) if p.requires_grad]
-    # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0)
-    denom = float(torch.mean((yt * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
+    if rate:
+        params.append(model.beta)
+    # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0); rate-aware: to the
+    # label's step from tau_prev
+    reference = yt - (prev_t - tau_fb) if rate else yt
+    denom = float(torch.mean((reference * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
     started = time.perf_counter()
     # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the bounds:
     # the control row's optimum c = g = 0 sits on them)
@@ -104,11 +131,14 @@ def train_structured(
     with torch.no_grad():
         physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)
         remainder = (yt - physics_fast()).detach()
+        model.use_residual = False
+        static = model(st).detach()  # the physics part's r (frozen), under the residual MLP's step
     coef = [t.detach().numpy() for t in model.coefficients()]
     log(
         f"  physics fit: relative loss {physics_loss:.4f}; c {np.round(coef[0], 3).tolist()} "
         f"g {np.round(coef[1], 3).tolist()} "
         f"diag Kp {np.round(np.diag(coef[2]), 1).tolist()} diag Kd {np.round(np.diag(coef[3]), 1).tolist()}"
+        + (f" beta {np.round(model.beta.detach().numpy(), 3).tolist()}" if rate else "")
     )
     # residual MLP on what the physics leaves, bounded by construction
     model.in_mean.copy_(st.mean(0))
@@ -123,7 +153,11 @@ def train_structured(
     sn = (st - model.in_mean) / model.in_std
 
     def residual(idx: np.ndarray) -> torch.Tensor:
-        return bound_t * torch.tanh(model.net(sn[idx]) / bound_t)
+        """The MLP's share of y on rows idx: its bounded output, or (rate-aware) what it adds through the step."""
+        out = bound_t * torch.tanh(model.net(sn[idx]) / bound_t)
+        if not rate:
+            return out
+        return through(static[idx] + out, idx) - through(static[idx], idx)
 
     best, best_state = float("inf"), None
     residual_history = []
@@ -156,6 +190,11 @@ def train_structured(
             "kp_1_s2": coef[2].tolist(),
             "kd_1_s": coef[3].tolist(),
             "relative_loss": physics_loss,
+            **(
+                {"beta": model.beta.detach().numpy().tolist(), "rate_step_nm": model.rate_step.numpy().tolist()}
+                if rate
+                else {}
+            ),
         },
         "residual": {
             "hidden": list(config.hidden),
@@ -165,7 +204,10 @@ def train_structured(
             "val_relative_loss": best,
             "history": residual_history,
         },
-        "loss": "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_fb) / M_ii(0))^2)",
+        "loss": "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_fb) / M_ii(0))^2)"
+        if not rate
+        else "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_prev) / M_ii(0))^2), pred = "
+        "tau_prev + clip(beta (tau_fb + r - tau_prev), +-step) - tau_fb",
         "samples": int(len(s)),
         "train_s": time.perf_counter() - started,
     }
