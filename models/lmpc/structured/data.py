@@ -148,13 +148,7 @@ def collect(
             log["tau_star"] = relabel(law, robot, log, config.hmpc_options, executor, previous=config.previous_torque)
         elif config.target == "law":
             log["tau_star"] = log["tau_fb"].copy()
-        if policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc" and config.previous_torque:
-            # the rate-aware emulator: copies relabeled given a moved tau_0 (rate_copies), not the cold static
-            # optimum (without tau_0 the HMPC drops its smoothness term: another controller)
-            rate = rate_copies(law, robot, log, config)
-            rate["tau_star"] = relabel(law, robot, rate, config.hmpc_options, executor, previous=True)
-            log = {k: np.concatenate([log[k], rate[k]]) for k in log}
-        elif policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc":
+        if policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc":
             extra = perturbed(
                 log, config.perturbed_copies, config.perturb_error_rad, config.perturb_rate_rad_s, config.seed + 17
             )
@@ -166,6 +160,11 @@ def collect(
                     float,
                 )
             extra["tau_star"] = relabel(law, robot, extra, config.hmpc_options, executor)
+            if config.previous_torque:  # cold copies: the static optimum; rate copies: given a moved tau_0
+                extra["row_kind"] = np.full((len(extra["q"]), 1), ROW_KINDS["static"])
+                rate = rate_copies(law, robot, log, config)
+                rate["tau_star"] = relabel(law, robot, rate, config.hmpc_options, executor, previous=True)
+                extra = {k: np.concatenate([extra[k], rate[k]]) for k in extra}
             log = {k: np.concatenate([log[k], extra[k]]) for k in log}
         data[name] = log
     return data
@@ -270,12 +269,18 @@ _DATA_FIELDS = (
     "previous_torque",
     "rate_copy_stride",
     "rate_perturb_steps",
+    "rate_data",
 )
+
+
+#: the rate-aware recipe's version in the cache key (2: static and rate copies; 1, rate copies only, is stale)
+RATE_DATA_VERSION = 2
 
 
 def _data_key(config: StructuredConfig) -> str:
     """What the rollouts depend on (a cache made with other settings is not reused)."""
-    return json.dumps({k: jsonable_config(config)[k] for k in _DATA_FIELDS}, sort_keys=True)
+    values = {**jsonable_config(config), "rate_data": RATE_DATA_VERSION if config.previous_torque else 0}
+    return json.dumps({k: values[k] for k in _DATA_FIELDS}, sort_keys=True)
 
 
 def _cached_rollouts(

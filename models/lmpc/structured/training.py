@@ -37,26 +37,14 @@ def _physics_terms(robot: RobotModel, s: np.ndarray, ff_point: str) -> tuple[np.
 
 
 def train_structured(
-    robot: RobotModel,
-    s: np.ndarray,
-    y: np.ndarray,
-    config: StructuredConfig,
-    log: Callable[[str], None] = print,
-    tau_prev: np.ndarray | None = None,
+    robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig, log: Callable[[str], None] = print
 ) -> tuple[StructuredEmulator, dict[str, Any]]:
-    """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb.
-
-    ``config.previous_torque`` (``tau_prev`` (B, N): each row's tau_0): the prediction is the rate-aware
-    step tau_prev + clip(beta (tau_fb + r - tau_prev), +-step) (StructuredEmulator.rate_step_from, alpha =
-    1), beta fitted with the physics coefficients, the residual MLP through the same step; the loss is then
-    relative to the label's own step from tau_prev (1: predicting no change)."""
+    """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb."""
     torch.manual_seed(config.seed)
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
     bound = config.residual_bound_fraction * limit
-    model = StructuredEmulator(
-        robot, config.hidden, bound, config.ff_point, config.c_max, config.previous_torque, config.period_s
-    )
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)  # the static part
     if config.c_fixed is not None:
         with torch.no_grad():
             model.c.fill_(config.c_fixed)
@@ -70,31 +58,16 @@ def train_structured(
     st, yt = torch.as_tensor(s), torch.as_tensor(y)
     mt, ht = torch.as_tensor(mass), torch.as_tensor(bias)
     q, e, qd, e_dot, qdd_d, tau_fb = (st[:, i * n : (i + 1) * n] for i in range(6))
-    rate = model.previous_torque
-    if rate and tau_prev is None:
-        raise ValueError("train_structured: a rate-aware emulator (config.previous_torque) needs tau_prev")
-    prev_t = torch.as_tensor(tau_prev) if rate and tau_prev is not None else tau_fb
-    one = torch.ones(1, dtype=torch.float64)
-
-    def through(r: torch.Tensor, rows: Any = slice(None)) -> torch.Tensor:
-        """The prediction of y for residual r: r itself, or the rate-aware step from tau_prev."""
-        if not rate:
-            return r
-        return model.rate_step_from(tau_fb[rows] + r, prev_t[rows], one) - tau_fb[rows]
 
     def physics_fast() -> torch.Tensor:
         c, g, kp, kd = model.coefficients()
         accel = qdd_d + e @ kp.T + e_dot @ kd.T
         tau_id = (mt @ accel.unsqueeze(-1)).squeeze(-1) + ht
-        return through(c * tau_fb + g * tau_id)
+        return c * tau_fb + g * tau_id
 
     params = [p for p in (model.c, model.g, model.theta_kp, model.theta_kd) if p.requires_grad]
-    if rate:
-        params.append(model.beta)
-    # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0); rate-aware: to the
-    # label's step from tau_prev
-    reference = yt - (prev_t - tau_fb) if rate else yt
-    denom = float(torch.mean((reference * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
+    # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0)
+    denom = float(torch.mean((yt * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
     started = time.perf_counter()
     # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the bounds:
     # the control row's optimum c = g = 0 sits on them)
@@ -131,14 +104,11 @@ def train_structured(
     with torch.no_grad():
         physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)
         remainder = (yt - physics_fast()).detach()
-        model.use_residual = False
-        static = model(st).detach()  # the physics part's r (frozen), under the residual MLP's step
     coef = [t.detach().numpy() for t in model.coefficients()]
     log(
         f"  physics fit: relative loss {physics_loss:.4f}; c {np.round(coef[0], 3).tolist()} "
         f"g {np.round(coef[1], 3).tolist()} "
         f"diag Kp {np.round(np.diag(coef[2]), 1).tolist()} diag Kd {np.round(np.diag(coef[3]), 1).tolist()}"
-        + (f" beta {np.round(model.beta.detach().numpy(), 3).tolist()}" if rate else "")
     )
     # residual MLP on what the physics leaves, bounded by construction
     model.in_mean.copy_(st.mean(0))
@@ -153,11 +123,7 @@ def train_structured(
     sn = (st - model.in_mean) / model.in_std
 
     def residual(idx: np.ndarray) -> torch.Tensor:
-        """The MLP's share of y on rows idx: its bounded output, or (rate-aware) what it adds through the step."""
-        out = bound_t * torch.tanh(model.net(sn[idx]) / bound_t)
-        if not rate:
-            return out
-        return through(static[idx] + out, idx) - through(static[idx], idx)
+        return bound_t * torch.tanh(model.net(sn[idx]) / bound_t)
 
     best, best_state = float("inf"), None
     residual_history = []
@@ -190,11 +156,6 @@ def train_structured(
             "kp_1_s2": coef[2].tolist(),
             "kd_1_s": coef[3].tolist(),
             "relative_loss": physics_loss,
-            **(
-                {"beta": model.beta.detach().numpy().tolist(), "rate_step_nm": model.rate_step.numpy().tolist()}
-                if rate
-                else {}
-            ),
         },
         "residual": {
             "hidden": list(config.hidden),
@@ -204,11 +165,66 @@ def train_structured(
             "val_relative_loss": best,
             "history": residual_history,
         },
-        "loss": "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_fb) / M_ii(0))^2)"
-        if not rate
-        else "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_prev) / M_ii(0))^2), pred = "
-        "tau_prev + clip(beta (tau_fb + r - tau_prev), +-step) - tau_fb",
+        "loss": "mean(((pred - (tau* - tau_fb)) / M_ii(0))^2) / mean(((tau* - tau_fb) / M_ii(0))^2)",
         "samples": int(len(s)),
         "train_s": time.perf_counter() - started,
     }
     return model.eval(), summary
+
+
+BETA_GRID = 400  # log-spaced candidates of beta per joint in [BETA_MIN, 1]
+
+
+def rate_aware(static: StructuredEmulator, robot: RobotModel, config: StructuredConfig) -> StructuredEmulator:
+    """The rate-aware emulator around a fitted static one (its coefficients, MLP and normalization), beta 1."""
+    bound = static.bound.numpy()
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max, True, config.period_s)
+    model.load_state_dict(static.state_dict(), strict=False)  # everything but beta and the rate step
+    with torch.no_grad():
+        model.beta.fill_(1.0)
+    model.frozen, model.use_residual = static.frozen, static.use_residual
+    return model.eval()
+
+
+def fit_beta(
+    model: StructuredEmulator,
+    s: np.ndarray,
+    tau_prev: np.ndarray,
+    tau_star: np.ndarray,
+    floor: float,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """beta per joint with the static part fixed: each joint's beta minimizes
+    mean((tau_prev + clip(beta (target - tau_prev), +-step) - tau*)^2) over a log grid in [floor, 1]
+    (the joints are independent given the static target; a grid is exact to its spacing). The rows: the
+    expert's closed loop and the rate copies (labels given their tau_0)."""
+    from models.lmpc.structured.model import BETA_MIN
+
+    floor = max(float(floor), BETA_MIN)
+    n = model.n
+    with torch.no_grad():
+        target = s[:, -n:] + model(torch.as_tensor(s)).numpy()
+    step = model.rate_step.numpy()
+    grid = np.exp(np.linspace(np.log(floor), 0.0, BETA_GRID))
+    gap, label = target - tau_prev, tau_star - tau_prev
+    losses = np.stack([np.mean((np.clip(b * gap, -step, step) - label) ** 2, 0) for b in grid])  # (G, N)
+    best = np.argmin(losses, 0)
+    beta = grid[best]
+    denominator = np.mean(label**2, 0) + 1e-30
+    relative, relative_one = losses[best, np.arange(n)] / denominator, losses[-1] / denominator
+    with torch.no_grad():
+        model.beta.copy_(torch.as_tensor(beta))
+    log(
+        f"  rate step: beta {np.round(beta, 3).tolist()}; relative loss {np.round(relative, 3).tolist()} "
+        f"(beta = 1: {np.round(relative_one, 3).tolist()})"
+    )
+    return {
+        "beta": beta.tolist(),
+        "beta_floor": floor,
+        "rate_step_nm": step.tolist(),
+        "relative_loss": relative.tolist(),
+        "relative_loss_beta_1": relative_one.tolist(),
+        "samples": int(len(s)),
+        "loss": "per joint mean((tau_prev + clip(beta (target - tau_prev), +-step) - tau*)^2)"
+        " / mean((tau* - tau_prev)^2)",
+    }

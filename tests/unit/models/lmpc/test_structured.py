@@ -315,13 +315,15 @@ def test_the_rate_aware_pipeline_logs_tau_prev_relabels_given_it_and_fits_beta(t
     summary = run_structured(config, tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
     _, data = pickle.loads((tmp_path / "work" / "rollouts_pd.pkl").read_bytes())
     kind = data["row_kind"][:, 0]
-    assert set(np.unique(kind)) == {ROW_KINDS["on_policy"], ROW_KINDS["rate"]}  # no cold static copies
+    assert set(np.unique(kind)) == set(ROW_KINDS.values())  # on-policy, cold static copies, rate copies
     step = max_torque_step_nm(load_robot("ur5_paper").torque_rate_nm_s, 1e-3)
     change = np.abs(data["tau_star"] - data["tau_prev"])
-    assert (change <= step * (1 + 1e-6)).all()  # every label given its tau_0: the HMPC's rate box
+    given = kind != ROW_KINDS["static"]
+    assert (change[given] <= step * (1 + 1e-6)).all()  # every label given its tau_0: the HMPC's rate box
+    assert (change[~given] > step).any()  # a cold solve has no tau_0: no rate box
     rate = kind == ROW_KINDS["rate"]
     assert (change[rate] >= step * (1 - 1e-6)).any() and (change[rate] < 0.5 * step).any()  # both regimes
-    physics = summary["rounds"][0]["pd"]["fit"]["physics"]
-    assert all(BETA_MIN <= b <= 1.0 for b in physics["beta"])
+    fit = summary["rounds"][0]["pd"]["fit"]["rate"]
+    assert all(max(BETA_MIN, config.beta_floor) <= b <= 1.0 for b in fit["beta"])
     bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6)
     assert bundle.takes_previous_torque
