@@ -38,6 +38,7 @@ import random
 import threading
 import time
 from collections.abc import Callable
+from time import monotonic
 from typing import Any
 
 import can
@@ -77,6 +78,8 @@ _CHECK_PERIOD_S = 0.005  # the master watches are checked at least this often wh
 _DRAIN_MAX = 1000  # frames handled before a check gives up waiting for an empty queue
 _ENABLED = State.OPERATION_ENABLED  # a module global: the enum's class attribute costs more per period
 _NOT_A_DATA_FRAME = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
+_RPDO_LENGTH = fr.RPDO_LENGTH
+_unpack_rpdo = fr.RPDO_STRUCT.unpack
 
 
 class _EmuNetwork(canopen.Network):
@@ -100,7 +103,7 @@ class EmulatedDrives(OneShotFaults):
         self.config = config
         self._bus = bus
         self._sync_handler: Callable[[], None] | None = None
-        self._feedback: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._feedback: tuple[list[float], list[float], list[float]] | None = None
         self.n_joints = len(config.node_ids)
         self._sync_counter = 0  # counter byte of the last SYNC (0: the SYNC carried none)
         self._link = FrameLink(bus)
@@ -142,6 +145,8 @@ class EmulatedDrives(OneShotFaults):
             self._objects.reset(drive, communication_only=False)
         # cob-id -> (handler, drive); a handler returns False for a malformed frame.
         self._by_cob: dict[int, tuple[Callable[[EmulatedDrive, bytes | bytearray], bool | None], EmulatedDrive]] = {}
+        # The RPDOs again, for the raw path's inlined reception (_handle_frames)
+        self._rpdo_drive = {fr.RPDO1_BASE + drive.node_id: drive for drive in self._drives}
         for drive in self._drives:
             self._by_cob[fr.RPDO1_BASE + drive.node_id] = (pdo.on_rpdo, drive)
             self._by_cob[fr.SDO_RX_BASE + drive.node_id] = (self._on_sdo, drive)
@@ -227,10 +232,15 @@ class EmulatedDrives(OneShotFaults):
         """The joint state the TPDOs answering the current (inside the SYNC handler) or next SYNC
         carry. Sync TPDOs only ever go out on SYNC (CiA 301)."""
         self._feedback = (
-            np.asarray(state.position_rad, dtype=np.float64),
-            np.asarray(state.velocity_rad_s, dtype=np.float64),
-            np.asarray(state.torque_nm, dtype=np.float64),
+            np.asarray(state.position_rad, dtype=np.float64).tolist(),
+            np.asarray(state.velocity_rad_s, dtype=np.float64).tolist(),
+            np.asarray(state.torque_nm, dtype=np.float64).tolist(),
         )
+
+    def publish_floats(self, feedback: tuple[list[float], list[float], list[float]]) -> None:
+        """:meth:`publish_feedback` for a state already in plain floats (position, velocity,
+        torque; the plant's ``measured_floats``), kept as it is: the tuple must not change after."""
+        self._feedback = feedback
 
     def apply_fault(self, fault: Any) -> None:
         """A ``sim_target.config`` FrameFault (kind "frames") or DriveFault (kind "drive_fault")."""
@@ -374,10 +384,26 @@ class EmulatedDrives(OneShotFaults):
             log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
 
     def _handle_frames(self, frames: RawFrames) -> None:
-        """A datagram's frames from the ipc bus, undecoded: the same checks as :meth:`_handle`."""
+        """A datagram's frames from the ipc bus, undecoded: the same checks as :meth:`_handle`.
+        An RPDO is latched here (:func:`sim_target.emulated.pdo.on_rpdo` inlined: six of a cycle's
+        seven frames), stamped with the datagram's arrival for the RPDO watch."""
+        rpdo_drive = self._rpdo_drive
+        operational = fr.NmtState.OPERATIONAL
+        now = monotonic()
         for can_id, data, _is_fd in frames:
             self._received += 1
             try:
+                drive = rpdo_drive.get(can_id)
+                if drive is not None:
+                    if drive.nmt is not operational or not drive.rpdo_valid:
+                        continue  # PDOs are ignored outside NMT operational (CiA 301)
+                    if len(data) != _RPDO_LENGTH:
+                        self._malformed += 1
+                        continue
+                    drive.controlword, drive.target_permille = _unpack_rpdo(data)
+                    if drive.rpdo_timeout_ms:
+                        drive.last_rpdo_s = now
+                    continue
                 if can_id & _NOT_A_DATA_FRAME:  # error, remote or extended: none is the drives'
                     self._malformed += 1
                     continue
@@ -428,13 +454,7 @@ class EmulatedDrives(OneShotFaults):
         self._syncs += 1
         self._sync_seen = True
         self._sync_counter = counter
-        drives = self._drives
-        link = self._link
-        now = time.monotonic()
-        for drive in drives:
-            if drive.sync_timeout_ms:
-                drive.last_sync_s = now
-            p402.step(link, drive)
+        p402.step_all(self._link, self._drives, monotonic())
         handler = self._sync_handler
         if handler is not None:
             try:

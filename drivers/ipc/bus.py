@@ -396,8 +396,8 @@ class IpcBus(can.BusABC):
                     continue
                 if len(data) == len(_WAKE) and peer is self._loop:  # shutdown() wakes us
                     raise can.CanOperationError("ipc bus: the bus is shut down")
+                ready.pop(0)  # read again only once epoll says so: no failed recv after each datagram
                 if not data:  # EOF: the peer closed or died
-                    ready.pop(0)
                     self._drop_peer(peer)
                     continue
                 return peer, data
@@ -413,7 +413,8 @@ class IpcBus(can.BusABC):
                 # finite wait goes through select() on the epoll descriptor (µs), then epoll.
                 fd = self._epoll.fileno()
                 if wait_s > 0 and fd < 1024:  # select's FD_SETSIZE
-                    select.select([fd], [], [], wait_s)
+                    if not select.select([fd], [], [], wait_s)[0] and deadline is not None:
+                        return None  # nothing came before the deadline: no epoll call
                     wait_s = 0.0
                 events = self._epoll.poll(wait_s)
             except InterruptedError:
