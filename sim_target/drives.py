@@ -152,6 +152,7 @@ class EmulatedDrives(OneShotFaults, DatagramReception):
         self._recv_datagram = datagram_receiver(bus)
         self._recv_frames = frame_receiver(bus) if self._recv_datagram is None else None
         self._cycle: CycleLayout | None = None  # the master's cycle datagram, once seen
+        self.cycles_read = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._booted = False

@@ -81,6 +81,7 @@ class DatagramReception:
     _recv_datagram: Callable[[float | None], tuple[Sender | None, bytes] | None] | None
     _recv_frames: Callable[[float | None], tuple[Sender | None, RawFrames] | None] | None
     _cycle: CycleLayout | None
+    cycles_read: int  # cycle datagrams read by the layout (one unpack): tests, profiling
 
     def _dispatch(self, cob_id: int, data: bytes | bytearray) -> None:
         raise NotImplementedError
@@ -122,6 +123,7 @@ class DatagramReception:
             return False
         values = cycle.read_data(datagram)
         self._received += cycle.frames
+        self.cycles_read += 1
         operational = fr.NmtState.OPERATIONAL
         now = monotonic()
         i = 0
