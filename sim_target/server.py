@@ -111,6 +111,9 @@ class TargetServer:
         self.stats = ServerStats()
         self.lateness = Lateness.starting_now()  # this run's (since the last run start)
         self.realtime_settings: dict[str, Any] = {}  # applied/refused, the start-up cost probe
+        self._period_s = config.period_s
+        self._tick_after_sync_s = _TICK_AFTER_SYNC * config.period_s
+        self._max_phase_step_s = _MAX_PHASE_STEP * config.period_s
         self._stop = threading.Event()
         self._pending: queue.SimpleQueue[Fault] = queue.SimpleQueue()
         self._starts: queue.SimpleQueue[RunStart] = queue.SimpleQueue()
@@ -183,11 +186,12 @@ class TargetServer:
         computed from it, as with a real cyclic drive, where lock-step has none.) The tick rate
         stays the master's, i.e. the wall clock's; without SYNCs the ticks run on at their own
         period."""
-        period_s = self.config.period_s
-        error_s = self._deadline_s - (sync_s + period_s * _TICK_AFTER_SYNC)
-        error_s = (error_s + period_s / 2) % period_s - period_s / 2  # the nearest tick, (-T/2, T/2]
-        step_s = max(-_MAX_PHASE_STEP * period_s, min(_MAX_PHASE_STEP * period_s, _PHASE_GAIN * error_s))
-        self._deadline_s -= step_s
+        period_s = self._period_s
+        half_s = 0.5 * period_s
+        error_s = (self._deadline_s - sync_s - self._tick_after_sync_s + half_s) % period_s - half_s  # (-T/2, T/2]
+        step_s = _PHASE_GAIN * error_s
+        max_step_s = self._max_phase_step_s
+        self._deadline_s -= max_step_s if step_s > max_step_s else (-max_step_s if step_s < -max_step_s else step_s)
 
     def _step(self) -> None:
         """One period of physics, its state published to the drives."""
