@@ -5,6 +5,13 @@ A profile is a built-in name (``ideal``, ``realistic``, ``harsh``: the files nex
 non-finite, an unknown field, a per-joint list of the wrong length, a torque bandwidth above the
 Nyquist rate of the plant's physics step, a velocity filter above the control period's) raise
 :class:`~sim_target.realism.RealismError`: one line naming the file and the field, exit code 2.
+
+A per-joint value is a scalar (every joint), an explicit list (exactly one value per joint of the
+arm it is bound to), ``{repeat: [...]}`` (the pattern repeated over the joints), or, for the
+torque-like fields, ``{scaled: [...]}``: a reference arm's values (the profile's
+``reference_torque_limit_nm``) carried to any arm by the joint's torque limit
+(:func:`scale_by_torque_limit`). The shipped profiles use the last two, so they apply to an arm of
+any joint count; on their reference arm (ur5_paper) they give the listed values exactly.
 """
 
 from __future__ import annotations
@@ -22,8 +29,7 @@ PROFILE_DIR = Path(__file__).with_name("realism_profiles")
 PROFILE_NAMES = ("ideal", "realistic", "harsh")
 
 _NonNegative = Annotated[float, Field(ge=0)]
-#: a scalar for every joint, or one value per joint
-PerJoint = _NonNegative | tuple[_NonNegative, ...]
+_Positive = Annotated[float, Field(gt=0)]
 _Counts = Annotated[int, Field(ge=0, le=2**32)]
 
 
@@ -31,6 +37,25 @@ class _Section(BaseModel):
     # allow_inf_nan=False: NaN or infinity is "not a finite number"; extra="forbid": a misspelt field
     # is an error, not a silently ideal default
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class Repeated(_Section):
+    """``{repeat: [a, b]}``: a, b, a, b, ... over the arm's joints, whatever their count."""
+
+    repeat: tuple[_NonNegative, ...] = Field(min_length=1)
+
+
+class ScaledByTorqueLimit(_Section):
+    """``{scaled: [...]}``: the reference arm's per-joint values (one per entry of the profile's
+    ``reference_torque_limit_nm``), carried to each joint by its torque limit."""
+
+    scaled: tuple[_NonNegative, ...] = Field(min_length=1)
+
+
+#: a scalar for every joint, one value per joint, or a repeated pattern
+PerJoint = _NonNegative | tuple[_NonNegative, ...] | Repeated
+#: a torque-like per-joint value: also scaled from the reference arm by the joint's torque limit
+TorquePerJoint = PerJoint | ScaledByTorqueLimit
 
 
 class SensingSection(_Section):
@@ -47,13 +72,13 @@ class ActuationSection(_Section):
     rated_torque_ratio_of_limit: PerJoint = 0.0  # 0x6076 / torque limit; quantum 1 per mille of it; 0: exact
     torque_ripple_ratio: PerJoint = 0.0
     torque_ripple_cycles_per_rev: PerJoint = 0.0
-    torque_dead_band_nm: PerJoint = 0.0
+    torque_dead_band_nm: TorquePerJoint = 0.0
 
 
 class PlantSection(_Section):
-    viscous_friction_nm_s_per_rad: PerJoint = 0.0
-    coulomb_friction_nm: PerJoint = 0.0
-    stribeck_friction_nm: PerJoint = 0.0
+    viscous_friction_nm_s_per_rad: TorquePerJoint = 0.0
+    coulomb_friction_nm: TorquePerJoint = 0.0
+    stribeck_friction_nm: TorquePerJoint = 0.0
     stribeck_velocity_rad_s: PerJoint = 0.05
     friction_smoothing_velocity_rad_s: float = Field(0.01, gt=0)
     payload_kg: float = Field(0.0, ge=0, le=1000)
@@ -68,6 +93,8 @@ class RealismProfile(_Section):
 
     description: str = ""
     seed: int = Field(0, ge=0)
+    # the torque limits of the arm whose values `{scaled: [...]}` lists give (ur5_paper's in the shipped ones)
+    reference_torque_limit_nm: tuple[_Positive, ...] | None = None
     sensing: SensingSection = SensingSection()
     actuation: ActuationSection = ActuationSection()
     plant: PlantSection = PlantSection()
@@ -99,6 +126,32 @@ def parse_profile(data: Any, source: str) -> RealismProfile:
         return RealismProfile.model_validate(data)
     except ValidationError as exc:
         raise RealismError(format_validation_error(source, exc)) from None
+
+
+def scale_by_torque_limit(
+    reference_values: np.ndarray, reference_limit_nm: np.ndarray, limit_nm: np.ndarray
+) -> np.ndarray:
+    """Each joint's value from the reference arm's, by its torque limit (docs/realism.md, "Any arm").
+
+    The reference's value per N·m of torque limit is interpolated linearly in the torque limit between
+    the reference's joints and held at the end values beyond them; joint j gets limit_j times it. A
+    joint whose limit is one of the reference's gets that joint's value exactly (so the reference arm
+    gets its own list bit for bit). Reference joints of one limit must carry one value (ValueError).
+    """
+    values = np.asarray(reference_values, dtype=float)
+    ref_limit = np.asarray(reference_limit_nm, dtype=float)
+    limit = np.asarray(limit_nm, dtype=float)
+    classes = np.unique(ref_limit)  # sorted
+    class_value = np.empty_like(classes)
+    for k, level in enumerate(classes):
+        members = values[ref_limit == level]
+        if np.any(members != members[0]):
+            raise ValueError(f"the reference joints of {level:g} N·m carry different values {members.tolist()}")
+        class_value[k] = members[0]
+    per_nm = np.interp(limit, classes, class_value / classes)
+    scaled = per_nm * limit
+    exact = np.searchsorted(classes, limit).clip(0, classes.size - 1)
+    return np.where(classes[exact] == limit, class_value[exact], scaled)
 
 
 def _per_joint(value: float | tuple[float, ...], n: int, source: str, field: str) -> np.ndarray:
@@ -136,7 +189,25 @@ def bind_profile(
     limit = np.broadcast_to(np.asarray(torque_limit_nm, dtype=float), (n_joints,))
 
     def joint(value: Any, field: str) -> np.ndarray:
+        if isinstance(value, Repeated):
+            return np.resize(np.asarray(value.repeat, dtype=float), n_joints)
+        if isinstance(value, ScaledByTorqueLimit):
+            return _scaled(value, field)
         return _per_joint(value, n_joints, source, field)
+
+    def _scaled(value: ScaledByTorqueLimit, field: str) -> np.ndarray:
+        reference = profile.reference_torque_limit_nm
+        if reference is None:
+            raise RealismError(f"{source}: {field}: 'scaled' needs the profile's reference_torque_limit_nm")
+        if len(value.scaled) != len(reference):
+            raise RealismError(
+                f"{source}: {field}: scaled: expected {len(reference)} values (one per joint of "
+                f"reference_torque_limit_nm), got {len(value.scaled)}"
+            )
+        try:
+            return scale_by_torque_limit(np.asarray(value.scaled), np.asarray(reference), limit)
+        except ValueError as exc:
+            raise RealismError(f"{source}: {field}: {exc}") from None
 
     sensing = Sensing(
         encoder_counts_per_rev=joint(s.encoder_counts_per_rev, "sensing.encoder_counts_per_rev"),
@@ -192,10 +263,13 @@ def ideal_spec(n_joints: int, period_s: float) -> RealismSpec:
 __all__ = [
     "PROFILE_NAMES",
     "RealismProfile",
+    "Repeated",
+    "ScaledByTorqueLimit",
     "bind_profile",
     "ideal_spec",
     "load_realism",
     "parse_profile",
     "profile_path",
     "read_profile",
+    "scale_by_torque_limit",
 ]

@@ -36,7 +36,7 @@ def demo(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("results/demo"),
     target_substeps: Annotated[
         int | None,
-        typer.Option(help="pybullet steps per control period (default: 32 lock-step, 8 --realtime; docs/target.md)."),
+        typer.Option(help="pybullet steps per control period (default: 32 lock-step, 4 --realtime; docs/target.md)."),
     ] = None,
     cpus: Annotated[
         str,

@@ -43,6 +43,13 @@ CASES: list[tuple[str, list[str], str, list[str]]] = [
         ["plant.viscous_friction_nm_s_per_rad", "6"],
     ),
     (
+        # an explicit per-joint list is for one joint count: the 7-joint Panda refuses a 6-joint list
+        "wrong length (panda)",
+        [*EXPERIMENT, "--robot", "panda", "--realism", PROFILE],
+        "plant: {coulomb_friction_nm: [1.5, 1.5, 1.0, 0.3, 0.3, 0.3]}\n",
+        ["plant.coulomb_friction_nm", "7"],
+    ),
+    (
         # the simulator's physics step is period / substeps = 0.5 ms: Nyquist 1 kHz
         "bandwidth above nyquist (sim)",
         [*EXPERIMENT, "--realism", PROFILE],

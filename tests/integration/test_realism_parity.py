@@ -52,7 +52,10 @@ def _section_spec(section: str, substeps: int) -> RealismSpec:
     data = {
         "sensing": {"sensing": {**full["sensing"], "delay_periods": 0}},
         "actuation": {"actuation": full["actuation"]},
-        "friction": {"plant": {k: v for k, v in plant.items() if "friction" in k or "stribeck" in k}},
+        "friction": {
+            "reference_torque_limit_nm": full["reference_torque_limit_nm"],  # the arm its `scaled` lists are for
+            "plant": {k: v for k, v in plant.items() if "friction" in k or "stribeck" in k},
+        },
         "inertial": {"plant": {k: v for k, v in plant.items() if k in ("payload_kg", "inertia_scale")}},
     }[section]
     profile = parse_profile(data, section)
