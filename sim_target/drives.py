@@ -38,6 +38,7 @@ import random
 import threading
 import time
 from collections.abc import Callable
+from time import monotonic
 from typing import Any
 
 import can
@@ -49,7 +50,6 @@ from drivers.cia402 import od as odx
 from drivers.cia402.scaling import counts_per_rad_from_resolution
 from drivers.cia402.state_machine import State
 from drivers.eds_check import load_dictionary
-from drivers.ipc.frame import CAN_EFF_FLAG, CAN_EFF_MASK, CAN_ERR_FLAG, CAN_RTR_FLAG
 from drivers.joint_bus import JointReadings
 from sim_target.emulated import p402, pdo
 from sim_target.emulated.answer import SyncAnswer
@@ -65,7 +65,8 @@ from sim_target.emulated.node import (
     MasterLoss,
 )
 from sim_target.emulated.objects import ObjectServer
-from sim_target.emulated.rawbus import RawFrames, frame_receiver
+from sim_target.emulated.rawbus import datagram_receiver, frame_receiver
+from sim_target.emulated.reception import CycleLayout, DatagramReception, rpdo_drives
 from sim_target.emulated.supervision import MasterWatch
 
 __all__ = ["DriveCounters", "EmulatedDrives", "EmulatedDrivesConfig", "FrameFaults", "MasterLoss", "make_drive_bank"]
@@ -76,7 +77,6 @@ _POLL_S = 0.01  # longest receive wait: heartbeats and delayed frames are servic
 _CHECK_PERIOD_S = 0.005  # the master watches are checked at least this often while frames flow
 _DRAIN_MAX = 1000  # frames handled before a check gives up waiting for an empty queue
 _ENABLED = State.OPERATION_ENABLED  # a module global: the enum's class attribute costs more per period
-_NOT_A_DATA_FRAME = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
 
 
 class _EmuNetwork(canopen.Network):
@@ -90,7 +90,7 @@ class _EmuNetwork(canopen.Network):
         self._bank._emit_from_cob(can_id, bytes(data))
 
 
-class EmulatedDrives(OneShotFaults):
+class EmulatedDrives(OneShotFaults, DatagramReception):
     """The drive bank. Thread model: one thread does everything (SYNC, SDO, NMT, heartbeats,
     delayed frames, the master watch): the bank's own receive thread (``start()``), or the owner's
     thread calling :meth:`serve_until` (``start(own_thread=False)``: the target server, whose
@@ -100,7 +100,7 @@ class EmulatedDrives(OneShotFaults):
         self.config = config
         self._bus = bus
         self._sync_handler: Callable[[], None] | None = None
-        self._feedback: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._feedback: tuple[list[float], list[float], list[float]] | None = None
         self.n_joints = len(config.node_ids)
         self._sync_counter = 0  # counter byte of the last SYNC (0: the SYNC carried none)
         self._link = FrameLink(bus)
@@ -142,13 +142,17 @@ class EmulatedDrives(OneShotFaults):
             self._objects.reset(drive, communication_only=False)
         # cob-id -> (handler, drive); a handler returns False for a malformed frame.
         self._by_cob: dict[int, tuple[Callable[[EmulatedDrive, bytes | bytearray], bool | None], EmulatedDrive]] = {}
+        self._rpdo_drive = rpdo_drives(self._drives)  # the raw paths' inlined reception
         for drive in self._drives:
             self._by_cob[fr.RPDO1_BASE + drive.node_id] = (pdo.on_rpdo, drive)
             self._by_cob[fr.SDO_RX_BASE + drive.node_id] = (self._on_sdo, drive)
         self._answer = SyncAnswer(self._link, self._drives, bus)
         # The ipc bus itself: whole datagrams, undecoded (no can.Message per frame); any other bus
         # (virtual, the bridge, a capture wrapper) and a filtered one: python-can's recv.
-        self._recv_frames = frame_receiver(bus)
+        self._recv_datagram = datagram_receiver(bus)
+        self._recv_frames = frame_receiver(bus) if self._recv_datagram is None else None
+        self._cycle: CycleLayout | None = None  # the master's cycle datagram, once seen
+        self.cycles_read = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._booted = False
@@ -227,10 +231,15 @@ class EmulatedDrives(OneShotFaults):
         """The joint state the TPDOs answering the current (inside the SYNC handler) or next SYNC
         carry. Sync TPDOs only ever go out on SYNC (CiA 301)."""
         self._feedback = (
-            np.asarray(state.position_rad, dtype=np.float64),
-            np.asarray(state.velocity_rad_s, dtype=np.float64),
-            np.asarray(state.torque_nm, dtype=np.float64),
+            np.asarray(state.position_rad, dtype=np.float64).tolist(),
+            np.asarray(state.velocity_rad_s, dtype=np.float64).tolist(),
+            np.asarray(state.torque_nm, dtype=np.float64).tolist(),
         )
+
+    def publish_floats(self, feedback: tuple[list[float], list[float], list[float]]) -> None:
+        """:meth:`publish_feedback` for a state already in plain floats (position, velocity,
+        torque; the plant's ``measured_floats``), kept as it is: the tuple must not change after."""
+        self._feedback = feedback
 
     def apply_fault(self, fault: Any) -> None:
         """A ``sim_target.config`` FrameFault (kind "frames") or DriveFault (kind "drive_fault")."""
@@ -292,8 +301,6 @@ class EmulatedDrives(OneShotFaults):
         ``return_on_sync``, after the first SYNC handled (its handler may have moved the deadline).
         On the ipc bus a datagram (a cycle's frames) is handled whole: frames after a SYNC in it
         are handled before returning (they are latched for the next SYNC either way)."""
-        bus = self._bus
-        recv_frames = self._recv_frames
         monotonic = time.monotonic
         stop = self._stop
         self._sync_seen = False
@@ -315,8 +322,6 @@ class EmulatedDrives(OneShotFaults):
                     self._link.flush()
                 self._link.release_due(now)
                 due = self._next_due()
-            msg: can.Message | None = None
-            got: tuple[object, RawFrames] | None = None
             try:
                 if now >= self._next_check_s:
                     # Judge the master's silence only with nothing of it still queued: a stall of
@@ -329,61 +334,21 @@ class EmulatedDrives(OneShotFaults):
                         # (a free-running target would otherwise step its physics a period late,
                         # into the next cycle's frames; measured: one exchange in 5 delayed 300 µs).
                         return
-                timeout_s = max(0.0, min(_POLL_S, due - now, deadline_s - now))
-                if recv_frames is not None:
-                    got = recv_frames(timeout_s)
-                else:
-                    msg = bus.recv(timeout_s)
+                got = self._receive(max(0.0, min(_POLL_S, due - now, deadline_s - now)))
             except Exception:  # the bus went away: nothing left to emulate
                 if not stop.is_set():
                     log.exception("emulated drives: receive failed")
                 self._failed = True
                 return
-            if got is not None:
-                self._handle_frames(got[1])
-            elif msg is not None:
-                self._handle(msg)
-            else:
+            if not got:
                 self._watch.check(monotonic())  # nothing queued: the silence is real
 
     def _drain(self) -> bool:
         """Handle every frame already queued; False if they kept coming (no empty queue seen)."""
-        recv_frames = self._recv_frames
         for _ in range(_DRAIN_MAX):  # frames, or datagrams on the ipc bus
-            if recv_frames is not None:
-                got = recv_frames(0.0)
-                if got is None:
-                    return True
-                self._handle_frames(got[1])
-                continue
-            msg = self._bus.recv(0.0)
-            if msg is None:
+            if not self._receive(0.0):
                 return True
-            self._handle(msg)
         return False
-
-    def _handle(self, msg: can.Message) -> None:
-        """One frame from python-can's recv."""
-        self._received += 1
-        try:
-            if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-                self._malformed += 1
-                return
-            self._dispatch(msg.arbitration_id, msg.data)
-        except Exception:  # an emulator bug must not silence the drives
-            log.exception("emulated drives: handling 0x%03X failed", msg.arbitration_id)
-
-    def _handle_frames(self, frames: RawFrames) -> None:
-        """A datagram's frames from the ipc bus, undecoded: the same checks as :meth:`_handle`."""
-        for can_id, data, _is_fd in frames:
-            self._received += 1
-            try:
-                if can_id & _NOT_A_DATA_FRAME:  # error, remote or extended: none is the drives'
-                    self._malformed += 1
-                    continue
-                self._dispatch(can_id, data)
-            except Exception:  # an emulator bug must not silence the drives
-                log.exception("emulated drives: handling 0x%03X failed", can_id & CAN_EFF_MASK)
 
     def _dispatch(self, cob_id: int, data: bytes | bytearray) -> None:
         """A standard-identifier data frame. The drives' own COB-IDs (RPDOs, SDO requests: six of
@@ -428,13 +393,7 @@ class EmulatedDrives(OneShotFaults):
         self._syncs += 1
         self._sync_seen = True
         self._sync_counter = counter
-        drives = self._drives
-        link = self._link
-        now = time.monotonic()
-        for drive in drives:
-            if drive.sync_timeout_ms:
-                drive.last_sync_s = now
-            p402.step(link, drive)
+        p402.step_all(self._link, self._drives, monotonic())
         handler = self._sync_handler
         if handler is not None:
             try:

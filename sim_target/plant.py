@@ -24,7 +24,6 @@ torque impulse (the paper's disturbance).
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,6 +33,7 @@ import pybullet
 
 from sim_target.arm_loading import MOVABLE_JOINT_TYPES, PlantError, default_urdf_path, load_arm
 from sim_target.impulse import PAPER_DISTURBANCE, TorqueImpulse, external_profile_nm
+from sim_target.plant_inputs import bool_flags, finite_floats
 from sim_target.plant_protocol import JointState
 from sim_target.realism import RealismModel, RealismSpec
 
@@ -124,6 +124,8 @@ class PybulletPlant:
         self._impulses: list[TorqueImpulse] = []
         self._payload_kg = 0.0
         self._world: RealismModel | None = None
+        self._measured: JointState | None = None  # the last measurement, made on demand (state)
+        self._floats: tuple[list[float], list[float], list[float]] = ([], [], [])  # its values
         self.reset()
         if realism is not None:
             self.use_realism(realism)
@@ -188,7 +190,7 @@ class PybulletPlant:
             pybullet.resetJointState(self._body, index, 0.0, 0.0, physicsClientId=self._client)
         self._time_s = 0.0
         self._steps = 0
-        self._applied_nm = np.zeros(self.n_joints)
+        self._applied: list[float] = [0.0] * self.n_joints  # the motor torque over the last period
         self._braked = [False] * self.n_joints
         self._brake_position_rad = np.array(q0, dtype=float)
         self._rng = np.random.default_rng(self._seed)
@@ -196,14 +198,27 @@ class PybulletPlant:
         self._motor_mask: list[bool] | None = None  # the brakes pybullet's motors were last set to
         if self._world is not None:
             self._world.reset(np.asarray(q0, dtype=float), v0)
-        self._measured = self._measure()
-        return self._measured
+        self._measure()
+        return self.state()
 
     def state(self) -> JointState:
         """The last measurement (the same noise sample until the next step)."""
+        if self._measured is None:  # made on demand: the target's cycle reads measured_floats
+            q, qd, torque = self._floats
+            self._measured = JointState(np.array(q), np.array(qd), np.array(torque), self._time_s)
         return self._measured
 
+    def measured_floats(self) -> tuple[list[float], list[float], list[float]]:
+        """:meth:`state`'s position, velocity and torque as plain floats (the same values), without
+        a JointState or an array: what the emulated drives pack every period. Not to be modified."""
+        return self._floats
+
     def step(self, torque_nm: np.ndarray | Sequence[float], brake_engaged: np.ndarray | Sequence[bool]) -> JointState:
+        """:meth:`advance`, then the new :meth:`state`."""
+        self.advance(torque_nm, brake_engaged)
+        return self.state()
+
+    def advance(self, torque_nm: np.ndarray | Sequence[float], brake_engaged: np.ndarray | Sequence[bool]) -> None:
         """Advance one control period with ``torque_nm`` held; braked joints are held still.
 
         The motor torque is clipped to the URDF effort limit and is zero on a braked joint (its
@@ -211,8 +226,8 @@ class PybulletPlant:
         its holding torque. (Six joints in plain floats: numpy's per-call overhead on 6-element
         arrays cost more than pybullet's step itself at a few substeps.)
         """
-        command = self._floats(torque_nm, "torque_nm")
-        braked = self._flags(brake_engaged)
+        command = finite_floats(torque_nm, self.n_joints, self._vector, "torque_nm")
+        braked = bool_flags(brake_engaged, self.n_joints)
         motor = [
             0.0 if held else (limit if c > limit else (-limit if c < -limit else c))
             for c, held, limit in zip(command, braked, self._torque_limit, strict=True)
@@ -220,7 +235,8 @@ class PybulletPlant:
         all_braked = all(braked)
         external_nm = self._external_profile_nm()
         if self._held is not None and external_nm is None and all_braked:
-            return self._advance_held()
+            self._advance_held()
+            return
         self._held = None
         before = self._last_q
         # A brake locks the joint where it engaged, up to its holding torque. A stiff position
@@ -246,42 +262,12 @@ class PybulletPlant:
         self._steps += 1
         # Counted in periods so long runs do not accumulate floating-point drift.
         self._time_s = self._steps * self.period_s
-        self._applied_nm = np.array(motor)
-        self._measured = self._measure()
+        self._applied = motor
+        self._measure()
         if all_braked and external_nm is None:
             after = self._last_q
             if all(abs(a - b) < _HELD_MOTION_RAD for a, b in zip(after, before, strict=True)):  # NaN: not held
-                self._held = JointState(np.array(after), np.zeros(self.n_joints), self._applied_nm, 0.0)
-        return self._measured
-
-    def _floats(self, values: np.ndarray | Sequence[float], name: str) -> list[float]:
-        """``values`` as n_joints finite floats (:meth:`_vector`'s checks and errors)."""
-        floats: list[float] | None = None
-        if type(values) is np.ndarray and values.shape == (self.n_joints,) and values.dtype == np.float64:
-            floats = values.tolist()
-        elif type(values) is list and len(values) == self.n_joints and all(type(x) is float for x in values):
-            floats = list(values)
-        if floats is not None and math.isfinite(sum(floats)):  # NaN or an infinity makes the sum non-finite
-            return floats
-        return self._vector(values, name).tolist()
-
-    def _flags(self, brake_engaged: np.ndarray | Sequence[bool]) -> list[bool]:
-        if (
-            type(brake_engaged) is np.ndarray
-            and brake_engaged.shape == (self.n_joints,)
-            and brake_engaged.dtype == bool
-        ):
-            return brake_engaged.tolist()
-        if (
-            type(brake_engaged) is list
-            and len(brake_engaged) == self.n_joints
-            and all(type(b) is bool for b in brake_engaged)
-        ):
-            return list(brake_engaged)
-        braked = np.asarray(brake_engaged, dtype=bool)
-        if braked.shape != (self.n_joints,):
-            raise PlantError(f"brake_engaged: expected {self.n_joints} values, got shape {braked.shape}")
-        return braked.tolist()
+                self._held = JointState(np.array(after), np.zeros(self.n_joints), np.array(motor), 0.0)
 
     def _set_brake_motors(self, braked: list[bool]) -> None:
         held = self._held_indices
@@ -354,14 +340,13 @@ class PybulletPlant:
         if plant.payload_kg:
             self.set_payload(plant.payload_kg, plant.payload_inertia_kg_m2)
 
-    def _advance_held(self) -> JointState:
+    def _advance_held(self) -> None:
         """A period of a held arm: time goes on, the joints stay where the brakes hold them."""
         assert self._held is not None
         self._steps += 1
         self._time_s = self._steps * self.period_s
-        self._applied_nm = self._held.torque_nm
-        self._measured = self._noisy(self._held.position_rad, self._held.velocity_rad_s)
-        return self._measured
+        self._applied = self._held.torque_nm.tolist()
+        self._set_measured(self._noisy(self._held.position_rad, self._held.velocity_rad_s))
 
     def probe_step_cost_s(self, steps: int = 200) -> float:
         """Median wall time of one free period (no brake, zero torque): what keeping real time
@@ -458,13 +443,24 @@ class PybulletPlant:
         states = pybullet.getJointStates(self._body, self._joint_indices, physicsClientId=self._client)
         q = np.array([s[0] for s in states], dtype=float)
         qd = np.array([s[1] for s in states], dtype=float)
-        return JointState(q, qd, self._applied_nm.copy(), self._time_s)
+        return JointState(q, qd, np.array(self._applied), self._time_s)
 
-    def _measure(self) -> JointState:
-        """The state the drives report; the true positions kept (``_last_q``) for the next step."""
+    def _measure(self) -> None:
+        """The state the drives report; the true positions kept (``_last_q``) for the next step.
+        Without realism or noise it is the true state, kept in plain floats (JointState on demand)."""
         states = pybullet.getJointStates(self._body, self._joint_indices, physicsClientId=self._client)
-        self._last_q = [s[0] for s in states]
-        return self._noisy(np.array(self._last_q, dtype=float), np.array([s[1] for s in states], dtype=float))
+        q = [s[0] for s in states]
+        qd = [s[1] for s in states]
+        self._last_q = q
+        if self._world is None and not self._encoder_noise_rad > 0.0 and not self._velocity_noise_rad_s > 0.0:
+            self._floats = (q, qd, self._applied)
+            self._measured = None
+            return
+        self._set_measured(self._noisy(np.array(q, dtype=float), np.array(qd, dtype=float)))
+
+    def _set_measured(self, state: JointState) -> None:
+        self._measured = state
+        self._floats = (state.position_rad.tolist(), state.velocity_rad_s.tolist(), state.torque_nm.tolist())
 
     def _noisy(self, q: np.ndarray, qd: np.ndarray) -> JointState:
         if self._world is not None:  # what the drives report (docs/realism.md)
@@ -473,7 +469,7 @@ class PybulletPlant:
             q = q + self._rng.normal(0.0, self._encoder_noise_rad, self.n_joints)
         if self._velocity_noise_rad_s > 0.0:
             qd = qd + self._rng.normal(0.0, self._velocity_noise_rad_s, self.n_joints)
-        return JointState(q, qd, self._applied_nm.copy(), self._time_s)
+        return JointState(q, qd, np.array(self._applied), self._time_s)
 
     def close(self) -> None:
         if self._client is not None and pybullet.isConnected(physicsClientId=self._client):

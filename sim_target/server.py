@@ -64,7 +64,8 @@ from sim_target.config import (
 from sim_target.control import ControlServer, send_control  # noqa: F401 - send_control re-exported
 from sim_target.drive_bank import DriveBank
 from sim_target.lateness import Lateness
-from sim_target.plant import PybulletPlant, TorqueImpulse, default_urdf_path
+from sim_target.plant import PybulletPlant, TorqueImpulse
+from sim_target.plant_factory import make_plant
 from sim_target.plant_protocol import JointState
 from sim_target.rt_settings import start_lockstep, start_realtime
 
@@ -110,6 +111,9 @@ class TargetServer:
         self.stats = ServerStats()
         self.lateness = Lateness.starting_now()  # this run's (since the last run start)
         self.realtime_settings: dict[str, Any] = {}  # applied/refused, the start-up cost probe
+        self._period_s = config.period_s
+        self._tick_after_sync_s = _TICK_AFTER_SYNC * config.period_s
+        self._max_phase_step_s = _MAX_PHASE_STEP * config.period_s
         self._stop = threading.Event()
         self._pending: queue.SimpleQueue[Fault] = queue.SimpleQueue()
         self._starts: queue.SimpleQueue[RunStart] = queue.SimpleQueue()
@@ -136,6 +140,11 @@ class TargetServer:
         self._deadline_s = 0.0  # real time: the next physics tick (time.monotonic())
         self._last_sync_s = -math.inf  # real time: when the last SYNC was handled
         self._sync_waiting = False  # real time: a SYNC was answered and its tick not yet decided
+        # The hot path's optional halves (tests stand in for plant and drives without them).
+        self._plant_inputs = getattr(drives, "plant_inputs", None)
+        self._advance = getattr(plant, "advance", None)
+        measured, publish = getattr(plant, "measured_floats", None), getattr(drives, "publish_floats", None)
+        self._float_feedback = (measured, publish) if measured is not None and publish is not None else None
         self._publish_snapshot()
         drives.set_sync_handler(self._on_sync)
 
@@ -144,7 +153,7 @@ class TargetServer:
     def _on_sync(self) -> None:
         self.stats.syncs += 1
         if self.config.clock == "lockstep":
-            self.drives.publish_feedback(self._step())
+            self._step()
             self._publish_snapshot()
             return
         sync_s = time.monotonic()
@@ -158,7 +167,16 @@ class TargetServer:
             # the pose the arm had before (a saturated torque on the placed arm, 2 ms to a fault).
             self.drives.publish_feedback(self._place(self._start))
             return
-        self.drives.publish_feedback(self.plant.state())
+        self._publish_plant_state()
+
+    def _publish_plant_state(self) -> None:
+        """The plant's last measurement to the drives: its plain floats where both sides offer
+        them (the pybullet plant, the emulated drives: no array, no JointState per period)."""
+        if self._float_feedback is not None:
+            measured, publish = self._float_feedback
+            publish(measured())
+        else:
+            self.drives.publish_feedback(self.plant.state())
 
     def _lock_phase_to_sync(self, sync_s: float) -> None:
         """Real time: move the next physics tick towards ``_TICK_AFTER_SYNC`` of a period after
@@ -168,29 +186,34 @@ class TargetServer:
         computed from it, as with a real cyclic drive, where lock-step has none.) The tick rate
         stays the master's, i.e. the wall clock's; without SYNCs the ticks run on at their own
         period."""
-        period_s = self.config.period_s
-        error_s = self._deadline_s - (sync_s + period_s * _TICK_AFTER_SYNC)
-        error_s = (error_s + period_s / 2) % period_s - period_s / 2  # the nearest tick, (-T/2, T/2]
-        step_s = max(-_MAX_PHASE_STEP * period_s, min(_MAX_PHASE_STEP * period_s, _PHASE_GAIN * error_s))
-        self._deadline_s -= step_s
+        period_s = self._period_s
+        half_s = 0.5 * period_s
+        error_s = (self._deadline_s - sync_s - self._tick_after_sync_s + half_s) % period_s - half_s  # (-T/2, T/2]
+        step_s = _PHASE_GAIN * error_s
+        max_step_s = self._max_phase_step_s
+        self._deadline_s -= max_step_s if step_s > max_step_s else (-max_step_s if step_s < -max_step_s else step_s)
 
-    def _step(self) -> JointState:
+    def _step(self) -> None:
+        """One period of physics, its state published to the drives."""
         self._take_pending()
         self._apply_due_faults()
         # A joint whose drive is not enabled is braked: the plant applies no motor torque to it.
-        plant_inputs = getattr(self.drives, "plant_inputs", None)  # the emulated drives' one pass
-        if plant_inputs is not None:
-            torque_nm, braked = plant_inputs()
-            state = self.plant.step(torque_nm, braked)
+        if self._plant_inputs is not None:  # the emulated drives' one pass, the plant's floats
+            torque_nm, braked = self._plant_inputs()
+            if self._advance is not None:
+                self._advance(torque_nm, braked)
+            else:
+                self.plant.step(torque_nm, braked)
             all_enabled = not any(braked)
         else:
             enabled = np.asarray(self.drives.operation_enabled(), dtype=bool)
-            state = self.plant.step(self.drives.commanded_torque_nm(), ~enabled)
+            self.plant.step(self.drives.commanded_torque_nm(), ~enabled)
             all_enabled = bool(enabled.all())
         self.stats.steps += 1
         if self._start is not None and all_enabled:
-            state = self._place(self._start)
-        return state
+            self.drives.publish_feedback(self._place(self._start))
+            return
+        self._publish_plant_state()
 
     # --- runs that start where a simulation starts ------------------------------------------------
 
@@ -258,7 +281,7 @@ class TargetServer:
             elif started_s < self._deadline_s + wait_s:
                 continue
             tick_s = self._deadline_s
-            self.drives.publish_feedback(self._step())
+            self._step()
             deadline_s = tick_s + period_s
             now_s = monotonic()
             missed = 0
@@ -403,42 +426,6 @@ def _urdf_limits(
     if any(name not in effort for name in joint_names):
         return None, None
     return tuple(effort[n] for n in joint_names), tuple(velocity[n] for n in joint_names)
-
-
-def make_plant(config: TargetConfig) -> PybulletPlant:
-    urdf = config.urdf if config.urdf is not None else default_urdf_path(config.robot or "ur5_paper")
-    plant_cfg = config.plant
-    try:
-        plant = PybulletPlant(
-            urdf,
-            period_s=config.period_s,
-            substeps=config.substeps,
-            joint_names=plant_cfg.joint_names,
-            initial_position_rad=plant_cfg.initial_position_rad,
-            brake_holding_torque_nm=plant_cfg.brake_holding_torque_nm,
-            encoder_noise_rad=plant_cfg.encoder_noise_rad,
-            velocity_noise_rad_s=plant_cfg.velocity_noise_rad_s,
-            seed=plant_cfg.seed,
-        )
-    except ValueError as exc:  # PlantError and the robot loader's ModelInputError
-        raise TargetConfigError(f"plant: {exc}") from None
-    if config.realism != "ideal":
-        from sim_target.realism_profiles import load_realism
-
-        try:  # RealismError names the profile file and field; the plant's own refusals say "realism:"
-            plant.use_realism(
-                load_realism(
-                    config.realism,
-                    plant.n_joints,
-                    config.period_s,
-                    config.period_s / plant.substeps,
-                    plant.torque_limit_nm,
-                )
-            )
-        except ValueError as exc:
-            plant.close()
-            raise TargetConfigError(str(exc)) from None
-    return plant
 
 
 def make_drives(config: TargetConfig, bus: can.BusABC, n_joints: int) -> DriveBank:

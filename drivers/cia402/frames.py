@@ -198,6 +198,7 @@ _TPDO_FD: Final = struct.Struct("<Hhii")
 _TPDO_FD_SYNC: Final = struct.Struct("<HhiiB3x")  # 13 data bytes padded to the FD length 16
 
 RPDO_LENGTH: Final = _RPDO.size
+RPDO_STRUCT: Final = _RPDO  # (controlword, target torque ‰) of a received RPDO: an emulated drive's hot path
 TPDO1_LENGTH: Final = _TPDO1.size
 TPDO2_LENGTH: Final = _TPDO2.size
 TPDO_FD_LENGTH: Final = _TPDO_FD.size

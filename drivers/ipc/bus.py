@@ -1,11 +1,9 @@
 """``interface="ipc"``: a virtual CAN bus shared by any number of processes on one machine.
 
-No network, no kernel module, no hub process: the bus is a directory. Every bus instance binds
-a Unix SOCK_SEQPACKET socket in it and connects to every other instance's socket, so each frame
-goes straight from sender to receiver as one datagram in SocketCAN's layout
-(:mod:`drivers.ipc.frame`). A hub (every frame in, then out again to each peer) was measured at
-twice the round-trip median of direct delivery on a 2-core machine and adds a process that
-competes for the CPUs, so there is none (docs/ipc_bus.md gives the figures).
+No network, no kernel module, no hub process (measured: twice the round trip, docs/ipc_bus.md):
+the bus is a directory. Every bus instance binds a Unix SOCK_SEQPACKET socket in it and connects
+to every other instance's socket, so each frame goes straight from sender to receiver as one
+datagram in SocketCAN's layout (:mod:`drivers.ipc.frame`).
 
     bus = can.Bus(interface="ipc", channel="/run/hil/can", fd=True)   # a directory, created if missing
     bus = can.Bus(interface="ipc", channel="hil")        # a name: $XDG_RUNTIME_DIR/hil-can/hil or /run/hil/can/hil
@@ -13,16 +11,13 @@ competes for the CPUs, so there is none (docs/ipc_bus.md gives the figures).
 Only its owner joins: the directory must be the current user's (or, with ``group``, that
 group's) and writable by no one else; every peer's ``SO_PEERCRED`` is checked on connect and
 accept (refused: ``stats.peers_refused``). Each received frame carries its sender
-(:class:`IpcMessage`, ``msg.sender``), so a receiver can tell two senders of one identifier
-apart (drivers/bus_guard.py). docs/security.md, docs/ipc_bus.md ("Design", "Semantics").
+(:class:`IpcMessage`, ``msg.sender``). docs/security.md, docs/ipc_bus.md ("Design", "Semantics").
 
 Semantics as python-can's ``virtual`` and SocketCAN (one sender's frames in order; ``send`` never
-blocks: a full peer loses the frame, counted, and gets SocketCAN's RX-overflow error frame).
-The cycle's hot path: ``send_batch(msgs)`` sends a cycle's frames as one datagram per peer;
-``send_frames(batch)`` a :class:`~drivers.ipc.frame.FrameBatch` encoded once into a preallocated
-datagram; ``recv_frames()`` returns a datagram's frames undecoded (no ``can.Message`` each).
-
-Linux only (SOCK_SEQPACKET on AF_UNIX).
+blocks: a full peer loses the frame, counted, and gets SocketCAN's RX-overflow error frame). The
+cycle's hot path: ``send_batch``/``send_frames`` (a preallocated
+:class:`~drivers.ipc.frame.FrameBatch`) send a cycle's frames as one datagram per peer;
+``recv_frames`` (frames undecoded) and ``recv_datagram`` (as it came) receive one. Linux only.
 """
 
 from __future__ import annotations
@@ -350,11 +345,8 @@ class IpcBus(can.BusABC):
 
     def recv_frames(self, timeout: float | None = None) -> tuple[Sender | None, list[tuple[int, bytes, bool]]] | None:
         """The next datagram's frames, undecoded: ``(sender, [(can_id, data, is_fd), ...])``
-        (:func:`drivers.ipc.frame.raw_frames`), or None when ``timeout`` passes first.
-
-        The hot path's receive (a cycle's batch in one call, no :class:`can.Message` per frame):
-        what :meth:`recv` hands out one by one, in order, without ``can_filters`` or timestamps.
-        Frames a :meth:`recv` split from a batch and did not hand out yet come first."""
+        (:func:`drivers.ipc.frame.raw_frames`), or None when ``timeout`` passes first: what
+        :meth:`recv` hands out one by one, in order, without ``can_filters`` or timestamps."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             if self._batched:
@@ -378,9 +370,16 @@ class IpcBus(can.BusABC):
             self.stats.frames_received += len(frames)
             return peer.sender, frames
 
+    def recv_datagram(self, timeout: float | None = None) -> tuple[Sender | None, bytes] | None:
+        """The next datagram as it came (a frame or a batch: :func:`~drivers.ipc.frame.raw_frames`), or
+        None after ``timeout``: for a CAN FD bus's reader that parses its cycle itself (and counts it)."""
+        if self._batched:  # frames a recv() split from a batch and did not hand out yet
+            return self._batched[0][0].sender, self._batched.popleft()[1]
+        got = self._next_datagram(None if timeout is None else time.monotonic() + timeout)
+        return None if got is None else (got[0].sender, got[1])
+
     def _next_datagram(self, deadline: float | None) -> tuple[_Peer, bytes] | None:
-        """The next datagram (a frame or a batch) from any peer, waiting until ``deadline``
-        (monotonic; None: forever); None when it passed."""
+        """The next datagram (a frame or a batch) from any peer by ``deadline`` (monotonic; None: forever)."""
         ready = self._ready
         while True:
             while ready:
@@ -396,8 +395,8 @@ class IpcBus(can.BusABC):
                     continue
                 if len(data) == len(_WAKE) and peer is self._loop:  # shutdown() wakes us
                     raise can.CanOperationError("ipc bus: the bus is shut down")
+                ready.pop(0)  # read again only once epoll says so: no failed recv after each datagram
                 if not data:  # EOF: the peer closed or died
-                    ready.pop(0)
                     self._drop_peer(peer)
                     continue
                 return peer, data
@@ -413,7 +412,8 @@ class IpcBus(can.BusABC):
                 # finite wait goes through select() on the epoll descriptor (µs), then epoll.
                 fd = self._epoll.fileno()
                 if wait_s > 0 and fd < 1024:  # select's FD_SETSIZE
-                    select.select([fd], [], [], wait_s)
+                    if not select.select([fd], [], [], wait_s)[0] and deadline is not None:
+                        return None  # nothing came before the deadline: no epoll call
                     wait_s = 0.0
                 events = self._epoll.poll(wait_s)
             except InterruptedError:
@@ -474,8 +474,7 @@ class IpcBus(can.BusABC):
                 peer.sock.close()
             self._peers.clear()
             self._targets = ()
-        # The loopback pair and the epoll stay open until the object goes: a reader thread may be
-        # between epoll and recv right now; closing its fds under it could hand them to new sockets.
+        # The loopback pair and the epoll stay open until the object goes (a reader thread may be in them).
 
     def _remove_own_socket(self) -> None:
         if self._path is not None and self._inode is not None:

@@ -23,10 +23,12 @@ class FrameFaults:
     delay_s: float = 0.0  # every frame held this long
     corrupt_probability: float = 0.0  # sent one byte short
     seed: int = 0
+    # Any fault to apply: read for every drive every SYNC, so a field computed once, not a property.
+    active: bool = field(init=False, repr=False, compare=False)
 
-    @property
-    def active(self) -> bool:
-        return self.drop_probability > 0 or self.delay_s > 0 or self.corrupt_probability > 0
+    def __post_init__(self) -> None:
+        active = self.drop_probability > 0 or self.delay_s > 0 or self.corrupt_probability > 0
+        object.__setattr__(self, "active", active)  # frozen: set once, here
 
 
 @dataclass(frozen=True)

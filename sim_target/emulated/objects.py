@@ -12,7 +12,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 from canopen.sdo.exceptions import SdoAbortedError
 
 from drivers.cia402 import od as odx
@@ -21,7 +20,7 @@ from sim_target.emulated import pdo
 from sim_target.emulated.node import EmulatedDrive
 from sim_target.emulated.p402 import statusword
 
-Feedback = tuple[np.ndarray, np.ndarray, np.ndarray] | None  # position, velocity, torque (published)
+Feedback = tuple[list[float], list[float], list[float]] | None  # position, velocity, torque (published)
 
 
 class ObjectServer:

@@ -19,6 +19,7 @@ from drivers.ipc.frame import FrameBatch
 
 RawFrames = list[tuple[int, bytes, bool]]  # (can_id with SocketCAN's flags, data, is_fd)
 FrameReceiver = Callable[[float | None], tuple[Sender | None, RawFrames] | None]
+DatagramReceiver = Callable[[float | None], tuple[Sender | None, bytes] | None]
 
 
 def frame_sender(bus: can.BusABC) -> Callable[[FrameBatch], None] | None:
@@ -29,3 +30,11 @@ def frame_sender(bus: can.BusABC) -> Callable[[FrameBatch], None] | None:
 def frame_receiver(bus: can.BusABC) -> FrameReceiver | None:
     """``bus.recv_frames`` when ``bus`` is the ipc bus itself with no receive filter, else None."""
     return bus.recv_frames if type(bus) is IpcBus and not bus.filters else None
+
+
+def datagram_receiver(bus: can.BusABC) -> DatagramReceiver | None:
+    """``bus.recv_datagram`` when ``bus`` is the ipc bus itself, CAN FD (every frame handed out),
+    with no receive filter; else None."""
+    if type(bus) is IpcBus and not bus.filters and bus.protocol is can.CanProtocol.CAN_FD:
+        return bus.recv_datagram
+    return None

@@ -63,8 +63,19 @@ class MasterWatch:
         return True
 
     def check(self, now: float) -> None:
+        enabled = State.OPERATION_ENABLED
         for drive in self.drives:
-            if drive.state is not State.OPERATION_ENABLED:
+            if drive.state is not enabled:
+                continue
+            # The common case, every watch fed in time, in plain comparisons (runs every few ms).
+            heartbeat_ms, heartbeat_s = drive.master_heartbeat_timeout_ms, drive.last_master_heartbeat_s
+            rpdo_ms, rpdo_s = drive.rpdo_timeout_ms, drive.last_rpdo_s
+            sync_ms, sync_s = drive.sync_timeout_ms, drive.last_sync_s
+            if not (
+                (heartbeat_ms and heartbeat_s and (now - heartbeat_s) * 1000 > heartbeat_ms)
+                or (rpdo_ms and rpdo_s and (now - rpdo_s) * 1000 > rpdo_ms)
+                or (sync_ms and sync_s and (now - sync_s) * 1000 > sync_ms)
+            ):
                 continue
             for cause, last_field, timeout_field, code in _CAUSES:
                 timeout_ms = getattr(drive, timeout_field)

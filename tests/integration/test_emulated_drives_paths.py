@@ -59,9 +59,11 @@ def test_the_ipc_bus_takes_the_raw_path(rig: Rig) -> None:
     if rig.config.transport.interface == "ipc":
         assert not recv_calls
         assert answered_fast >= 20
+        assert rig.drives.cycles_read >= 19  # the master's RPDOs and SYNC read in one unpack
     else:
         assert recv_calls
         assert answered_fast == 0
+        assert rig.drives.cycles_read == 0
 
 
 def test_junk_frames_are_counted_alike(rig: Rig) -> None:
