@@ -195,7 +195,8 @@ def test_the_pipeline_refuses_a_beta_floor_outside_0_1_in_one_line(tmp_path: Pat
     import sys
 
     result = subprocess.run(
-        [sys.executable, "-m", "hil_runtime.cli", "pipeline", "--tau-prev", "--beta-floor", "0", "--work", str(tmp_path)],
+        [sys.executable, "-m", "hil_runtime.cli", "pipeline", "--tau-prev", "--beta-floor", "0"]
+        + ["--work", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=120,
