@@ -420,7 +420,9 @@ def reexport_shipped(law_name: str, bundles: Path | None, out_root: Path) -> dic
     inputs, recorded = np.asarray(probes["inputs"], float), np.asarray(probes["outputs"], float)
     n = bundle.n_joints
     q, qd, q_d, qd_d, qdd_d = (inputs[:, i * n : (i + 1) * n] for i in range(5))
-    tau, tau_fb, state = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, inputs[:, 5 * n :])
+    state_end = 5 * n + bundle.state_size  # a graph reading tau_prev has it after the law's state
+    previous = inputs[:, state_end:] if bundle.takes_previous_torque else None
+    tau, tau_fb, state = bundle.step_batch(q, qd, q_d, qd_d, qdd_d, inputs[:, 5 * n : state_end], previous)
     got = np.concatenate([tau, tau_fb, state, bundle.last_trust_batch], 1)
     return {
         "law": law_name,

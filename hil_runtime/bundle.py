@@ -4,8 +4,12 @@ A bundle is a directory written by ``models.lmpc.bundle_export`` (docs/architect
 
     <bundle>/manifest.json   schema, robot + URDF sha256, joints, period, limits, law, layout,
                              training provenance, validation error, sha256 of every file
-    <bundle>/policy.onnx     one fused graph: x (B, 5N+S) -> y (B, 2N+S+2), float64
-                             x = [q, qd, q_d, qd_d, qdd_d, law_state]
+    <bundle>/policy.onnx     one fused graph: x (B, 5N+S[+N]) -> y (B, 2N+S+2), float64
+                             x = [q, qd, q_d, qd_d, qdd_d, law_state(, tau_prev)]
+                                 tau_prev (optional, declared as the input layout's last slot): the
+                                 torque commanded last period; such a graph steps from it within
+                                 the rate bound (docs/lmpc.md §11). Its caller keeps it in
+                                 ``previous_torque_nm`` (the runtime's Controller: commit / reset)
                              y = [tau, tau_fb, next_law_state, trust]
                                  tau: the LMPC torque after the trust region, saturated;
                                  next_law_state already records tau as the applied torque;
@@ -135,6 +139,13 @@ class PolicyBundle:
         self._y_row: np.ndarray = self._y[0]
         tau, tau_fb, next_state, trust_view = self.layout.split(self._y_row)
         self._step_out: tuple[np.ndarray, np.ndarray, np.ndarray] = (tau, tau_fb, next_state)
+        # tau_prev's place in the bound input row (None: the graph does not read it): the caller writes
+        # the torque it commanded here (Controller.commit), and the held torque on activation (reset)
+        self.takes_previous_torque = manifest.takes_previous_torque
+        self._law_state_row: np.ndarray = self._x_row[5 * n : 5 * n + self.state_size]
+        self.previous_torque_nm: np.ndarray | None = (
+            self._x_row[self.layout.previous_torque_columns] if self.takes_previous_torque else None
+        )
         self._trust_view: np.ndarray = trust_view
         # (tau, tau_fb) of the last step as one (2, 1, N) view: one copy gives both as (1, N) rows
         self.last_torques: np.ndarray = self._y_row[: 2 * n].reshape(2, 1, n)
@@ -324,7 +335,7 @@ class PolicyBundle:
         x[2 * n : 3 * n] = q_d
         x[3 * n : 4 * n] = qd_d
         x[4 * n : 5 * n] = qdd_d
-        x[5 * n :] = law_state
+        self._law_state_row[:] = law_state  # tau_prev (if read) stays as the caller set it
         self._run_bound(self._binding_native, None)
         return self._step_out
 
@@ -334,15 +345,27 @@ class PolicyBundle:
         return self._trust_view
 
     def step_batch(
-        self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray, law_state: np.ndarray
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        q_d: np.ndarray,
+        qd_d: np.ndarray,
+        qdd_d: np.ndarray,
+        law_state: np.ndarray,
+        previous_torque_nm: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """B arms at once ((B, N) arrays, law_state (B, S)): new arrays (tau, tau_fb, next_law_state).
 
-        ``last_trust_batch`` holds the (B, 2) trust output of the call.
+        ``previous_torque_nm`` (B, N): each arm's torque commanded last period, required by a graph that
+        reads it (``takes_previous_torque``), ignored otherwise. ``last_trust_batch`` holds the (B, 2)
+        trust output of the call.
         """
-        x = np.concatenate(
-            [np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in (q, qd, q_d, qd_d, qdd_d, law_state)], 1
-        )
+        rows = [q, qd, q_d, qd_d, qdd_d, law_state]
+        if self.takes_previous_torque:
+            if previous_torque_nm is None:
+                raise ValueError(f"bundle {self.path}: the graph reads tau_prev; step_batch needs previous_torque_nm")
+            rows.append(previous_torque_nm)
+        x = np.concatenate([np.asarray(a, float).reshape(np.shape(q)[0], -1) for a in rows], 1)
         y = self.session.run([self._output_name], {self._input_name: x})[0]
         tau, tau_fb, next_state, self.last_trust_batch = self.layout.split(y)
         if not np.isfinite(y).all():

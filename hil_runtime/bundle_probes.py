@@ -7,6 +7,13 @@ fails here), saturates at ``limits.torque_nm`` and keeps its residual within
 (``models.lmpc.bundle_export``) records the probes with :func:`record_probes`: seeded states
 (:func:`make_probe_inputs`) and rows that clamp each joint's residual (:func:`clamp_probe_inputs`);
 the saturation rows (:func:`saturation_probe_inputs`) are generated at load.
+
+A graph that reads tau_prev (the input layout's optional last slot, docs/lmpc.md §11) steps from it by
+at most the rate bound (``limits.torque_rate_nm_s`` x the period): every row with a commanded tau_prev
+(within the torque limits) must, and that is checked on every row run here. Its probe rows carry a
+settled tau_prev (:func:`settle_previous`: the graph's own torque fed back until it rests, the state a
+running arm is in), its saturation rows ramp to the plateau the same way, and its residual check allows
+what lies between tau_prev and the trust region's target (the step's share beta is the graph's).
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from hil_runtime.bundle_schema import TRUST_MIN_SPAN, Manifest
+from hil_runtime.rate_limit import max_torque_step_nm
 
 PROBE_RTOL = 1e-6
 PROBE_SEED = 20261123
@@ -48,6 +56,56 @@ def initial_state(manifest: Manifest, q0: np.ndarray) -> np.ndarray:
     return state
 
 
+#: feed-back passes beyond a full ramp (2 x limit / step) when settling tau_prev: the geometric tail of a
+#: step share beta < 1 ((1 - beta)^k of the distance is left after k passes)
+SETTLE_EXTRA_PASSES = 200
+RATE_TOLERANCE = 1e-9  # relative, on a step of the rate bound
+
+
+def rate_step_nm(manifest: Manifest) -> np.ndarray:
+    """The largest torque change per period the graph may make from tau_prev (N m, per joint)."""
+    rate = manifest.limits.torque_rate_nm_s
+    return max_torque_step_nm(np.asarray(rate if rate is not None else np.inf, float), manifest.period_s)
+
+
+def settle_previous(manifest: Manifest, run_rows: RunRows, x: np.ndarray, passes: int | None = None) -> np.ndarray:
+    """Rows x with tau_prev set to where the graph's own torque rests: tau fed back as tau_prev ``passes``
+    times (default: a full ramp across the torque range and SETTLE_EXTRA_PASSES more), the law's state
+    kept. A graph that does not read tau_prev: x unchanged."""
+    if not manifest.takes_previous_torque:
+        return x
+    x = np.array(x, float)
+    n, columns = manifest.robot.n_joints, manifest.layout.previous_torque_columns
+    if passes is None:
+        passes = int(np.ceil(2.0 * np.max(_torque_limit(manifest) / rate_step_nm(manifest)))) + SETTLE_EXTRA_PASSES
+    moving = np.arange(len(x))
+    for _ in range(passes):  # the rows still moving only; a row rests when its torque equals its tau_prev
+        tau = run_rows(x[moving])[:, :n]
+        before = x[moving][:, columns]
+        tau = np.where(np.isfinite(tau), tau, before)
+        x[moving, columns] = tau
+        moving = moving[np.abs(tau - before).max(axis=1) > 1e-12 * (1.0 + np.abs(tau).max(axis=1))]
+        if moving.size == 0:
+            break
+    return x
+
+
+def _check_rate(manifest: Manifest, manifest_path: Path, x: np.ndarray, y: np.ndarray) -> None:
+    """Every row whose tau_prev is a commandable torque: |tau - tau_prev| <= the rate step."""
+    if not manifest.takes_previous_torque:
+        return
+    n, limit, step = manifest.robot.n_joints, _torque_limit(manifest), rate_step_nm(manifest)
+    previous, tau = x[:, manifest.layout.previous_torque_columns], y[:, :n]
+    commandable = (np.abs(previous) <= limit).all(axis=1) & np.isfinite(tau).all(axis=1)
+    over = commandable[:, None] & (np.abs(tau - previous) > step * (1.0 + RATE_TOLERANCE) + 1e-12)
+    if over.any():
+        j = int(np.argwhere(over)[0][1])
+        raise GraphCheckError(
+            f"bundle {manifest_path}: limits.torque_rate_nm_s[{j}] allows {step[j]:g} N m per period but the graph "
+            f"steps {np.abs(tau - previous)[over[:, j], j].max():g} N m from tau_prev"
+        )
+
+
 def check_graph(manifest: Manifest, run_rows: RunRows, manifest_path: Path) -> np.ndarray:
     """The graph does what the manifest says: recorded probes, saturation, residual bound. Returns
     the joints whose saturation the probes observed (a plateau at ``limits.torque_nm``);
@@ -66,8 +124,16 @@ def check_graph(manifest: Manifest, run_rows: RunRows, manifest_path: Path) -> n
             f"({name}[{index}]): it is not the graph of this manifest's law "
             f"'{manifest.law.name}', or was changed"
         )
-    sat_y = run_rows(saturation_probe_inputs(manifest))
-    joints = _check_saturation(manifest, manifest_path, np.concatenate([y, sat_y]), sat_y)
+    sat_x = saturation_probe_inputs(manifest)
+    if manifest.takes_previous_torque:  # ramp to the plateau at the rate bound, each pass checked
+        passes = int(np.ceil(2.0 * np.max(_torque_limit(manifest) / rate_step_nm(manifest)))) + 2
+        for _ in range(passes):
+            sat_y = run_rows(sat_x)
+            _check_rate(manifest, manifest_path, sat_x, sat_y)
+            sat_x[:, manifest.layout.previous_torque_columns] = np.nan_to_num(sat_y[:, : manifest.robot.n_joints])
+    sat_y = run_rows(sat_x)
+    _check_rate(manifest, manifest_path, np.concatenate([x, sat_x]), np.concatenate([y, sat_y]))
+    joints = _check_saturation(manifest, manifest_path, np.concatenate([y, sat_y]), sat_y, np.concatenate([x, sat_x]))
     bound = probes.position_sensitivity_nm_per_mrad
     if bound is not None:
         if len(bound) != manifest.robot.n_joints or not all(np.isfinite(bound)) or min(bound) < 0:
@@ -103,7 +169,9 @@ def position_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -
     return worst
 
 
-def _check_saturation(manifest: Manifest, manifest_path: Path, y: np.ndarray, sat_y: np.ndarray) -> np.ndarray:
+def _check_saturation(
+    manifest: Manifest, manifest_path: Path, y: np.ndarray, sat_y: np.ndarray, x: np.ndarray
+) -> np.ndarray:
     n = manifest.robot.n_joints
     limit = _torque_limit(manifest)
     tau, tau_fb, _, trust = manifest.layout.split(y)
@@ -138,13 +206,19 @@ def _check_saturation(manifest: Manifest, manifest_path: Path, y: np.ndarray, sa
     scale = 1.0 / np.where(acting, alpha, 1.0)[:, None]
     residual = np.abs(tau - tau_fb) * scale
     tol = (1e-9 + 1e-9 * np.abs(tau_fb)) * scale
-    beyond = inside & (residual > bound + tol)
+    allowed = np.broadcast_to(bound, residual.shape)
+    if manifest.takes_previous_torque:
+        # tau lies between tau_prev and the target tau_fb + alpha clip(r): within the bound or tau_prev's distance
+        allowed = np.maximum(allowed, np.abs(x[:, manifest.layout.previous_torque_columns] - tau_fb) * scale)
+    beyond = inside & (residual > allowed + tol)
     if beyond.any():
         j = int(np.argwhere(beyond)[0][1])
         raise GraphCheckError(
             f"bundle {manifest_path}: trust_region.residual_bound_nm[{j}] is {bound[j]:g} but the graph "
             f"passes a residual of {residual[beyond[:, j], j].max():g} N m"
         )
+    if manifest.takes_previous_torque:  # the step's share hides the clamp's level (module docstring)
+        return plateau
     at_bound = np.abs(residual - bound) <= 1e-7 * np.maximum(1.0, bound)
     clamped_rows = inside.all(axis=1) & (trust[:, 1] > 0.5)
     unexplained = clamped_rows & (at_bound.sum(axis=1) < np.rint(trust[:, 1]))
@@ -179,11 +253,18 @@ def saturation_probe_inputs(manifest: Manifest) -> np.ndarray:
                             np.full((1, n), sign * velocity),
                             np.zeros((1, n)),
                             _probe_state(manifest, q),
+                            _zero_previous(manifest, 1),
                         ],
                         1,
                     )
                 )
     return np.concatenate(rows)
+
+
+def _zero_previous(manifest: Manifest, rows: int) -> np.ndarray:
+    """A zero tau_prev block for ``rows`` input rows (width 0 when the graph does not read it)."""
+    columns = manifest.layout.previous_torque_columns
+    return np.zeros((rows, columns.stop - columns.start))
 
 
 def make_probe_inputs(manifest: Manifest, count: int = 12, seed: int = PROBE_SEED) -> np.ndarray:
@@ -208,7 +289,7 @@ def make_probe_inputs(manifest: Manifest, count: int = 12, seed: int = PROBE_SEE
             qd_d = qd + rng.normal(0.0, 0.1, n)
             qdd_d = rng.normal(0.0, 0.5, n)
         state = _probe_state(manifest, q[None])[0] + rng.normal(0.0, 0.01, manifest.law.state_size)
-        rows.append(np.concatenate([q, qd, q_d, qd_d, qdd_d, state]))
+        rows.append(np.concatenate([q, qd, q_d, qd_d, qdd_d, state, _zero_previous(manifest, 1)[0]]))
     return np.asarray(rows)
 
 
@@ -222,7 +303,9 @@ def _guard_rows(manifest: Manifest, g: np.ndarray) -> np.ndarray:
     initial state for q."""
     n = manifest.robot.n_joints
     q, e, qd, e_dot, qdd_d = (g[:, i * n : (i + 1) * n] for i in range(5))
-    return np.concatenate([q, qd, q + e, qd + e_dot, qdd_d, _probe_state(manifest, q)], 1)
+    return np.concatenate(
+        [q, qd, q + e, qd + e_dot, qdd_d, _probe_state(manifest, q), _zero_previous(manifest, len(q))], 1
+    )
 
 
 def clamp_probe_inputs(manifest: Manifest, run_rows: RunRows) -> np.ndarray:
@@ -261,14 +344,16 @@ def clamp_probe_inputs(manifest: Manifest, run_rows: RunRows) -> np.ndarray:
                 row = centre.copy()
                 row[index] += sign * offset[index]
                 g.append(row)
-    x = _guard_rows(manifest, np.asarray(g))
+    x = settle_previous(manifest, run_rows, _guard_rows(manifest, np.asarray(g)))
     y = run_rows(x)
     tau, tau_fb, _, trust_out = manifest.layout.split(y)
     fallback, clamped = trust_out[:, 0], trust_out[:, 1]
     alpha = 1.0 - fallback
     ok = np.isfinite(y).all(axis=1) & (alpha > 0) & (np.abs(tau) < _torque_limit(manifest) - 1e-6).all(axis=1)
     residual = np.abs(tau - tau_fb) / np.where(ok, alpha, 1.0)[:, None]
-    at_bound = ok[:, None] & (clamped > 0.5)[:, None] & (np.abs(residual - bound) <= 1e-9 * np.maximum(1.0, bound))
+    # settled rows (a graph reading tau_prev) rest at the target up to the step share's geometric tail
+    tolerance = 1e-6 if manifest.takes_previous_torque else 1e-9
+    at_bound = ok[:, None] & (clamped > 0.5)[:, None] & (np.abs(residual - bound) <= tolerance * np.maximum(1.0, bound))
     chosen = []
     for j in range(n):
         rows = np.flatnonzero(at_bound[:, j])
@@ -282,7 +367,8 @@ def clamp_probe_inputs(manifest: Manifest, run_rows: RunRows) -> np.ndarray:
 
 def probe_section(manifest: Manifest, run_rows: RunRows, where: str, count: int = 12) -> dict[str, object]:
     """The ``probes`` section for a bundle whose graph and files are final (the writer's step)."""
-    x = np.concatenate([make_probe_inputs(manifest, count), clamp_probe_inputs(manifest, run_rows)])
+    seeded = settle_previous(manifest, run_rows, make_probe_inputs(manifest, count))
+    x = np.concatenate([seeded, clamp_probe_inputs(manifest, run_rows)])
     y = run_rows(x)
     if not np.isfinite(y).all():
         raise GraphCheckError(f"bundle {where}: the graph gives non-finite outputs on probe inputs")

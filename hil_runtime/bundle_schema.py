@@ -21,6 +21,9 @@ SCHEMA = "hil-policy-bundle/3"  # 3: the control period is period_s (2 called it
 SUPPORTED_SCHEMAS = (SCHEMA,)
 MANIFEST = "manifest.json"
 INPUT_LAYOUT = ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state")
+# An optional last input slot (N): the torque commanded last period (after the supervisor), for a graph that
+# steps from it within the rate bound (docs/lmpc.md §11). A bundle without it reads as before.
+PREVIOUS_TORQUE = "tau_prev"
 OUTPUT_LAYOUT = ("tau", "tau_fb", "next_law_state", "trust")
 TRUST_SIZE = 2  # [fallback = 1 - alpha, joints_clamped]
 FEATURE_SETS = {
@@ -38,15 +41,22 @@ FeatureSet = Literal["eq22", "eq22+qdd_d", "ref"]
 @dataclass(frozen=True)
 class GraphLayout:
     """The fused graph's row layout (INPUT_LAYOUT, OUTPUT_LAYOUT) for N joints and a law state of S:
-    x = [q, qd, q_d, qd_d, qdd_d, law_state] (5N + S), y = [tau, tau_fb, next_law_state, trust]
-    (2N + S + TRUST_SIZE). The one place the offsets are written."""
+    x = [q, qd, q_d, qd_d, qdd_d, law_state] (5N + S), + [tau_prev] (N) when ``previous_torque``,
+    y = [tau, tau_fb, next_law_state, trust] (2N + S + TRUST_SIZE). The one place the offsets are written."""
 
     n_joints: int
     state_size: int
+    previous_torque: bool = False
 
     @property
     def input_width(self) -> int:
-        return 5 * self.n_joints + self.state_size
+        return (6 if self.previous_torque else 5) * self.n_joints + self.state_size
+
+    @property
+    def previous_torque_columns(self) -> slice:
+        """Where tau_prev sits in an input row (an empty slice without it)."""
+        start = 5 * self.n_joints + self.state_size
+        return slice(start, self.input_width)
 
     @property
     def output_width(self) -> int:
@@ -186,7 +196,12 @@ class Manifest(_Strict):
 
     @property
     def layout(self) -> GraphLayout:
-        return GraphLayout(self.robot.n_joints, self.law.state_size)
+        return GraphLayout(self.robot.n_joints, self.law.state_size, self.takes_previous_torque)
+
+    @property
+    def takes_previous_torque(self) -> bool:
+        """The graph reads tau_prev (the optional last input slot, PREVIOUS_TORQUE)."""
+        return bool(self.graph.input.layout) and self.graph.input.layout[-1].name == PREVIOUS_TORQUE
 
     @model_validator(mode="after")
     def _consistent(self) -> Manifest:
@@ -213,13 +228,16 @@ class Manifest(_Strict):
             raise ValueError("limits.torque_nm must be positive")
         if any(not t > 0 for t in self.limits.torque_rate_nm_s or ()):
             raise ValueError("limits.torque_rate_nm_s must be positive")
+        if self.takes_previous_torque and self.limits.torque_rate_nm_s is None:
+            raise ValueError(f"limits.torque_rate_nm_s: required by a graph that reads {PREVIOUS_TORQUE}")
         init = self.law.initial_state
         if len(init.constant) != s or len(init.position_gain) != s or any(len(row) != n for row in init.position_gain):
             raise ValueError(f"law.initial_state needs constant ({s}) and position_gain ({s} x {n})")
         want_in = [(k, s if k == "law_state" else n) for k in INPUT_LAYOUT]
         want_out = [(k, {"next_law_state": s, "trust": TRUST_SIZE}.get(k, n)) for k in OUTPUT_LAYOUT]
-        if [(x.name, x.size) for x in self.graph.input.layout] != want_in:
-            raise ValueError(f"graph.input.layout must be {want_in}")
+        got_in = [(x.name, x.size) for x in self.graph.input.layout]
+        if got_in not in (want_in, want_in + [(PREVIOUS_TORQUE, n)]):
+            raise ValueError(f"graph.input.layout must be {want_in} (+ [('{PREVIOUS_TORQUE}', {n})])")
         if [(x.name, x.size) for x in self.graph.output.layout] != want_out:
             raise ValueError(f"graph.output.layout must be {want_out}")
         if self.graph.file not in self.files:

@@ -14,6 +14,12 @@ observer (the manifest's ``law.applied_torque_slice``).
 own torque in fb mode is the paper's baseline, untouched): the LMPC torque's change per cycle is
 clamped per joint to libfranka's rate bound (:mod:`hil_runtime.rate_limit`) against the torque
 last committed, reset on activation to the torque the drives hold (:meth:`Controller.reset`).
+
+A bundle whose graph reads tau_prev (``bundle.takes_previous_torque``; docs/lmpc.md §11: the emulator
+steps from the last command within the rate bound inside the graph) gets the same torque: the one the
+supervisor commanded last cycle (:meth:`Controller.commit`), on activation the held set-point
+(:meth:`Controller.reset`). In fb mode it is fed too (the command is then the law's), so a switch of
+mode never hands the graph a stale torque.
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ class Controller:
         self.state = np.zeros(bundle.state_size)
         self._next = np.zeros(bundle.state_size)
         self._trust = bundle.last_trust  # a view of the graph's output row
+        self._previous = bundle.previous_torque_nm  # a view of the graph's input row (None: not read)
         self.rate_limiter = (
             TorqueRateLimiter(bundle.torque_rate_nm_s, bundle.period_s)
             if torque_rate_limit == "libfranka" and mode == "lmpc"
@@ -54,6 +61,9 @@ class Controller:
         self.state[:] = self.bundle.initial_state(np.asarray(q0, float))
         if self.rate_limiter is not None:
             self.rate_limiter.reset(held_torque_nm)
+        previous = self.bundle.previous_torque_nm
+        if previous is not None:  # the graph steps from the set-point the drives hold now (None: zero)
+            previous[:] = 0.0 if held_torque_nm is None else np.nan_to_num(np.asarray(held_torque_nm, float))
 
     def step(
         self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
@@ -84,3 +94,5 @@ class Controller:
         self.state, self._next = self._next, self.state
         if self.rate_limiter is not None:
             self.rate_limiter.commit(applied_torque_nm)
+        if self._previous is not None:  # the graph's tau_prev next cycle (the bound input row itself)
+            self._previous[:] = applied_torque_nm

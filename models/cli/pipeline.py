@@ -73,6 +73,14 @@ def pipeline(
             help="Structured design: trust-region residual bound, x the largest |tau* - tau_fb| of the labels."
         ),
     ] = 10.0,
+    tau_prev: Annotated[
+        bool,
+        typer.Option(
+            "--tau-prev/--no-tau-prev",
+            help="Structured design: the emulator also reads the last commanded torque and steps from it within "
+            "the rate bound (docs/lmpc.md section 11).",
+        ),
+    ] = False,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     from models.executors import EXECUTORS
@@ -116,6 +124,7 @@ def pipeline(
             workers,
             robot,
             gain_set,
+            tau_prev,
         )
         return
     from rich.console import Console
@@ -200,6 +209,7 @@ def _structured(
     workers: int | None = None,
     robot: str = "ur5_paper",
     gain_set: str = "stabilized",
+    tau_prev: bool = False,
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -227,6 +237,7 @@ def _structured(
         dagger_rounds=dagger_rounds,
         c_fixed=C_FIXED[formulation] if target == "hmpc" else None,
         bound_scale=bound_scale,
+        previous_torque=tau_prev,
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

@@ -32,7 +32,10 @@ def _solve_chunk(task: tuple[str, SolverSpec, tuple[np.ndarray, ...]]) -> tuple[
     """Worker: the HMPC on one chunk of states, with this worker's solver for the spec."""
     key, spec, arrays = task
     solver: HMPCSolver = worker_cached(key, lambda: HMPCSolver(*spec))
-    result = solver.solve(*arrays)
+    # a 7th array: tau_0 per row (the smoothness term and the rate bound apply, as in closed loop)
+    previous = arrays[6] if len(arrays) > 6 else None
+    q, qd, q_d, qd_d, qdd_d, law_state = arrays[:6]
+    result = solver.solve(q, qd, q_d, qd_d, qdd_d, law_state, previous_torque_nm=previous)
     return result.tau_nm, result.status
 
 
@@ -48,8 +51,12 @@ def solve_batch(
     config: HMPCConfig | None = None,
     executor: Executor | None = None,
     chunk_states: int = DEFAULT_CHUNK_STATES,
+    previous_torque_nm: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """HMPC torques (B, N) and status (B,) for B independent states (cold start, no warm start).
+
+    ``previous_torque_nm`` (B, N): tau_0 per state, the torque applied the period before (the smoothness
+    term and the rate bound then apply, as in the closed loop); None: neither (the static optimum).
 
     Each state is solved exactly as ``HMPCSolver.solve`` solves it alone (rows never interact), so
     the result does not depend on the chunking or the executor.
@@ -58,7 +65,8 @@ def solve_batch(
     q = np.atleast_2d(np.asarray(q, float))
     if law_state is None:
         law_state = law.initial_state(q)
-    arrays = [np.atleast_2d(np.asarray(a, float)) for a in (q, qd, q_d, qd_d, qdd_d, law_state)]
+    inputs = (q, qd, q_d, qd_d, qdd_d, law_state) + (() if previous_torque_nm is None else (previous_torque_nm,))
+    arrays = [np.atleast_2d(np.asarray(a, float)) for a in inputs]
     batch = q.shape[0]
     if any(a.shape[0] != batch for a in arrays):
         raise ModelInputError(f"solve_batch: every array needs {batch} rows, got {[a.shape[0] for a in arrays]}")

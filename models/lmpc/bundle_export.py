@@ -8,6 +8,10 @@
     tau = trust region (hil_runtime.bundle): sat(tau_fb) outside the training box (of the guard
           features (q, e, qd, e_dot, qdd_d, tau_fb), whatever the emulator's inputs),
           else sat(tau_fb + clip(r, -bound, bound))
+    an emulator with ``previous_torque`` (models.lmpc.structured, docs/lmpc.md §11): x also holds
+    tau_prev (the input layout's last slot, N), and tau = sat(tau_prev + clip(share (target - tau_prev),
+    +-step)) with target the trust region's torque above, share = 1 - alpha (1 - beta), step the robot's
+    torque-rate bound x the period (the bundle itself meets the rate rule)
     law_state'[applied_torque_slice] = tau                        (ADRC's observer input)
     y (B, 2N+S+2) = [tau, tau_fb, law_state', trust]              trust = [1 - alpha, joints_clamped]
 
@@ -35,6 +39,7 @@ from hil_runtime.bundle_schema import (
     INPUT_LAYOUT,
     MANIFEST,
     OUTPUT_LAYOUT,
+    PREVIOUS_TORQUE,
     SCHEMA,
     TRUST_MIN_SPAN,
     TRUST_SIZE,
@@ -98,6 +103,7 @@ class FusedPolicy(nn.Module):
         self.n, self.s = law.n_joints, law.state_size
         self.register_buffer("limit", torch.as_tensor(law.torque_limit_nm, dtype=torch.float64))
         self.applied = law.applied_torque_slice
+        self.previous = bool(getattr(emulator, "previous_torque", False))  # x ends with tau_prev (N)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = self.n
@@ -116,7 +122,10 @@ class FusedPolicy(nn.Module):
             torch.float64
         )
         r = torch.minimum(torch.maximum(r, -self.bound), self.bound)
-        tau = torch.minimum(torch.maximum(tau_fb + alpha * r, -self.limit), self.limit)
+        tau = tau_fb + alpha * r
+        if self.previous:
+            tau = self.emulator.rate_step_from(tau, x[:, 5 * n + self.s : 6 * n + self.s], alpha)
+        tau = torch.minimum(torch.maximum(tau, -self.limit), self.limit)
         if self.applied is not None:
             a, b = self.applied.start, self.applied.stop
             next_state = torch.cat([next_state[:, :a], tau, next_state[:, b:]], 1)
@@ -185,7 +194,7 @@ def export_bundle(
         )
         # policy_class: a FusedPolicy subclass with the same inputs/outputs (models.lmpc.structured)
         model = (policy_class or FusedPolicy)(law, emulator, residual, trust, feature_set).eval()
-        example = torch.zeros(2, 5 * n + s, dtype=torch.float64)
+        example = torch.zeros(2, (6 if model.previous else 5) * n + s, dtype=torch.float64)
         import warnings
 
         with warnings.catch_warnings():
@@ -242,7 +251,8 @@ def export_bundle(
                 "dtype": "float64",
                 "input": {
                     "name": "x",
-                    "layout": [{"name": k, "size": n if k != "law_state" else s} for k in INPUT_LAYOUT],
+                    "layout": [{"name": k, "size": n if k != "law_state" else s} for k in INPUT_LAYOUT]
+                    + ([{"name": PREVIOUS_TORQUE, "size": n}] if model.previous else []),
                 },
                 "output": {
                     "name": "y",
@@ -301,11 +311,19 @@ def verify_bundle(bundle_dir: Path, model: FusedPolicy, inputs: np.ndarray | Non
         inputs = rng.normal(size=(64, width)) * 0.5
     with torch.no_grad():
         expected = model(torch.as_tensor(inputs, dtype=torch.float64)).numpy()
-    n = bundle.n_joints
-    tau, tau_fb, state = bundle.step_batch(*(inputs[:, i * n : (i + 1) * n] for i in range(5)), inputs[:, 5 * n :])
+    n, s = bundle.n_joints, bundle.state_size
+    previous = inputs[:, 5 * n + s :] if bundle.takes_previous_torque else None
+    tau, tau_fb, state = bundle.step_batch(
+        *(inputs[:, i * n : (i + 1) * n] for i in range(5)), inputs[:, 5 * n : 5 * n + s], previous
+    )
     got = np.concatenate([tau, tau_fb, state, bundle.last_trust_batch], 1)
+    if bundle.previous_torque_nm is not None and previous is not None:
+        bundle.previous_torque_nm[:] = previous[0]
     single = np.concatenate(
-        [*bundle.step(*(inputs[0, i * n : (i + 1) * n] for i in range(5)), inputs[0, 5 * n :]), bundle.last_trust]
+        [
+            *bundle.step(*(inputs[0, i * n : (i + 1) * n] for i in range(5)), inputs[0, 5 * n : 5 * n + s]),
+            bundle.last_trust,
+        ]
     )
     error = float(max(np.abs(got - expected).max(), np.abs(single - expected[0]).max()))
     if not error <= PARITY_TOLERANCE_NM:

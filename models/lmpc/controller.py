@@ -12,6 +12,10 @@ single-row path, whose wall time (Python around it included) is the t_L column.
 object the runtime's policy stage uses), against the torque the simulator actually commanded last
 period (:meth:`LMPCController.commit`, called after its saturation), reset to zero at the start of a
 run (the drives hold a zero set-point when the runtime activates).
+
+A bundle whose graph reads tau_prev (docs/lmpc.md §11) gets the same torque as the runtime gives it: the
+one the simulator commanded last period (:meth:`LMPCController.commit`; without a commit, this
+controller's own last output), zero at the start of a run.
 """
 
 from __future__ import annotations
@@ -91,6 +95,8 @@ class LMPCController:
         self.blended = np.zeros(1, np.int64)  # per arm: cycles with 0 < alpha < 1 (near the box edge)
         self.clamped = np.zeros(1, np.int64)  # per arm: cycles with >= 1 joint's residual clamped to the bound
         self.cycles = 0
+        # tau_prev per arm (a graph that reads it): what was commanded last period
+        self.previous = np.zeros((1, bundle.n_joints))
 
     def reset(self, q0: np.ndarray) -> None:
         self.state = np.atleast_2d(self.bundle.initial_state(np.atleast_2d(np.asarray(q0, float))))
@@ -99,6 +105,7 @@ class LMPCController:
         self.blended = np.zeros(self.state.shape[0], np.int64)
         self.clamped = np.zeros(self.state.shape[0], np.int64)
         self.cycles = 0
+        self.previous = np.zeros((self.state.shape[0], self.bundle.n_joints))
         if self.rate_limiter is not None:
             self.rate_limiter.reset(None, arms=self.state.shape[0])
 
@@ -117,6 +124,8 @@ class LMPCController:
         start = time.perf_counter()
         if q.shape[0] == 1:
             row = self.state[0]
+            if self.bundle.previous_torque_nm is not None:
+                self.bundle.previous_torque_nm[:] = self.previous[0]
             _, _, state = self.bundle.step(q[0], qd[0], q_d[0], qd_d[0], qdd_d[0], row)
             row[:] = state
             pair = self.bundle.last_torques.copy()  # tau and tau_fb in one copy: (2, 1, N)
@@ -130,13 +139,15 @@ class LMPCController:
             if clamped > 0.5:
                 self.clamped[0] += 1
         else:
-            tau, tau_fb, self.state = self.bundle.step_batch(q, qd, q_d, qd_d, qdd_d, self.state)
+            tau, tau_fb, self.state = self.bundle.step_batch(q, qd, q_d, qd_d, qdd_d, self.state, self.previous)
             trust = self.bundle.last_trust_batch
             self.fallbacks += trust[:, 0] >= 1.0
             self.blended += (trust[:, 0] > 0.0) & (trust[:, 0] < 1.0)
             self.clamped += trust[:, 1] > 0.5
         if self.rate_limiter is not None:
             tau = self.rate_limiter.limit(tau).copy()
+        if self.bundle.takes_previous_torque:  # commit() replaces it with what was actually commanded
+            np.copyto(self.previous, tau, where=np.isfinite(tau))
         self.cycles += 1
         self.cycle_times_s.append(time.perf_counter() - start)
         self.last_tau_fb = tau_fb
@@ -149,6 +160,8 @@ class LMPCController:
             self.state[:, self._applied] = applied_torque_nm
         if self.rate_limiter is not None:
             self.rate_limiter.commit(applied_torque_nm)
+        if self.bundle.takes_previous_torque:
+            self.previous[:] = applied_torque_nm
 
 
 def make_lmpc_controller(

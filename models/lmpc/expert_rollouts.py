@@ -49,13 +49,19 @@ class StateLogger:
         n_joints: int,
         state_size: int,
         log_applied: bool,
+        log_previous: bool = False,
     ) -> None:
         self.inner, self.stride, self.log_applied = inner, stride, log_applied
+        # log_previous: also tau_prev, the torque this controller applied the period before (its tau_0; on
+        # the first period the torque it applies then: no change, as the HMPC's first cycle has no tau_0)
+        self.log_previous = log_previous
+        self._previous: np.ndarray | None = None
         self.name = inner.name + "-log"
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None
         rows = (steps + stride - 1) // stride
         keys = ("q", "qd", "q_d", "qd_d", "qdd_d", "tau_fb") + (("tau_star",) if log_applied else ())
+        keys += ("tau_prev",) if log_previous else ()
         self.log = {k: np.empty((batch, rows, n_joints)) for k in keys}
         self.log["law_state"] = np.empty((batch, rows, state_size))
         self.log["t_s"] = np.empty(rows)
@@ -63,6 +69,7 @@ class StateLogger:
     def reset(self, q0: np.ndarray) -> None:
         self.inner.reset(q0)
         self.k = 0
+        self._previous = None
 
     def __call__(
         self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
@@ -84,8 +91,12 @@ class StateLogger:
             ]
             if self.log_applied:
                 values.append(("tau_star", tau))
+            if self.log_previous:
+                values.append(("tau_prev", tau if self._previous is None else self._previous))
             for key, value in values:
                 log[key][:, row] = value
+        if self.log_previous:
+            self._previous = np.array(tau, float)
         self.k += 1
         return tau
 

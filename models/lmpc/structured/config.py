@@ -80,6 +80,18 @@ class StructuredConfig:
     perturbed_copies: int = 1
     perturb_error_rad: float = 0.01
     perturb_rate_rad_s: float = 0.05
+    # The rate-aware emulator (docs/lmpc.md §11): the graph also reads tau_prev, the torque commanded last
+    # period, and steps from it, tau = tau_prev + clip(beta (tau_static - tau_prev), +-max_torque_step).
+    # Its data: tau_0 logged with every expert state, the static copies as before, and rate copies (every
+    # rate_copy_stride-th on-policy row, e, e_dot and tau_0 moved: models.lmpc.structured.data.rate_copies)
+    # relabeled by an HMPC solve given that tau_0 (smoothness term and rate bound active): without tau_0
+    # moved, beta is not identifiable (on the expert's closed loop tau* - tau_0 is ~ 1e-3 N m). The static
+    # part is fitted as before, then beta (training.fit_beta) in [beta_floor, 1]: the fit alone chose
+    # 0.09-0.2 on the big joints, whose lag made the closed loop oscillate (docs/lmpc.md §11).
+    previous_torque: bool = False
+    rate_copy_stride: int = 1
+    rate_perturb_steps: float = 2.0
+    beta_floor: float = 0.3
     dagger_rounds: int = 0
     dagger_conditions: int = 8
     dagger_seed: int = 7201

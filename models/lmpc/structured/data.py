@@ -30,6 +30,7 @@ def _logged_rollouts(
     excite: tuple[np.ndarray, np.ndarray] | None = None,
     hold: int = 1,
     seed: int = 0,
+    log_previous: bool = False,
 ) -> list[dict[str, np.ndarray]]:
     """Run controllers side by side on ``conditions``; per controller the logged states and torques."""
     from models.lmpc.expert_rollouts import StateLogger
@@ -37,7 +38,7 @@ def _logged_rollouts(
     steps = int(round(conditions[0].duration_s / sim.period_s))
     loggers = []
     for c, law in zip(controllers, laws, strict=True):  # each controller runs (the export of) its law
-        loggers.append(StateLogger(c, len(conditions), steps, stride, law.n_joints, law.state_size, log_applied=True))
+        loggers.append(StateLogger(c, len(conditions), steps, stride, law.n_joints, law.state_size, True, log_previous))
     runners: list[Any] = loggers
     if excite is not None:
         runners = [_Excited(lg, excite[0], hold, excite[1], seed + 1000 * k) for k, lg in enumerate(loggers)]
@@ -119,7 +120,16 @@ def collect(
         rows_on = (np.arange(len(conditions)) < round(config.noise_fraction * len(conditions))).astype(float)
         excite = (config.accel_noise_rad_s2 * inertia0, rows_on)
     logs = _logged_rollouts(
-        robot, controllers, made, conditions, sim, config.stride, excite, config.noise_hold_steps, config.seed
+        robot,
+        controllers,
+        made,
+        conditions,
+        sim,
+        config.stride,
+        excite,
+        config.noise_hold_steps,
+        config.seed,
+        log_previous=config.previous_torque,
     )
     # Runs that left the limits are dropped from the data; a law with none left has nothing to learn from
     # (and its relabeling would be handed zero states): say so in one line, not a traceback downstream.
@@ -132,8 +142,10 @@ def collect(
         )
     data = {}
     for name, law, log in zip(laws, made, logs, strict=True):
-        if policy_dir is not None and config.target == "hmpc":
-            log["tau_star"] = relabel(law, robot, log, config.hmpc_options, executor)
+        if config.previous_torque:  # ROW_KINDS: which label a row has (the fit's two stages pick by it)
+            log["row_kind"] = np.full((len(log["q"]), 1), 0.0 if policy_dir is None else 2.0)
+        if policy_dir is not None and config.target == "hmpc":  # DAgger: given the LMPC's tau_0 if it reads one
+            log["tau_star"] = relabel(law, robot, log, config.hmpc_options, executor, previous=config.previous_torque)
         elif config.target == "law":
             log["tau_star"] = log["tau_fb"].copy()
         if policy_dir is None and config.perturbed_copies > 0 and config.target == "hmpc":
@@ -147,14 +159,21 @@ def collect(
                     )[0],
                     float,
                 )
-            extra["tau_star"] = (
-                extra["tau_fb"].copy()
-                if config.target == "law"
-                else relabel(law, robot, extra, config.hmpc_options, executor)
-            )
+            extra["tau_star"] = relabel(law, robot, extra, config.hmpc_options, executor)
+            if config.previous_torque:  # cold copies: the static optimum; rate copies: given a moved tau_0
+                extra["row_kind"] = np.full((len(extra["q"]), 1), ROW_KINDS["static"])
+                rate = rate_copies(law, robot, log, config)
+                rate["tau_star"] = relabel(law, robot, rate, config.hmpc_options, executor, previous=True)
+                extra = {k: np.concatenate([extra[k], rate[k]]) for k in extra}
             log = {k: np.concatenate([log[k], extra[k]]) for k in log}
         data[name] = log
     return data
+
+
+#: ``row_kind`` of a logged row (config.previous_torque): its label is the expert's applied torque given its
+#: tau_0 (0, on-policy), a cold solve without tau_0 (1: the static optimum), a solve given the row's
+#: tau_prev (2: rate copies, DAgger rows). The rate-aware fit uses 0 and 2.
+ROW_KINDS = {"on_policy": 0.0, "static": 1.0, "rate": 2.0}
 
 
 def perturbed(
@@ -168,21 +187,56 @@ def perturbed(
     return rows
 
 
+def rate_copies(law: Any, robot: RobotModel, log: dict[str, np.ndarray], config: StructuredConfig) -> dict:
+    """Every ``rate_copy_stride``-th logged row with e, e_dot perturbed (the static copies' sigmas) and
+    tau_prev moved by N(0, rate_perturb_steps x the joint's torque step per period), all times a per-row
+    scale: the rows that identify how far the expert steps from tau_0 (config.previous_torque); labels not
+    set, ``row_kind`` 2."""
+    from hil_runtime.rate_limit import max_torque_step_nm
+
+    rows = {k: v[:: config.rate_copy_stride].copy() for k, v in log.items() if k != "tau_star"}
+    rng = np.random.default_rng(config.seed + 29)
+    # one log-uniform scale per row in [1e-2, 1] of the perturbation: at full scale the expert's step sits on
+    # the rate bound (a 1 mrad error asks for several N m), at 1e-2 it is inside it; beta is seen on the latter
+    scale = np.exp(rng.uniform(np.log(1e-2), 0.0, (len(rows["q"]), 1)))
+    shape = rows["q"].shape
+    rows["q"] = rows["q"] + scale * rng.normal(0.0, config.perturb_error_rad, shape)
+    rows["qd"] = rows["qd"] + scale * rng.normal(0.0, config.perturb_rate_rad_s, shape)
+    step = max_torque_step_nm(robot.torque_rate_nm_s, config.period_s)
+    limit = np.asarray(robot.torque_limit_nm, float)
+    moved = rows["tau_prev"] + scale * rng.normal(0.0, 1.0, shape) * config.rate_perturb_steps * step
+    rows["tau_prev"] = np.clip(moved, -limit, limit)  # a commanded torque is within the limits
+    with np.errstate(all="ignore"):
+        rows["tau_fb"] = np.asarray(
+            law.step(np, rows["law_state"], rows["q"], rows["qd"], rows["q_d"], rows["qd_d"], rows["qdd_d"])[0], float
+        )
+    rows["row_kind"] = np.full((len(rows["q"]), 1), 2.0)
+    return rows
+
+
 def relabel(
     law: Any,
     robot: RobotModel,
     log: dict[str, np.ndarray],
     hmpc_options: dict[str, Any],
     executor: Executor | None = None,
+    previous: bool = False,
 ) -> np.ndarray:
     """The HMPC torque at logged states (cold solves from the logged law state), in chunks of 1024
-    on ``executor``'s workers (models.executors; None: this process)."""
+    on ``executor``'s workers (models.executors; None: this process). ``previous``: each row's logged
+    ``tau_prev`` is the solve's tau_0 (smoothness term and rate bound active); else the static optimum."""
     from models.hmpc import HMPCConfig, solve_batch
 
     options = {**hmpc_options, "on_budget_exhausted": "best_iterate"}
     rows = (log[k] for k in ("q", "qd", "q_d", "qd_d", "qdd_d", "law_state"))
     tau, _ = solve_batch(
-        law, robot, *rows, config=HMPCConfig.from_options(**options), executor=executor, chunk_states=1024
+        law,
+        robot,
+        *rows,
+        config=HMPCConfig.from_options(**options),
+        executor=executor,
+        chunk_states=1024,
+        previous_torque_nm=log["tau_prev"] if previous else None,
     )
     return tau
 
@@ -212,12 +266,21 @@ _DATA_FIELDS = (
     "perturb_error_rad",
     "perturb_rate_rad_s",
     "seed",
+    "previous_torque",
+    "rate_copy_stride",
+    "rate_perturb_steps",
+    "rate_data",
 )
+
+
+#: the rate-aware recipe's version in the cache key (2: static and rate copies; 1, rate copies only, is stale)
+RATE_DATA_VERSION = 2
 
 
 def _data_key(config: StructuredConfig) -> str:
     """What the rollouts depend on (a cache made with other settings is not reused)."""
-    return json.dumps({k: jsonable_config(config)[k] for k in _DATA_FIELDS}, sort_keys=True)
+    values = {**jsonable_config(config), "rate_data": RATE_DATA_VERSION if config.previous_torque else 0}
+    return json.dumps({k: values[k] for k in _DATA_FIELDS}, sort_keys=True)
 
 
 def _cached_rollouts(

@@ -57,7 +57,13 @@ def export_trained(
         "config": jsonable_config(config),
         "summary": summary,
         "structure": "r = c*tau_fb + g*ID(p, qdd_d + kp*e + kd*e_dot) + b*tanh(MLP(s)/b); p = "
-        + ("(q, qd) measured" if config.ff_point == "measured" else "(q_d, qd_d) reference"),
+        + ("(q, qd) measured" if config.ff_point == "measured" else "(q_d, qd_d) reference")
+        + (
+            "; tau = sat(tau_prev + clip((1 - alpha (1 - beta)) (target - tau_prev), +-rate step)), target = the "
+            "trust region's torque (docs/lmpc.md section 11)"
+            if config.previous_torque
+            else ""
+        ),
         "trust": {
             "box": "min/max of the training states, at least the paper's range (q, qd, qdd_d) 10 % beyond, "
             "e, e_dot +-error/rate envelopes, tau_fb the torque limits",
@@ -168,7 +174,9 @@ def reexport(
             config = replace(config, bound_scale=float(bound_scale))
         robot = load_robot(config.robot)
         bound = config.residual_bound_fraction * np.asarray(robot.torque_limit_nm, float)
-        model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)
+        model = StructuredEmulator(
+            robot, config.hidden, bound, config.ff_point, config.c_max, config.previous_torque, config.period_s
+        )
         model.load_state_dict(payload["state_dict"])
         model.frozen = tuple(payload["frozen"])
         model.use_residual = bool(payload["use_residual"])

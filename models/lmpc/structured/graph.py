@@ -36,7 +36,7 @@ def structured_policy_class() -> type:
             if self._compact is not None:
                 return self._compact
             emulator, n, size = self.emulator, self.n, self.s
-            width = 5 * n + size  # x; xt = [x, tau_fb]
+            width = (6 if self.previous else 5) * n + size  # x (tau_prev last, if read); xt = [x, tau_fb]
             eye = np.eye(n)
 
             def block(index: int) -> np.ndarray:  # (width + n, n): x's index-th N-block (5: tau_fb)
@@ -87,7 +87,7 @@ def structured_policy_class() -> type:
         def forward(self, x: torch.Tensor) -> torch.Tensor:
             n, size = self.n, self.s
             k = self.compact_constants()
-            parts = torch.split(x, [n] * 5 + ([size] if size else []), 1)
+            parts = torch.split(x, [n] * 5 + ([size] if size else []) + ([n] if self.previous else []), 1)
             q, qd, q_d, qd_d, qdd_d = parts[:5]
             state = parts[5] if size else x[:, 5 * n : 5 * n]
             position = q if self.emulator.ff_point == "measured" else q_d
@@ -112,6 +112,8 @@ def structured_policy_class() -> type:
             # joints clamped while alpha > 0: |r| alpha > alpha (one comparison instead of a count times sign(alpha))
             clamped = torch.sum((torch.abs(r) * alpha > alpha).to(torch.float64), 1, keepdim=True)
             step = torch.addmm(tau_fb, alpha * torch.clamp(r, -1.0, 1.0), k["trust_bound"])
+            if self.previous:  # the step from tau_prev within the rate bound (the emulator's rate_step_from)
+                step = self.emulator.rate_step_from(step, parts[-1], alpha)
             tau = torch.minimum(torch.maximum(step, -self.limit), self.limit)
             if self.applied is not None:
                 a, b = self.applied.start, self.applied.stop

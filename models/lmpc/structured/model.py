@@ -1,5 +1,6 @@
 """The structured emulator in torch: r = c tau_fb + g ID(p, qdd_d + Kp e + Kd e_dot) + b tanh(MLP(s) / b)
-(package docstring, models.lmpc.structured)."""
+(package docstring, models.lmpc.structured); with ``previous_torque`` also the step from tau_prev,
+tau = tau_prev + clip(beta (tau_fb + r - tau_prev), +-step) (docs/lmpc.md §11)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,8 @@ class StructuredEmulator(nn.Module):
         bound_nm: np.ndarray,
         ff_point: str = "measured",
         c_max: float = 0.0,
+        previous_torque: bool = False,
+        period_s: float = 1e-3,
     ) -> None:
         super().__init__()
         self.c_max = float(c_max)
@@ -58,6 +61,15 @@ class StructuredEmulator(nn.Module):
         self.register_buffer("bound", torch.as_tensor(np.asarray(bound_nm, float), dtype=torch.float64))
         self.use_residual = True
         self.frozen: tuple[torch.Tensor, ...] | None = None
+        # The rate-aware step (docs/lmpc.md §11): beta per joint in [BETA_MIN, 1] (1: straight to the static
+        # target, as fast as the rate bound allows), step = the robot's torque-rate bound x the period
+        self.previous_torque = bool(previous_torque)
+        if self.previous_torque:
+            from hil_runtime.rate_limit import max_torque_step_nm
+
+            step = max_torque_step_nm(robot.torque_rate_nm_s, period_s)
+            self.beta = nn.Parameter(torch.full((n,), 0.5, dtype=torch.float64))
+            self.register_buffer("rate_step", torch.as_tensor(step, dtype=torch.float64))
 
     def split(self, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
         n = self.n
@@ -80,6 +92,8 @@ class StructuredEmulator(nn.Module):
             if self.c.requires_grad:
                 self.c.clamp_(self.C_MIN, self.c_max)
             self.g.clamp_(0.0, self.G_MAX)
+            if self.previous_torque:
+                self.beta.clamp_(BETA_MIN, 1.0)
 
     def physics(self, s: torch.Tensor) -> torch.Tensor:
         q, e, qd, e_dot, qdd_d, tau_fb = self.split(s)
@@ -96,3 +110,14 @@ class StructuredEmulator(nn.Module):
         if self.use_residual:
             r = r + self.bound * torch.tanh(self.net((s - self.in_mean) / self.in_std) / self.bound)
         return r
+
+    def rate_step_from(self, target: torch.Tensor, tau_prev: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """tau_prev + clip(share (target - tau_prev), +-step), share = 1 - alpha (1 - beta): the learned beta
+        where the trust region trusts the emulator (alpha = 1), 1 where it hands over to the law (alpha = 0:
+        the law's torque, reached at the rate bound)."""
+        share = 1.0 + alpha * (self.beta - 1.0)
+        change = share * (target - tau_prev)
+        return tau_prev + torch.minimum(torch.maximum(change, -self.rate_step), self.rate_step)
+
+
+BETA_MIN = 0.005  # the smallest step share the fit may choose (0 would never move)

@@ -13,9 +13,9 @@ import numpy as np
 
 from models.executors import Executor
 from models.lmpc.structured.config import StructuredConfig, jsonable_config
-from models.lmpc.structured.data import _cached_rollouts, collect, features
+from models.lmpc.structured.data import ROW_KINDS, _cached_rollouts, collect, features
 from models.lmpc.structured.export import export_trained, save_trained, trust_box
-from models.lmpc.structured.training import train_structured
+from models.lmpc.structured.training import fit_beta, rate_aware, train_structured
 from models.robots import load_robot
 
 
@@ -42,9 +42,16 @@ def run_structured(
     for round_index in range(config.dagger_rounds + 1):
         per_law = {}
         for name in config.laws:
-            s, y = features(data[name]), data[name]["tau_star"] - data[name]["tau_fb"]
+            # the static part on the expert's states and the cold copies (the rate copies' labels depend on tau_0)
+            rows = _rows(data[name], config.previous_torque, (ROW_KINDS["on_policy"], ROW_KINDS["static"]))
+            s, y = features(rows), rows["tau_star"] - rows["tau_fb"]
             log(f"{name}: fit on {len(s)} states (round {round_index})")
             model, fit = train_structured(robot, s, y, config, log)
+            if config.previous_torque:  # then beta, on the rows labeled given their tau_0 (docs/lmpc.md §11)
+                model = rate_aware(model, robot, config)
+                given = _rows(data[name], True, (ROW_KINDS["on_policy"], ROW_KINDS["rate"]))
+                prev, star = given["tau_prev"], given["tau_star"]
+                fit["rate"] = fit_beta(model, features(given), prev, star, config.beta_floor, log)
             box, label_max = trust_box(s, robot, config), np.abs(y).max(0)
             save_trained(work / f"trained_{name}.pt", model, config, fit, box, label_max)
             manifest = export_trained(bundles / robot.name / name, name, robot, model, box, label_max, config, fit)
@@ -62,3 +69,11 @@ def run_structured(
     summary["wall_s"] = time.perf_counter() - started
     (work / "structured.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def _rows(data: dict[str, np.ndarray], by_kind: bool, kinds: tuple[float, ...]) -> dict[str, np.ndarray]:
+    """The rows of ``data`` whose ``row_kind`` is one of ``kinds`` (all rows when not ``by_kind``)."""
+    if not by_kind:
+        return data
+    keep = np.isin(data["row_kind"][:, 0], kinds)
+    return {k: v[keep] for k, v in data.items()}

@@ -44,7 +44,7 @@ def train_structured(
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
     bound = config.residual_bound_fraction * limit
-    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)  # the static part
     if config.c_fixed is not None:
         with torch.no_grad():
             model.c.fill_(config.c_fixed)
@@ -170,3 +170,61 @@ def train_structured(
         "train_s": time.perf_counter() - started,
     }
     return model.eval(), summary
+
+
+BETA_GRID = 400  # log-spaced candidates of beta per joint in [BETA_MIN, 1]
+
+
+def rate_aware(static: StructuredEmulator, robot: RobotModel, config: StructuredConfig) -> StructuredEmulator:
+    """The rate-aware emulator around a fitted static one (its coefficients, MLP and normalization), beta 1."""
+    bound = static.bound.numpy()
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max, True, config.period_s)
+    model.load_state_dict(static.state_dict(), strict=False)  # everything but beta and the rate step
+    with torch.no_grad():
+        model.beta.fill_(1.0)
+    model.frozen, model.use_residual = static.frozen, static.use_residual
+    return model.eval()
+
+
+def fit_beta(
+    model: StructuredEmulator,
+    s: np.ndarray,
+    tau_prev: np.ndarray,
+    tau_star: np.ndarray,
+    floor: float,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """beta per joint with the static part fixed: each joint's beta minimizes
+    mean((tau_prev + clip(beta (target - tau_prev), +-step) - tau*)^2) over a log grid in [floor, 1]
+    (the joints are independent given the static target; a grid is exact to its spacing). The rows: the
+    expert's closed loop and the rate copies (labels given their tau_0)."""
+    from models.lmpc.structured.model import BETA_MIN
+
+    floor = max(float(floor), BETA_MIN)
+    n = model.n
+    with torch.no_grad():
+        target = s[:, -n:] + model(torch.as_tensor(s)).numpy()
+    step = model.rate_step.numpy()
+    grid = np.exp(np.linspace(np.log(floor), 0.0, BETA_GRID))
+    gap, label = target - tau_prev, tau_star - tau_prev
+    losses = np.stack([np.mean((np.clip(b * gap, -step, step) - label) ** 2, 0) for b in grid])  # (G, N)
+    best = np.argmin(losses, 0)
+    beta = grid[best]
+    denominator = np.mean(label**2, 0) + 1e-30
+    relative, relative_one = losses[best, np.arange(n)] / denominator, losses[-1] / denominator
+    with torch.no_grad():
+        model.beta.copy_(torch.as_tensor(beta))
+    log(
+        f"  rate step: beta {np.round(beta, 3).tolist()}; relative loss {np.round(relative, 3).tolist()} "
+        f"(beta = 1: {np.round(relative_one, 3).tolist()})"
+    )
+    return {
+        "beta": beta.tolist(),
+        "beta_floor": floor,
+        "rate_step_nm": step.tolist(),
+        "relative_loss": relative.tolist(),
+        "relative_loss_beta_1": relative_one.tolist(),
+        "samples": int(len(s)),
+        "loss": "per joint mean((tau_prev + clip(beta (target - tau_prev), +-step) - tau*)^2)"
+        " / mean((tau* - tau_prev)^2)",
+    }

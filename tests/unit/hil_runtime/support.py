@@ -92,6 +92,7 @@ class StubBundle(PolicyBundle):
             created="",
         )
         self.layout = GraphLayout(n, state_size)
+        self.takes_previous_torque, self.previous_torque_nm = False, None  # the graph reads no tau_prev
         self._out = np.zeros(self.layout.output_width)
         self.tau_value: np.ndarray | None = None
         self.tau_fb_value: np.ndarray | None = None

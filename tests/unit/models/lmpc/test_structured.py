@@ -91,6 +91,8 @@ def _tiny(target: str, **extra: Any) -> StructuredConfig:
     from models.lmpc.structured import StructuredConfig
 
     extra.setdefault("laws", ("pd",))
+    extra.setdefault("perturb_error_rad", 1e-4)
+    extra.setdefault("perturb_rate_rad_s", 1e-2)
     return StructuredConfig(
         target=target,
         train_conditions=2,
@@ -98,8 +100,6 @@ def _tiny(target: str, **extra: Any) -> StructuredConfig:
         stride=10,
         residual_epochs=2,
         physics_steps=200,
-        perturb_error_rad=1e-4,
-        perturb_rate_rad_s=1e-2,
         **extra,
     )
 
@@ -260,3 +260,70 @@ def test_compact_structured_graph_equals_the_reference_policy(law_name: str, tmp
         compute = [node for node in onnx.load(str(path)).graph.node if node.op_type != "Constant"]
         if ff_point == "measured":  # shipped; at the reference point H-inf and SMC run a second RNE pass
             assert len(compute) <= {"pd": 62, "pid": 68, "hinf": 66, "smc": 69}.get(law_name, 81)
+
+
+@pytest.mark.parametrize("law_name", ["adrc", "smc"])  # SMC: its RNE shared with the feed-forward's
+def test_compact_rate_aware_graph_equals_the_reference_policy(law_name: str) -> None:
+    """With tau_prev read (docs/lmpc.md section 11) the folded graph still computes FusedPolicy.forward:
+    the trust region's target, then the step from tau_prev within the rate bound."""
+    from models.feedback import make_law
+    from models.lmpc.bundle_export import FusedPolicy
+    from models.lmpc.structured import StructuredEmulator, structured_policy_class
+
+    robot = load_robot("ur5_paper")
+    n = robot.n_joints
+    limit = np.asarray(robot.torque_limit_nm, float)
+    rng = np.random.default_rng(12)
+    law = make_law(law_name, robot, 1e-3, "stabilized")
+    model = StructuredEmulator(robot, (16,), 0.02 * limit, "measured", 0.0, True, 1e-3)
+    with torch.no_grad():
+        model.c.fill_(-1.0)
+        model.beta.copy_(torch.as_tensor(rng.uniform(0.1, 1.0, n)))
+        model.theta_kp.copy_(torch.eye(n) * 0.5)
+        model.theta_kd.copy_(torch.eye(n) * 0.5)
+    model.freeze()
+    low, high = -np.full(6 * n, 0.4), np.full(6 * n, 0.4)
+    low[5 * n :], high[5 * n :] = -limit, limit
+    trust = {"feature_low": low, "feature_high": high, "box_margin": 0.5, "residual_bound_nm": 0.05 * limit}
+    reference = FusedPolicy(law, model, True, trust, "eq22+qdd_d").eval()
+    compact = structured_policy_class()(law, model, True, trust, "eq22+qdd_d").eval()
+    width = 6 * n + law.state_size
+    x = rng.normal(size=(96, width)) * np.repeat([0.02, 0.2, 0.6], 32)[:, None]
+    x[:, 5 * n : 5 * n + law.state_size] = rng.normal(size=(96, law.state_size)) * 0.01
+    x[:, -n:] = rng.uniform(-0.1, 0.1, (96, n)) * limit
+    with torch.no_grad():
+        expected = reference(torch.as_tensor(x)).numpy()
+        got = compact(torch.as_tensor(x)).numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+    step = model.rate_step.numpy()
+    assert (np.abs(expected[:, :n] - x[:, -n:]) <= step * (1 + 1e-12)).all()
+
+
+@pytest.mark.heavy  # ~25 s: rollouts and HMPC relabels
+def test_the_rate_aware_pipeline_logs_tau_prev_relabels_given_it_and_fits_beta(tmp_path: Path) -> None:
+    import pickle
+
+    from hil_runtime.bundle import PolicyBundle
+    from hil_runtime.rate_limit import max_torque_step_nm
+    from models.hmpc.config import formulation_options
+    from models.lmpc.structured import run_structured
+    from models.lmpc.structured.data import ROW_KINDS
+    from models.lmpc.structured.model import BETA_MIN
+
+    options = formulation_options("deployable", "ur5_paper")
+    config = _tiny("hmpc", previous_torque=True, hmpc_options=options, c_fixed=-1.0, perturb_error_rad=1e-3)
+    summary = run_structured(config, tmp_path / "bundles", tmp_path / "work", log=lambda _: None)
+    _, data = pickle.loads((tmp_path / "work" / "rollouts_pd.pkl").read_bytes())
+    kind = data["row_kind"][:, 0]
+    assert set(np.unique(kind)) == set(ROW_KINDS.values())  # on-policy, cold static copies, rate copies
+    step = max_torque_step_nm(load_robot("ur5_paper").torque_rate_nm_s, 1e-3)
+    change = np.abs(data["tau_star"] - data["tau_prev"])
+    given = kind != ROW_KINDS["static"]
+    assert (change[given] <= step * (1 + 1e-6)).all()  # every label given its tau_0: the HMPC's rate box
+    assert (change[~given] > step).any()  # a cold solve has no tau_0: no rate box
+    rate = kind == ROW_KINDS["rate"]
+    assert (change[rate] >= step * (1 - 1e-6)).any() and (change[rate] < 0.5 * step).any()  # both regimes
+    fit = summary["rounds"][0]["pd"]["fit"]["rate"]
+    assert all(max(BETA_MIN, config.beta_floor) <= b <= 1.0 for b in fit["beta"])
+    bundle = PolicyBundle.load(tmp_path / "bundles" / "ur5_paper" / "pd", expected_joints=6)
+    assert bundle.takes_previous_torque
