@@ -81,6 +81,9 @@ def pipeline(
             "the rate bound (docs/lmpc.md section 11).",
         ),
     ] = False,
+    beta_floor: Annotated[
+        float, typer.Option(help="Structured design, --tau-prev: the smallest step share beta per joint (0-1].")
+    ] = 0.3,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     from models.executors import EXECUTORS
@@ -110,6 +113,8 @@ def pipeline(
     if design == "structured":
         if not residual_bound_scale > 0:
             raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
+        if not 0.0 < beta_floor <= 1.0:
+            raise ModelInputError(f"--beta-floor: must be in (0, 1], got {beta_floor}")
         _structured(
             work,
             bundles,
@@ -125,6 +130,7 @@ def pipeline(
             robot,
             gain_set,
             tau_prev,
+            beta_floor,
         )
         return
     from rich.console import Console
@@ -210,6 +216,7 @@ def _structured(
     robot: str = "ur5_paper",
     gain_set: str = "stabilized",
     tau_prev: bool = False,
+    beta_floor: float = 0.3,
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -239,6 +246,7 @@ def _structured(
         c_fixed=C_FIXED[formulation] if target == "hmpc" else None,
         bound_scale=bound_scale,
         previous_torque=tau_prev,
+        beta_floor=beta_floor,
         # ur5_paper keeps its shipped (free) fit; other arms get a physics loop stable by construction
         # (the Panda's free fit was unstable on C4: docs/any_arm.md "SMC on the real arms")
         physics_fit="free" if robot_name == "ur5_paper" else "stable",

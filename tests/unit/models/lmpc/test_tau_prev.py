@@ -188,3 +188,18 @@ def test_the_runtime_commands_every_step_within_the_bound_without_a_limiter(bund
     tau = np.asarray(rt.record.arrays()["tau"])
     steps = np.abs(np.diff(np.vstack([np.zeros(N), tau]), axis=0))  # row 0 against enable's zero set-point
     assert (steps <= STEP * (1 + 1e-9)).all(), steps.max(axis=0)
+
+
+def test_the_pipeline_refuses_a_beta_floor_outside_0_1_in_one_line(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", "pipeline", "--tau-prev", "--beta-floor", "0"]
+        + ["--work", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2 and "--beta-floor: must be in (0, 1], got 0.0" in result.stderr
+    assert "Traceback" not in result.stderr and not any(tmp_path.iterdir())
