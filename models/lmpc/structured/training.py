@@ -48,6 +48,20 @@ def _symmetric_floor(theta: torch.Tensor, floor: float) -> torch.Tensor:
     return (vectors * values.clamp_min(floor)) @ vectors.T
 
 
+#: the stable fit keeps the unconstrained gains (with g = 1) when e'' = -(K_p e + K_d e') decays at least
+#: this fast; else it projects them (the Panda's unconstrained K_p with g = 1: 0.96 1/s, its loss 0.0019
+#: against the projected fit's 0.0025, docs/any_arm.md "SMC on the real arms")
+STABLE_DECAY_MIN_1_S = 0.1
+
+
+def loop_decay_rate_1_s(model: StructuredEmulator) -> float:
+    """-max Re eig of e'' = -(K_p e + K_d e') (the physics loop with g = 1 on the nominal plant)."""
+    _, _, kp, kd = (t.detach().numpy() for t in model.coefficients(live=True))
+    n = kp.shape[0]
+    a = np.block([[np.zeros((n, n)), np.eye(n)], [-kp, -kd]])
+    return float(-np.linalg.eigvals(a).real.max())
+
+
 def project_stable_gains(model: StructuredEmulator) -> None:
     """K_p, K_d onto symmetric matrices with eigenvalues >= the stable floors (in the optimizer's scale)."""
     with torch.no_grad():
@@ -59,7 +73,8 @@ def train_structured(
     robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig, log: Callable[[str], None] = print
 ) -> tuple[StructuredEmulator, dict[str, Any]]:
     """Fit c, g, kp, kd (full batch, projected Adam + L-BFGS), then the bounded residual MLP (Adam);
-    y = tau* - tau_fb. ``config.physics_fit == "stable"``: g = 1, K_p, K_d symmetric with eigenvalue floors."""
+    y = tau* - tau_fb. ``config.physics_fit == "stable"``: g = 1; K_p, K_d projected onto symmetric matrices
+    with eigenvalue floors when the loop they make with g = 1 does not decay."""
     torch.manual_seed(config.seed)
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
@@ -94,23 +109,26 @@ def train_structured(
     # relative to the label's size (+ 1 % of the law's torque: the control row has y = 0)
     denom = float(torch.mean((yt * scale) ** 2)) + 1e-2 * float(torch.mean((tau_fb * scale) ** 2)) + 1e-30
     started = time.perf_counter()
-    # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the bounds:
-    # the control row's optimum c = g = 0 sits on them)
-    optimizer = torch.optim.Adam(params, lr=config.physics_learning_rate)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
-        optimizer, config.physics_steps, eta_min=1e-3 * config.physics_learning_rate
-    )
-    for _ in range(config.physics_steps):
-        optimizer.zero_grad()
-        loss = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
-        loss.backward()
-        optimizer.step()
-        schedule.step()
-        model.project()
-        if stable:
-            project_stable_gains(model)
-    # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior); the stable
-    # fit's optimum sits on its eigenvalue floor: the polish would leave the set, the projected Adam is final
+
+    def adam(project_gains: bool) -> None:
+        # projected Adam, full batch, cosine-decayed step (a sigmoid-bounded L-BFGS stalled short of the
+        # bounds: the control row's optimum c = g = 0 sits on them)
+        optimizer = torch.optim.Adam(params, lr=config.physics_learning_rate)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+            optimizer, config.physics_steps, eta_min=1e-3 * config.physics_learning_rate
+        )
+        for _ in range(config.physics_steps):
+            optimizer.zero_grad()
+            loss = torch.mean(((physics_fast() - yt) * scale) ** 2) / denom
+            loss.backward()
+            optimizer.step()
+            schedule.step()
+            model.project()
+            if project_gains:
+                project_stable_gains(model)
+
+    adam(False)
+    # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior)
     polish = torch.optim.LBFGS(
         [model.theta_kp, model.theta_kd],
         lr=1.0,
@@ -127,8 +145,13 @@ def train_structured(
         value.backward()
         return value
 
-    if not stable:
-        polish.step(closure)
+    polish.step(closure)
+    projected = False
+    if stable and loop_decay_rate_1_s(model) < STABLE_DECAY_MIN_1_S:
+        # g = 1 alone left a loop that does not decay: refit K_p, K_d on the symmetric matrices above the
+        # eigenvalue floors (stable by the Lyapunov argument; the polish would leave that set)
+        adam(True)
+        projected = True
     model.freeze()
     with torch.no_grad():
         physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)
@@ -186,6 +209,8 @@ def train_structured(
             "kd_1_s": coef[3].tolist(),
             "relative_loss": physics_loss,
             "fit": config.physics_fit,
+            "gains_projected": projected,
+            "loop_decay_rate_1_s": loop_decay_rate_1_s(model) if stable else None,
         },
         "residual": {
             "hidden": list(config.hidden),

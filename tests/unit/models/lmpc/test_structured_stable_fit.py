@@ -1,7 +1,8 @@
 """The structured emulator's "stable" physics fit (docs/lmpc.md "The stable physics fit"): on labels made
 by a feed-forward with g_1 = 0.7 and cross-coupled gains whose symmetric part is indefinite (the Panda's
 free fit, docs/any_arm.md "SMC on the real arms"), the free fit reproduces an unstable loop and the stable
-fit returns g = 1, symmetric K_p, K_d above their floors and a stable linearized loop."""
+fit returns g = 1 and, since g = 1 alone leaves a loop that does not decay, symmetric K_p, K_d above
+their floors: a stable linearized loop."""
 
 from __future__ import annotations
 
@@ -61,6 +62,7 @@ def test_stable_fit_gives_a_stable_loop_where_the_free_fit_does_not() -> None:
         physics = summary["physics"]
         fits[mode] = tuple(np.asarray(physics[k], float) for k in ("g", "kp_1_s2", "kd_1_s"))
         assert physics["fit"] == mode
+        assert physics["gains_projected"] is (mode == "stable")  # g = 1 alone leaves the indefinite K_p
     g, kp, kd = fits["free"]
     assert np.linalg.eigvalsh((kp + kp.T) / 2).min() < -20.0  # the free fit finds the indefinite gains
     assert _largest_real_part(kp, kd, g) > 0.0
