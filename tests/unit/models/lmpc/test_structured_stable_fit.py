@@ -54,7 +54,7 @@ def _largest_real_part(kp: np.ndarray, kd: np.ndarray, g: np.ndarray) -> float:
 def test_stable_fit_gives_a_stable_loop_where_the_free_fit_does_not() -> None:
     robot, s, y = _synthetic()
     config = StructuredConfig(
-        hidden=(8,), c_fixed=-1.0, physics_steps=250, residual_epochs=1, physics_learning_rate=0.05
+        hidden=(8,), c_fixed=-1.0, physics_steps=150, residual_epochs=1, physics_learning_rate=0.05
     )
     fits = {}
     for mode in ("free", "stable"):
