@@ -18,7 +18,7 @@ C_FIXED = {"absolute": -1.0, "anchored": None, "deployable": -1.0}
 TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
 #: the physics part's fit: "free" (g in [0, G_MAX] per joint, K_p, K_d any matrices) or "stable" (g = 1,
 #: K_p, K_d symmetric with eigenvalues >= a floor: the loop e'' = -(K_p e + K_d e') is then stable by
-#: construction, docs/lmpc.md "The stable physics fit")
+#: construction, docs/any_arm.md "The stable physics fit")
 PHYSICS_FITS = ("free", "stable")
 TRAINED_FORMAT = "structured-lmpc-trained/1"  # <work>/trained_<law>.pt (save_trained, reexport)
 
@@ -53,9 +53,9 @@ class StructuredConfig:
     # adaptation back into the torque: every paper condition left the limits.
     c_fixed: float | None = None
     residual_min_gain: float = 0.10  # the residual MLP is kept only if it lowers the validation loss by this fraction
-    # "free" keeps ur5_paper's shipped fit; "stable" for the other arms (hil pipeline --robot): the Panda's
-    # free fit (g_1 = 0.73, K_p's symmetric part with an eigenvalue of -77 1/s^2) made a loop unstable at
-    # 62 % of C4's poses (docs/any_arm.md "SMC on the real arms")
+    # "free": every shipped bundle. "stable" removes the Panda's unstable physics loop (free fit: g_1 = 0.73,
+    # K_p's symmetric part with an eigenvalue of -77 1/s^2, unstable at 62 % of C4's poses) but its refitted
+    # bundles measured worse overall (docs/any_arm.md "The stable physics fit"): not a default yet
     physics_fit: str = "free"
     physics_steps: int = 1500  # full-batch projected Adam steps on (c, g, Kp, Kd)
     physics_learning_rate: float = 0.05
