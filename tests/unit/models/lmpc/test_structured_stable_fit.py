@@ -1,4 +1,4 @@
-"""The structured emulator's "stable" physics fit (docs/lmpc.md "The stable physics fit"): on labels made
+"""The structured emulator's "stable" physics fit (docs/any_arm.md "The stable physics fit"): on labels made
 by a feed-forward with g_1 = 0.7 and cross-coupled gains whose symmetric part is indefinite (the Panda's
 free fit, docs/any_arm.md "SMC on the real arms"), the free fit reproduces an unstable loop and the stable
 fit returns g = 1 and, since g = 1 alone leaves a loop that does not decay, symmetric K_p, K_d above
