@@ -229,7 +229,8 @@ def _structured(
     from models.hmpc.config import formulation_options
     from models.robots import load_robot
 
-    options = formulation_options(formulation, load_robot(robot).name)
+    robot_name = load_robot(robot).name
+    options = formulation_options(formulation, robot_name)
     sigma_e, sigma_rate = PERTURBATION[formulation]
     config = StructuredConfig(
         robot=robot,
@@ -246,6 +247,9 @@ def _structured(
         bound_scale=bound_scale,
         previous_torque=tau_prev,
         beta_floor=beta_floor,
+        # ur5_paper keeps its shipped (free) fit; other arms get a physics loop stable by construction
+        # (the Panda's free fit was unstable on C4: docs/any_arm.md "SMC on the real arms")
+        physics_fit="free" if robot_name == "ur5_paper" else "stable",
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

@@ -16,6 +16,10 @@ PERTURBATION = {"absolute": (1e-4, 1e-2), "anchored": (2e-3, 2e-2), "deployable"
 #: c fixed per formulation (None: fitted): the absolute-cost optimum does not depend on the law
 C_FIXED = {"absolute": -1.0, "anchored": None, "deployable": -1.0}
 TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
+#: the physics part's fit: "free" (g in [0, G_MAX] per joint, K_p, K_d any matrices) or "stable" (g = 1,
+#: K_p, K_d symmetric with eigenvalues >= a floor: the loop e'' = -(K_p e + K_d e') is then stable by
+#: construction, docs/lmpc.md "The stable physics fit")
+PHYSICS_FITS = ("free", "stable")
 TRAINED_FORMAT = "structured-lmpc-trained/1"  # <work>/trained_<law>.pt (save_trained, reexport)
 
 
@@ -49,6 +53,10 @@ class StructuredConfig:
     # adaptation back into the torque: every paper condition left the limits.
     c_fixed: float | None = None
     residual_min_gain: float = 0.10  # the residual MLP is kept only if it lowers the validation loss by this fraction
+    # "free" keeps ur5_paper's shipped fit; "stable" for the other arms (hil pipeline --robot): the Panda's
+    # free fit (g_1 = 0.73, K_p's symmetric part with an eigenvalue of -77 1/s^2) made a loop unstable at
+    # 62 % of C4's poses (docs/any_arm.md "SMC on the real arms")
+    physics_fit: str = "free"
     physics_steps: int = 1500  # full-batch projected Adam steps on (c, g, Kp, Kd)
     physics_learning_rate: float = 0.05
     residual_epochs: int = 40
@@ -102,6 +110,10 @@ class StructuredConfig:
         if self.ff_point not in FF_POINTS:
             raise ModelInputError(
                 f"structured lmpc ff_point: unknown {self.ff_point!r} (known: {', '.join(FF_POINTS)})"
+            )
+        if self.physics_fit not in PHYSICS_FITS:
+            raise ModelInputError(
+                f"structured lmpc physics_fit: unknown {self.physics_fit!r} (known: {', '.join(PHYSICS_FITS)})"
             )
         if self.train_conditions < 1 or self.stride < 1:
             raise ModelInputError("structured lmpc: train_conditions and stride must be >= 1")

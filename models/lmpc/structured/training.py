@@ -36,10 +36,30 @@ def _physics_terms(robot: RobotModel, s: np.ndarray, ff_point: str) -> tuple[np.
     return mass, bias
 
 
+#: the stable fit's eigenvalue floors of K_p (1/s^2) and K_d (1/s): e'' = -(K_p e + K_d e') with K_p, K_d
+#: symmetric and >= these is asymptotically stable (V = e'^T e' / 2 + e^T K_p e / 2, V' = -e'^T K_d e' < 0)
+STABLE_KP_MIN_1_S2, STABLE_KD_MIN_1_S = 1.0, 0.1
+
+
+def _symmetric_floor(theta: torch.Tensor, floor: float) -> torch.Tensor:
+    """The nearest symmetric matrix (Frobenius) whose eigenvalues are >= floor."""
+    sym = (theta + theta.T) / 2
+    values, vectors = torch.linalg.eigh(sym)
+    return (vectors * values.clamp_min(floor)) @ vectors.T
+
+
+def project_stable_gains(model: StructuredEmulator) -> None:
+    """K_p, K_d onto symmetric matrices with eigenvalues >= the stable floors (in the optimizer's scale)."""
+    with torch.no_grad():
+        model.theta_kp.copy_(_symmetric_floor(model.theta_kp, STABLE_KP_MIN_1_S2 / model.KP_SCALE))
+        model.theta_kd.copy_(_symmetric_floor(model.theta_kd, STABLE_KD_MIN_1_S / model.KD_SCALE))
+
+
 def train_structured(
     robot: RobotModel, s: np.ndarray, y: np.ndarray, config: StructuredConfig, log: Callable[[str], None] = print
 ) -> tuple[StructuredEmulator, dict[str, Any]]:
-    """Fit c, g, kp, kd (full batch, L-BFGS), then the bounded residual MLP (Adam); y = tau* - tau_fb."""
+    """Fit c, g, kp, kd (full batch, projected Adam + L-BFGS), then the bounded residual MLP (Adam);
+    y = tau* - tau_fb. ``config.physics_fit == "stable"``: g = 1, K_p, K_d symmetric with eigenvalue floors."""
     torch.manual_seed(config.seed)
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
@@ -49,6 +69,11 @@ def train_structured(
         with torch.no_grad():
             model.c.fill_(config.c_fixed)
         model.c.requires_grad_(False)
+    stable = config.physics_fit == "stable"
+    if stable:  # g = 1: the model's whole inverse dynamics (a per-joint g makes M^-1 G M non-symmetric)
+        with torch.no_grad():
+            model.g.fill_(1.0)
+        model.g.requires_grad_(False)
     mass, bias = _physics_terms(robot, s, config.ff_point)
     from models.dynamics import make_dynamics
 
@@ -82,7 +107,10 @@ def train_structured(
         optimizer.step()
         schedule.step()
         model.project()
-    # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior)
+        if stable:
+            project_stable_gains(model)
+    # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior); the stable
+    # fit's optimum sits on its eigenvalue floor: the polish would leave the set, the projected Adam is final
     polish = torch.optim.LBFGS(
         [model.theta_kp, model.theta_kd],
         lr=1.0,
@@ -99,7 +127,8 @@ def train_structured(
         value.backward()
         return value
 
-    polish.step(closure)
+    if not stable:
+        polish.step(closure)
     model.freeze()
     with torch.no_grad():
         physics_loss = float(torch.mean(((physics_fast() - yt) * scale) ** 2) / denom)
@@ -156,6 +185,7 @@ def train_structured(
             "kp_1_s2": coef[2].tolist(),
             "kd_1_s": coef[3].tolist(),
             "relative_loss": physics_loss,
+            "fit": config.physics_fit,
         },
         "residual": {
             "hidden": list(config.hidden),

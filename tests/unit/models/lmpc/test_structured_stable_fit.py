@@ -1,0 +1,78 @@
+"""The structured emulator's "stable" physics fit (docs/lmpc.md "The stable physics fit"): on labels made
+by a feed-forward with g_1 = 0.7 and cross-coupled gains whose symmetric part is indefinite (the Panda's
+free fit, docs/any_arm.md "SMC on the real arms"), the free fit reproduces an unstable loop and the stable
+fit returns g = 1, symmetric K_p, K_d above their floors and a stable linearized loop."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from models.dynamics import make_dynamics
+from models.errors import ModelInputError
+from models.lmpc.structured import StructuredConfig, train_structured
+from models.lmpc.structured.training import STABLE_KD_MIN_1_S, STABLE_KP_MIN_1_S2
+from models.robots import load_robot
+
+
+def _synthetic(samples: int = 128) -> tuple[object, np.ndarray, np.ndarray]:
+    """States (q, e, qd, e_dot, qdd_d, tau_fb = 0) and labels y = g ⊙ ID(q, qd, qdd_d + Kp e + Kd e_dot)."""
+    robot = load_robot("ur5_paper")
+    n = robot.n_joints
+    rng = np.random.default_rng(3)
+    q, qd = rng.uniform(-1, 1, (samples, n)), rng.uniform(-1, 1, (samples, n))
+    e, e_dot = rng.normal(0, 0.02, (samples, n)), rng.normal(0, 0.2, (samples, n))
+    qdd_d = rng.normal(0, 1, (samples, n))
+    kp = np.diag(np.full(n, 100.0))
+    kp[0, 2], kp[2, 0] = -150.0, 150.0  # skew part: fine alone
+    kp[1, 3] = kp[3, 1] = -180.0  # symmetric part with an eigenvalue of -80
+    kd = np.diag(np.full(n, 20.0))
+    g = np.ones(n)
+    g[0] = 0.7
+    dyn = make_dynamics(robot, "pinocchio")
+    mass = np.asarray(dyn.mass_matrix(q)).reshape(-1, n, n)
+    bias = np.asarray(dyn.nonlinear_effects(q, qd)).reshape(-1, n)
+    accel = qdd_d + e @ kp.T + e_dot @ kd.T
+    y = g * (np.einsum("bij,bj->bi", mass, accel) + bias)
+    s = np.concatenate([q, e, qd, e_dot, qdd_d, np.zeros((samples, n))], axis=1)
+    return robot, s, y
+
+
+def _largest_real_part(kp: np.ndarray, kd: np.ndarray, g: np.ndarray) -> float:
+    """e'' = -M^-1 G M (Kp e + Kd e_dot) at q = 0 (the benchmarks' `loop`, one pose)."""
+    robot = load_robot("ur5_paper")
+    n = robot.n_joints
+    mass = np.asarray(make_dynamics(robot, "pinocchio").mass_matrix(np.zeros(n))).reshape(n, n)
+    b = np.linalg.solve(mass, np.diag(g) @ mass)
+    a = np.block([[np.zeros((n, n)), np.eye(n)], [-b @ kp, -b @ kd]])
+    return float(np.linalg.eigvals(a).real.max())
+
+
+def test_stable_fit_gives_a_stable_loop_where_the_free_fit_does_not() -> None:
+    robot, s, y = _synthetic()
+    config = StructuredConfig(
+        hidden=(8,), c_fixed=-1.0, physics_steps=250, residual_epochs=1, physics_learning_rate=0.05
+    )
+    fits = {}
+    for mode in ("free", "stable"):
+        _, summary = train_structured(robot, s, y, replace(config, physics_fit=mode), log=lambda _: None)
+        physics = summary["physics"]
+        fits[mode] = tuple(np.asarray(physics[k], float) for k in ("g", "kp_1_s2", "kd_1_s"))
+        assert physics["fit"] == mode
+    g, kp, kd = fits["free"]
+    assert np.linalg.eigvalsh((kp + kp.T) / 2).min() < -20.0  # the free fit finds the indefinite gains
+    assert _largest_real_part(kp, kd, g) > 0.0
+    g, kp, kd = fits["stable"]
+    np.testing.assert_array_equal(g, 1.0)
+    np.testing.assert_allclose(kp, kp.T, atol=1e-9)
+    np.testing.assert_allclose(kd, kd.T, atol=1e-9)
+    assert np.linalg.eigvalsh(kp).min() >= STABLE_KP_MIN_1_S2 * (1 - 1e-9)
+    assert np.linalg.eigvalsh(kd).min() >= STABLE_KD_MIN_1_S * (1 - 1e-9)
+    assert _largest_real_part(kp, kd, g) < 0.0
+
+
+def test_unknown_physics_fit_is_refused() -> None:
+    with pytest.raises(ModelInputError, match="physics_fit"):
+        StructuredConfig(physics_fit="psd")
