@@ -231,8 +231,12 @@ def test_ray_ctrl_c_on_the_process_group_shuts_down_cleanly() -> None:
     )
     try:
         assert process.stdout is not None and process.stdout.readline().strip() == "started"
-        time.sleep(1.0)  # the tasks are running in Ray's workers
-        assert len(_group_members(process.pid)) >= 3  # GCS, raylet, workers: in the same group
+        # the tasks are running in Ray's workers: GCS, raylet, workers, all in the same group (under
+        # load Ray's processes take seconds to appear: wait for them, up to 30 s)
+        deadline = time.monotonic() + 30.0
+        while len(_group_members(process.pid)) < 3 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(_group_members(process.pid)) >= 3
         os.killpg(process.pid, signal.SIGINT)
         stdout, stderr = process.communicate(timeout=60)
     finally:
