@@ -46,6 +46,7 @@ def run_one(law: str, mode: str, duration_s: float | None, condition: str, realt
     options = DemoOptions(law=law, mode=mode, condition=condition, duration_s=duration_s, realtime=realtime, cpus=cpus)
     with tempfile.TemporaryDirectory(prefix="bench-hil-rt-") as tmp:
         results = run_demo(options, Path(tmp) / "out", headless=True)
+        effort = run_effort(Path(tmp) / "out" / "runtime_record.npz")
     timing = results["timing"]
     scores = results["scores"]
     target = results.get("target") or {}
@@ -70,7 +71,26 @@ def run_one(law: str, mode: str, duration_s: float | None, condition: str, realt
         "target_realtime": target.get("realtime"),
         "composite_hil": scores["composite"]["hil"],
         "metrics_hil": scores["metrics"]["hil"],
+        "effort_hil": effort,
     }
+
+
+def run_effort(record: Path) -> dict[str, Any] | None:
+    """The effort the HIL run took, from the runtime's record (models.effort's measures, per joint: RMS
+    torque, the RMS and largest cycle-to-cycle change; pooled ratios to the torque limits)."""
+    import numpy as np
+
+    from models.effort import effort_metrics
+    from models.robots import load_robot
+
+    if not record.exists():
+        return None
+    with np.load(record) as data:
+        tau, qd = data["tau"], data["qd"]
+    robot = load_robot("ur5_paper")  # the demo's default robot, the one this benchmark runs
+    figures = effort_metrics(tau, qd, np.asarray(robot.torque_limit_nm, float), 1e-3)
+    keep = ("torque_rms_nm", "chatter_nm", "max_torque_step_nm", "torque_rms_ratio", "chatter_ratio")
+    return {key: figures[key] for key in keep}
 
 
 def target_only(seconds: float, master: bool, substeps: int | None) -> dict[str, Any]:
