@@ -61,9 +61,8 @@ class Controller:
         self.state[:] = self.bundle.initial_state(np.asarray(q0, float))
         if self.rate_limiter is not None:
             self.rate_limiter.reset(held_torque_nm)
-        previous = self.bundle.previous_torque_nm
-        if previous is not None:  # the graph steps from the set-point the drives hold now (None: zero)
-            previous[:] = 0.0 if held_torque_nm is None else np.nan_to_num(np.asarray(held_torque_nm, float))
+        if self._previous is not None:  # the graph steps from the set-point the drives hold now (None: zero)
+            self._previous[:] = 0.0 if held_torque_nm is None else np.nan_to_num(np.asarray(held_torque_nm, float))
 
     def step(
         self, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray

@@ -144,12 +144,15 @@ def model_plant(period_s: float = 0.001) -> PlantStep:
     return plant.integrate
 
 
-def c1_on_model(torque_rate_limit: str, ramp_s: float) -> tuple[RuntimeConfig, FakeJointBus]:
-    """A runtime config tracking C1 (a ramp of ``ramp_s``) with ``bundle.torque_rate_limit``, and a fake
-    bus on the PD bundle's own model (:func:`model_plant`) that keeps no commands."""
+def c1_on_model(
+    torque_rate_limit: str, ramp_s: float, bundle: dict[str, str] | None = None
+) -> tuple[RuntimeConfig, FakeJointBus]:
+    """A runtime config tracking C1 (a ramp of ``ramp_s``) with ``bundle.torque_rate_limit`` (and the other
+    ``bundle`` fields given), and a fake bus on the PD bundle's own model (:func:`model_plant`) that keeps
+    no commands."""
     config = parse_runtime_config(
         config_dict(
-            bundle={"torque_rate_limit": torque_rate_limit},
+            bundle={"torque_rate_limit": torque_rate_limit, **(bundle or {})},
             reference={"kind": "condition", "condition": "C1", "ramp_s": ramp_s},
         ),
         "rt.yaml",

@@ -156,28 +156,10 @@ def test_the_simulated_lmpc_and_the_runtime_feed_the_same_tau_prev(bundles: Path
 
 
 def test_the_runtime_commands_every_step_within_the_bound_without_a_limiter(bundles: Path) -> None:
-    from drivers.testing import FakeJointBus
-    from hil_runtime.config import parse_runtime_config
     from hil_runtime.runtime import Runtime
-    from sim_target.testing.ur5 import MAX_TORQUE_NM, Q0_RAD
-    from tests.unit.hil_runtime.support import INERTIA, config_dict, model_plant
+    from tests.unit.hil_runtime.support import c1_on_model
 
-    config = parse_runtime_config(
-        config_dict(
-            bundle={"path": str(bundles / "ur5_paper" / "pd"), "mode": "lmpc"},
-            reference={"kind": "condition", "condition": "C1", "ramp_s": 0.2},
-        ),
-        "rt.yaml",
-    )
-    bus = FakeJointBus(
-        6,
-        period_s=0.001,
-        inertia_kgm2=INERTIA,
-        max_torque_nm=MAX_TORQUE_NM,
-        initial_position_rad=Q0_RAD,
-        keep_commands=False,
-        plant=model_plant(),
-    )
+    config, bus = c1_on_model("none", ramp_s=0.2, bundle={"path": str(bundles / "ur5_paper" / "pd"), "mode": "lmpc"})
     rt = Runtime(config, bus, record_cycles=401)
     rt.configure()
     assert rt.activate()
