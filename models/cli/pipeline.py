@@ -84,6 +84,13 @@ def pipeline(
     beta_floor: Annotated[
         float, typer.Option(help="Structured design, --tau-prev: the smallest step share beta per joint (0-1].")
     ] = 0.3,
+    physics_fit: Annotated[
+        str,
+        typer.Option(
+            help="Structured design: the physics part's fit, 'free' (every shipped bundle) or 'stable' (g = 1, "
+            "the loop e'' = -(K_p e + K_d e') stable by construction; docs/any_arm.md \"The stable physics fit\")."
+        ),
+    ] = "free",
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     from models.executors import EXECUTORS
@@ -115,6 +122,9 @@ def pipeline(
             raise ModelInputError(f"--residual-bound-scale: must be > 0, got {residual_bound_scale}")
         if not 0.0 < beta_floor <= 1.0:
             raise ModelInputError(f"--beta-floor: must be in (0, 1], got {beta_floor}")
+        from models.lmpc.structured.config import PHYSICS_FITS
+
+        one_of(physics_fit, PHYSICS_FITS, "--physics-fit")
         _structured(
             work,
             bundles,
@@ -131,6 +141,7 @@ def pipeline(
             gain_set,
             tau_prev,
             beta_floor,
+            physics_fit,
         )
         return
     from rich.console import Console
@@ -217,6 +228,7 @@ def _structured(
     gain_set: str = "stabilized",
     tau_prev: bool = False,
     beta_floor: float = 0.3,
+    physics_fit: str = "free",
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -247,9 +259,7 @@ def _structured(
         bound_scale=bound_scale,
         previous_torque=tau_prev,
         beta_floor=beta_floor,
-        # ur5_paper keeps its shipped (free) fit; other arms get a physics loop stable by construction
-        # (the Panda's free fit was unstable on C4: docs/any_arm.md "SMC on the real arms")
-        physics_fit="free" if robot_name == "ur5_paper" else "stable",
+        physics_fit=physics_fit,
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

@@ -7,6 +7,7 @@ their floors: a stable linearized loop."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -78,3 +79,17 @@ def test_stable_fit_gives_a_stable_loop_where_the_free_fit_does_not() -> None:
 def test_unknown_physics_fit_is_refused() -> None:
     with pytest.raises(ModelInputError, match="physics_fit"):
         StructuredConfig(physics_fit="psd")
+
+
+def test_the_pipeline_refuses_an_unknown_physics_fit_in_one_line(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-m", "hil_runtime.cli", "pipeline", "--physics-fit", "stiff", "--work", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2 and "--physics-fit" in result.stderr and "stiff" in result.stderr
+    assert "Traceback" not in result.stderr and not any(tmp_path.iterdir())
