@@ -10,18 +10,24 @@ single-row path, whose wall time (Python around it included) is the t_L column.
 
 ``torque_rate_limit="libfranka"``: the runtime's output limit (``hil_runtime.rate_limit``, the same
 object the runtime's policy stage uses), against the torque the simulator actually commanded last
-period (:meth:`LMPCController.commit`, called after its saturation), reset to zero at the start of a
-run (the drives hold a zero set-point when the runtime activates).
+period (:meth:`LMPCController.commit`, called after its saturation).
 
 A bundle whose graph reads tau_prev (docs/lmpc.md §11) gets the same torque as the runtime gives it: the
 one the simulator commanded last period (:meth:`LMPCController.commit`; without a commit, this
-controller's own last output), zero at the start of a run.
+controller's own last output).
+
+Both start a run from the held torque, as the runtime's ``Controller.reset(q0, held_torque_nm)`` starts
+from the set-point the drives hold when it activates: here the nominal model's gravity torque at q0, what
+holds an arm at rest there (the simulator's runs start at rest). Until 2026-11-27 they started from
+zero: on the real UR5 (shoulder gravity ~60 N·m, 1 N·m per cycle) the arm then fell for tens of
+milliseconds before the torque caught up, and every rate-aware run left the limits.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -80,8 +86,16 @@ def bundle_path(robot_name: str, law_name: str, bundle_dir: str | Path | None = 
 class LMPCController:
     """The bundle's fused law + emulator for a batch of B independent arms."""
 
-    def __init__(self, bundle: PolicyBundle, law_name: str, torque_rate_limit: str = "none") -> None:
+    def __init__(
+        self,
+        bundle: PolicyBundle,
+        law_name: str,
+        torque_rate_limit: str = "none",
+        held_torque: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> None:
+        """``held_torque(q0)`` (B, N): the torque holding each arm at the start of a run (None: zero)."""
         self.bundle = bundle
+        self.held_torque = held_torque
         self.name = f"{law_name}/lmpc"
         applied = bundle.manifest.law.applied_torque_slice  # the law keeps the applied torque (ADRC)
         self._applied = slice(int(applied[0]), int(applied[1])) if applied else None
@@ -105,9 +119,12 @@ class LMPCController:
         self.blended = np.zeros(self.state.shape[0], np.int64)
         self.clamped = np.zeros(self.state.shape[0], np.int64)
         self.cycles = 0
-        self.previous = np.zeros((self.state.shape[0], self.bundle.n_joints))
+        arms = self.state.shape[0]
+        self.previous = np.zeros((arms, self.bundle.n_joints))
+        if self.held_torque is not None:
+            self.previous[:] = self.held_torque(np.atleast_2d(np.asarray(q0, float)))
         if self.rate_limiter is not None:
-            self.rate_limiter.reset(None, arms=self.state.shape[0])
+            self.rate_limiter.reset(self.previous if self.held_torque is not None else None, arms=arms)
 
     def trust_counters(self) -> dict[str, object]:
         """Trust-region counters since the last reset (per arm): what the runtime's supervisor counts."""
@@ -200,4 +217,7 @@ def make_lmpc_controller(
             f"(gain set {bundle.manifest.law.gain_set!r}; bundle vs law {difference}); "
             "re-export with `hil pipeline`"
         )
-    return LMPCController(bundle, law.name, torque_rate_limit)
+    from models.dynamics import make_dynamics
+
+    dynamics = make_dynamics(robot)
+    return LMPCController(bundle, law.name, torque_rate_limit, held_torque=dynamics.gravity)

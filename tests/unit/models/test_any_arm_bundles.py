@@ -29,3 +29,26 @@ def test_every_law_of_the_real_arms_ships_a_bundle_of_its_designed_law(robot_nam
     law = make_law(law_name, robot, manifest["period_s"], "designed")
     assert params_difference(manifest["law"]["params"], law.params) is None
     make_lmpc_controller(law, robot)  # the runtime's loader: schema, urdf sha256, probes, saturation
+
+
+def test_the_pandas_rate_aware_lmpc_starts_from_the_torque_holding_the_arm() -> None:
+    """The Panda's bundles read tau_prev (docs/lmpc.md §11): a simulated run starts from the torque holding
+    the arm at rest (the nominal gravity at q0), as the runtime starts from the drives' held set-point; from
+    zero the arm would fall while the torque climbs at 1 N·m per cycle."""
+    import numpy as np
+
+    from hil_runtime.rate_limit import max_torque_step_nm
+    from models.default_conditions import default_conditions
+    from models.dynamics import make_dynamics
+
+    robot = load_robot("panda")
+    law = make_law("pd", robot, 1e-3, "designed")
+    controller = make_lmpc_controller(law, robot)
+    assert controller.bundle.takes_previous_torque
+    condition = default_conditions(robot)[0]
+    q0, qd0, qdd0 = (np.atleast_2d(v) for v in condition.reference(0.0))
+    controller.reset(q0)
+    held = make_dynamics(robot).gravity(q0[0])
+    assert np.abs(held).max() > 5.0  # a start from zero would be refused below
+    tau = controller(0.0, q0, np.zeros_like(q0), q0, qd0, qdd0)[0]
+    assert (np.abs(tau - held) <= max_torque_step_nm(robot.torque_rate_nm_s, 1e-3) * (1 + 1e-9)).all()
