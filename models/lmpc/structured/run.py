@@ -53,6 +53,10 @@ def run_structured(
                 prev, star = given["tau_prev"], given["tau_star"]
                 fit["rate"] = fit_beta(model, features(given), prev, star, config.beta_floor, log)
             box, label_max = trust_box(s, robot, config), np.abs(y).max(0)
+            if config.previous_torque:
+                fit["rate"].update(
+                    rate_feasible_bandwidth(model, name, robot, config, conditions, box, label_max, fit, log)
+                )
             save_trained(work / f"trained_{name}.pt", model, config, fit, box, label_max)
             manifest = export_trained(bundles / robot.name / name, name, robot, model, box, label_max, config, fit)
             per_law[name] = {"fit": fit, "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"]}
@@ -69,6 +73,71 @@ def run_structured(
     summary["wall_s"] = time.perf_counter() - started
     (work / "structured.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+#: bandwidth scales tried, largest first, for the rate-aware static part (K_p s^2, K_d s)
+BANDWIDTH_SCALES = (1.0, 0.7, 0.5, 0.35, 0.25)
+#: training conditions the rate-aware closed loop is checked on (each with its disturbance)
+RATE_CHECK_CONDITIONS = 4
+
+
+def rate_feasible_bandwidth(
+    model: Any,
+    law_name: str,
+    robot: Any,
+    config: StructuredConfig,
+    conditions: list[Any],
+    box: tuple[np.ndarray, np.ndarray],
+    label_max: np.ndarray,
+    fit: dict[str, Any],
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """The bandwidth scale s (K_p s^2, K_d s: the static part's error dynamics slowed by s) whose rate-aware
+    closed loop stays inside the limits, below the torque limit, on the most of the first training
+    conditions; among equals the largest (the fitted gains, s = 1, unless a slower loop holds more).
+
+    Why: the static gains are fitted on the HMPC's unbounded solves; where they ask for more torque rate than
+    the bound allows after a disturbance (the real UR5: K_p 2200-4600 1/s^2 against 1 N m per cycle), the
+    rate-limited loop limit-cycles from bound to bound and leaves the limits (docs/any_arm.md, "Rate-aware
+    bundles on the real arms"). The HMPC does not: it previews the bound. Slowing the error dynamics until
+    the bounded loop holds is the smallest change that keeps the structure; it is checked on training
+    conditions only (the experiment's conditions are never seen). The model's gains are scaled in place."""
+    import tempfile
+
+    from models.feedback import make_law
+    from models.lmpc.controller import make_lmpc_controller
+    from models.sim import SimConfig, simulate
+
+    if model.frozen is None:
+        raise RuntimeError("rate_feasible_bandwidth: the static part must be fitted (frozen) first")
+    c, g, kp, kd = model.frozen
+    law = make_law(law_name, robot, config.period_s, config.gain_set)
+    limit = np.asarray(robot.torque_limit_nm, float)
+    checks = conditions[:RATE_CHECK_CONDITIONS]
+    sim = SimConfig(period_s=config.period_s, substeps=config.substeps)
+    tried: list[dict[str, Any]] = []
+    for scale in BANDWIDTH_SCALES:
+        model.frozen = (c, g, kp * scale**2, kd * scale)
+        inside = 0
+        with tempfile.TemporaryDirectory() as tmp:
+            export_trained(Path(tmp) / robot.name / law_name, law_name, robot, model, box, label_max, config, fit)
+            controller = make_lmpc_controller(law, robot, bundle_dir=tmp)
+            for condition in checks:
+                traj = simulate(robot, controller, [condition], sim)
+                peak = float(np.nan_to_num(np.abs(traj.tau[0]) / limit, nan=np.inf).max())
+                inside += int(bool(traj.within_limits.all()) and peak < 1.0 - 1e-9)
+        tried.append({"scale": scale, "inside": inside})
+        if inside == len(checks):
+            break
+    best = max(tried, key=lambda t: (t["inside"], t["scale"]))  # the most held, then the fastest
+    model.frozen = (c, g, kp * best["scale"] ** 2, kd * best["scale"])
+    outcome = ", ".join(f"{t['scale']}: {t['inside']}/{len(checks)}" for t in tried)
+    log(f"  rate check: bandwidth scale {best['scale']} (inside at {outcome})")
+    return {
+        "bandwidth_scale": best["scale"],
+        "bandwidth_checked": tried,
+        "bandwidth_feasible": best["inside"] == len(checks),
+    }
 
 
 def _rows(data: dict[str, np.ndarray], by_kind: bool, kinds: tuple[float, ...]) -> dict[str, np.ndarray]:

@@ -8,6 +8,7 @@ import json
 import shutil
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -185,3 +186,63 @@ def test_the_pipeline_refuses_a_beta_floor_outside_0_1_in_one_line(tmp_path: Pat
     )
     assert result.returncode == 2 and "--beta-floor: must be in (0, 1], got 0.0" in result.stderr
     assert "Traceback" not in result.stderr and not any(tmp_path.iterdir())
+
+
+def test_the_rate_check_slows_the_static_gains_until_the_bounded_loop_holds(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """models.lmpc.structured.run.rate_feasible_bandwidth: the scale whose closed loop holds the most check
+    conditions, the largest among equals, stopping at the first that holds them all (here full bandwidth
+    holds none, 0.7x one, 0.5x both), the frozen gains scaled as K_p s^2, K_d s, every try recorded; the
+    check runs the exported bundle, not the torch model. When no scale holds more, the fitted gains stay."""
+    from types import SimpleNamespace
+
+    import models.sim
+    from models.lmpc.structured import StructuredConfig, StructuredEmulator
+    from models.lmpc.structured.run import rate_feasible_bandwidth
+
+    config = StructuredConfig(laws=("pd",), previous_torque=True, c_fixed=-1.0)
+    model = StructuredEmulator(ROBOT, (8,), 0.02 * LIMIT, "measured", 0.0, True, 1e-3)
+    with torch.no_grad():
+        model.c.fill_(-1.0)
+        model.g.fill_(1.0)
+        model.theta_kp.copy_(torch.eye(N) * 0.3)
+        model.theta_kd.copy_(torch.eye(N) * 0.3)
+    model.freeze()
+    kp0, kd0 = (t.clone() for t in model.frozen[2:])
+    low, high = -np.full(6 * N, 1.0), np.full(6 * N, 1.0)
+    low[5 * N :], high[5 * N :] = -LIMIT, LIMIT
+    summary = {"physics": {"relative_loss": 0.0}, "residual": {"val_relative_loss": 0.0}}
+    seen: list[float] = []
+
+    def fake_simulate(robot: object, controller: Any, conditions: object, config: object = None, **_: object) -> Any:
+        assert controller.bundle.takes_previous_torque  # the exported rate-aware bundle is what runs
+        seen.append(len(seen))
+        holds = len(seen) in (4, 5, 6)  # 1.0 leaves on both conditions, 0.7 holds on its second, 0.5 on both
+        return SimpleNamespace(tau=np.zeros((1, 10, N)), within_limits=np.array([holds]))
+
+    monkeypatch.setattr(models.sim, "simulate", fake_simulate)
+    conditions = load_conditions()[:2]
+    result = rate_feasible_bandwidth(model, "pd", ROBOT, config, conditions, (low, high), 0.05 * LIMIT, summary)
+    assert result["bandwidth_scale"] == 0.5 and result["bandwidth_feasible"] is True
+    assert result["bandwidth_checked"] == [
+        {"scale": 1.0, "inside": 0},
+        {"scale": 0.7, "inside": 1},
+        {"scale": 0.5, "inside": 2},
+    ]
+    np.testing.assert_allclose(model.frozen[2].numpy(), kp0.numpy() * 0.25)
+    np.testing.assert_allclose(model.frozen[3].numpy(), kd0.numpy() * 0.5)
+    # no scale holds more than the fitted gains: they stay (the Panda: one training condition left at every scale)
+    calls: list[int] = []
+
+    def one_of_two(*_: object, **__: object) -> Any:  # every scale holds the first condition, leaves the second
+        calls.append(1)
+        return SimpleNamespace(tau=np.zeros((1, 10, N)), within_limits=np.array([len(calls) % 2 == 1]))
+
+    monkeypatch.setattr(models.sim, "simulate", one_of_two)
+    model.freeze()
+    model.frozen = (model.frozen[0], model.frozen[1], kp0, kd0)
+    result = rate_feasible_bandwidth(model, "pd", ROBOT, config, conditions, (low, high), 0.05 * LIMIT, summary)
+    assert result["bandwidth_scale"] == 1.0 and result["bandwidth_feasible"] is False
+    assert len(result["bandwidth_checked"]) == 5
+    np.testing.assert_allclose(model.frozen[2].numpy(), kp0.numpy())
