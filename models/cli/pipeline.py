@@ -84,6 +84,14 @@ def pipeline(
     beta_floor: Annotated[
         float, typer.Option(help="Structured design, --tau-prev: the smallest step share beta per joint (0-1].")
     ] = 0.3,
+    rate_check: Annotated[
+        bool,
+        typer.Option(
+            "--rate-check/--no-rate-check",
+            help="Structured design, --tau-prev: slow the static gains until the exported bundle's bounded loop "
+            "holds the most training conditions (docs/lmpc.md section 11, 'The rate check').",
+        ),
+    ] = False,
     physics_fit: Annotated[
         str,
         typer.Option(
@@ -142,6 +150,7 @@ def pipeline(
             tau_prev,
             beta_floor,
             physics_fit,
+            rate_check,
         )
         return
     from rich.console import Console
@@ -229,6 +238,7 @@ def _structured(
     tau_prev: bool = False,
     beta_floor: float = 0.3,
     physics_fit: str = "free",
+    rate_check: bool = False,
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -260,6 +270,7 @@ def _structured(
         previous_torque=tau_prev,
         beta_floor=beta_floor,
         physics_fit=physics_fit,
+        rate_check=rate_check,
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

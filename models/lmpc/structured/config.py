@@ -100,6 +100,10 @@ class StructuredConfig:
     rate_copy_stride: int = 1
     rate_perturb_steps: float = 2.0
     beta_floor: float = 0.3
+    # the rate check (run.rate_feasible_bandwidth, docs/lmpc.md §11): opt-in. It makes the real UR5's
+    # rate-aware loop hold the bound (s = 0.7) but picked s = 0.35 for the Panda's ADRC (4/4 training
+    # conditions against 3/4 at s = 1), whose eta_L under `ideal` then fell from 62.6 to -16.8 %
+    rate_check: bool = False
     dagger_rounds: int = 0
     dagger_conditions: int = 8
     dagger_seed: int = 7201

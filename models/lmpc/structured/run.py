@@ -53,7 +53,7 @@ def run_structured(
                 prev, star = given["tau_prev"], given["tau_star"]
                 fit["rate"] = fit_beta(model, features(given), prev, star, config.beta_floor, log)
             box, label_max = trust_box(s, robot, config), np.abs(y).max(0)
-            if config.previous_torque:
+            if config.previous_torque and config.rate_check:
                 fit["rate"].update(
                     rate_feasible_bandwidth(model, name, robot, config, conditions, box, label_max, fit, log)
                 )
