@@ -147,7 +147,10 @@ def test_frame_faults_alike(rig: Rig) -> None:
     assert bus.exchange(np.zeros(2)).fresh.tolist() == [True, False]
     assert wait_until(lambda: rig.drives.counters.delayed_injected == 1)
     fast_before = rig.drives._answer.fast
+    bus.exchange(np.zeros(2))  # under load the delayed frame's release can fall into this cycle (slow path)
     for _ in range(5):
         assert bus.exchange(np.zeros(2)).fresh.all()
-    if rig.config.transport.interface == "ipc":
-        assert rig.drives._answer.fast - fast_before == 5  # back on the hot path
+    if rig.config.transport.interface == "ipc":  # back on the hot path: the five cycles after it at least
+        # (the drive thread counts its answer after the master has it: wait for the count to catch up)
+        assert wait_until(lambda: rig.drives._answer.fast - fast_before >= 5)
+        assert rig.drives._answer.fast - fast_before <= 6
