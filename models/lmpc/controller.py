@@ -124,7 +124,7 @@ class LMPCController:
         if self.held_torque is not None:
             self.previous[:] = self.held_torque(np.atleast_2d(np.asarray(q0, float)))
         if self.rate_limiter is not None:
-            self.rate_limiter.reset(self.previous if self.held_torque is not None else None, arms=arms)
+            self.rate_limiter.reset(self.previous, arms=arms)
 
     def trust_counters(self) -> dict[str, object]:
         """Trust-region counters since the last reset (per arm): what the runtime's supervisor counts."""

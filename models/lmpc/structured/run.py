@@ -15,8 +15,9 @@ from models.executors import Executor
 from models.lmpc.structured.config import StructuredConfig, jsonable_config
 from models.lmpc.structured.data import ROW_KINDS, _cached_rollouts, collect, features
 from models.lmpc.structured.export import export_trained, save_trained, trust_box
+from models.lmpc.structured.model import StructuredEmulator
 from models.lmpc.structured.training import fit_beta, rate_aware, train_structured
-from models.robots import load_robot
+from models.robots import RobotModel, load_robot
 
 
 def run_structured(
@@ -82,9 +83,9 @@ RATE_CHECK_CONDITIONS = 4
 
 
 def rate_feasible_bandwidth(
-    model: Any,
+    model: StructuredEmulator,
     law_name: str,
-    robot: Any,
+    robot: RobotModel,
     config: StructuredConfig,
     conditions: list[Any],
     box: tuple[np.ndarray, np.ndarray],

@@ -213,11 +213,11 @@ def test_the_rate_check_slows_the_static_gains_until_the_bounded_loop_holds(
     low, high = -np.full(6 * N, 1.0), np.full(6 * N, 1.0)
     low[5 * N :], high[5 * N :] = -LIMIT, LIMIT
     summary = {"physics": {"relative_loss": 0.0}, "residual": {"val_relative_loss": 0.0}}
-    seen: list[float] = []
+    seen: list[int] = []
 
     def fake_simulate(robot: object, controller: Any, conditions: object, config: object = None, **_: object) -> Any:
         assert controller.bundle.takes_previous_torque  # the exported rate-aware bundle is what runs
-        seen.append(len(seen))
+        seen.append(1)
         holds = len(seen) in (4, 5, 6)  # 1.0 leaves on both conditions, 0.7 holds on its second, 0.5 on both
         return SimpleNamespace(tau=np.zeros((1, 10, N)), within_limits=np.array([holds]))
 
