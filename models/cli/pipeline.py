@@ -99,6 +99,31 @@ def pipeline(
             "the loop e'' = -(K_p e + K_d e') stable by construction; docs/any_arm.md \"The stable physics fit\")."
         ),
     ] = "free",
+    law_coefficient: Annotated[
+        str,
+        typer.Option(
+            help="Structured design: the law's coefficient c (tau_L = (1 + c) tau_fb + ...): 'fixed' (the "
+            "formulation's: -1, the law cancelled, for 'absolute' and 'deployable') or 'fitted' (c in [-1.05, 0] "
+            "per joint; docs/lmpc.md section 10, 'Does the law matter')."
+        ),
+    ] = "fixed",
+    train_realism: Annotated[
+        str | None,
+        typer.Option(
+            help="Structured design: run the expert's training rollouts in seeded worlds drawn around this realism "
+            "profile (name or YAML; domain randomization, docs/lmpc.md section 12). Default: the ideal world."
+        ),
+    ] = None,
+    realism_draws: Annotated[
+        int, typer.Option(help="Structured design, --train-realism: randomized worlds (training conditions rotate).")
+    ] = 4,
+    envelope_conditions: Annotated[
+        int,
+        typer.Option(
+            help="Structured design: training conditions across the arm's envelope beside the paper-range ones "
+            "(models/envelope_conditions.py; the trust box then covers them)."
+        ),
+    ] = 0,
 ) -> None:
     """Dataset -> Theorem 2 sampling -> HMPC labels -> emulators -> policy bundles, with progress bars."""
     from models.executors import EXECUTORS
@@ -133,6 +158,19 @@ def pipeline(
         from models.lmpc.structured.config import PHYSICS_FITS
 
         one_of(physics_fit, PHYSICS_FITS, "--physics-fit")
+        one_of(law_coefficient, ("fixed", "fitted"), "--law-coefficient")
+        if realism_draws < 1:
+            raise ModelInputError(f"--realism-draws: must be >= 1, got {realism_draws}")
+        if envelope_conditions < 0:
+            raise ModelInputError(f"--envelope-conditions: must be >= 0, got {envelope_conditions}")
+        if train_realism is not None:  # a bad profile: one line before any work
+            from sim_target.realism import RealismError
+            from sim_target.realism_profiles import load_realism
+
+            try:
+                load_realism(train_realism, arm.n_joints, 1e-3, 5e-4, arm.torque_limit_nm)
+            except RealismError as exc:  # the profile reader names --realism: this option is another
+                raise ModelInputError(str(exc).replace("--realism:", "--train-realism:", 1)) from None
         _structured(
             work,
             bundles,
@@ -151,6 +189,8 @@ def pipeline(
             beta_floor,
             physics_fit,
             rate_check,
+            law_coefficient == "fitted",
+            (train_realism, realism_draws, envelope_conditions),
         )
         return
     from rich.console import Console
@@ -239,6 +279,8 @@ def _structured(
     beta_floor: float = 0.3,
     physics_fit: str = "free",
     rate_check: bool = False,
+    fit_law_coefficient: bool = False,
+    training_world: tuple[str | None, int, int] = (None, 4, 0),
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -265,12 +307,15 @@ def _structured(
         perturb_error_rad=sigma_e,
         perturb_rate_rad_s=sigma_rate,
         dagger_rounds=dagger_rounds,
-        c_fixed=C_FIXED[formulation] if target == "hmpc" else None,
+        c_fixed=C_FIXED[formulation] if target == "hmpc" and not fit_law_coefficient else None,
         bound_scale=bound_scale,
         previous_torque=tau_prev,
         beta_floor=beta_floor,
         physics_fit=physics_fit,
         rate_check=rate_check,
+        train_realism=training_world[0],
+        realism_draws=training_world[1],
+        envelope_conditions=training_world[2],
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

@@ -104,6 +104,13 @@ class StructuredConfig:
     # rate-aware loop hold the bound (s = 0.7) but picked s = 0.35 for the Panda's ADRC (4/4 training
     # conditions against 3/4 at s = 1), whose eta_L under `ideal` then fell from 62.6 to -16.8 %
     rate_check: bool = False
+    # Domain randomization (docs/lmpc.md §12): the expert's rollouts (and DAgger's) run in realism_draws
+    # seeded worlds drawn around this realism profile (models.lmpc.structured.randomization); None: ideal
+    train_realism: str | None = None
+    realism_draws: int = 4
+    # training conditions across the arm's envelope (models.envelope_conditions, seed train_seed) beside
+    # the paper-range ones; the trust box then covers them
+    envelope_conditions: int = 0
     dagger_rounds: int = 0
     dagger_conditions: int = 8
     dagger_seed: int = 7201
@@ -119,6 +126,8 @@ class StructuredConfig:
             raise ModelInputError(
                 f"structured lmpc physics_fit: unknown {self.physics_fit!r} (known: {', '.join(PHYSICS_FITS)})"
             )
+        if self.realism_draws < 1 or self.envelope_conditions < 0:
+            raise ModelInputError("structured lmpc: realism_draws must be >= 1 and envelope_conditions >= 0")
         if self.train_conditions < 1 or self.stride < 1:
             raise ModelInputError("structured lmpc: train_conditions and stride must be >= 1")
 

@@ -31,8 +31,10 @@ def _logged_rollouts(
     hold: int = 1,
     seed: int = 0,
     log_previous: bool = False,
+    realism: Any = None,
 ) -> list[dict[str, np.ndarray]]:
-    """Run controllers side by side on ``conditions``; per controller the logged states and torques."""
+    """Run controllers side by side on ``conditions`` (one simulator batch: they share duration, disturbance
+    and mismatch) in the world ``realism`` (None: ideal); per controller the logged states and torques."""
     from models.lmpc.expert_rollouts import StateLogger
 
     steps = int(round(conditions[0].duration_s / sim.period_s))
@@ -43,7 +45,11 @@ def _logged_rollouts(
     if excite is not None:
         runners = [_Excited(lg, excite[0], hold, excite[1], seed + 1000 * k) for k, lg in enumerate(loggers)]
     traj = simulate(
-        robot, ControllerStack(runners, [len(conditions)] * len(runners)), [x for _ in loggers for x in conditions], sim
+        robot,
+        ControllerStack(runners, [len(conditions)] * len(runners)),
+        [x for _ in loggers for x in conditions],
+        sim,
+        realism=realism,
     )
     out = []
     for k, logger in enumerate(loggers):
@@ -89,8 +95,13 @@ def collect(
     law_names: tuple[str, ...] | None = None,
     policy_dir: Path | None = None,
     executor: Executor | None = None,
+    draw_seed: int | None = None,
 ) -> dict[str, dict[str, np.ndarray]]:
     """Per law: logged states with the label ``tau_star``.
+
+    ``config.train_realism``: the rollouts run in ``config.realism_draws`` seeded worlds drawn around that
+    profile (domain randomization, models.lmpc.structured.randomization; ``draw_seed``, default the
+    training seed, seeds the draws); None: the ideal world.
 
     Expert (policy_dir None): the HMPC's own closed loop, label = the torque it applied (target
     "hmpc") or the FB closed loop labeled with tau_fb (target "law"). DAgger (policy_dir given):
@@ -111,26 +122,34 @@ def collect(
         controllers = [FeedbackController(law) for law in made]
     else:
         controllers = [make_hmpc_controller(law, robot, **config.hmpc_options) for law in made]
-    excite = None
+    inertia0 = None
     if policy_dir is None and config.target == "hmpc" and config.accel_noise_rad_s2 > 0:
         from models.dynamics import make_dynamics
 
         n = robot.n_joints
         inertia0 = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n))).reshape(n, n))
-        rows_on = (np.arange(len(conditions)) < round(config.noise_fraction * len(conditions))).astype(float)
-        excite = (config.accel_noise_rad_s2 * inertia0, rows_on)
-    logs = _logged_rollouts(
-        robot,
-        controllers,
-        made,
-        conditions,
-        sim,
-        config.stride,
-        excite,
-        config.noise_hold_steps,
-        config.seed,
-        log_previous=config.previous_torque,
-    )
+    group_logs = []
+    for members, world in rollout_groups(config, conditions, robot, draw_seed):
+        excite = None
+        if inertia0 is not None:
+            rows_on = (np.arange(len(members)) < round(config.noise_fraction * len(members))).astype(float)
+            excite = (config.accel_noise_rad_s2 * inertia0, rows_on)
+        group_logs.append(
+            _logged_rollouts(
+                robot,
+                controllers,
+                made,
+                members,
+                sim,
+                config.stride,
+                excite,
+                config.noise_hold_steps,
+                config.seed,
+                log_previous=config.previous_torque,
+                realism=world,
+            )
+        )
+    logs = [{k: np.concatenate([g[i][k] for g in group_logs]) for k in group_logs[0][i]} for i in range(len(made))]
     # Runs that left the limits are dropped from the data; a law with none left has nothing to learn from
     # (and its relabeling would be handed zero states): say so in one line, not a traceback downstream.
     empty = [name for name, log in zip(laws, logs, strict=True) if len(log["q"]) == 0]
@@ -168,6 +187,34 @@ def collect(
             log = {k: np.concatenate([log[k], extra[k]]) for k in log}
         data[name] = log
     return data
+
+
+def rollout_groups(
+    config: StructuredConfig, conditions: list[Any], robot: RobotModel, draw_seed: int | None = None
+) -> list[tuple[list[Any], Any]]:
+    """The simulator batches of the training rollouts: (conditions, world). Condition i runs in draw
+    i mod ``config.realism_draws`` of the randomized world (``config.train_realism``; None: one ideal world);
+    a batch holds conditions of one draw sharing duration, disturbance and mismatch (envelope conditions
+    have several disturbance times)."""
+    worlds: list[Any] = [None]
+    if config.train_realism is not None:
+        from models.lmpc.structured.randomization import randomized_realism
+        from sim_target.realism_profiles import load_realism
+
+        base = load_realism(
+            config.train_realism,
+            robot.n_joints,
+            config.period_s,
+            config.period_s / config.substeps,
+            robot.torque_limit_nm,
+        )
+        first = config.train_seed if draw_seed is None else draw_seed
+        worlds = [randomized_realism(base, first * 100 + k) for k in range(config.realism_draws)]
+    groups: dict[tuple, list[Any]] = {}
+    for i, condition in enumerate(conditions):
+        key = (i % len(worlds), condition.duration_s, condition.disturbance, condition.mismatch)
+        groups.setdefault(key, []).append(condition)
+    return [(members, worlds[key[0]]) for key, members in groups.items()]
 
 
 #: ``row_kind`` of a logged row (config.previous_torque): its label is the expert's applied torque given its
@@ -271,6 +318,8 @@ _DATA_FIELDS = (
     "rate_perturb_steps",
     "rate_data",
 )
+#: data fields keyed only when set (a cache made before they existed stays valid)
+_OPTIONAL_DATA_FIELDS = {"train_realism": None, "realism_draws": None, "envelope_conditions": 0}
 
 
 #: the rate-aware recipe's version in the cache key (2: static and rate copies; 1, rate copies only, is stale)
@@ -280,7 +329,10 @@ RATE_DATA_VERSION = 2
 def _data_key(config: StructuredConfig) -> str:
     """What the rollouts depend on (a cache made with other settings is not reused)."""
     values = {**jsonable_config(config), "rate_data": RATE_DATA_VERSION if config.previous_torque else 0}
-    return json.dumps({k: values[k] for k in _DATA_FIELDS}, sort_keys=True)
+    key = {k: values[k] for k in _DATA_FIELDS}
+    if config.train_realism is not None or config.envelope_conditions:
+        key.update({k: values[k] for k in _OPTIONAL_DATA_FIELDS})
+    return json.dumps(key, sort_keys=True)
 
 
 def _cached_rollouts(

@@ -29,13 +29,12 @@ def run_structured(
 ) -> dict[str, Any]:
     """Rollouts -> fit -> export (-> DAgger rounds); returns a summary (also written to work/structured.json).
     The cold HMPC relabeling runs on ``executor`` (models.executors; None: this process)."""
-    from models.lmpc.paper_range import paper_range_conditions
-
     robot = load_robot(config.robot)
     work.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    conditions = paper_range_conditions(robot, config.train_conditions, config.train_seed, prefix="T")
-    conditions = [replace(c, duration_s=config.duration_s) for c in conditions]
+    conditions = training_conditions(robot, config, config.train_conditions, config.train_seed, "T")
+    if config.train_realism is not None:
+        log(f"rollouts: domain-randomized around {config.train_realism} ({config.realism_draws} draws)")
     data = _cached_rollouts(work, config, conditions, log, executor)
     counts = ", ".join(f"{k} {len(v['q'])}" for k, v in data.items())
     log(f"rollouts: {counts} states ({time.perf_counter() - started:.0f} s)")
@@ -64,9 +63,9 @@ def run_structured(
         summary["rounds"].append(per_law)
         if round_index == config.dagger_rounds:
             break
-        dagger = paper_range_conditions(robot, config.dagger_conditions, config.dagger_seed + round_index, prefix="D")
-        dagger = [replace(c, duration_s=config.duration_s) for c in dagger]
-        extra = collect(config, dagger, policy_dir=bundles, executor=executor)
+        seed = config.dagger_seed + round_index
+        dagger = training_conditions(robot, config, config.dagger_conditions, seed, "D")
+        extra = collect(config, dagger, policy_dir=bundles, executor=executor, draw_seed=seed)
         for name in config.laws:
             data[name] = {k: np.concatenate([data[name][k], extra[name][k]]) for k in data[name]}
         counts = ", ".join(f"{k} {len(v['q'])}" for k, v in extra.items())
@@ -74,6 +73,19 @@ def run_structured(
     summary["wall_s"] = time.perf_counter() - started
     (work / "structured.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def training_conditions(robot: RobotModel, config: StructuredConfig, count: int, seed: int, prefix: str) -> list[Any]:
+    """``count`` paper-range conditions (models.lmpc.paper_range) and, with ``config.envelope_conditions``,
+    as many more across the arm's envelope (models.envelope_conditions: offsets, holds, 80 % of the limits,
+    the disturbance at random times), all lasting ``config.duration_s``; seeded by ``seed``."""
+    from models.envelope_conditions import envelope_conditions
+    from models.lmpc.paper_range import paper_range_conditions
+
+    out = paper_range_conditions(robot, count, seed, prefix=prefix)
+    if config.envelope_conditions:
+        out += envelope_conditions(robot, config.envelope_conditions, seed, prefix=f"{prefix}E")
+    return [replace(c, duration_s=config.duration_s) for c in out]
 
 
 #: bandwidth scales tried, largest first, for the rate-aware static part (K_p s^2, K_d s)
