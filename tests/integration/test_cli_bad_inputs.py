@@ -62,6 +62,26 @@ CASES: list[Case] = [
     ("unknown-executor", ["pipeline", "--executor", "dask"], {}, ["--executor: unknown 'dask'", "serial, local, ray"]),
     ("workers=0", ["pipeline", "--workers", "0"], {}, ["--workers: must be >= 1"]),
     ("unknown-stage", ["pipeline", "--stages", "dataset,fit"], {}, ["--stages: unknown 'fit'", "augment"]),
+    (
+        "train-realism-unknown",
+        ["pipeline", "--train-realism", "stormy"],
+        {},
+        ["--train-realism: 'stormy'", "realistic"],
+    ),
+    (
+        "train-realism-bad-file",
+        ["pipeline", "--train-realism", "{tmp}/p.yaml"],
+        {"p.yaml": "sensing:\n  delay_periods: -1\n"},
+        ["p.yaml: sensing.delay_periods"],
+    ),
+    ("realism-draws=0", ["pipeline", "--realism-draws", "0"], {}, ["--realism-draws: must be >= 1"]),
+    ("envelope-conditions<0", ["pipeline", "--envelope-conditions", "-2"], {}, ["--envelope-conditions: must be >= 0"]),
+    (
+        "law-coefficient-unknown",
+        ["pipeline", "--law-coefficient", "half"],
+        {},
+        ["--law-coefficient: unknown 'half'", "fitted"],
+    ),
     # --out
     ("out-file-in-the-way", ["experiment", "--out", "{tmp}/f"], {"f": "x"}, ["--out {tmp}/f: a file is in the way"]),
     (

@@ -71,8 +71,8 @@ def test_the_cache_key_changes_with_the_world_and_keeps_old_caches() -> None:
 
 def test_randomized_rollouts_export_a_bundle_whose_box_covers_the_envelope_data(tmp_path: Path) -> None:
     from hil_runtime.bundle import PolicyBundle
-    from models.lmpc.structured import run_structured
     from models.hmpc.config import formulation_options
+    from models.lmpc.structured import run_structured
     from models.lmpc.structured.data import collect, features
 
     config = StructuredConfig(  # the deployable HMPC (the absolute-cost one's deadbeat gains blow up on noise)
