@@ -104,6 +104,11 @@ class StructuredConfig:
     # rate-aware loop hold the bound (s = 0.7) but picked s = 0.35 for the Panda's ADRC (4/4 training
     # conditions against 3/4 at s = 1), whose eta_L under `ideal` then fell from 62.6 to -16.8 %
     rate_check: bool = False
+    # the rows the static part is fitted on (config.previous_torque; data.ROW_KINDS): the expert's own
+    # ("on_policy": its applied torque, rate-bounded given its tau_0) and the cold copies ("static": the
+    # static optimum). Under domain randomization the on-policy labels are mostly rate-bounded steps, which
+    # the static structure cannot explain (docs/lmpc.md §12): ("static",) fits it on the cold copies alone
+    static_rows: tuple[str, ...] = ("on_policy", "static")
     # Domain randomization (docs/lmpc.md §12): the expert's rollouts (and DAgger's) run in realism_draws
     # seeded worlds drawn around this realism profile (models.lmpc.structured.randomization); None: ideal
     train_realism: str | None = None
@@ -126,6 +131,10 @@ class StructuredConfig:
             raise ModelInputError(
                 f"structured lmpc physics_fit: unknown {self.physics_fit!r} (known: {', '.join(PHYSICS_FITS)})"
             )
+        if not self.static_rows or set(self.static_rows) - {"on_policy", "static"}:
+            raise ModelInputError(
+                f"structured lmpc static_rows: a non-empty subset of on_policy, static, got {self.static_rows}"
+            )
         if self.realism_draws < 1 or self.envelope_conditions < 0:
             raise ModelInputError("structured lmpc: realism_draws must be >= 1 and envelope_conditions >= 0")
         if self.train_conditions < 1 or self.stride < 1:
@@ -142,7 +151,7 @@ def config_from_json(raw: dict[str, Any]) -> StructuredConfig:
     if unknown:
         raise ModelInputError(f"structured lmpc config: unknown fields {', '.join(unknown)}")
     values = dict(raw)
-    for name in ("laws", "hidden"):
+    for name in ("laws", "hidden", "static_rows"):
         if name in values:
             values[name] = tuple(values[name])
     return StructuredConfig(**values)

@@ -43,7 +43,8 @@ def run_structured(
         per_law = {}
         for name in config.laws:
             # the static part on the expert's states and the cold copies (the rate copies' labels depend on tau_0)
-            rows = _rows(data[name], config.previous_torque, (ROW_KINDS["on_policy"], ROW_KINDS["static"]))
+            kinds = tuple(ROW_KINDS[k] for k in config.static_rows)
+            rows = _rows(data[name], config.previous_torque, kinds)
             s, y = features(rows), rows["tau_star"] - rows["tau_fb"]
             log(f"{name}: fit on {len(s)} states (round {round_index})")
             model, fit = train_structured(robot, s, y, config, log)

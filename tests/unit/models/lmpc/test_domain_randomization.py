@@ -18,10 +18,11 @@ from models.lmpc.structured.randomization import (
 )
 from models.lmpc.structured.run import training_conditions
 from models.robots import load_robot
+from sim_target.realism import RealismSpec
 from sim_target.realism_profiles import load_realism
 
 
-def _realistic(n: int = 6) -> object:
+def _realistic(n: int = 6) -> RealismSpec:
     robot = load_robot("ur5_paper")
     return load_realism("realistic", n, 1e-3, 5e-4, robot.torque_limit_nm)
 
@@ -99,7 +100,9 @@ def test_randomized_rollouts_export_a_bundle_whose_box_covers_the_envelope_data(
     ideal = collect(replace(config, train_realism=None), conditions)["pd"]
     assert rows["q"].shape == ideal["q"].shape and not np.allclose(rows["q"], ideal["q"])  # the world was applied
     q = features(rows)[:, : robot.n_joints]
-    box = np.asarray(bundle.manifest.trust_region.feature_low), np.asarray(bundle.manifest.trust_region.feature_high)
+    region = bundle.manifest.trust_region
+    assert region is not None
+    box = np.asarray(region.feature_low), np.asarray(region.feature_high)
     assert np.all(q >= box[0][: robot.n_joints] - 1e-9) and np.all(q <= box[1][: robot.n_joints] + 1e-9)
 
 
