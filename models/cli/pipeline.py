@@ -117,6 +117,13 @@ def pipeline(
     realism_draws: Annotated[
         int, typer.Option(help="Structured design, --train-realism: randomized worlds (training conditions rotate).")
     ] = 4,
+    ideal_draws: Annotated[
+        int,
+        typer.Option(
+            help="Structured design, --train-realism: more training worlds that are the ideal one (the nominal "
+            "plant among the randomized draws)."
+        ),
+    ] = 0,
     envelope_conditions: Annotated[
         int,
         typer.Option(
@@ -163,6 +170,8 @@ def pipeline(
             raise ModelInputError(f"--realism-draws: must be >= 1, got {realism_draws}")
         if envelope_conditions < 0:
             raise ModelInputError(f"--envelope-conditions: must be >= 0, got {envelope_conditions}")
+        if ideal_draws < 0:
+            raise ModelInputError(f"--ideal-draws: must be >= 0, got {ideal_draws}")
         if train_realism is not None:  # a bad profile: one line before any work
             from sim_target.realism import RealismError
             from sim_target.realism_profiles import load_realism
@@ -190,7 +199,7 @@ def pipeline(
             physics_fit,
             rate_check,
             law_coefficient == "fitted",
-            (train_realism, realism_draws, envelope_conditions),
+            (train_realism, realism_draws, envelope_conditions, ideal_draws),
         )
         return
     from rich.console import Console
@@ -280,7 +289,7 @@ def _structured(
     physics_fit: str = "free",
     rate_check: bool = False,
     fit_law_coefficient: bool = False,
-    training_world: tuple[str | None, int, int] = (None, 4, 0),
+    training_world: tuple[str | None, int, int, int] = (None, 4, 0, 0),
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -316,6 +325,7 @@ def _structured(
         train_realism=training_world[0],
         realism_draws=training_world[1],
         envelope_conditions=training_world[2],
+        ideal_draws=training_world[3],
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

@@ -75,6 +75,7 @@ CASES: list[Case] = [
         ["p.yaml: sensing.delay_periods"],
     ),
     ("realism-draws=0", ["pipeline", "--realism-draws", "0"], {}, ["--realism-draws: must be >= 1"]),
+    ("ideal-draws<0", ["pipeline", "--ideal-draws", "-1"], {}, ["--ideal-draws: must be >= 0"]),
     ("envelope-conditions<0", ["pipeline", "--envelope-conditions", "-2"], {}, ["--envelope-conditions: must be >= 0"]),
     (
         "law-coefficient-unknown",

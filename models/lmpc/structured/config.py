@@ -113,6 +113,9 @@ class StructuredConfig:
     # seeded worlds drawn around this realism profile (models.lmpc.structured.randomization); None: ideal
     train_realism: str | None = None
     realism_draws: int = 4
+    # more worlds, each the nominal (ideal) one, among which the training conditions rotate too: the data
+    # then hold the frictionless, noiseless plant the randomized draws never show (docs/lmpc.md §12)
+    ideal_draws: int = 0
     # training conditions across the arm's envelope (models.envelope_conditions, seed train_seed) beside
     # the paper-range ones; the trust box then covers them
     envelope_conditions: int = 0
@@ -135,8 +138,10 @@ class StructuredConfig:
             raise ModelInputError(
                 f"structured lmpc static_rows: a non-empty subset of on_policy, static, got {self.static_rows}"
             )
-        if self.realism_draws < 1 or self.envelope_conditions < 0:
-            raise ModelInputError("structured lmpc: realism_draws must be >= 1 and envelope_conditions >= 0")
+        if self.realism_draws < 1 or self.envelope_conditions < 0 or self.ideal_draws < 0:
+            raise ModelInputError(
+                "structured lmpc: realism_draws must be >= 1, envelope_conditions and ideal_draws >= 0"
+            )
         if self.train_conditions < 1 or self.stride < 1:
             raise ModelInputError("structured lmpc: train_conditions and stride must be >= 1")
 

@@ -210,6 +210,7 @@ def rollout_groups(
         )
         first = config.train_seed if draw_seed is None else draw_seed
         worlds = [randomized_realism(base, first * 100 + k) for k in range(config.realism_draws)]
+        worlds += [None] * config.ideal_draws
     groups: dict[tuple, list[Any]] = {}
     for i, condition in enumerate(conditions):
         key = (i % len(worlds), condition.duration_s, condition.disturbance, condition.mismatch)
@@ -319,7 +320,7 @@ _DATA_FIELDS = (
     "rate_data",
 )
 #: data fields keyed only when set (a cache made before they existed stays valid)
-_OPTIONAL_DATA_FIELDS = {"train_realism": None, "realism_draws": None, "envelope_conditions": 0}
+_OPTIONAL_DATA_FIELDS = {"train_realism": None, "realism_draws": None, "envelope_conditions": 0, "ideal_draws": 0}
 
 
 #: the rate-aware recipe's version in the cache key (2: static and rate copies; 1, rate copies only, is stale)
@@ -331,7 +332,7 @@ def _data_key(config: StructuredConfig) -> str:
     values = {**jsonable_config(config), "rate_data": RATE_DATA_VERSION if config.previous_torque else 0}
     key = {k: values[k] for k in _DATA_FIELDS}
     if config.train_realism is not None or config.envelope_conditions:
-        key.update({k: values[k] for k in _OPTIONAL_DATA_FIELDS})
+        key.update({k: values[k] for k in _OPTIONAL_DATA_FIELDS if k != "ideal_draws" or values[k]})
     return json.dumps(key, sort_keys=True)
 
 

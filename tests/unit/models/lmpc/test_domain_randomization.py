@@ -56,6 +56,8 @@ def test_training_conditions_rotate_over_the_draws_and_batch_by_disturbance() ->
     assert len({world.name for _, world in groups}) == 3  # every draw used
     for members, _ in groups:  # one simulator batch each
         assert len({(c.duration_s, c.disturbance, c.mismatch) for c in members}) == 1
+    mixed = rollout_groups(replace(config, realism_draws=2, ideal_draws=2), conditions[:4], robot)
+    assert len(mixed) == 4 and sum(world is None for _, world in mixed) == 2  # the nominal plant among the draws
     ideal = rollout_groups(StructuredConfig(train_conditions=4), conditions[:4], robot)
     assert len(ideal) == 1 and ideal[0][1] is None
 
@@ -68,6 +70,9 @@ def test_the_cache_key_changes_with_the_world_and_keeps_old_caches() -> None:
         StructuredConfig(train_realism="realistic", realism_draws=2)
     )
     assert _data_key(plain) != _data_key(StructuredConfig(envelope_conditions=2))
+    randomized = StructuredConfig(train_realism="realistic")
+    assert "ideal_draws" not in _data_key(randomized)  # keyed only when set: earlier randomized caches stay valid
+    assert _data_key(randomized) != _data_key(replace(randomized, ideal_draws=1))
 
 
 def test_randomized_rollouts_export_a_bundle_whose_box_covers_the_envelope_data(tmp_path: Path) -> None:
@@ -106,7 +111,7 @@ def test_randomized_rollouts_export_a_bundle_whose_box_covers_the_envelope_data(
     assert np.all(q >= box[0][: robot.n_joints] - 1e-9) and np.all(q <= box[1][: robot.n_joints] + 1e-9)
 
 
-@pytest.mark.parametrize("field, value", [("realism_draws", 0), ("envelope_conditions", -1)])
+@pytest.mark.parametrize("field, value", [("realism_draws", 0), ("envelope_conditions", -1), ("ideal_draws", -1)])
 def test_bad_randomization_settings_are_refused(field: str, value: int) -> None:
     from models.errors import ModelInputError
 
