@@ -27,7 +27,7 @@ from models.feedback import DEFAULT_GAIN_SET, LAW_NAMES, LAW_TITLES, make_law
 from models.modes import make_controller
 from models.robots import RobotModel
 from models.scoring import METRICS, composite_scores, improvement, run_metrics
-from models.sim import ControllerStack, SimConfig, Trajectory, simulate
+from models.sim import ControllerStack, SimConfig, Trajectory, batch_key, simulate
 from sim_target.realism import RealismSpec
 
 #: Plant-model mismatch of issue 3: +0.5 kg on the flange, link inertias alternately +/-20 %.
@@ -63,7 +63,7 @@ def _groups(conditions: list[Condition]) -> list[list[int]]:
     """Indices of conditions that can share one vectorized plant (same duration, disturbance, mismatch)."""
     groups: dict[tuple, list[int]] = defaultdict(list)
     for i, c in enumerate(conditions):
-        groups[(c.duration_s, c.disturbance, c.mismatch)].append(i)
+        groups[batch_key(c)].append(i)
     return list(groups.values())
 
 

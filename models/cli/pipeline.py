@@ -6,7 +6,7 @@ import json
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -199,7 +199,12 @@ def pipeline(
             physics_fit,
             rate_check,
             law_coefficient == "fitted",
-            (train_realism, realism_draws, envelope_conditions, ideal_draws),
+            {
+                "train_realism": train_realism,
+                "realism_draws": realism_draws,
+                "ideal_draws": ideal_draws,
+                "envelope_conditions": envelope_conditions,
+            },
         )
         return
     from rich.console import Console
@@ -289,7 +294,7 @@ def _structured(
     physics_fit: str = "free",
     rate_check: bool = False,
     fit_law_coefficient: bool = False,
-    training_world: tuple[str | None, int, int, int] = (None, 4, 0, 0),
+    training_world: dict[str, Any] | None = None,
 ) -> None:
     """``hil pipeline --design structured``: models.lmpc.structured.run_structured, one line per step."""
     import torch
@@ -322,10 +327,7 @@ def _structured(
         beta_floor=beta_floor,
         physics_fit=physics_fit,
         rate_check=rate_check,
-        train_realism=training_world[0],
-        realism_draws=training_world[1],
-        envelope_conditions=training_world[2],
-        ideal_draws=training_world[3],
+        **(training_world or {}),  # train_realism, realism_draws, ideal_draws, envelope_conditions
     )
     console = Console(stderr=True)
     with make_executor(executor, workers) as pool:

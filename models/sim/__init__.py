@@ -3,7 +3,7 @@
 The controller modes beyond ``fb`` are registered by ``models.modes``.
 """
 
-from models.sim.closed_loop import ModelPlant, SimConfig, Trajectory, simulate
+from models.sim.closed_loop import ModelPlant, SimConfig, Trajectory, batch_key, simulate
 from models.sim.controllers import (
     Controller,
     ControllerStack,
@@ -14,6 +14,7 @@ from models.sim.controllers import (
 )
 
 __all__ = [
+    "batch_key",
     "Controller",
     "ControllerStack",
     "FeedbackController",

@@ -114,7 +114,8 @@ class ModelPlant:
         return q, qd
 
 
-def _group_key(condition: Condition) -> tuple:
+def batch_key(condition: Condition) -> tuple:
+    """What conditions must share to run in one simulator batch (one vectorized plant)."""
     return (condition.duration_s, condition.disturbance, condition.mismatch)
 
 
@@ -152,7 +153,7 @@ def simulate(
     """
     if not conditions:
         raise ModelInputError("simulate: no conditions given")
-    if len({_group_key(c) for c in conditions}) != 1:
+    if len({batch_key(c) for c in conditions}) != 1:
         raise ModelInputError("simulate: conditions in one batch must share duration, disturbance and mismatch")
     first = conditions[0]
     plant = ModelPlant(robot, plant_mismatch(first.mismatch, realism), config)

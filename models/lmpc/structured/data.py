@@ -17,7 +17,7 @@ from models.feedback import make_law
 from models.feedback.base import FeedbackLaw
 from models.lmpc.structured.config import StructuredConfig, jsonable_config
 from models.robots import RobotModel, load_robot
-from models.sim import ControllerStack, SimConfig, simulate
+from models.sim import ControllerStack, SimConfig, batch_key, simulate
 
 
 def _logged_rollouts(
@@ -213,7 +213,7 @@ def rollout_groups(
         worlds += [None] * config.ideal_draws
     groups: dict[tuple, list[Any]] = {}
     for i, condition in enumerate(conditions):
-        key = (i % len(worlds), condition.duration_s, condition.disturbance, condition.mismatch)
+        key = (i % len(worlds), *batch_key(condition))
         groups.setdefault(key, []).append(condition)
     return [(members, worlds[key[0]]) for key, members in groups.items()]
 
@@ -319,8 +319,8 @@ _DATA_FIELDS = (
     "rate_perturb_steps",
     "rate_data",
 )
-#: data fields keyed only when set (a cache made before they existed stays valid)
-_OPTIONAL_DATA_FIELDS = {"train_realism": None, "realism_draws": None, "envelope_conditions": 0, "ideal_draws": 0}
+#: data fields keyed only when they differ from their default (a cache made before they existed stays valid)
+_OPTIONAL_DATA_FIELDS = ("train_realism", "realism_draws", "ideal_draws", "envelope_conditions")
 
 
 #: the rate-aware recipe's version in the cache key (2: static and rate copies; 1, rate copies only, is stale)
@@ -331,8 +331,8 @@ def _data_key(config: StructuredConfig) -> str:
     """What the rollouts depend on (a cache made with other settings is not reused)."""
     values = {**jsonable_config(config), "rate_data": RATE_DATA_VERSION if config.previous_torque else 0}
     key = {k: values[k] for k in _DATA_FIELDS}
-    if config.train_realism is not None or config.envelope_conditions:
-        key.update({k: values[k] for k in _OPTIONAL_DATA_FIELDS if k != "ideal_draws" or values[k]})
+    defaults = StructuredConfig.__dataclass_fields__
+    key.update({k: values[k] for k in _OPTIONAL_DATA_FIELDS if getattr(config, k) != defaults[k].default})
     return json.dumps(key, sort_keys=True)
 
 
