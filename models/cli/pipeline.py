@@ -95,8 +95,9 @@ def pipeline(
     physics_fit: Annotated[
         str,
         typer.Option(
-            help="Structured design: the physics part's fit, 'free' (every shipped bundle) or 'stable' (g = 1, "
-            "the loop e'' = -(K_p e + K_d e') stable by construction; docs/any_arm.md \"The stable physics fit\")."
+            help="Structured design: the physics part's fit, 'free' (every shipped bundle), 'stable' (g = 1, "
+            "the loop e'' = -(K_p e + K_d e') stable by construction; docs/any_arm.md \"The stable physics fit\") "
+            "or 'bounded' (g >= 0.5 per joint, K_p, K_d on the stable fit's floors; docs/lmpc.md section 12)."
         ),
     ] = "free",
     law_coefficient: Annotated[

@@ -18,8 +18,10 @@ C_FIXED = {"absolute": -1.0, "anchored": None, "deployable": -1.0}
 TARGETS = ("hmpc", "law")  # "law": the control row, the law's own torque as the label
 #: the physics part's fit: "free" (g in [0, G_MAX] per joint, K_p, K_d any matrices) or "stable" (g = 1,
 #: K_p, K_d symmetric with eigenvalues >= a floor: the loop e'' = -(K_p e + K_d e') is then stable by
-#: construction, docs/any_arm.md "The stable physics fit")
-PHYSICS_FITS = ("free", "stable")
+#: construction, docs/any_arm.md "The stable physics fit") or "bounded" (g in [G_BOUNDED_MIN, G_MAX] per
+#: joint, K_p, K_d on the stable fit's symmetric floors: the feed-forward kept and no negative stiffness, without
+#: the stable fit's g = 1; docs/lmpc.md section 12)
+PHYSICS_FITS = ("free", "stable", "bounded")
 TRAINED_FORMAT = "structured-lmpc-trained/1"  # <work>/trained_<law>.pt (save_trained, reexport)
 
 

@@ -21,6 +21,9 @@ class StructuredEmulator(nn.Module):
     #: kp, kd scales (1/s^2, 1/s): the optimizer sees numbers of order 1
     KP_SCALE, KD_SCALE = 1.0e4, 1.0e2
     G_MAX = 1.2
+    #: the "bounded" physics fit's floor of g: the model's inverse dynamics stays at least half the torque (the
+    #: free fit on randomized data dropped the base's feed-forward, g_1 = 0, and leaned on friction instead)
+    G_BOUNDED_MIN = 0.5
     C_MIN = -1.05  # c = -1: the law's torque removed (the absolute-cost HMPC does not depend on the law)
 
     def __init__(
@@ -35,6 +38,7 @@ class StructuredEmulator(nn.Module):
     ) -> None:
         super().__init__()
         self.c_max = float(c_max)
+        self.g_min = 0.0
         from models.dynamics.torch_rne import SpatialRne
 
         n = robot.n_joints
@@ -91,7 +95,7 @@ class StructuredEmulator(nn.Module):
         with torch.no_grad():
             if self.c.requires_grad:
                 self.c.clamp_(self.C_MIN, self.c_max)
-            self.g.clamp_(0.0, self.G_MAX)
+            self.g.clamp_(self.g_min, self.G_MAX)
             if self.previous_torque:
                 self.beta.clamp_(BETA_MIN, 1.0)
 

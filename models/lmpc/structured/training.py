@@ -74,7 +74,8 @@ def train_structured(
 ) -> tuple[StructuredEmulator, dict[str, Any]]:
     """Fit c, g, kp, kd (full batch, projected Adam + L-BFGS), then the bounded residual MLP (Adam);
     y = tau* - tau_fb. ``config.physics_fit == "stable"``: g = 1; K_p, K_d projected onto symmetric matrices
-    with eigenvalue floors when the loop they make with g = 1 does not decay."""
+    with eigenvalue floors when the loop they make with g = 1 does not decay. ``"bounded"``: g >= G_BOUNDED_MIN
+    per joint and K_p, K_d on those symmetric floors throughout (projected Adam, no unconstrained polish)."""
     torch.manual_seed(config.seed)
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
@@ -85,6 +86,10 @@ def train_structured(
             model.c.fill_(config.c_fixed)
         model.c.requires_grad_(False)
     stable = config.physics_fit == "stable"
+    bounded = config.physics_fit == "bounded"
+    if bounded:
+        model.g_min = model.G_BOUNDED_MIN
+        model.project()
     if stable:  # g = 1: the model's whole inverse dynamics (a per-joint g makes M^-1 G M non-symmetric)
         with torch.no_grad():
             model.g.fill_(1.0)
@@ -127,7 +132,7 @@ def train_structured(
             if project_gains:
                 project_stable_gains(model)
 
-    adam(False)
+    adam(bounded)
     # polish the unconstrained gains with c, g fixed (L-BFGS: the gains' optimum is interior)
     polish = torch.optim.LBFGS(
         [model.theta_kp, model.theta_kd],
@@ -145,8 +150,9 @@ def train_structured(
         value.backward()
         return value
 
-    polish.step(closure)
-    projected = False
+    if not bounded:  # the bounded fit's optimum sits on its floors: the unconstrained polish would leave them
+        polish.step(closure)
+    projected = bounded
     if stable and loop_decay_rate_1_s(model) < STABLE_DECAY_MIN_1_S:
         # g = 1 alone left a loop that does not decay: refit K_p, K_d on the symmetric matrices above the
         # eigenvalue floors (stable by the Lyapunov argument; the polish would leave that set)
@@ -210,7 +216,7 @@ def train_structured(
             "relative_loss": physics_loss,
             "fit": config.physics_fit,
             "gains_projected": projected,
-            "loop_decay_rate_1_s": loop_decay_rate_1_s(model) if stable else None,
+            "loop_decay_rate_1_s": loop_decay_rate_1_s(model) if stable or bounded else None,
         },
         "residual": {
             "hidden": list(config.hidden),

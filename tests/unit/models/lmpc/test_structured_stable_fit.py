@@ -76,6 +76,32 @@ def test_stable_fit_gives_a_stable_loop_where_the_free_fit_does_not() -> None:
     assert _largest_real_part(kp, kd, g) < 0.0
 
 
+def test_bounded_fit_keeps_the_feed_forward_and_symmetric_gains_above_their_floors() -> None:
+    """The "bounded" fit: g >= G_BOUNDED_MIN per joint (the labels' g_1 = 0.3 sits below it), K_p, K_d
+    symmetric above the stable floors, and g left free above its floor (joints 2-6 keep g ~ 1)."""
+    from models.lmpc.structured.model import StructuredEmulator
+
+    robot, s, y = _synthetic()
+    g_true = np.ones(robot.n_joints)
+    g_true[0] = 0.3
+    y = y / np.where(np.arange(robot.n_joints) == 0, 0.7, 1.0) * g_true  # the labels' g_1: 0.7 -> 0.3
+    config = StructuredConfig(
+        hidden=(8,), c_fixed=-1.0, physics_steps=150, residual_epochs=1, physics_learning_rate=0.05
+    )
+    _, summary = train_structured(robot, s, y, replace(config, physics_fit="bounded"), log=lambda _: None)
+    physics = summary["physics"]
+    g, kp, kd = (np.asarray(physics[k], float) for k in ("g", "kp_1_s2", "kd_1_s"))
+    assert physics["fit"] == "bounded" and physics["gains_projected"] is True
+    assert g.min() >= StructuredEmulator.G_BOUNDED_MIN - 1e-12
+    assert g[0] == pytest.approx(StructuredEmulator.G_BOUNDED_MIN)  # held at its floor, not at the label's 0.3
+    assert np.all(np.abs(g[1:] - 1.0) < 0.2)  # free above the floor: not the stable fit's g = 1 by fiat
+    np.testing.assert_allclose(kp, kp.T, atol=1e-9)
+    np.testing.assert_allclose(kd, kd.T, atol=1e-9)
+    assert np.linalg.eigvalsh(kp).min() >= STABLE_KP_MIN_1_S2 * (1 - 1e-9)
+    assert np.linalg.eigvalsh(kd).min() >= STABLE_KD_MIN_1_S * (1 - 1e-9)
+    assert physics["loop_decay_rate_1_s"] is not None
+
+
 def test_unknown_physics_fit_is_refused() -> None:
     with pytest.raises(ModelInputError, match="physics_fit"):
         StructuredConfig(physics_fit="psd")
