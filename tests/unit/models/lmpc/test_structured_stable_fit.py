@@ -82,9 +82,10 @@ def test_bounded_fit_keeps_the_feed_forward_and_symmetric_gains_above_their_floo
     from models.lmpc.structured.model import StructuredEmulator
 
     robot, s, y = _synthetic()
-    g_true = np.ones(robot.n_joints)
+    n = s.shape[1] // 6  # s = (q, e, qd, e_dot, qdd_d, tau_fb)
+    g_true = np.ones(n)
     g_true[0] = 0.3
-    y = y / np.where(np.arange(robot.n_joints) == 0, 0.7, 1.0) * g_true  # the labels' g_1: 0.7 -> 0.3
+    y = y / np.where(np.arange(n) == 0, 0.7, 1.0) * g_true  # the labels' g_1: 0.7 -> 0.3
     config = StructuredConfig(
         hidden=(8,), c_fixed=-1.0, physics_steps=150, residual_epochs=1, physics_learning_rate=0.05
     )
