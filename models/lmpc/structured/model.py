@@ -35,19 +35,20 @@ class StructuredEmulator(nn.Module):
         c_max: float = 0.0,
         previous_torque: bool = False,
         period_s: float = 1e-3,
+        g_min: float = 0.0,
     ) -> None:
         super().__init__()
         self.c_max = float(c_max)
-        self.g_min = 0.0
+        self.g_min = float(g_min)  # the "bounded" fit's G_BOUNDED_MIN, else 0
         from models.dynamics.torch_rne import SpatialRne
 
         n = robot.n_joints
         self.n, self.ff_point = n, ff_point
         self.rne = SpatialRne(robot)
-        # c in [C_MIN, 0.5], g in [0, G_MAX] (kept there by projection after every optimizer step); Kp, Kd
-        # free. Initial: c = 0 (the law as it is), g = G_MAX / 2, Kp = 100 I 1/s^2, Kd = 20 I 1/s
+        # c in [C_MIN, 0.5], g in [g_min, G_MAX] (kept there by projection after every optimizer step); Kp, Kd
+        # free. Initial: c = 0 (the law as it is), g = G_MAX / 2 (or g_min if above), Kp = 100 I 1/s^2, Kd = 20 I 1/s
         self.c = nn.Parameter(torch.zeros(n, dtype=torch.float64))
-        self.g = nn.Parameter(torch.full((n,), self.G_MAX / 2, dtype=torch.float64))
+        self.g = nn.Parameter(torch.full((n,), max(self.G_MAX / 2, self.g_min), dtype=torch.float64))
         self.theta_kp = nn.Parameter(torch.eye(n, dtype=torch.float64) * (100.0 / self.KP_SCALE))
         self.theta_kd = nn.Parameter(torch.eye(n, dtype=torch.float64) * (20.0 / self.KD_SCALE))
         layers: list[nn.Module] = []

@@ -54,11 +54,13 @@ def _symmetric_floor(theta: torch.Tensor, floor: float) -> torch.Tensor:
 STABLE_DECAY_MIN_1_S = 0.1
 
 
-def loop_decay_rate_1_s(model: StructuredEmulator) -> float:
-    """-max Re eig of e'' = -(K_p e + K_d e') (the physics loop with g = 1 on the nominal plant)."""
-    _, _, kp, kd = (t.detach().numpy() for t in model.coefficients(live=True))
+def loop_decay_rate_1_s(model: StructuredEmulator, mass0: np.ndarray) -> float:
+    """-max Re eig of e'' = -M0^-1 G M0 (K_p e + K_d e'): the physics loop on the nominal plant at q = 0 (M0 its
+    mass matrix there, G = diag(g); with g = 1, the stable fit's, e'' = -(K_p e + K_d e'))."""
+    _, g, kp, kd = (t.detach().numpy() for t in model.coefficients(live=True))
     n = kp.shape[0]
-    a = np.block([[np.zeros((n, n)), np.eye(n)], [-kp, -kd]])
+    b = np.linalg.solve(mass0, g[:, None] * mass0)
+    a = np.block([[np.zeros((n, n)), np.eye(n)], [-b @ kp, -b @ kd]])
     return float(-np.linalg.eigvals(a).real.max())
 
 
@@ -80,16 +82,14 @@ def train_structured(
     n = robot.n_joints
     limit = np.asarray(robot.torque_limit_nm, float)
     bound = config.residual_bound_fraction * limit
-    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max)  # the static part
+    bounded = config.physics_fit == "bounded"
+    g_min = StructuredEmulator.G_BOUNDED_MIN if bounded else 0.0
+    model = StructuredEmulator(robot, config.hidden, bound, config.ff_point, config.c_max, g_min=g_min)  # static part
     if config.c_fixed is not None:
         with torch.no_grad():
             model.c.fill_(config.c_fixed)
         model.c.requires_grad_(False)
     stable = config.physics_fit == "stable"
-    bounded = config.physics_fit == "bounded"
-    if bounded:
-        model.g_min = model.G_BOUNDED_MIN
-        model.project()
     if stable:  # g = 1: the model's whole inverse dynamics (a per-joint g makes M^-1 G M non-symmetric)
         with torch.no_grad():
             model.g.fill_(1.0)
@@ -97,7 +97,8 @@ def train_structured(
     mass, bias = _physics_terms(robot, s, config.ff_point)
     from models.dynamics import make_dynamics
 
-    inertia0 = np.diag(np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n))).reshape(n, n))
+    mass0 = np.asarray(make_dynamics(robot, "rne").mass_matrix(np.zeros(n))).reshape(n, n)
+    inertia0 = np.diag(mass0)
     # loss in acceleration units: a torque error on a 1e-4 kg m^2 wrist matters as much as 1e3x on the base
     scale = torch.as_tensor(1.0 / inertia0, dtype=torch.float64)
     st, yt = torch.as_tensor(s), torch.as_tensor(y)
@@ -153,7 +154,7 @@ def train_structured(
     if not bounded:  # the bounded fit's optimum sits on its floors: the unconstrained polish would leave them
         polish.step(closure)
     projected = bounded
-    if stable and loop_decay_rate_1_s(model) < STABLE_DECAY_MIN_1_S:
+    if stable and loop_decay_rate_1_s(model, mass0) < STABLE_DECAY_MIN_1_S:
         # g = 1 alone left a loop that does not decay: refit K_p, K_d on the symmetric matrices above the
         # eigenvalue floors (stable by the Lyapunov argument; the polish would leave that set)
         adam(True)
@@ -216,7 +217,7 @@ def train_structured(
             "relative_loss": physics_loss,
             "fit": config.physics_fit,
             "gains_projected": projected,
-            "loop_decay_rate_1_s": loop_decay_rate_1_s(model) if stable or bounded else None,
+            "loop_decay_rate_1_s": loop_decay_rate_1_s(model, mass0) if stable or bounded else None,
         },
         "residual": {
             "hidden": list(config.hidden),

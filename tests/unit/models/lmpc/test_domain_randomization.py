@@ -18,6 +18,7 @@ from models.lmpc.structured.randomization import (
 )
 from models.lmpc.structured.run import training_conditions
 from models.robots import load_robot
+from models.sim import batch_key
 from sim_target.realism import RealismSpec
 from sim_target.realism_profiles import load_realism
 
@@ -55,7 +56,7 @@ def test_training_conditions_rotate_over_the_draws_and_batch_by_disturbance() ->
     assert sum(len(members) for members, _ in groups) == 10
     assert len({world.name for _, world in groups}) == 3  # every draw used
     for members, _ in groups:  # one simulator batch each
-        assert len({(c.duration_s, c.disturbance, c.mismatch) for c in members}) == 1
+        assert len({batch_key(c) for c in members}) == 1
     mixed = rollout_groups(replace(config, realism_draws=2, ideal_draws=2), conditions[:4], robot)
     assert len(mixed) == 4 and sum(world is None for _, world in mixed) == 2  # the nominal plant among the draws
     ideal = rollout_groups(StructuredConfig(train_conditions=4), conditions[:4], robot)

@@ -101,6 +101,8 @@ def test_bounded_fit_keeps_the_feed_forward_and_symmetric_gains_above_their_floo
     assert np.linalg.eigvalsh(kp).min() >= STABLE_KP_MIN_1_S2 * (1 - 1e-9)
     assert np.linalg.eigvalsh(kd).min() >= STABLE_KD_MIN_1_S * (1 - 1e-9)
     assert physics["loop_decay_rate_1_s"] is not None
+    # the reported decay is the loop with this g (M0^-1 G M0), the same as the benchmarks' one-pose loop
+    assert physics["loop_decay_rate_1_s"] == pytest.approx(-_largest_real_part(kp, kd, g), rel=1e-6, abs=1e-9)
 
 
 def test_unknown_physics_fit_is_refused() -> None:
