@@ -64,7 +64,14 @@ from pydantic import ValidationError
 
 from drivers.joint_bus import clip_torque
 from drivers.strict_input import loads_json_unique
-from hil_runtime.bundle_probes import GraphCheckError, check_graph, probe_section
+from hil_runtime.bundle_probes import (
+    DEFAULT_ENCODER_NOISE_RAD,
+    GraphCheckError,
+    check_graph,
+    check_sensing,
+    probe_section,
+    tolerated_encoder_noise_rad,
+)
 from hil_runtime.bundle_schema import MANIFEST, SUPPORTED_SCHEMAS, Manifest, format_manifest_error
 from hil_runtime.bundle_security import (
     MAX_GRAPH_BYTES,
@@ -80,7 +87,7 @@ from hil_runtime.bundle_security import (
 from hil_runtime.rate_limit import SCALED_RULE, torque_rate_limit_nm_s
 from hil_runtime.supervisor import policy_torque
 
-__all__ = ["BundleError", "PolicyBundle", "record_probes", "sha256_file"]
+__all__ = ["DEFAULT_ENCODER_NOISE_RAD", "BundleError", "PolicyBundle", "record_probes", "sha256_file"]
 
 
 class BundleError(ValueError):
@@ -280,6 +287,22 @@ class PolicyBundle:
         return bundle
 
     # --- behavioural checks -------------------------------------------------------------------
+    def check_sensing(self, encoder_noise_rad: float, velocity_noise_rad_s: float | None = None) -> np.ndarray:
+        """Refuse (BundleError, one line) a graph that turns this much measurement noise (RMS; velocity None:
+        the position's differenced over one period) into torque steps beyond the robot's rate bound per
+        period; return the predicted steps per joint, N m (hil_runtime.bundle_probes.check_sensing)."""
+        try:
+            return check_sensing(
+                self.manifest, self.run_rows, self.path / MANIFEST, encoder_noise_rad, velocity_noise_rad_s
+            )
+        except GraphCheckError as exc:
+            raise BundleError(str(exc)) from None
+
+    def tolerated_encoder_noise_rad(self) -> float:
+        """The largest encoder noise (RMS, velocity differenced) :meth:`check_sensing` accepts; inf for a graph
+        that reads tau_prev."""
+        return tolerated_encoder_noise_rad(self.manifest, self.run_rows)
+
     def run_rows(self, x: np.ndarray) -> np.ndarray:
         """Output rows for input rows (B, 5N + S), as the graph gives them (no fallback); a run
         longer than PROBE_RUN_TIMEOUT_S is stopped (BundleError). For checks, not the loop."""

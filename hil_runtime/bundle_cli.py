@@ -1,8 +1,9 @@
-"""``hil bundle keygen | sign | seal | check``: Ed25519 keys and signatures for policy bundles.
+"""``hil bundle keygen | sign | seal | check``: Ed25519 keys and signatures for policy bundles; every load check.
 
     hil bundle keygen --out keys/lab            # keys/lab.key (private, 0600) and keys/lab.pub
     hil bundle sign models/bundles/ur5_paper/pd --key keys/lab.key
     hil bundle check models/bundles/ur5_paper/pd --trusted-key keys/lab.pub
+    hil bundle check models/bundles/ur5/pd --encoder-noise-rad 2e-6    # the runtime's sensing gate at this noise
 
 The runtime config lists the public keys it trusts (``bundle.trusted_keys``); docs/security.md.
 """
@@ -91,17 +92,43 @@ def sign(
 def check(
     bundle: Annotated[Path, typer.Argument(help="the bundle directory")],
     trusted_key: Annotated[list[Path] | None, typer.Option(help="a trusted public key (PEM); repeatable")] = None,
+    encoder_noise_rad: Annotated[
+        float | None,
+        typer.Option(
+            help="the arm's encoder noise, RMS, as bundle.encoder_noise_rad (the runtime's sensing gate; default: "
+            "the runtime's, about one increment of a 19-bit encoder)"
+        ),
+    ] = None,
+    velocity_noise_rad_s: Annotated[
+        float | None,
+        typer.Option(help="the drives' velocity noise, RMS (default: the position differenced over one period)"),
+    ] = None,
 ) -> None:
-    """Every check the runtime makes when it loads the bundle (signature too, with --trusted-key)."""
-    from hil_runtime.bundle import PolicyBundle
+    """Every check the runtime makes when it loads the bundle in lmpc mode (signature too, with --trusted-key;
+    the sensing gate at the stated noise: the predicted torque step per period of each joint is printed)."""
+    import math
+
+    from hil_runtime.bundle import DEFAULT_ENCODER_NOISE_RAD, PolicyBundle
     from hil_runtime.bundle_security import BundleSecurityError, load_public_key
 
+    if encoder_noise_rad is None:
+        encoder_noise_rad = DEFAULT_ENCODER_NOISE_RAD
+    for flag, value in (("--encoder-noise-rad", encoder_noise_rad), ("--velocity-noise-rad-s", velocity_noise_rad_s)):
+        if value is not None and not (math.isfinite(value) and value >= 0.0):
+            raise BundleKeyError(f"{flag}: must be a finite RMS noise >= 0, got {value!r}")
     try:
         keys = [load_public_key(path) for path in trusted_key or []]
     except BundleSecurityError as exc:
         raise BundleKeyError(f"--trusted-key {exc}") from None
     loaded = PolicyBundle.load(bundle, trusted_keys=keys)
-    print(f"{bundle}: ok (law {loaded.law_name}, {loaded.n_joints} joints{', signature verified' if keys else ''})")
+    steps = loaded.check_sensing(encoder_noise_rad, velocity_noise_rad_s)
+    velocity = f", {velocity_noise_rad_s:g} rad/s" if velocity_noise_rad_s is not None else ""
+    noise = f"{encoder_noise_rad:g} rad{velocity}"
+    print(
+        f"{bundle}: ok (law {loaded.law_name}, {loaded.n_joints} joints{', signature verified' if keys else ''}; "
+        f"noise {noise}: torque steps {', '.join(f'{v:.2f}' for v in steps)} N m per period, "
+        f"bound {', '.join(f'{v:.2f}' for v in loaded.torque_rate_nm_s * loaded.period_s)})"
+    )
 
 
 def register(app: typer.Typer) -> None:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from hil_runtime.bundle_schema import TRUST_MIN_SPAN, Manifest
-from hil_runtime.rate_limit import max_torque_step_nm
+from hil_runtime.rate_limit import SCALED_RULE, max_torque_step_nm, torque_rate_limit_nm_s
 
 PROBE_RTOL = 1e-6
 PROBE_SEED = 20261123
@@ -167,6 +167,120 @@ def position_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -
             change = np.abs(run_rows(moved)[:, :n] - base)
             worst = np.maximum(worst, np.nanmax(np.where(np.isfinite(change), change, np.inf), 0))
     return worst
+
+
+#: the runtime's default encoder noise (bundle.encoder_noise_rad): about one increment of a 19-bit encoder
+DEFAULT_ENCODER_NOISE_RAD = 1e-5
+VELOCITY_STEP_RAD_S = 1e-2  # the velocity error the velocity sensitivity is measured with (linear part)
+
+
+def velocity_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -> np.ndarray:
+    """Per joint i: max over the rows x and the joints j of |tau_i(qd + dv e_j) - tau_i(qd)| / dv, N m per
+    rad/s (dv = VELOCITY_STEP_RAD_S): what a velocity error does to the commanded torque."""
+    n = manifest.robot.n_joints
+    base = run_rows(x)[:, :n]
+    worst = np.zeros(n)
+    for j in range(n):
+        for sign in (1.0, -1.0):
+            moved = x.copy()
+            moved[:, n + j] += sign * VELOCITY_STEP_RAD_S
+            change = np.abs(run_rows(moved)[:, :n] - base) / VELOCITY_STEP_RAD_S
+            worst = np.maximum(worst, np.nanmax(np.where(np.isfinite(change), change, np.inf), 0))
+    return worst
+
+
+def differenced_velocity_noise_rad_s(encoder_noise_rad: float, period_s: float) -> float:
+    """The velocity noise of a position noise differenced over one period, unfiltered (RMS): sqrt(2) sigma / T."""
+    return float(np.sqrt(2.0) * encoder_noise_rad / period_s)
+
+
+def noise_step_nm(
+    position_nm_per_mrad: np.ndarray,
+    velocity_nm_s_per_rad: np.ndarray,
+    encoder_noise_rad: float,
+    velocity_noise_rad_s: float,
+) -> np.ndarray:
+    """Per joint: the RMS cycle-to-cycle torque change that measurement noise alone makes through a graph of
+    these sensitivities, sqrt(2) (S_q sigma_q + S_v sigma_v) (two independent samples differenced, the two
+    channels added). An open-loop estimate: in closed loop the noise-driven torque also moves the arm. On
+    ur5_paper's shipped PD bundle at the issue's 3e-4 rad and 0.2 rad/s it gives 8.3 N m on the shoulder; the
+    simulator measures 10.1 on C1 (tests/unit/models/lmpc/test_bundle_probes.py) and 8.5 over C1-C5."""
+    steps: np.ndarray = np.sqrt(2.0) * (
+        np.asarray(position_nm_per_mrad, float) * encoder_noise_rad / SENSITIVITY_STEP_RAD
+        + np.asarray(velocity_nm_s_per_rad, float) * velocity_noise_rad_s
+    )
+    return steps
+
+
+def _rate_step_of_robot(manifest: Manifest) -> np.ndarray:
+    """The robot's rate bound per period (N m): the manifest's rate, else the scaled rule it was made under."""
+    rate = manifest.limits.torque_rate_nm_s
+    return max_torque_step_nm(
+        torque_rate_limit_nm_s(SCALED_RULE if rate is None else rate, _torque_limit(manifest)), manifest.period_s
+    )
+
+
+def predicted_noise_steps(
+    manifest: Manifest, run_rows: RunRows, encoder_noise_rad: float, velocity_noise_rad_s: float | None = None
+) -> np.ndarray:
+    """Per joint: :func:`noise_step_nm` of the graph (its sensitivities measured on the manifest's probe rows)
+    at this noise; velocity noise None: the position's differenced over one period."""
+    if velocity_noise_rad_s is None:
+        velocity_noise_rad_s = differenced_velocity_noise_rad_s(encoder_noise_rad, manifest.period_s)
+    if manifest.probes is None:
+        raise GraphCheckError("probes: missing")
+    x = np.asarray(manifest.probes.inputs, float)  # a tau_prev graph's probe rows carry a settled tau_prev
+    return noise_step_nm(
+        position_sensitivity(manifest, run_rows, x),
+        velocity_sensitivity(manifest, run_rows, x),
+        encoder_noise_rad,
+        velocity_noise_rad_s,
+    )
+
+
+def tolerated_encoder_noise_rad(manifest: Manifest, run_rows: RunRows) -> float:
+    """The largest encoder noise (RMS, velocity differenced from it) the sensing gate accepts for this graph:
+    the steps are linear in the noise; inf for a graph that reads tau_prev (bounded by construction)."""
+    if manifest.takes_previous_torque:
+        return float("inf")
+    per_rad = predicted_noise_steps(manifest, run_rows, 1.0)
+    return float(np.min(_rate_step_of_robot(manifest) / np.maximum(per_rad, 1e-300)))
+
+
+def check_sensing(
+    manifest: Manifest,
+    run_rows: RunRows,
+    manifest_path: Path,
+    encoder_noise_rad: float,
+    velocity_noise_rad_s: float | None = None,
+) -> np.ndarray:
+    """Refuse a graph that turns the arm's measurement noise into torque steps a real arm does not accept:
+    per joint, :func:`noise_step_nm` at the stated noise (velocity noise None: the position's, differenced)
+    must stay within the robot's torque-rate bound per period (``limits.torque_rate_nm_s`` x the period,
+    hil_runtime.rate_limit). Returns the predicted steps (N m). A graph that reads tau_prev steps by at most
+    that bound by construction (checked on every probe row): passes. :class:`GraphCheckError` (one line)."""
+    differenced = velocity_noise_rad_s is None
+    if velocity_noise_rad_s is None:
+        velocity_noise_rad_s = differenced_velocity_noise_rad_s(encoder_noise_rad, manifest.period_s)
+    try:
+        steps = predicted_noise_steps(manifest, run_rows, encoder_noise_rad, velocity_noise_rad_s)
+    except GraphCheckError as exc:
+        raise GraphCheckError(f"bundle {manifest_path}: {exc}") from None
+    bound = _rate_step_of_robot(manifest)
+    if manifest.takes_previous_torque:
+        capped: np.ndarray = np.minimum(steps, bound)
+        return capped
+    worst = int(np.argmax(steps / bound))
+    if steps[worst] > bound[worst] * (1.0 + RATE_TOLERANCE):
+        share = bound[worst] / steps[worst]  # the steps are linear in the noise
+        tolerated = f"{encoder_noise_rad * share:.2g} rad" if differenced else f"{100 * share:.2g} % of this noise"
+        raise GraphCheckError(
+            f"bundle {manifest_path}: turns an encoder noise of {encoder_noise_rad:.3g} rad (velocity "
+            f"{velocity_noise_rad_s:.3g} rad/s) into torque steps of {steps[worst]:.3g} N m per period on joint "
+            f"{worst + 1}, above the {bound[worst]:.3g} N m a real arm accepts (limits.torque_rate_nm_s): it would "
+            f"chatter there; it tolerates about {tolerated}"
+        )
+    return steps
 
 
 def _check_saturation(

@@ -9,6 +9,8 @@
       urdf_sha256: null                  # the arm's URDF hash: the bundle's must match; null: unchecked
       trusted_keys: []                   # Ed25519 public keys (PEM): the bundle must be signed by one
       torque_rate_limit: none            # none | libfranka: the LMPC torque's change per cycle clamped
+      encoder_noise_rad: 1.0e-5          # encoder noise, RMS: an lmpc bundle that turns it into torque
+      velocity_noise_rad_s: null         # steps beyond the rate bound is refused (null: differenced)
     bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
       transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
                   fd: true, data_bitrate: 5000000}
@@ -58,6 +60,7 @@ from pydantic import Field, ValidationError, model_validator
 from drivers.config import DriveBusConfig, format_validation_error, read_yaml_config
 from drivers.errors import DriveConfigError
 from drivers.strict_input import StrictModel
+from hil_runtime.bundle_probes import DEFAULT_ENCODER_NOISE_RAD
 from hil_runtime.telemetry.config import TelemetryConfig
 
 MAX_RAMP_S = 60.0  # the reference's ramp from the measured pose (precomputed, like the condition)
@@ -87,6 +90,13 @@ class BundleSection(_Frozen):
     # libfranka: the lmpc torque's change per cycle clamped per joint to libfranka's rate bound
     # (hil_runtime.rate_limit, docs/lmpc.md section 10), against the torque last commanded; none: off.
     torque_rate_limit: Literal["none", "libfranka"] = "none"
+    # The arm's measurement noise, RMS: the joint encoders' position (jitter and quantization; 1e-5 rad is
+    # about one increment of a 19-bit encoder) and the velocity the drives report (null: the position
+    # differenced over one period, unfiltered: sqrt(2) x encoder_noise_rad / period_s). In lmpc mode a
+    # bundle that turns this noise into torque steps beyond the robot's rate bound per period is refused
+    # at load (hil_runtime.bundle_probes.check_sensing); 0: perfect sensors (an emulated arm without noise).
+    encoder_noise_rad: float = Field(DEFAULT_ENCODER_NOISE_RAD, ge=0.0, le=0.1)
+    velocity_noise_rad_s: float | None = Field(None, ge=0.0, le=100.0)
 
 
 class ReferenceSection(_Frozen):

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil_runtime.bundle import PolicyBundle
+from hil_runtime.bundle import BundleError, PolicyBundle
 from hil_runtime.bundle_security import BundleSecurityError, load_public_key
 from hil_runtime.conditions import Condition, load_conditions
 from hil_runtime.config import RuntimeConfig, RuntimeConfigError
@@ -32,6 +32,12 @@ def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
         expected_joint_names=config.joint_names,
         trusted_keys=keys,
     )
+    noisy = config.bundle.encoder_noise_rad > 0.0 or (config.bundle.velocity_noise_rad_s or 0.0) > 0.0
+    if config.bundle.mode == "lmpc" and noisy:
+        try:
+            bundle.check_sensing(config.bundle.encoder_noise_rad, config.bundle.velocity_noise_rad_s)
+        except BundleError as exc:
+            raise RuntimeConfigError(f"{config.source}: bundle.encoder_noise_rad: {exc}") from None
     robot = bundle.manifest.robot
     if robot.name != config.robot:
         raise RuntimeConfigError(

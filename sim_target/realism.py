@@ -101,6 +101,18 @@ class RealismSpec:
     def n_joints(self) -> int:
         return int(self.sensing.encoder_noise_rad.shape[0])
 
+    def measurement_noise(self) -> tuple[float, float | None]:
+        """(encoder noise, velocity noise) RMS, the worst joint's, as the runtime config states them
+        (``bundle.encoder_noise_rad`` / ``velocity_noise_rad_s``): the encoder's jitter and its quantization
+        (step / sqrt(12)) together; the velocity's noise when the drive reports a measured one, None when it
+        differences the position (the runtime's own rule then applies)."""
+        s = self.sensing
+        counts = np.asarray(s.encoder_counts_per_rev, float)
+        quantum = np.where(counts > 0, 2.0 * np.pi / np.where(counts > 0, counts, 1.0), 0.0)
+        encoder = float(np.max(np.sqrt(np.asarray(s.encoder_noise_rad, float) ** 2 + quantum**2 / 12.0)))
+        velocity = None if s.velocity_from_difference else float(np.max(s.velocity_noise_rad_s))
+        return encoder, velocity
+
     @property
     def is_ideal(self) -> bool:
         """Today's world: the plant reports its true state and applies the command exactly."""

@@ -6,6 +6,7 @@ hil config conditions --robot panda --out panda_conditions.yaml
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -37,17 +38,40 @@ def runtime(
     robot: Annotated[
         str | None, typer.Option(help="The bundle's robot as a URDF path, when it is not built in (its conditions).")
     ] = None,
+    encoder_noise_rad: Annotated[
+        float | None,
+        typer.Option(
+            help="The encoders' position noise, RMS (jitter and quantization; default: the runtime's, about one "
+            "increment of a 19-bit encoder). An lmpc bundle that turns it into torque steps beyond the robot's rate "
+            "bound is refused."
+        ),
+    ] = None,
+    velocity_noise_rad_s: Annotated[
+        float | None,
+        typer.Option(help="The drives' velocity noise, RMS (default: the position differenced over one period)."),
+    ] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite --out.")] = False,
 ) -> None:
     """A runtime config from a bundle and a drive table, checked as ``hil run`` checks it."""
+    from hil_runtime.bundle import DEFAULT_ENCODER_NOISE_RAD
     from models.errors import ModelInputError
     from models.lab.deploy import runtime_config_from_bundle
 
     one_of(mode, ("lmpc", "fb"), "--mode")
+    for flag, value in (("--encoder-noise-rad", encoder_noise_rad), ("--velocity-noise-rad-s", velocity_noise_rad_s)):
+        if value is not None and not (math.isfinite(value) and value >= 0.0):
+            raise ModelInputError(f"{flag}: must be a finite RMS noise >= 0, got {value!r}")
     if out.exists() and not force:
         raise ModelInputError(f"--out: {out} exists (--force to overwrite)")
     data = runtime_config_from_bundle(
-        bundle, bus, out, mode, None if condition == "hold" else condition, conditions, robot
+        bundle,
+        bus,
+        out,
+        mode,
+        None if condition == "hold" else condition,
+        conditions,
+        robot,
+        (DEFAULT_ENCODER_NOISE_RAD if encoder_noise_rad is None else encoder_noise_rad, velocity_noise_rad_s),
     )
     joints = ", ".join(f"{j['name']}@{j['node_id']}" for j in data["bus"]["joints"])
     print(f"wrote {out} (robot {data['robot']}, {len(data['bus']['joints'])} joints: {joints})")

@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from models.demo.options import DemoOptions, target_substeps
+from models.demo.options import DemoOptions, realism_specs, target_substeps
 from models.lab import configs as lab
 
 
@@ -72,6 +72,7 @@ def runtime_config(
         loop=loop,
         telemetry=lab.telemetry_section(1.0, connect=[endpoint]),
         control_socket=control_socket,
+        measurement_noise=realism_specs(options)[0].measurement_noise(),  # the runtime gates as on an arm
     )
 
 

@@ -55,7 +55,17 @@ def check_options(options: DemoOptions) -> None:
         split_cpus(options.cpus)
     except ValueError as exc:
         raise ModelInputError(str(exc)) from None
-    realism_specs(options)  # a bad profile: one line naming the file and field
+    target, _ = realism_specs(options)  # a bad profile: one line naming the file and field
+    if options.mode == "lmpc":  # what the daemon would refuse at load, refused before anything starts
+        from hil_runtime.bundle import BundleError, PolicyBundle
+
+        try:
+            PolicyBundle.load(bundle_dir(options)).check_sensing(*target.measurement_noise())
+        except BundleError as exc:
+            raise ModelInputError(
+                f"--realism {options.realism}: {exc} (the runtime refuses it on an arm with this sensing: "
+                "docs/runtime.md, bundle.encoder_noise_rad)"
+            ) from None
 
 
 def bundle_dir(options: DemoOptions) -> Path:

@@ -83,15 +83,26 @@ def runtime_config(
     telemetry: Mapping[str, Any] | None = None,
     control_socket: Path | None = None,
     torque_rate_limit: str = "none",
+    measurement_noise: tuple[float, float | None] = (0.0, None),
     **sections: Any,
 ) -> dict[str, Any]:
     """``hil run``'s config (hil_runtime/config.py) for a lab rig: ``bundle`` in ``mode`` on the
     drives of ``joints`` over ``transport`` (CAN FD unless it says otherwise); ``driver``: the
     driver's timeouts (bus section); ``loop``: :func:`lockstep_loop` by default; ``torque_rate_limit``:
-    the bundle section's (none | libfranka, hil_runtime.rate_limit)."""
+    the bundle section's (none | libfranka, hil_runtime.rate_limit); ``measurement_noise``: the bundle
+    section's (encoder_noise_rad, velocity_noise_rad_s), the sensing the runtime gates an lmpc bundle by
+    (hil_runtime.bundle_probes.check_sensing). (0, None) by default: a measurement rig records what a
+    bundle does under its target's noise, it does not refuse it; the demo states its target's noise."""
+    encoder_noise_rad, velocity_noise_rad_s = measurement_noise
     data: dict[str, Any] = {
         "robot": robot,
-        "bundle": {"path": str(bundle), "mode": mode, "torque_rate_limit": torque_rate_limit},
+        "bundle": {
+            "path": str(bundle),
+            "mode": mode,
+            "torque_rate_limit": torque_rate_limit,
+            "encoder_noise_rad": encoder_noise_rad,
+            "velocity_noise_rad_s": velocity_noise_rad_s,
+        },
         "bus": {"transport": {**CAN_FD, **transport}, "period_s": period_s, "joints": joints, **driver},
         "reference": dict(reference),
         "loop": dict(loop) if loop is not None else lockstep_loop(),

@@ -23,6 +23,7 @@ from typing import Any
 
 import yaml
 
+from hil_runtime.bundle import DEFAULT_ENCODER_NOISE_RAD
 from models.errors import ModelInputError
 
 #: The bus section's fields the bundle decides.
@@ -97,8 +98,11 @@ def runtime_config_from_bundle(
     condition: str | None = "C1",
     conditions: Path | None = None,
     robot: str | None = None,
+    measurement_noise: tuple[float, float | None] = (DEFAULT_ENCODER_NOISE_RAD, None),
 ) -> dict[str, Any]:
-    """Write ``out`` (and its conditions file when needed); return the config, checked as ``hil run`` checks it."""
+    """Write ``out`` (and its conditions file when needed); return the config, checked as ``hil run`` checks it.
+    ``measurement_noise``: the bundle section's (encoder_noise_rad, velocity_noise_rad_s), the arm's sensing
+    (an lmpc bundle that would chatter on it is refused, hil_runtime.bundle_probes.check_sensing)."""
     from drivers.config import read_yaml_config
     from hil_runtime.config import RuntimeConfigError, parse_runtime_config
     from hil_runtime.loading import condition_for, load_bundle_for, safety_limits_for
@@ -121,7 +125,12 @@ def runtime_config_from_bundle(
             reference["conditions_file"] = str(conditions_file)
     data = {
         "robot": manifest.robot.name,
-        "bundle": {"path": str(bundle.resolve()), "mode": mode},
+        "bundle": {
+            "path": str(bundle.resolve()),
+            "mode": mode,
+            "encoder_noise_rad": measurement_noise[0],
+            "velocity_noise_rad_s": measurement_noise[1],
+        },
         "bus": bus,
         "reference": reference,
     }

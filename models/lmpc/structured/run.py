@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from hil_runtime.bundle import DEFAULT_ENCODER_NOISE_RAD, PolicyBundle
 from models.executors import Executor
 from models.lmpc.structured.config import StructuredConfig, jsonable_config
 from models.lmpc.structured.data import ROW_KINDS, _cached_rollouts, collect, features
@@ -60,7 +61,19 @@ def run_structured(
                 )
             save_trained(work / f"trained_{name}.pt", model, config, fit, box, label_max)
             manifest = export_trained(bundles / robot.name / name, name, robot, model, box, label_max, config, fit)
-            per_law[name] = {"fit": fit, "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"]}
+            tolerated = PolicyBundle.load(bundles / robot.name / name).tolerated_encoder_noise_rad()
+            limit = "any noise (bounded steps)" if tolerated == float("inf") else f"{tolerated:.2g} rad RMS"
+            log(f"{name}: the runtime's sensing gate (docs/runtime.md) accepts this bundle on encoders up to {limit}")
+            if tolerated < DEFAULT_ENCODER_NOISE_RAD:
+                log(
+                    f"{name}: below the runtime's default {DEFAULT_ENCODER_NOISE_RAD:g} rad (a 19-bit encoder): "
+                    "refused on such an arm; --tau-prev bundles bound their steps in the graph"
+                )
+            per_law[name] = {
+                "fit": fit,
+                "onnx_vs_torch_max_abs_nm": manifest["validation"]["onnx_vs_torch_max_abs_nm"],
+                "tolerated_encoder_noise_rad": tolerated,
+            }
         summary["rounds"].append(per_law)
         if round_index == config.dagger_rounds:
             break

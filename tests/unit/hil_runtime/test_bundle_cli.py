@@ -30,3 +30,16 @@ def test_keygen_sign_and_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert hashlib.sha256((bundle / "policy.onnx").read_bytes()).hexdigest() == graph_before
     err = capsys.readouterr().err
     assert "signatures: none by a trusted key" in err and "not an unencrypted PEM private key" in err
+
+
+def test_check_applies_the_sensing_gate_at_the_stated_noise(capsys: pytest.CaptureFixture[str]) -> None:
+    """``hil bundle check --encoder-noise-rad``: the runtime's sensing gate, its predicted steps printed."""
+    assert main(["bundle", "check", str(SHIPPED)]) == 0
+    out = capsys.readouterr().out
+    assert "noise 1e-05 rad: torque steps " in out and "bound 1.17, 1.17, 0.76" in out, out
+    noisy = ["--encoder-noise-rad", "3e-4", "--velocity-noise-rad-s", "0.2"]
+    assert main(["bundle", "check", str(SHIPPED), *noisy]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "into torque steps of" in err and "on joint 2" in err, err
+    assert main(["bundle", "check", str(SHIPPED), "--encoder-noise-rad", "-1"]) == 2
+    assert "--encoder-noise-rad: must be a finite RMS noise >= 0" in capsys.readouterr().err

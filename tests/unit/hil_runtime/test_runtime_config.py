@@ -296,3 +296,21 @@ def test_the_hybrid_wait_spins_by_default_only_on_a_cpu_of_its_own(tmp_path: Pat
     assert spin_of(cpu_affinity=[0], spin_s=0.0) == 0.0
     assert spin_of(spin_s=50e-6) == pytest.approx(50e-6)
     _refused(tmp_path, config_dict(loop={"spin_s": 0.0005}), "loop.spin_s", "half the period")
+
+
+def test_an_lmpc_bundle_that_would_chatter_on_the_stated_sensing_is_refused_before_any_io(tmp_path: Path) -> None:
+    # The shipped ur5_paper PD bundle turns the noise target (3e-4 rad, 0.2 rad/s) into ~8 N m steps
+    # on the shoulder, above the 1.17 N m per period the rate bound allows; the default sensing (1e-5 rad,
+    # differenced) into ~0.5 N m: accepted. The law alone (mode fb) is not gated.
+    Runtime(parse_runtime_config(config_dict(), "rt.yaml"), FakeJointBus(6))
+    noisy = {"path": str(PD_BUNDLE), "encoder_noise_rad": 3e-4, "velocity_noise_rad_s": 0.2}
+    bus = FakeJointBus(6)
+    with pytest.raises(RuntimeConfigError) as info:
+        Runtime(parse_runtime_config(config_dict(bundle=noisy), "rt.yaml"), bus)
+    text = str(info.value)
+    assert text.startswith("rt.yaml: bundle.encoder_noise_rad: bundle "), text
+    assert "on joint 2" in text and "1.17 N m" in text and "tolerates about" in text, text
+    assert info.value.exit_code == 2 and "\n" not in text and bus.events == []
+    Runtime(parse_runtime_config(config_dict(bundle={**noisy, "mode": "fb"}), "rt.yaml"), FakeJointBus(6))
+    negative = config_dict(bundle={"path": str(PD_BUNDLE), "encoder_noise_rad": -1e-5})
+    _refused(tmp_path, negative, "bundle.encoder_noise_rad")

@@ -4,6 +4,7 @@ is named to the target, and ``hil config runtime`` (a runtime config from a bund
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -223,3 +224,27 @@ def test_random_conditions_stay_inside_an_asymmetric_range(panda: RobotModel) ->
         c.check_limits(panda)
     paper = load_robot("ur5_paper")
     assert all(c.offset_rad is None for c in random_conditions(paper, 3, 3))  # ur5_paper: around 0 as before
+
+
+def test_config_runtime_refuses_a_bundle_that_would_chatter_on_the_stated_encoders(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The real UR5's shipped static bundles turn a 19-bit encoder's noise (1e-5 rad, differenced) into ~6 N m
+    steps on the base joint, above the 1 N m per period its rate bound allows: refused with one line naming the
+    field; stated as perfect sensors (an emulated arm, 0), or run as the law alone (--mode fb), accepted."""
+    from models.lmpc.controller import bundle_path
+
+    ur5 = bundle_path("ur5", "pd")
+    joints = json.loads((ur5 / "manifest.json").read_text())["robot"]["joint_names"]
+    drives = ", ".join(f"{j}: {i + 1}" for i, j in enumerate(joints))
+    transport = "{interface: virtual, channel: t, fd: true, data_bitrate: 5000000}"
+    (tmp_path / "bus.yaml").write_text(f"transport: {transport}\ndrives: {{{drives}}}\n")
+    args = ["config", "runtime", "--bundle", str(ur5), "--bus", str(tmp_path / "bus.yaml")]
+    out = tmp_path / "runtime.yaml"
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bus.yaml: bundle.encoder_noise_rad: bundle " in err, err
+    assert "on joint 1" in err and "tolerates about" in err and not out.exists(), err
+    assert main([*args, "--out", str(out), "--encoder-noise-rad", "0"]) == 0
+    assert yaml.safe_load(out.read_text())["bundle"]["encoder_noise_rad"] == 0.0
+    assert main([*args, "--out", str(out), "--mode", "fb", "--force"]) == 0
