@@ -172,6 +172,7 @@ def position_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -
 #: the runtime's default encoder noise (bundle.encoder_noise_rad): about one increment of a 19-bit encoder
 DEFAULT_ENCODER_NOISE_RAD = 1e-5
 VELOCITY_STEP_RAD_S = 1e-2  # the velocity error the velocity sensitivity is measured with (linear part)
+GATE_ROWS, GATE_SEED = 24, PROBE_SEED + 1  # the sensing gate's own seeded rows (make_probe_inputs), beside the probes
 
 
 def velocity_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -> np.ndarray:
@@ -230,6 +231,8 @@ def predicted_noise_steps(
     if manifest.probes is None:
         raise GraphCheckError("probes: missing")
     x = np.asarray(manifest.probes.inputs, float)  # a tau_prev graph's probe rows carry a settled tau_prev
+    if not manifest.takes_previous_torque:  # and the loader's own rows: the writer does not pick where it is measured
+        x = np.concatenate([x, make_probe_inputs(manifest, GATE_ROWS, GATE_SEED)])
     return noise_step_nm(
         position_sensitivity(manifest, run_rows, x),
         velocity_sensitivity(manifest, run_rows, x),

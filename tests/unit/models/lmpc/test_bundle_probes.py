@@ -180,3 +180,17 @@ def test_the_sensing_gate_predicts_the_chatter_the_simulator_measures() -> None:
     with pytest.raises(BundleError, match="on joint 2"):
         bundle.check_sensing(3e-4, 0.2)
     assert bundle.check_sensing(1e-5).max() < 1.17
+
+
+def test_the_sensing_gate_measures_on_rows_of_its_own() -> None:
+    """A manifest whose probe rows sit where the graph is insensitive (every torque saturated) does not hide
+    the emulator's gain from the gate: it measures on its own seeded rows too."""
+    from hil_runtime.bundle_probes import GraphCheckError, check_sensing, saturation_probe_inputs
+
+    bundle = PolicyBundle.load(Path("models/bundles/ur5_paper/pd"))
+    saturated = saturation_probe_inputs(bundle.manifest)
+    assert np.allclose(np.abs(bundle.run_rows(saturated)[:, :6]), bundle.torque_limit_nm)  # insensitive rows
+    probes = bundle.manifest.probes.model_copy(update={"inputs": saturated.tolist()})  # type: ignore[union-attr]
+    hiding = bundle.manifest.model_copy(update={"probes": probes})
+    with pytest.raises(GraphCheckError, match="on joint 2"):
+        check_sensing(hiding, bundle.run_rows, Path("m.json"), 3e-4, 0.2)
