@@ -287,13 +287,24 @@ class PolicyBundle:
         return bundle
 
     # --- behavioural checks -------------------------------------------------------------------
-    def check_sensing(self, encoder_noise_rad: float, velocity_noise_rad_s: float | None = None) -> np.ndarray:
+    def check_sensing(
+        self,
+        encoder_noise_rad: float,
+        velocity_noise_rad_s: float | None = None,
+        velocity_filter_hz: float | None = None,
+    ) -> np.ndarray:
         """Refuse (BundleError, one line) a graph that turns this much measurement noise (RMS; velocity None:
-        the position's differenced over one period) into torque steps beyond the robot's rate bound per
-        period; return the predicted steps per joint, N m (hil_runtime.bundle_probes.check_sensing)."""
+        the position's differenced over one period; behind the velocity filter, if any) into torque steps beyond
+        the robot's rate bound per period; return the predicted steps per joint, N m
+        (hil_runtime.bundle_probes.check_sensing)."""
         try:
             return check_sensing(
-                self.manifest, self.run_rows, self.path / MANIFEST, encoder_noise_rad, velocity_noise_rad_s
+                self.manifest,
+                self.run_rows,
+                self.path / MANIFEST,
+                encoder_noise_rad,
+                velocity_noise_rad_s,
+                velocity_filter_hz,
             )
         except GraphCheckError as exc:
             raise BundleError(str(exc)) from None

@@ -25,6 +25,7 @@ import numpy as np
 
 from hil_runtime.bundle_schema import TRUST_MIN_SPAN, Manifest
 from hil_runtime.rate_limit import SCALED_RULE, max_torque_step_nm, torque_rate_limit_nm_s
+from hil_runtime.velocity_filter import filter_pole, step_noise_gain
 
 PROBE_RTOL = 1e-6
 PROBE_SEED = 20261123
@@ -200,15 +201,17 @@ def noise_step_nm(
     velocity_nm_s_per_rad: np.ndarray,
     encoder_noise_rad: float,
     velocity_noise_rad_s: float,
+    velocity_step_gain: float = float(np.sqrt(2.0)),
 ) -> np.ndarray:
     """Per joint: the RMS cycle-to-cycle torque change that measurement noise alone makes through a graph of
-    these sensitivities, sqrt(2) (S_q sigma_q + S_v sigma_v) (two independent samples differenced, the two
-    channels added). An open-loop estimate: in closed loop the noise-driven torque also moves the arm. On
+    these sensitivities, sqrt(2) S_q sigma_q + k S_v sigma_v (two independent samples differenced: k = sqrt(2);
+    behind the runtime's velocity filter k = hil_runtime.velocity_filter.step_noise_gain; the two channels
+    added). An open-loop estimate: in closed loop the noise-driven torque also moves the arm. On
     ur5_paper's shipped PD bundle at the issue's 3e-4 rad and 0.2 rad/s it gives 8.3 N m on the shoulder; the
     simulator measures 10.1 on C1 (tests/unit/models/lmpc/test_bundle_probes.py) and 8.5 over C1-C5."""
-    steps: np.ndarray = np.sqrt(2.0) * (
-        np.asarray(position_nm_per_mrad, float) * encoder_noise_rad / SENSITIVITY_STEP_RAD
-        + np.asarray(velocity_nm_s_per_rad, float) * velocity_noise_rad_s
+    steps: np.ndarray = (
+        np.sqrt(2.0) * np.asarray(position_nm_per_mrad, float) * encoder_noise_rad / SENSITIVITY_STEP_RAD
+        + velocity_step_gain * np.asarray(velocity_nm_s_per_rad, float) * velocity_noise_rad_s
     )
     return steps
 
@@ -222,10 +225,15 @@ def _rate_step_of_robot(manifest: Manifest) -> np.ndarray:
 
 
 def predicted_noise_steps(
-    manifest: Manifest, run_rows: RunRows, encoder_noise_rad: float, velocity_noise_rad_s: float | None = None
+    manifest: Manifest,
+    run_rows: RunRows,
+    encoder_noise_rad: float,
+    velocity_noise_rad_s: float | None = None,
+    velocity_filter_hz: float | None = None,
 ) -> np.ndarray:
-    """Per joint: :func:`noise_step_nm` of the graph (its sensitivities measured on the manifest's probe rows)
-    at this noise; velocity noise None: the position's differenced over one period."""
+    """Per joint: :func:`noise_step_nm` of the graph (its sensitivities measured on the manifest's probe rows
+    and the gate's own) at this noise; velocity noise None: the position's differenced over one period;
+    ``velocity_filter_hz``: the runtime's velocity input filter (None: off)."""
     if velocity_noise_rad_s is None:
         velocity_noise_rad_s = differenced_velocity_noise_rad_s(encoder_noise_rad, manifest.period_s)
     if manifest.probes is None:
@@ -238,6 +246,9 @@ def predicted_noise_steps(
         velocity_sensitivity(manifest, run_rows, x),
         encoder_noise_rad,
         velocity_noise_rad_s,
+        float(np.sqrt(2.0))
+        if velocity_filter_hz is None
+        else step_noise_gain(filter_pole(velocity_filter_hz, manifest.period_s)),
     )
 
 
@@ -256,6 +267,7 @@ def check_sensing(
     manifest_path: Path,
     encoder_noise_rad: float,
     velocity_noise_rad_s: float | None = None,
+    velocity_filter_hz: float | None = None,
 ) -> np.ndarray:
     """Refuse a graph that turns the arm's measurement noise into torque steps a real arm does not accept:
     per joint, :func:`noise_step_nm` at the stated noise (velocity noise None: the position's, differenced)
@@ -266,7 +278,7 @@ def check_sensing(
     if velocity_noise_rad_s is None:
         velocity_noise_rad_s = differenced_velocity_noise_rad_s(encoder_noise_rad, manifest.period_s)
     try:
-        steps = predicted_noise_steps(manifest, run_rows, encoder_noise_rad, velocity_noise_rad_s)
+        steps = predicted_noise_steps(manifest, run_rows, encoder_noise_rad, velocity_noise_rad_s, velocity_filter_hz)
     except GraphCheckError as exc:
         raise GraphCheckError(f"bundle {manifest_path}: {exc}") from None
     bound = _rate_step_of_robot(manifest)
@@ -276,12 +288,13 @@ def check_sensing(
     worst = int(np.argmax(steps / bound))
     if steps[worst] > bound[worst] * (1.0 + RATE_TOLERANCE):
         share = bound[worst] / steps[worst]  # the steps are linear in the noise
+        filtered = "" if velocity_filter_hz is None else f", filtered at {velocity_filter_hz:g} Hz"
         tolerated = f"{encoder_noise_rad * share:.2g} rad" if differenced else f"{100 * share:.2g} % of this noise"
         raise GraphCheckError(
             f"bundle {manifest_path}: turns an encoder noise of {encoder_noise_rad:.3g} rad (velocity "
-            f"{velocity_noise_rad_s:.3g} rad/s) into torque steps of {steps[worst]:.3g} N m per period on joint "
-            f"{worst + 1}, above the {bound[worst]:.3g} N m a real arm accepts (limits.torque_rate_nm_s): it would "
-            f"chatter there; it tolerates about {tolerated}"
+            f"{velocity_noise_rad_s:.3g} rad/s{filtered}) into torque steps of {steps[worst]:.3g} N m per period "
+            f"on joint {worst + 1}, above the {bound[worst]:.3g} N m a real arm accepts (limits.torque_rate_nm_s): "
+            f"it would chatter there; it tolerates about {tolerated}"
         )
     return steps
 

@@ -11,6 +11,7 @@
       torque_rate_limit: none            # none | libfranka: the LMPC torque's change per cycle clamped
       encoder_noise_rad: 1.0e-5          # encoder noise, RMS: an lmpc bundle that turns it into torque
       velocity_noise_rad_s: null         # steps beyond the rate bound is refused (null: differenced)
+      velocity_filter_hz: null           # lmpc: low-pass on the measured velocity before the policy
     bus:                                 # drivers.config.DriveBusConfig: transport, joints, period
       transport: {interface: remote, bridge_host: 127.0.0.1, bridge_port: 54701,
                   fd: true, data_bitrate: 5000000}
@@ -97,6 +98,10 @@ class BundleSection(_Frozen):
     # at load (hil_runtime.bundle_probes.check_sensing); 0: perfect sensors (an emulated arm without noise).
     encoder_noise_rad: float = Field(DEFAULT_ENCODER_NOISE_RAD, ge=0.0, le=0.1)
     velocity_noise_rad_s: float | None = Field(None, ge=0.0, le=100.0)
+    # lmpc mode: a first-order low-pass at this cutoff on the measured velocity before the policy
+    # (hil_runtime.velocity_filter; for drives whose velocity is noisy; it costs tracking on a clean one,
+    # docs/lmpc.md section 13); null: off. Must be below the Nyquist rate of bus.period_s.
+    velocity_filter_hz: float | None = Field(None, gt=0.0)
 
 
 class ReferenceSection(_Frozen):
@@ -199,6 +204,12 @@ class RuntimeConfig(_Frozen):
             value = getattr(self.safety, name)
             if value is not None and len(value) != n:
                 raise ValueError(f"safety.{name}: {len(value)} values for {n} joints")
+        cutoff = self.bundle.velocity_filter_hz
+        if cutoff is not None and cutoff >= 0.5 / self.bus.period_s:
+            raise ValueError(
+                f"bundle.velocity_filter_hz: {cutoff:g} Hz is not below the Nyquist rate of the period "
+                f"({0.5 / self.bus.period_s:g} Hz)"
+            )
         spin_s = self.loop.spin_s
         if spin_s is not None and spin_s >= self.bus.period_s / 2:
             raise ValueError(f"loop.spin_s: {spin_s:g} s is not under half the period ({self.bus.period_s:g} s)")

@@ -15,6 +15,9 @@ own torque in fb mode is the paper's baseline, untouched): the LMPC torque's cha
 clamped per joint to libfranka's rate bound (:mod:`hil_runtime.rate_limit`) against the torque
 last committed, reset on activation to the torque the drives hold (:meth:`Controller.reset`).
 
+``velocity_filter_hz`` (config ``bundle.velocity_filter_hz``; lmpc mode only): the measured velocity is
+low-passed before the policy (:mod:`hil_runtime.velocity_filter`), reset on activation.
+
 A bundle whose graph reads tau_prev (``bundle.takes_previous_torque``; docs/lmpc.md §11: the emulator
 steps from the last command within the rate bound inside the graph) gets the same torque: the one the
 supervisor commanded last cycle (:meth:`Controller.commit`), on activation the held set-point
@@ -30,12 +33,19 @@ import numpy as np
 
 from hil_runtime.bundle import PolicyBundle
 from hil_runtime.rate_limit import TORQUE_RATE_LIMITS, TorqueRateLimiter
+from hil_runtime.velocity_filter import VelocityFilter
 
 Mode = Literal["lmpc", "fb"]
 
 
 class Controller:
-    def __init__(self, bundle: PolicyBundle, mode: Mode = "lmpc", torque_rate_limit: str = "none") -> None:
+    def __init__(
+        self,
+        bundle: PolicyBundle,
+        mode: Mode = "lmpc",
+        torque_rate_limit: str = "none",
+        velocity_filter_hz: float | None = None,
+    ) -> None:
         if mode not in ("lmpc", "fb"):
             raise ValueError(f"mode must be 'lmpc' or 'fb', not {mode!r}")
         if torque_rate_limit not in TORQUE_RATE_LIMITS:
@@ -54,6 +64,11 @@ class Controller:
             if torque_rate_limit == "libfranka" and mode == "lmpc"
             else None
         )
+        self.velocity_filter = (
+            VelocityFilter(velocity_filter_hz, bundle.period_s, bundle.n_joints)
+            if velocity_filter_hz is not None and mode == "lmpc"
+            else None
+        )
 
     def reset(self, q0: np.ndarray, held_torque_nm: np.ndarray | None = None) -> None:
         """The law's state at the start of a run from the measured positions; the rate limit (if
@@ -61,6 +76,8 @@ class Controller:
         self.state[:] = self.bundle.initial_state(np.asarray(q0, float))
         if self.rate_limiter is not None:
             self.rate_limiter.reset(held_torque_nm)
+        if self.velocity_filter is not None:
+            self.velocity_filter.reset()
         if self._previous is not None:  # the graph steps from the set-point the drives hold now (None: zero)
             self._previous[:] = 0.0 if held_torque_nm is None else np.nan_to_num(np.asarray(held_torque_nm, float))
 
@@ -72,6 +89,8 @@ class Controller:
         ``fallback`` is the trust region's 1 - alpha in lmpc mode (0: the emulator's torque, 1: the
         law's), and 0 in fb mode (no trust region is involved).
         """
+        if self.velocity_filter is not None:
+            qd = self.velocity_filter.filter(qd)
         tau, tau_fb, nxt = self.bundle.step(q, qd, q_d, qd_d, qdd_d, self.state)
         self._next[:] = nxt
         if self.mode == "fb":  # the supervisor saturates it, as it does every candidate

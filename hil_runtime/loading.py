@@ -35,7 +35,9 @@ def load_bundle_for(config: RuntimeConfig) -> PolicyBundle:
     noisy = config.bundle.encoder_noise_rad > 0.0 or (config.bundle.velocity_noise_rad_s or 0.0) > 0.0
     if config.bundle.mode == "lmpc" and noisy:
         try:
-            bundle.check_sensing(config.bundle.encoder_noise_rad, config.bundle.velocity_noise_rad_s)
+            bundle.check_sensing(
+                config.bundle.encoder_noise_rad, config.bundle.velocity_noise_rad_s, config.bundle.velocity_filter_hz
+            )
         except BundleError as exc:
             raise RuntimeConfigError(f"{config.source}: bundle.encoder_noise_rad: {exc}") from None
     robot = bundle.manifest.robot

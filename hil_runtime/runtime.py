@@ -98,7 +98,9 @@ class Runtime:
         self.bundle = bundle if bundle is not None else load_bundle_for(config)
         self.limits = safety_limits_for(config, self.bundle)
         self.condition = condition_for(config, self.limits)
-        self.controller = Controller(self.bundle, config.bundle.mode, config.bundle.torque_rate_limit)
+        self.controller = Controller(
+            self.bundle, config.bundle.mode, config.bundle.torque_rate_limit, config.bundle.velocity_filter_hz
+        )
         self.supervisor = Supervisor(self.limits, config.joint_names)
         self.notifier = notifier if notifier is not None else Notifier(None)
         self.lifecycle = Lifecycle()

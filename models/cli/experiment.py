@@ -93,6 +93,13 @@ def experiment(
             "cycle clamped to the bundle's torque-rate bound, as franka::limitRate; docs/lmpc.md section 10)."
         ),
     ] = "none",
+    lmpc_velocity_filter_hz: Annotated[
+        float | None,
+        typer.Option(
+            help="LMPC velocity input filter, sim and hil alike: a first-order low-pass at this cutoff (Hz) on the "
+            "measured velocity before the policy (bundle.velocity_filter_hz; docs/lmpc.md section 13); default off."
+        ),
+    ] = None,
 ) -> None:
     """Run laws x modes x conditions; write results.json, table.md, trajectories and plots."""
     from hil_runtime.outputs import prepare_output_dir, remove_if_empty
@@ -104,6 +111,14 @@ def experiment(
     from hil_runtime.rate_limit import TORQUE_RATE_LIMITS
 
     one_of(torque_rate_limit, TORQUE_RATE_LIMITS, "--torque-rate-limit")
+    if lmpc_velocity_filter_hz is not None:
+        from hil_runtime.velocity_filter import filter_pole
+        from models.errors import ModelInputError
+
+        try:
+            filter_pole(lmpc_velocity_filter_hz, period_s)
+        except ValueError as exc:
+            raise ModelInputError(f"--lmpc-velocity-filter-hz: {exc}") from None
     default_modes = "fb,lmpc" if plant == "hil" else "fb,hmpc,lmpc"
     mode_list = split_names(modes if modes is not None else default_modes, MODES, "modes")
     hil: HilOptions | None = None
@@ -122,6 +137,7 @@ def experiment(
             cpus=cpus,
             bundle_dir=lmpc_bundles,
             torque_rate_limit=torque_rate_limit,
+            velocity_filter_hz=lmpc_velocity_filter_hz,
         )
     one_of(mismatch, ("none", "paper"), "--mismatch")
     positive(period_s, "--period-s")
@@ -161,6 +177,7 @@ def experiment(
             hil,
             realism,
             torque_rate_limit,
+            lmpc_velocity_filter_hz,
         )
     except BaseException:
         if created:
@@ -189,6 +206,7 @@ def _experiment(
     hil: HilOptions | None = None,
     realism: str = "ideal",
     torque_rate_limit: str = "none",
+    velocity_filter_hz: float | None = None,
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -236,6 +254,8 @@ def _experiment(
         options: dict = {"lmpc": {"bundle_dir": lmpc_bundles}} if lmpc_bundles is not None else {}
         if torque_rate_limit != "none":  # default left out: results.json's controller_options as before
             options.setdefault("lmpc", {})["torque_rate_limit"] = torque_rate_limit
+        if velocity_filter_hz is not None:
+            options.setdefault("lmpc", {})["velocity_filter_hz"] = velocity_filter_hz
         hmpc_options: dict = {}
         from models.hmpc.config import formulation_options
 

@@ -36,6 +36,8 @@ class HilOptions:
     # the LMPC torque's output rate limit in the runtime (bundle.torque_rate_limit) and its simulation
     # twin alike: none | libfranka (hil_runtime.rate_limit)
     torque_rate_limit: str = "none"
+    # the LMPC's velocity input filter in the runtime (bundle.velocity_filter_hz) and its twin alike; None: off
+    velocity_filter_hz: float | None = None
 
 
 def conditions_yaml(conditions: list[Condition]) -> str:

@@ -51,6 +51,7 @@ def _simulate(
     out_dir: Path,
     bundle_dir: Path | None,
     torque_rate_limit: str = "none",
+    velocity_filter_hz: float | None = None,
 ) -> None:
     """The simulation twin (``hil experiment --modes fb,lmpc``) in a second process: writes out_dir."""
     from models.robots import load_robot
@@ -58,6 +59,8 @@ def _simulate(
     lmpc: dict[str, Any] = {"bundle_dir": bundle_dir} if bundle_dir is not None else {}
     if torque_rate_limit != "none":
         lmpc["torque_rate_limit"] = torque_rate_limit
+    if velocity_filter_hz is not None:
+        lmpc["velocity_filter_hz"] = velocity_filter_hz
     options = {"lmpc": lmpc} if lmpc else None
     run_experiment(load_robot(robot_name), conditions, config, out_dir, controller_options=options)
 
@@ -95,7 +98,15 @@ def run_hil_experiment(
         sim_config = replace(config, timing_cycles=min(config.timing_cycles, 200), save_trajectories=True)
         sim_process = get_context("spawn").Process(
             target=_simulate,
-            args=(robot_spec(robot), conditions, sim_config, sim_dir, options.bundle_dir, options.torque_rate_limit),
+            args=(
+                robot_spec(robot),
+                conditions,
+                sim_config,
+                sim_dir,
+                options.bundle_dir,
+                options.torque_rate_limit,
+                options.velocity_filter_hz,
+            ),
             name="hil-experiment-sim",
             daemon=True,
         )

@@ -64,6 +64,7 @@ def run_on_target(
         condition,
         realtime_cpus=options.cpus if options.clock == "realtime" else None,
         torque_rate_limit=options.torque_rate_limit,
+        velocity_filter_hz=options.velocity_filter_hz,
     )
     source = f"hil experiment {law}/{mode}/{condition.name}"
     retries = 0

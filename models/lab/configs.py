@@ -84,6 +84,7 @@ def runtime_config(
     control_socket: Path | None = None,
     torque_rate_limit: str = "none",
     measurement_noise: tuple[float, float | None] = (0.0, None),
+    velocity_filter_hz: float | None = None,
     **sections: Any,
 ) -> dict[str, Any]:
     """``hil run``'s config (hil_runtime/config.py) for a lab rig: ``bundle`` in ``mode`` on the
@@ -92,7 +93,8 @@ def runtime_config(
     the bundle section's (none | libfranka, hil_runtime.rate_limit); ``measurement_noise``: the bundle
     section's (encoder_noise_rad, velocity_noise_rad_s), the sensing the runtime gates an lmpc bundle by
     (hil_runtime.bundle_probes.check_sensing). (0, None) by default: a measurement rig records what a
-    bundle does under its target's noise, it does not refuse it; the demo states its target's noise."""
+    bundle does under its target's noise, it does not refuse it; the demo states its target's noise.
+    ``velocity_filter_hz``: the bundle section's LMPC velocity input filter (None: off)."""
     encoder_noise_rad, velocity_noise_rad_s = measurement_noise
     data: dict[str, Any] = {
         "robot": robot,
@@ -102,6 +104,7 @@ def runtime_config(
             "torque_rate_limit": torque_rate_limit,
             "encoder_noise_rad": encoder_noise_rad,
             "velocity_noise_rad_s": velocity_noise_rad_s,
+            **({"velocity_filter_hz": velocity_filter_hz} if velocity_filter_hz is not None else {}),
         },
         "bus": {"transport": {**CAN_FD, **transport}, "period_s": period_s, "joints": joints, **driver},
         "reference": dict(reference),

@@ -70,10 +70,12 @@ def placed_run_config(
     condition: Any,
     realtime_cpus: str | None = None,
     torque_rate_limit: str = "none",
+    velocity_filter_hz: float | None = None,
 ) -> dict[str, Any]:
     """The runtime's config for one placed run: lock-step (bus pacing, no ramp: the arm is placed),
     or free-running on the wall clock for the condition's duration (``realtime_cpus``);
-    ``torque_rate_limit``: the bundle's output limit (none | libfranka)."""
+    ``torque_rate_limit``: the bundle's output limit (none | libfranka); ``velocity_filter_hz``: its
+    velocity input filter (None: off)."""
     loop = (
         lab.realtime_loop(condition.duration_s, realtime_cpus, int(round(condition.duration_s / period_s)) + 1000)
         if realtime_cpus is not None
@@ -90,6 +92,7 @@ def placed_run_config(
         reference=lab.condition_reference(conditions_file, condition.name),
         loop=loop,
         torque_rate_limit=torque_rate_limit,
+        velocity_filter_hz=velocity_filter_hz,
     )
 
 

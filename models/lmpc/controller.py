@@ -35,6 +35,7 @@ import numpy as np
 
 from hil_runtime.bundle import BundleError, PolicyBundle, sha256_file
 from hil_runtime.rate_limit import TORQUE_RATE_LIMITS, TorqueRateLimiter
+from hil_runtime.velocity_filter import VelocityFilter
 from models.errors import ModelInputError
 from models.feedback.base import FeedbackLaw
 from models.robots import RobotModel
@@ -92,8 +93,10 @@ class LMPCController:
         law_name: str,
         torque_rate_limit: str = "none",
         held_torque: Callable[[np.ndarray], np.ndarray] | None = None,
+        velocity_filter_hz: float | None = None,
     ) -> None:
-        """``held_torque(q0)`` (B, N): the torque holding each arm at the start of a run (None: zero)."""
+        """``held_torque(q0)`` (B, N): the torque holding each arm at the start of a run (None: zero);
+        ``velocity_filter_hz``: the runtime's LMPC velocity input filter (hil_runtime.velocity_filter; None: off)."""
         self.bundle = bundle
         self.held_torque = held_torque
         self.name = f"{law_name}/lmpc"
@@ -101,6 +104,9 @@ class LMPCController:
         self._applied = slice(int(applied[0]), int(applied[1])) if applied else None
         self.rate_limiter = (
             TorqueRateLimiter(bundle.torque_rate_nm_s, bundle.period_s) if torque_rate_limit == "libfranka" else None
+        )
+        self.velocity_filter = (
+            None if velocity_filter_hz is None else VelocityFilter(velocity_filter_hz, bundle.period_s, bundle.n_joints)
         )
         self.cycle_times_s: list[float] = []
         self.last_tau_fb: np.ndarray | None = None
@@ -125,6 +131,8 @@ class LMPCController:
             self.previous[:] = self.held_torque(np.atleast_2d(np.asarray(q0, float)))
         if self.rate_limiter is not None:
             self.rate_limiter.reset(self.previous, arms=arms)
+        if self.velocity_filter is not None:
+            self.velocity_filter.reset(arms=None if arms == 1 else arms)
 
     def trust_counters(self) -> dict[str, object]:
         """Trust-region counters since the last reset (per arm): what the runtime's supervisor counts."""
@@ -139,6 +147,8 @@ class LMPCController:
         self, t_s: float, q: np.ndarray, qd: np.ndarray, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray
     ) -> np.ndarray:
         start = time.perf_counter()
+        if self.velocity_filter is not None:  # the runtime's input filter, as its policy stage applies it
+            qd = self.velocity_filter.filter(qd[0] if q.shape[0] == 1 else qd).reshape(qd.shape)
         if q.shape[0] == 1:
             row = self.state[0]
             if self.bundle.previous_torque_nm is not None:
@@ -186,10 +196,19 @@ def make_lmpc_controller(
 ) -> LMPCController:
     """The LMPC controller for ``law`` on ``robot`` from its bundle (default: the shipped ones)."""
     torque_rate_limit = str(options.pop("torque_rate_limit", "none"))
+    velocity_filter_hz = options.pop("velocity_filter_hz", None)
     if options:
         raise ModelInputError(
-            f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir, torque_rate_limit)"
+            f"lmpc options: unknown {', '.join(sorted(options))} (known: bundle_dir, torque_rate_limit, "
+            "velocity_filter_hz)"
         )
+    if velocity_filter_hz is not None:
+        from hil_runtime.velocity_filter import filter_pole
+
+        try:
+            filter_pole(float(velocity_filter_hz), law.period_s)
+        except ValueError as exc:
+            raise ModelInputError(f"--lmpc-velocity-filter-hz: {exc}") from None
     if torque_rate_limit not in TORQUE_RATE_LIMITS:
         raise ModelInputError(
             f"--torque-rate-limit: unknown '{torque_rate_limit}' (known: {', '.join(TORQUE_RATE_LIMITS)})"
@@ -220,4 +239,10 @@ def make_lmpc_controller(
     from models.dynamics import make_dynamics
 
     dynamics = make_dynamics(robot)
-    return LMPCController(bundle, law.name, torque_rate_limit, held_torque=dynamics.gravity)
+    return LMPCController(
+        bundle,
+        law.name,
+        torque_rate_limit,
+        held_torque=dynamics.gravity,
+        velocity_filter_hz=None if velocity_filter_hz is None else float(velocity_filter_hz),
+    )

@@ -41,6 +41,7 @@ MODELS_RUNTIME_API: dict[str, str] = {
     "hil_runtime.bundle_security": "the bundle API: the manifest's seal and signatures",
     "hil_runtime.trust_region": "the bundle API: the emulator's trust features, exported into the bundle",
     "hil_runtime.rate_limit": "the bundle API: the policy's torque-rate limit, applied alike by the simulator",
+    "hil_runtime.velocity_filter": "the bundle API: the policy's velocity input filter, applied alike by the simulator",
     "hil_runtime.conditions": "the operating conditions, evaluated by the runtime and the simulator alike",
     "hil_runtime.outputs": "atomic output files and directories (results, tables, plots)",
     "hil_runtime.machine": "the machine description stamped on results",

@@ -180,6 +180,15 @@ def test_the_sensing_gate_predicts_the_chatter_the_simulator_measures() -> None:
     with pytest.raises(BundleError, match="on joint 2"):
         bundle.check_sensing(3e-4, 0.2)
     assert bundle.check_sensing(1e-5).max() < 1.17
+    # behind the runtime's 50 Hz velocity filter (hil_runtime.velocity_filter), the simulator's LMPC alike
+    filtered = make_lmpc_controller(make_law("pd", robot, sim.period_s), robot, velocity_filter_hz=50.0)
+    traj = simulate(robot, filtered, [short], sim, realism=realism)
+    measured_50 = float(np.sqrt(np.mean(np.diff(traj.tau[0, 50:, 1]) ** 2)))
+    with pytest.raises(BundleError, match="filtered at 50 Hz") as info:
+        bundle.check_sensing(3e-4, 0.2, 50.0)
+    predicted_50 = float(str(info.value).split("torque steps of ")[1].split(" ")[0])
+    print(f"shoulder behind 50 Hz: predicted {predicted_50:.2f} N m, measured {measured_50:.2f} N m")
+    assert 0.6 * predicted_50 <= measured_50 <= 1.5 * predicted_50 and measured_50 < 0.4 * measured
 
 
 def test_the_sensing_gate_measures_on_rows_of_its_own() -> None:
