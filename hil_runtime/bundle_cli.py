@@ -103,6 +103,10 @@ def check(
         float | None,
         typer.Option(help="the drives' velocity noise, RMS (default: the position differenced over one period)"),
     ] = None,
+    velocity_filter_hz: Annotated[
+        float | None,
+        typer.Option(help="the runtime's velocity input filter, as bundle.velocity_filter_hz (default: off)"),
+    ] = None,
 ) -> None:
     """Every check the runtime makes when it loads the bundle in lmpc mode (signature too, with --trusted-key;
     the sensing gate at the stated noise: the predicted torque step per period of each joint is printed)."""
@@ -121,9 +125,17 @@ def check(
     except BundleSecurityError as exc:
         raise BundleKeyError(f"--trusted-key {exc}") from None
     loaded = PolicyBundle.load(bundle, trusted_keys=keys)
-    steps = loaded.check_sensing(encoder_noise_rad, velocity_noise_rad_s)
+    if velocity_filter_hz is not None:
+        from hil_runtime.velocity_filter import filter_pole
+
+        try:
+            filter_pole(velocity_filter_hz, loaded.period_s)
+        except ValueError as exc:
+            raise BundleKeyError(f"--velocity-filter-hz: {exc}") from None
+    steps = loaded.check_sensing(encoder_noise_rad, velocity_noise_rad_s, velocity_filter_hz)
     velocity = f", {velocity_noise_rad_s:g} rad/s" if velocity_noise_rad_s is not None else ""
-    noise = f"{encoder_noise_rad:g} rad{velocity}"
+    filtered = f", filtered at {velocity_filter_hz:g} Hz" if velocity_filter_hz is not None else ""
+    noise = f"{encoder_noise_rad:g} rad{velocity}{filtered}"
     print(
         f"{bundle}: ok (law {loaded.law_name}, {loaded.n_joints} joints{', signature verified' if keys else ''}; "
         f"noise {noise}: torque steps {', '.join(f'{v:.2f}' for v in steps)} N m per period, "

@@ -83,6 +83,18 @@ CASES: list[Case] = [
         {},
         ["--law-coefficient: unknown 'half'", "fitted"],
     ),
+    (
+        "lmpc-velocity-filter-above-nyquist",
+        ["experiment", "--lmpc-velocity-filter-hz", "600"],
+        {},
+        ["--lmpc-velocity-filter-hz: velocity filter: cutoff 600.0 Hz", "Nyquist rate 500 Hz"],
+    ),
+    (
+        "bundle-check-negative-noise",
+        ["bundle", "check", "models/bundles/ur5_paper/pd", "--encoder-noise-rad", "-1"],
+        {},
+        ["--encoder-noise-rad: must be a finite RMS noise >= 0"],
+    ),
     # --out
     ("out-file-in-the-way", ["experiment", "--out", "{tmp}/f"], {"f": "x"}, ["--out {tmp}/f: a file is in the way"]),
     (

@@ -69,7 +69,8 @@ def test_the_runtime_filters_the_lmpc_input_only(tmp_path: Path) -> None:
     raw = Controller(bundle, "lmpc")
     raw.reset(np.zeros(6))
     tau_raw = raw.step(q, np.ones(6), q, np.zeros(6), np.zeros(6))[0].copy()
-    a = lmpc.velocity_filter.pole  # type: ignore[union-attr]  # asserted above
+    assert lmpc.velocity_filter is not None
+    a = lmpc.velocity_filter.pole
     reference = Controller(bundle, "lmpc")
     reference.reset(np.zeros(6))
     tau_expected = reference.step(q, np.full(6, 1.0 - a), q, np.zeros(6), np.zeros(6))[0]
