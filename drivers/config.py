@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ipaddress
 import math
+import re
 from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlparse
@@ -236,9 +237,14 @@ def format_validation_error(source: str, exc: ValidationError) -> str:
     """One line naming the file and the first failing field (pydantic's own message is multi-line)."""
     errors = exc.errors()
     first = errors[0]
-    loc = ".".join(str(part) for part in error_location(first)) or "(top level)"
+    loc = ".".join(str(part) for part in error_location(first))
     more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-    return f"{source}: {loc}: {first['msg']}{more}"
+    message = str(first["msg"])
+    if first.get("type") == "value_error":  # a validator's own ValueError: its text, without pydantic's prefix
+        message = message.removeprefix("Value error, ")
+        if not loc and re.match(r"[A-Za-z_][\w.\[\]]*: ", message):  # a cross-field check names its field
+            return f"{source}: {message}{more}"
+    return f"{source}: {loc or '(top level)'}: {message}{more}"
 
 
 def parse_drive_bus_config(data: Any, source: str = "config", base_dir: Path | None = None) -> DriveBusConfig:
