@@ -71,6 +71,7 @@ from hil_runtime.bundle_probes import (
     check_sensing,
     probe_section,
     tolerated_encoder_noise_rad,
+    torque_rate_nm_s,
 )
 from hil_runtime.bundle_schema import MANIFEST, SUPPORTED_SCHEMAS, Manifest, format_manifest_error
 from hil_runtime.bundle_security import (
@@ -84,7 +85,6 @@ from hil_runtime.bundle_security import (
     member_file,
     read_bounded,
 )
-from hil_runtime.rate_limit import SCALED_RULE, torque_rate_limit_nm_s
 from hil_runtime.supervisor import policy_torque
 
 __all__ = ["DEFAULT_ENCODER_NOISE_RAD", "BundleError", "PolicyBundle", "record_probes", "sha256_file"]
@@ -116,9 +116,7 @@ class PolicyBundle:
         self.law_name = manifest.law.name
         self.state_size = manifest.law.state_size
         self.torque_limit_nm = np.asarray(manifest.limits.torque_nm, float)
-        rate = manifest.limits.torque_rate_nm_s
-        # the robot's torque-rate bound; a bundle from before the field: the rule it was made under
-        self.torque_rate_nm_s = torque_rate_limit_nm_s(SCALED_RULE if rate is None else rate, self.torque_limit_nm)
+        self.torque_rate_nm_s = torque_rate_nm_s(manifest)  # the robot's torque-rate bound (bundle_probes)
         trust = manifest.trust_region
         bound = None if trust is None else trust.residual_bound_nm
         self.residual_bound_nm = None if bound is None else np.asarray(bound, float)

@@ -63,10 +63,17 @@ SETTLE_EXTRA_PASSES = 200
 RATE_TOLERANCE = 1e-9  # relative, on a step of the rate bound
 
 
-def rate_step_nm(manifest: Manifest) -> np.ndarray:
-    """The largest torque change per period the graph may make from tau_prev (N m, per joint)."""
+def torque_rate_nm_s(manifest: Manifest) -> np.ndarray:
+    """The robot's torque-rate bound per joint (N m/s): the manifest's; a manifest from before the field
+    keeps the rule it was made under (hil_runtime.rate_limit's scaled rule)."""
     rate = manifest.limits.torque_rate_nm_s
-    return max_torque_step_nm(np.asarray(rate if rate is not None else np.inf, float), manifest.period_s)
+    return torque_rate_limit_nm_s(SCALED_RULE if rate is None else rate, _torque_limit(manifest))
+
+
+def rate_step_nm(manifest: Manifest) -> np.ndarray:
+    """The largest torque change per period a real arm accepts, the bound a graph reading tau_prev steps
+    within (N m, per joint)."""
+    return max_torque_step_nm(torque_rate_nm_s(manifest), manifest.period_s)
 
 
 def settle_previous(manifest: Manifest, run_rows: RunRows, x: np.ndarray, passes: int | None = None) -> np.ndarray:
@@ -155,19 +162,25 @@ def check_graph(manifest: Manifest, run_rows: RunRows, manifest_path: Path) -> n
 SENSITIVITY_STEP_RAD = 1e-3  # the measurement error the sensitivity is stated for (1 mrad)
 
 
-def position_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -> np.ndarray:
-    """Per joint i: max over the rows x and the joints j of |tau_i(q + 1 mrad e_j) - tau_i(q)|, N m per
-    mrad: what one encoder's error of 1 mrad does to the commanded torque (the law's state kept)."""
+def _largest_torque_change(manifest: Manifest, run_rows: RunRows, x: np.ndarray, first: int, step: float) -> np.ndarray:
+    """Per joint i: max over the rows x and the joints j of |tau_i(x + step e_(first + j)) - tau_i(x)| (either
+    sign; a non-finite change counts as infinite), the law's state kept."""
     n = manifest.robot.n_joints
     base = run_rows(x)[:, :n]
     worst = np.zeros(n)
     for j in range(n):
         for sign in (1.0, -1.0):
             moved = x.copy()
-            moved[:, j] += sign * SENSITIVITY_STEP_RAD
+            moved[:, first + j] += sign * step
             change = np.abs(run_rows(moved)[:, :n] - base)
             worst = np.maximum(worst, np.nanmax(np.where(np.isfinite(change), change, np.inf), 0))
     return worst
+
+
+def position_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -> np.ndarray:
+    """Per joint i: max over the rows x and the joints j of |tau_i(q + 1 mrad e_j) - tau_i(q)|, N m per
+    mrad: what one encoder's error of 1 mrad does to the commanded torque (the law's state kept)."""
+    return _largest_torque_change(manifest, run_rows, x, 0, SENSITIVITY_STEP_RAD)
 
 
 #: the runtime's default encoder noise (bundle.encoder_noise_rad): about one increment of a 19-bit encoder
@@ -180,15 +193,7 @@ def velocity_sensitivity(manifest: Manifest, run_rows: RunRows, x: np.ndarray) -
     """Per joint i: max over the rows x and the joints j of |tau_i(qd + dv e_j) - tau_i(qd)| / dv, N m per
     rad/s (dv = VELOCITY_STEP_RAD_S): what a velocity error does to the commanded torque."""
     n = manifest.robot.n_joints
-    base = run_rows(x)[:, :n]
-    worst = np.zeros(n)
-    for j in range(n):
-        for sign in (1.0, -1.0):
-            moved = x.copy()
-            moved[:, n + j] += sign * VELOCITY_STEP_RAD_S
-            change = np.abs(run_rows(moved)[:, :n] - base) / VELOCITY_STEP_RAD_S
-            worst = np.maximum(worst, np.nanmax(np.where(np.isfinite(change), change, np.inf), 0))
-    return worst
+    return _largest_torque_change(manifest, run_rows, x, n, VELOCITY_STEP_RAD_S) / VELOCITY_STEP_RAD_S
 
 
 def differenced_velocity_noise_rad_s(encoder_noise_rad: float, period_s: float) -> float:
@@ -214,14 +219,6 @@ def noise_step_nm(
         + velocity_step_gain * np.asarray(velocity_nm_s_per_rad, float) * velocity_noise_rad_s
     )
     return steps
-
-
-def _rate_step_of_robot(manifest: Manifest) -> np.ndarray:
-    """The robot's rate bound per period (N m): the manifest's rate, else the scaled rule it was made under."""
-    rate = manifest.limits.torque_rate_nm_s
-    return max_torque_step_nm(
-        torque_rate_limit_nm_s(SCALED_RULE if rate is None else rate, _torque_limit(manifest)), manifest.period_s
-    )
 
 
 def predicted_noise_steps(
@@ -258,7 +255,7 @@ def tolerated_encoder_noise_rad(manifest: Manifest, run_rows: RunRows) -> float:
     if manifest.takes_previous_torque:
         return float("inf")
     per_rad = predicted_noise_steps(manifest, run_rows, 1.0)
-    return float(np.min(_rate_step_of_robot(manifest) / np.maximum(per_rad, 1e-300)))
+    return float(np.min(rate_step_nm(manifest) / np.maximum(per_rad, 1e-300)))
 
 
 def check_sensing(
@@ -281,7 +278,7 @@ def check_sensing(
         steps = predicted_noise_steps(manifest, run_rows, encoder_noise_rad, velocity_noise_rad_s, velocity_filter_hz)
     except GraphCheckError as exc:
         raise GraphCheckError(f"bundle {manifest_path}: {exc}") from None
-    bound = _rate_step_of_robot(manifest)
+    bound = rate_step_nm(manifest)
     if manifest.takes_previous_torque:
         capped: np.ndarray = np.minimum(steps, bound)
         return capped

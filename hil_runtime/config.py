@@ -63,6 +63,7 @@ from drivers.errors import DriveConfigError
 from drivers.strict_input import StrictModel
 from hil_runtime.bundle_probes import DEFAULT_ENCODER_NOISE_RAD
 from hil_runtime.telemetry.config import TelemetryConfig
+from hil_runtime.velocity_filter import filter_pole
 
 MAX_RAMP_S = 60.0  # the reference's ramp from the measured pose (precomputed, like the condition)
 MAX_RUN_S = 7 * 86400.0  # loop.duration_s: a week; null runs until stopped
@@ -204,12 +205,11 @@ class RuntimeConfig(_Frozen):
             value = getattr(self.safety, name)
             if value is not None and len(value) != n:
                 raise ValueError(f"safety.{name}: {len(value)} values for {n} joints")
-        cutoff = self.bundle.velocity_filter_hz
-        if cutoff is not None and cutoff >= 0.5 / self.bus.period_s:
-            raise ValueError(
-                f"bundle.velocity_filter_hz: {cutoff:g} Hz is not below the Nyquist rate of the period "
-                f"({0.5 / self.bus.period_s:g} Hz)"
-            )
+        if self.bundle.velocity_filter_hz is not None:
+            try:
+                filter_pole(self.bundle.velocity_filter_hz, self.bus.period_s)
+            except ValueError as exc:
+                raise ValueError(f"bundle.velocity_filter_hz: {exc}") from None
         spin_s = self.loop.spin_s
         if spin_s is not None and spin_s >= self.bus.period_s / 2:
             raise ValueError(f"loop.spin_s: {spin_s:g} s is not under half the period ({self.bus.period_s:g} s)")

@@ -71,7 +71,7 @@ class VelocityFilter:
             return self._scratch
         np.subtract(qd, self.state, out=self._scratch)
         self._scratch *= self._gain
-        if not np.isfinite(self._scratch).all():  # passed on, not kept
+        if not math.isfinite(self._scratch.sum()):  # passed on, not kept (a sum: no per-cycle array)
             np.copyto(self._scratch, qd)
             return self._scratch
         self.state += self._scratch
